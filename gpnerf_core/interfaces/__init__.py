@@ -1,0 +1,20 @@
+"""Abstract interfaces of every pluggable component kind."""
+
+from gpnerf_core.interfaces.dataset import SPLITS, SceneDataset
+from gpnerf_core.interfaces.feature_extractor import FeatureExtractor
+from gpnerf_core.interfaces.field_aggregator import FieldAggregator
+from gpnerf_core.interfaces.head import PerceptionHead
+from gpnerf_core.interfaces.loss import LossSet
+from gpnerf_core.interfaces.ray_aggregator import RayAggregator
+from gpnerf_core.interfaces.view_selector import ViewSelector
+
+__all__ = [
+    "SPLITS",
+    "FeatureExtractor",
+    "FieldAggregator",
+    "LossSet",
+    "PerceptionHead",
+    "RayAggregator",
+    "SceneDataset",
+    "ViewSelector",
+]

@@ -1,0 +1,39 @@
+"""Interface of scene datasets."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+from gpnerf_core.types import Scene
+
+SPLITS = ("train", "unseen")
+
+
+class SceneDataset(ABC):
+    """A set of posed, labelled scenes with a fixed class map.
+
+    ``train`` scenes are trained on (their ``Scene.train_frames``) and evaluated on their held-out
+    ``Scene.eval_frames``; ``unseen`` scenes never reach training and test generalization.
+    """
+
+    @property
+    @abstractmethod
+    def class_names(self) -> tuple[str, ...]:
+        """Names of the classes 0..K-1."""
+
+    @property
+    def num_classes(self) -> int:
+        return len(self.class_names)
+
+    @property
+    @abstractmethod
+    def ignore_index(self) -> int:
+        """Label value of unlabelled pixels."""
+
+    @abstractmethod
+    def scenes(self, split: str) -> tuple[str, ...]:
+        """Scene names of ``split`` (one of ``SPLITS``)."""
+
+    @abstractmethod
+    def load_scene(self, name: str) -> Scene:
+        """Load a scene's cameras and frame lists; frames load lazily through ``Scene.load_frame``."""

@@ -1,0 +1,25 @@
+"""Interface of loss sets: named, weighted groups of loss terms."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+from torch import Tensor, nn
+
+from gpnerf_core.types import LossInputs
+
+
+class LossSet(nn.Module, ABC):
+    """Computes the weighted terms of one training step.
+
+    The flags tell the pipeline what to compute, so a loss set that ignores semantics costs nothing there.
+    """
+
+    needs_semantics: bool = False
+    """Render semantic features and run the head on the fused map."""
+    needs_sample_semantics: bool = False
+    """Also return per-sample semantic features (``RenderedRays.sample_semantic``)."""
+
+    @abstractmethod
+    def forward(self, inputs: LossInputs) -> dict[str, Tensor]:
+        """Return scalar terms by name, each already multiplied by its weight; the total is their sum."""

@@ -1,0 +1,277 @@
+"""Typed hand-offs between the stages of a generalizable NeRF.
+
+Conventions used by every record below:
+
+* Cameras follow OpenCV: x right, y down, z forward. Poses are camera-to-world 4x4 matrices (``c2w``),
+  translation in metres.
+* Pixel coordinates ``(u, v)`` are in full-resolution pixels of the image the intrinsics belong to, with
+  integer values at pixel centres (so a centred principal point is ``cx = (W - 1) / 2``).
+* Depth is the z-coordinate in the camera frame (not the distance along the ray), in metres; 0 = unknown.
+* Shape letters: R rays, S samples per ray, V source views, C channels, H/W image height/width,
+  B blocks of a transformer, K classes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+from torch import Tensor
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One posed, labelled image of a scene, as a dataset returns it.
+
+    Attributes:
+        rgb: ``[H, W, 3]`` float32 in [0, 1].
+        depth: ``[H, W]`` float32 metres (camera z), 0 where unknown.
+        semantic: ``[H, W]`` int64 class ids in ``[0, num_classes)`` or the dataset's ``ignore_index``.
+        instance: ``[H, W]`` int64 instance ids (0 = background) or None when the dataset has none.
+        intrinsics: ``[3, 3]`` float32 pinhole matrix at this image's resolution.
+        c2w: ``[4, 4]`` float32 camera-to-world pose (OpenCV).
+    """
+
+    rgb: Tensor
+    depth: Tensor
+    semantic: Tensor
+    intrinsics: Tensor
+    c2w: Tensor
+    instance: Tensor | None = None
+
+    @property
+    def height(self) -> int:
+        return int(self.rgb.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.rgb.shape[1])
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A scene: its cameras and frame lists, with frames loaded on demand.
+
+    Attributes:
+        name: unique name within the dataset (``office_0/Sequence_1``, ``scene0000_00``, ...).
+        c2w: ``[N, 4, 4]`` float32 poses of all N frames (OpenCV, metres).
+        intrinsics: ``[N, 3, 3]`` float32, at ``height`` x ``width``.
+        height, width: image size every frame of the scene is loaded at.
+        near, far: depth bounds in metres for ray sampling.
+        train_frames: indices usable as training targets and as source views.
+        eval_frames: held-out targets, disjoint from ``train_frames``; never used as sources.
+        load_frame: ``index -> Frame``; the dataset decides caching.
+    """
+
+    name: str
+    c2w: Tensor
+    intrinsics: Tensor
+    height: int
+    width: int
+    near: float
+    far: float
+    train_frames: tuple[int, ...]
+    eval_frames: tuple[int, ...]
+    load_frame: Callable[[int], Frame] = field(repr=False, compare=False)
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.c2w.shape[0])
+
+
+@dataclass(frozen=True)
+class SourceViews:
+    """Source (reference) images of one target and their cameras.
+
+    Attributes:
+        rgb: ``[V, 3, H, W]`` float32 in [0, 1].
+        intrinsics: ``[V, 3, 3]``; c2w: ``[V, 4, 4]``.
+    """
+
+    rgb: Tensor
+    intrinsics: Tensor
+    c2w: Tensor
+
+    @property
+    def num_views(self) -> int:
+        return int(self.rgb.shape[0])
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return int(self.rgb.shape[-2]), int(self.rgb.shape[-1])
+
+
+@dataclass(frozen=True)
+class FeatureMaps:
+    """Output of a feature extractor for a batch of images.
+
+    Attributes:
+        radiance: ``[N, C_rad, H_r, W_r]`` low-level features for the radiance field (GNT: 32 at 1/4).
+        semantic: ``[N, C_sem, H_s, W_s]`` multi-scale features for the semantic field, the levels
+            concatenated along channels (GP-NeRF: 4 x 128 at 1/2), or None for a radiance-only extractor.
+    """
+
+    radiance: Tensor
+    semantic: Tensor | None
+
+
+@dataclass(frozen=True)
+class RayBatch:
+    """Rays cast from the target camera.
+
+    Attributes:
+        origins: ``[R, 3]`` world positions of the camera centre.
+        directions: ``[R, 3]`` world directions scaled so that their camera-z component is 1, so a point at
+            parameter ``t`` along the ray has camera depth ``t``.
+        pixels: ``[R, 2]`` ``(u, v)`` target pixel coordinates the rays go through.
+        near, far: ``[R]`` depth bounds in metres.
+    """
+
+    origins: Tensor
+    directions: Tensor
+    pixels: Tensor
+    near: Tensor
+    far: Tensor
+
+    @property
+    def num_rays(self) -> int:
+        return int(self.origins.shape[0])
+
+    def chunk(self, start: int, stop: int) -> "RayBatch":
+        return RayBatch(
+            self.origins[start:stop],
+            self.directions[start:stop],
+            self.pixels[start:stop],
+            self.near[start:stop],
+            self.far[start:stop],
+        )
+
+
+@dataclass(frozen=True)
+class RaySamples:
+    """Points along each ray.
+
+    Attributes:
+        depths: ``[R, S]`` camera depths in metres, ascending along each ray.
+        points: ``[R, S, 3]`` world positions ``origin + depth * direction``.
+    """
+
+    depths: Tensor
+    points: Tensor
+
+
+@dataclass(frozen=True)
+class ProjectedFeatures:
+    """Source-view features sampled at the projections of every ray sample.
+
+    Attributes:
+        rgb_features: ``[R, S, V, 3 + C_rad]`` source RGB then radiance features.
+        semantic: ``[R, S, V, C_sem]`` source semantic features, or None when not requested.
+        ray_diff: ``[R, S, V, 4]`` unit difference between the point-to-target-camera and
+            point-to-source-camera directions, and their dot product (GNT's pose feature).
+        visible: ``[R, S, V]`` bool, the point lies in front of the source camera and inside its image.
+    """
+
+    rgb_features: Tensor
+    semantic: Tensor | None
+    ray_diff: Tensor
+    visible: Tensor
+
+
+@dataclass(frozen=True)
+class FieldBlockOutput:
+    """One block of a field aggregator.
+
+    Attributes:
+        tokens: ``[R, S, D]`` updated per-sample tokens.
+        view_attention: ``[R, S, V, A]`` the attention over views this block used, A attention channels
+            (softmax over V for every channel; post-dropout, exactly as it weighted the values).
+    """
+
+    tokens: Tensor
+    view_attention: Tensor
+
+
+@dataclass(frozen=True)
+class RayBlockOutput:
+    """One block of a ray aggregator.
+
+    Attributes:
+        tokens: ``[R, S, D]`` updated per-sample tokens.
+        ray_attention: ``[R, H, S, S]`` attention of each of H heads (rows: queries, softmax over the last dim).
+    """
+
+    tokens: Tensor
+    ray_attention: Tensor
+
+
+@dataclass(frozen=True)
+class RayReadout:
+    """What a ray aggregator reads out of its final tokens.
+
+    Attributes:
+        rgb: ``[R, 3]`` colour (unbounded for GNT; clamp before metrics).
+        weights: ``[R, S]`` per-sample weights summing to 1 along each ray.
+    """
+
+    rgb: Tensor
+    weights: Tensor
+
+
+@dataclass(frozen=True)
+class RenderedRays:
+    """Everything one rendering pass produces for a batch of rays.
+
+    Attributes:
+        rgb: ``[R, 3]``; weights: ``[R, S]``; depth: ``[R]`` metres (``sum_s weights * depths``).
+        samples: the samples the pass used.
+        semantic: ``[R, C_sem]`` rendered semantic features, or None when the semantic field is off.
+        sample_semantic: ``[R, S, C_sem]`` per-sample semantic features (for the D.G loss), or None.
+    """
+
+    rgb: Tensor
+    weights: Tensor
+    depth: Tensor
+    samples: RaySamples
+    semantic: Tensor | None = None
+    sample_semantic: Tensor | None = None
+
+
+@dataclass(frozen=True)
+class HeadOutput:
+    """Output of a perception head.
+
+    Attributes:
+        logits: ``[N, K, H, W]`` per-pixel scores at the requested output size (K = classes or slots).
+    """
+
+    logits: Tensor
+
+
+@dataclass(frozen=True)
+class LossInputs:
+    """Everything a loss set may read for one training step (R rays of one target view).
+
+    Attributes:
+        coarse, fine: the two rendering passes (fine is None with no importance samples).
+        target_rgb: ``[R, 3]``; target_depth: ``[R]`` metres, 0 = unknown.
+        logits: ``[1, K, H, W]`` head output on the fused map, or None without a head.
+        labels: ``[1, H, W]`` int64 target labels with ``ignore_index``.
+        teacher_at_rays: ``[R, C_sem]`` target-view semantic features at the rays' pixels, NOT detached:
+            the loss set decides whether the gradient is blocked.
+        ignore_index: label value excluded from CE and metrics.
+    """
+
+    coarse: RenderedRays
+    fine: RenderedRays | None
+    target_rgb: Tensor
+    target_depth: Tensor
+    logits: Tensor | None
+    labels: Tensor | None
+    teacher_at_rays: Tensor | None
+    ignore_index: int
+
+    @property
+    def last(self) -> RenderedRays:
+        """The pass that carries semantics: fine when present, else coarse."""
+        return self.fine if self.fine is not None else self.coarse
