@@ -1,0 +1,95 @@
+"""Command line: ``python -m gpnerf_core <subcommand> [Hydra overrides]``.
+
+The subcommand is popped first, the plugins are loaded (which makes every registered component a Hydra option),
+then Hydra parses the remaining arguments, so overrides, ``+head=...`` and ``-m`` sweeps work unchanged.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Callable
+
+from gpnerf_core.errors import GpnerfError
+
+USAGE = """usage: python -m gpnerf_core <command> [options]
+
+commands:
+  run       train on the dataset's training scenes, then evaluate held-out views and unseen scenes
+            (Hydra overrides follow, e.g. `run +head=unet +loss=dgs train.steps=200`; `-m` sweeps)
+  eval      evaluate a checkpoint: `eval checkpoint=<path> [overrides]`
+  plugins   list registered components with provider and version, and plugins that failed to load
+"""
+
+
+def config_dir() -> str:
+    import gpnerf_conf
+
+    return str(Path(gpnerf_conf.__file__).resolve().parent)
+
+
+def _hydra_entry(task: Callable, argv: list[str], prog: str) -> int:
+    import hydra
+
+    from gpnerf_core.config import register_schema
+    from gpnerf_core.registry import get_registry
+
+    get_registry()
+    register_schema()
+    sys.argv = [prog, *argv]
+    hydra.main(version_base="1.3", config_path=config_dir(), config_name="config")(task)()
+    return 0
+
+
+def _run(argv: list[str]) -> int:
+    from gpnerf_core.run import run_task
+
+    return _hydra_entry(run_task, argv, "gpnerf_core run")
+
+
+def _eval(argv: list[str]) -> int:
+    from gpnerf_core.run import eval_task
+
+    if not any(a.startswith("checkpoint=") for a in argv):
+        raise GpnerfError("eval needs checkpoint=<path to a .pt file written by run>")
+    return _hydra_entry(eval_task, argv, "gpnerf_core eval")
+
+
+def _plugins(argv: list[str]) -> int:
+    from gpnerf_core.registry import get_registry
+
+    if argv:
+        raise GpnerfError(f"plugins takes no arguments, got {' '.join(argv)!r}")
+    registry = get_registry()
+    rows = [("kind", "name", "provider", "version", "description")]
+    for kind, entries in registry.components.items():
+        for name in sorted(entries):
+            entry = entries[name]
+            rows.append((kind, name, entry.provider, entry.version, entry.spec.description))
+    widths = [max(len(row[i]) for row in rows) for i in range(4)]
+    for row in rows:
+        print("  ".join(cell.ljust(widths[i]) for i, cell in enumerate(row[:4])) + "  " + row[4])
+    if registry.problems:
+        print("\nproblems:")
+        for plugin, reason in registry.problems:
+            print(f"  {plugin}: {reason}")
+    return 0
+
+
+COMMANDS: dict[str, Callable[[list[str]], int]] = {"run": _run, "eval": _eval, "plugins": _plugins}
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help", "help"):
+        print(USAGE)
+        return 0
+    command, rest = argv[0], argv[1:]
+    if command not in COMMANDS:
+        print(f"error: unknown command {command!r}; known commands: {', '.join(COMMANDS)}", file=sys.stderr)
+        return 2
+    try:
+        return COMMANDS[command](rest)
+    except GpnerfError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2

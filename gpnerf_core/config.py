@@ -1,0 +1,112 @@
+"""Schema of the primary config: every key outside the component groups, typed and documented.
+
+Stored in Hydra's ConfigStore as ``gpnerf_schema`` and listed first in ``conf/config.yaml``'s defaults, so a
+misspelled key (``train.step=10``) fails at composition with the key named.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from omegaconf import MISSING
+
+
+@dataclass
+class SemanticFieldConfig:
+    enabled: bool = True
+    """Render the semantic-embedding field (off = GNT alone)."""
+    joint_attention: bool = True
+    """Semantic losses also train the transformers' attention (Table 4: False = frozen attention, ID 1)."""
+    adaptor_relu: bool = False
+    """ReLU after the 512->512 adaptor, as the released code (its teacher is signed, so off by default)."""
+
+
+@dataclass
+class ModelConfig:
+    coarse_samples: int = 48
+    """Stratified samples per ray (inverse-depth spacing)."""
+    fine_samples: int = 16
+    """Importance samples added for the fine pass (0 = single pass)."""
+    num_source_views: int = 10
+    """Source views per target."""
+    detach_source_semantics: bool = True
+    """Rendered-feature losses do not train the extractor through the source views (released code)."""
+    semantic_field: SemanticFieldConfig = field(default_factory=SemanticFieldConfig)
+
+
+@dataclass
+class LearningRates:
+    feature_extractor: float = 5e-3
+    """Encoder, radiance decoder and FPN (paper: 5e-3)."""
+    transformer: float = 1e-5
+    """Field and ray aggregators and the semantic adaptor (paper: 1e-5, fine-tuning GNT weights)."""
+    head: float = 5e-5
+    """Perception head (paper: 5e-5)."""
+
+
+@dataclass
+class TrainConfig:
+    steps: int = 200_000
+    """Optimizer steps (one target view each)."""
+    rays: int = 512
+    """Rays per step."""
+    lr: LearningRates = field(default_factory=LearningRates)
+    lr_decay_rate: float = 0.6
+    """Learning rates are multiplied by this factor every ``lr_decay_steps`` steps (exponentially, per step)."""
+    lr_decay_steps: int = 100_000
+    fuse_rendered: bool = True
+    """Head input is the fused map (paper); False runs the head on the teacher map alone (released code)."""
+    grad_clip: float = 0.0
+    """Clip the global gradient norm to this value (0 = off)."""
+    log_every: int = 10
+    """Steps between entries of the training curves."""
+    checkpoint_every: int = 0
+    """Steps between checkpoints (0 = only the final one)."""
+    resume: Optional[str] = None
+    """Checkpoint to resume from (restores model, optimizer, step and random state)."""
+
+
+@dataclass
+class EvalConfig:
+    render_stride: int = 0
+    """Stride of the rendered grid; 0 = the semantic map's stride (2 for GP-NeRF), so the head sees a full map."""
+    chunk_rays: int = 2048
+    """Rays rendered at once (bounds memory)."""
+    max_views_per_scene: int = 0
+    """Cap on held-out targets per scene (0 = all)."""
+    save_images: int = 2
+    """Targets per split whose pictures are written."""
+    splits: list[str] = field(default_factory=lambda: ["train", "unseen"])
+    """Which scene splits to evaluate: held-out views of ``train`` scenes, and ``unseen`` scenes."""
+
+
+@dataclass
+class RootConfig:
+    feature_extractor: Any = MISSING
+    field_aggregator: Any = MISSING
+    ray_aggregator: Any = MISSING
+    dataset: Any = MISSING
+    view_selector: Any = MISSING
+    head: Any = None
+    """Add-on group: ``+head=<name>``."""
+    loss: Any = None
+    """Add-on group: ``+loss=<name>``."""
+    seed: int = 0
+    device: str = "auto"
+    """``auto`` (CUDA when available), ``cpu`` or ``cuda[:N]``."""
+    threads: int = 0
+    """CPU threads for torch (0 = torch's default)."""
+    model: ModelConfig = field(default_factory=ModelConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    out_dir: str = ""
+    """Run folder; empty = Hydra's output directory."""
+    checkpoint: Optional[str] = None
+    """Checkpoint the ``eval`` command evaluates."""
+
+
+def register_schema() -> None:
+    from hydra.core.config_store import ConfigStore
+
+    ConfigStore.instance().store(name="gpnerf_schema", node=RootConfig)

@@ -1,0 +1,103 @@
+"""The ``resunet_fpn`` feature extractor: GNT's ResUNet for radiance plus GP-NeRF's FPN for semantics."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+from torch import Tensor
+
+from gpnerf_core.errors import ConfigError
+from gpnerf_core.interfaces import FeatureExtractor
+from gpnerf_core.types import FeatureMaps
+from gpnerf_plugins.extractors.fpn import FPN, concat_levels
+from gpnerf_plugins.extractors.resunet import ResUNet
+
+_STRIDE = 16  # coarsest encoder tap (x3)
+_LEVELS = 4  # x0..x3
+
+
+@dataclass
+class ResUNetFPNConfig:
+    """Options of the ``resunet_fpn`` extractor."""
+
+    name: str = "resunet_fpn"
+    """Registry name of the extractor."""
+    widths: list[int] = field(default_factory=lambda: [64, 64, 128, 256])
+    """Channels of the stem, layer1, layer2 and layer3 (GNT's ResNet-34: 64, 64, 128, 256)."""
+    blocks: list[int] = field(default_factory=lambda: [3, 4, 6])
+    """BasicBlocks in layer1, layer2 and layer3 (ResNet-34: 3, 4, 6)."""
+    radiance_dim: int = 32
+    """Channels of the radiance map at 1/4 resolution (GNT: 32)."""
+    detach_deep_for_radiance: bool = True
+    """Feed x3 detached into the radiance decoder, so rendering never trains layer3 (GP-NeRF: True, GNT: False)."""
+    semantic: bool = True
+    """Build the FPN semantic branch; False gives a GNT-only extractor (no semantic map)."""
+    fpn_channels: int = 128
+    """Channels of each of the 4 FPN levels; the semantic map has 4 times this many (GP-NeRF: 128)."""
+
+
+def _check_positive_list(key: str, values: Sequence[int], length: int) -> list[int]:
+    values = [int(v) for v in values]
+    if len(values) != length or any(v < 1 for v in values):
+        raise ConfigError(f"feature_extractor.{key}={values}: expected {length} positive integers")
+    return values
+
+
+class ResUNetFPN(FeatureExtractor):
+    """Shared encoder with a U-Net radiance decoder (1/4) and an optional concatenated FPN (1/2).
+
+    ``forward`` returns ``FeatureMaps(radiance=[N, radiance_dim, H/4, W/4],
+    semantic=[N, 4 * fpn_channels, H/2, W/2] or None)``; semantic channel block k holds FPN level k
+    (stride 2^(k+1)), finest first. Input images are raw RGB in [0, 1] with H and W divisible by 16.
+    """
+
+    def __init__(
+        self,
+        widths: Sequence[int] = (64, 64, 128, 256),
+        blocks: Sequence[int] = (3, 4, 6),
+        radiance_dim: int = 32,
+        detach_deep_for_radiance: bool = True,
+        semantic: bool = True,
+        fpn_channels: int = 128,
+    ) -> None:
+        super().__init__()
+        widths = _check_positive_list("widths", widths, 4)
+        blocks = _check_positive_list("blocks", blocks, 3)
+        if radiance_dim < 1:
+            raise ConfigError(f"feature_extractor.radiance_dim={radiance_dim}: expected a positive integer")
+        if semantic and fpn_channels < 1:
+            raise ConfigError(f"feature_extractor.fpn_channels={fpn_channels}: expected a positive integer")
+        self.backbone = ResUNet(widths, blocks, radiance_dim)
+        self.fpn = FPN(widths, fpn_channels) if semantic else None
+        self.detach_deep_for_radiance = bool(detach_deep_for_radiance)
+        self._radiance_dim = int(radiance_dim)
+        self._fpn_channels = int(fpn_channels) if semantic else 0
+
+    @property
+    def radiance_dim(self) -> int:
+        return self._radiance_dim
+
+    @property
+    def semantic_dim(self) -> int:
+        return _LEVELS * self._fpn_channels
+
+    @property
+    def semantic_levels(self) -> int:
+        return _LEVELS if self.fpn is not None else 0
+
+    def forward(self, images: Tensor) -> FeatureMaps:
+        """Encode ``[N, 3, H, W]`` images in [0, 1] (H, W divisible by 16)."""
+        if images.dim() != 4 or images.shape[1] != 3:
+            raise ConfigError(f"feature extractor input has shape {tuple(images.shape)}; expected [N, 3, H, W]")
+        height, width = images.shape[-2:]
+        if height % _STRIDE or width % _STRIDE:
+            raise ConfigError(
+                f"image size {height}x{width} (HxW) is not divisible by {_STRIDE}, which the resunet_fpn "
+                f"extractor needs; resize or crop the images"
+            )
+        x0, x1, x2, x3 = self.backbone.encode(images)
+        deep = x3.detach() if self.detach_deep_for_radiance else x3
+        radiance = self.backbone.decode(x1, x2, deep)
+        semantic = concat_levels(self.fpn([x0, x1, x2, x3])) if self.fpn is not None else None
+        return FeatureMaps(radiance=radiance, semantic=semantic)

@@ -1,0 +1,16 @@
+"""Registers the built-in loss sets (GP-NeRF's Table 4 rows)."""
+
+from __future__ import annotations
+
+from gpnerf_core import ComponentSpec, hookimpl
+from gpnerf_plugins.losses.sets import CeLossConfig, DgsLossConfig, RgbLossConfig, SdLossConfig, WeightedLossSet
+
+
+@hookimpl
+def gpnerf_register_losses() -> list[ComponentSpec]:
+    return [
+        ComponentSpec("rgb", WeightedLossSet, RgbLossConfig, "colour only (GNT)"),
+        ComponentSpec("ce", WeightedLossSet, CeLossConfig, "colour + semantic cross-entropy"),
+        ComponentSpec("sd", WeightedLossSet, SdLossConfig, "colour + cross-entropy + 2D semantic distillation"),
+        ComponentSpec("dgs", WeightedLossSet, DgsLossConfig, "colour + cross-entropy + 2D and depth-guided distillation"),
+    ]

@@ -1,0 +1,133 @@
+"""Loss terms as pure functions of tensors (no weights, no gradient stops: the loss set applies those)."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from gpnerf_core.errors import ConfigError
+
+
+def rgb_mse(pred: Tensor, target: Tensor) -> Tensor:
+    """Mean squared colour error over rays and channels.
+
+    GNT's per-channel MSE. GP-NeRF's code instead sums the square over the 3 channels (3x this value) and
+    scales it by 0.25, i.e. 0.75x this value per pass.
+
+    Args:
+        pred, target: ``[R, 3]``.
+    """
+    return (pred - target).square().mean()
+
+
+def cross_entropy(logits: Tensor, labels: Tensor, ignore_index: int) -> Tensor:
+    """Cross-entropy averaged over the pixels whose label is not ``ignore_index``; 0 when there is none.
+
+    Args:
+        logits: ``[N, K, H, W]``.
+        labels: ``[N, H, W]`` int64 in ``[0, K)`` or ``ignore_index``.
+    """
+    if logits.dim() != 4 or labels.shape != (logits.shape[0], *logits.shape[2:]):
+        raise ConfigError(
+            f"cross-entropy got logits {tuple(logits.shape)} and labels {tuple(labels.shape)}; "
+            f"expected [N, K, H, W] and [N, H, W] of the same size"
+        )
+    valid = labels != ignore_index
+    count = int(valid.sum())
+    if count:
+        lowest, highest = int(labels[valid].min()), int(labels[valid].max())
+        if lowest < 0 or highest >= logits.shape[1]:
+            bad = lowest if lowest < 0 else highest
+            raise ConfigError(
+                f"label {bad} is outside the head's {logits.shape[1]} classes [0, {logits.shape[1]}) and is not "
+                f"ignore_index={ignore_index}; check the head's num_outputs against the dataset"
+            )
+    # A sum over valid pixels divided by their count stays finite (and zero) when every pixel is ignored.
+    total = F.cross_entropy(logits, labels, ignore_index=ignore_index, reduction="sum")
+    return total / max(count, 1)
+
+
+def cosine_distance(student: Tensor, teacher: Tensor) -> Tensor:
+    """Mean over rays of ``1 - cos(student, teacher)``.
+
+    Args:
+        student, teacher: ``[R, C]``.
+    """
+    if student.shape != teacher.shape:
+        raise ConfigError(
+            f"semantic distillation got rendered features {tuple(student.shape)} and teacher "
+            f"{tuple(teacher.shape)}; expected the same [R, C]"
+        )
+    return (1.0 - F.cosine_similarity(student, teacher, dim=-1)).mean()
+
+
+def centre_from_weights(weights: Tensor) -> Tensor:
+    """Index of the largest weight of each ray: ``[R, S]`` -> ``[R]`` int64."""
+    return weights.argmax(dim=-1)
+
+
+def centre_from_depth(depths: Tensor, target_depth: Tensor, weights: Tensor) -> Tensor:
+    """Index of the sample nearest the ground-truth depth; rays with unknown depth (<= 0) use the weights.
+
+    Args:
+        depths: ``[R, S]`` sample depths in metres.
+        target_depth: ``[R]`` metres, 0 = unknown.
+        weights: ``[R, S]`` predicted weights, for the fallback.
+    Returns:
+        ``[R]`` int64 sample indices.
+    """
+    if target_depth.shape != depths.shape[:1]:
+        raise ConfigError(
+            f"gt_depth window centre got target depths {tuple(target_depth.shape)} for samples "
+            f"{tuple(depths.shape)}; expected [R]"
+        )
+    nearest = (depths - target_depth[:, None]).abs().argmin(dim=-1)
+    known = torch.isfinite(target_depth) & (target_depth > 0)
+    return torch.where(known, nearest, centre_from_weights(weights))
+
+
+def sample_window(centre: Tensor, num_samples: int, half_width: int) -> Tensor:
+    """Sample indices ``centre - half_width .. centre + half_width``, shifted (never wrapped) into ``[0, S-1]``.
+
+    Every ray gets ``min(2 * half_width + 1, S)`` distinct indices.
+
+    Args:
+        centre: ``[R]`` int64 indices in ``[0, S)``.
+        num_samples: S.
+        half_width: N_p, in sample indices.
+    Returns:
+        ``[R, W]`` int64, ascending along each row.
+    """
+    width = min(2 * half_width + 1, num_samples)
+    start = (centre - half_width).clamp(min=0, max=num_samples - width)
+    return start[:, None] + torch.arange(width, device=centre.device)
+
+
+def depth_guided_distance(sample_features: Tensor, teacher: Tensor, window: Tensor, push_away: bool) -> Tensor:
+    """Depth-guided distillation: mean of ``1 - cos`` over the window samples of every ray.
+
+    With ``push_away`` the samples outside the window add the mean of ``max(0, cos)`` over them.
+
+    Args:
+        sample_features: ``[R, S, C]`` per-sample semantic features.
+        teacher: ``[R, C]`` teacher feature of each ray.
+        window: ``[R, W]`` sample indices from ``sample_window``.
+        push_away: also push the samples outside the window away from the teacher.
+    """
+    num_rays, num_samples, channels = sample_features.shape
+    if teacher.shape != (num_rays, channels):
+        raise ConfigError(
+            f"depth-guided distillation got sample features {tuple(sample_features.shape)} and teacher "
+            f"{tuple(teacher.shape)}; expected [R, S, C] and [R, C]"
+        )
+    if not push_away:
+        inside = sample_features.gather(1, window[..., None].expand(-1, -1, channels))
+        return (1.0 - F.cosine_similarity(inside, teacher[:, None, :], dim=-1)).mean()
+    cos = F.cosine_similarity(sample_features, teacher[:, None, :], dim=-1)
+    in_window = torch.zeros_like(cos, dtype=torch.bool).scatter_(1, window, True)
+    pull = (1.0 - cos[in_window]).mean()
+    outside = cos[~in_window]
+    if outside.numel() == 0:
+        return pull
+    return pull + outside.clamp(min=0.0).mean()

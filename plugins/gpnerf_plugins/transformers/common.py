@@ -1,0 +1,81 @@
+"""Building blocks shared by GNT's view and ray transformers: dropout, feed-forward, positional encoding."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from gpnerf_core.errors import ConfigError
+
+# GNT's mask value. float16 cannot hold it, so ``masking_value`` clamps it to the dtype's range.
+MASK_VALUE = -1e9
+
+
+def masking_value(dtype: torch.dtype) -> float:
+    """The logit written into masked slots: -1e9, or the most negative finite value of a narrower dtype.
+
+    A finite value (never -inf) keeps a softmax over slots that are all masked uniform instead of NaN.
+    """
+    return max(MASK_VALUE, torch.finfo(dtype).min)
+
+
+def maybe_dropout(x: Tensor, p: float, training: bool) -> Tensor:
+    """``F.dropout`` in training with p > 0; otherwise ``x`` itself (no kernel call, no copy)."""
+    if training and p > 0.0:
+        return F.dropout(x, p, training=True)
+    return x
+
+
+def check_dropout(owner: str, p: float) -> None:
+    """Raise ConfigError unless ``0 <= p < 1``."""
+    if not 0.0 <= p < 1.0:
+        raise ConfigError(f"{owner}.dropout must be in [0, 1), got {p}")
+
+
+def check_positive(owner: str, key: str, value: int) -> None:
+    """Raise ConfigError unless ``value`` is a positive int."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ConfigError(f"{owner}.{key} must be a positive integer, got {value!r}")
+
+
+class FeedForward(nn.Module):
+    """GNT's position-wise MLP: Linear(D, D*ratio) -> ReLU -> dropout -> Linear(D*ratio, D) -> dropout.
+
+    Parameter names (``fc1``, ``fc2``) match GNT's so its checkpoints load.
+    """
+
+    def __init__(self, dim: int, hidden: int, dropout: float) -> None:
+        super().__init__()
+        self.fc1 = nn.Linear(dim, hidden)
+        self.fc2 = nn.Linear(hidden, dim)
+        self.dropout = dropout
+
+    def forward(self, x: Tensor) -> Tensor:
+        """``[..., D]`` -> ``[..., D]``."""
+        h = F.relu(self.fc1(x), inplace=True)
+        h = maybe_dropout(h, self.dropout, self.training)
+        return maybe_dropout(self.fc2(h), self.dropout, self.training)
+
+
+def encoding_dim(num_frequencies: int, input_dim: int = 3) -> int:
+    """Width of ``positional_encoding``: the input plus a sin and a cos per frequency and coordinate."""
+    return input_dim * (1 + 2 * num_frequencies)
+
+
+def positional_encoding(x: Tensor, num_frequencies: int) -> Tensor:
+    """NeRF encoding with the input included, in GNT's channel order.
+
+    Args:
+        x: ``[..., C]`` coordinates (GNT: raw world points in metres, or unit directions).
+        num_frequencies: F; frequencies 2^0 .. 2^(F-1).
+
+    Returns:
+        ``[..., C * (1 + 2F)]``: ``x``, then for each frequency f the block ``sin(f x)`` followed by ``cos(f x)``.
+    """
+    if num_frequencies == 0:
+        return x
+    freqs = 2.0 ** torch.arange(num_frequencies, device=x.device, dtype=x.dtype)
+    scaled = x[..., None, :] * freqs[:, None]  # [..., F, C]
+    periodic = torch.stack((scaled.sin(), scaled.cos()), dim=-2)  # [..., F, 2, C]
+    return torch.cat((x, periodic.flatten(-3)), dim=-1)
