@@ -190,7 +190,7 @@ def collect(pm: pluggy.PluginManager, problems: list[tuple[str, str]], versions:
     registry = Registry(problems=list(problems), plugin_versions=dict(versions))
     for kind, hook_name in KINDS.items():
         hook = getattr(pm.hook, hook_name)
-        for impl in reversed(hook.get_hookimpls()):  # registration order, for stable listings
+        for impl in hook.get_hookimpls():  # registration order, for stable listings
             try:
                 specs = impl.function()
             except Exception as exc:

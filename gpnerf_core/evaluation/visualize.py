@@ -267,8 +267,9 @@ def plot_training_curves(
 ) -> Path:
     """Chart every scalar series of a training history against step and against wall-clock time.
 
-    Keys starting with ``loss`` go to the upper row (log scale when all values are positive), every other scalar
-    to the lower row. Non-numeric, missing or non-finite values are skipped, so metrics logged only at some steps
+    Keys starting with ``loss`` share the top row (log scale when all values are positive); every other scalar
+    gets one row per family (the part of its key before the first ``/``, e.g. ``psnr``, ``miou``), so series of
+    different units never share an axis. Non-numeric, missing or non-finite values are skipped, so metrics logged only at some steps
     plot as sparse points joined by lines.
 
     Args:
@@ -294,16 +295,15 @@ def plot_training_curves(
                 series.setdefault(key, []).append((index, float(value)))
     if not series:
         raise ValueError(f"history has no numeric series besides '{step_key}' and '{time_key}' to plot")
-    rows = [
-        [key for key in sorted(series) if key.startswith("loss")],
-        [key for key in sorted(series) if not key.startswith("loss")],
-    ]
-    rows = [keys for keys in rows if keys]
+    families: dict[str, list[str]] = {}
+    for key in sorted(series):
+        families.setdefault("loss" if key.startswith("loss") else key.split("/")[0], []).append(key)
+    rows = ([families.pop("loss")] if "loss" in families else []) + list(families.values())
     axes_x = [(steps, "step")]
     if any(t is not None for t in times):
         axes_x.append((times, "wall-clock time (s)"))
 
-    figure = Figure(figsize=(6.0 * len(axes_x), 3.6 * len(rows)), dpi=100, layout="constrained")
+    figure = Figure(figsize=(6.0 * len(axes_x), 3.0 * len(rows)), dpi=100, layout="constrained")
     FigureCanvasAgg(figure)
     for row, keys in enumerate(rows):
         for column, (xs, xlabel) in enumerate(axes_x):
@@ -316,7 +316,7 @@ def plot_training_curves(
             if keys[0].startswith("loss") and all(v > 0 for key in keys for _, v in series[key]):
                 axis.set_yscale("log")
             axis.set_xlabel(xlabel)
-            axis.set_ylabel("loss" if keys[0].startswith("loss") else "metric")
+            axis.set_ylabel("loss" if keys[0].startswith("loss") else keys[0].split("/")[0])
             axis.grid(True, alpha=0.3)
             if axis.get_legend_handles_labels()[0]:
                 axis.legend(fontsize=7, loc="best")

@@ -31,7 +31,7 @@ def project_points(points: Tensor, intrinsics: Tensor, c2w: Tensor) -> tuple[Ten
     cam_points = transform_points(world_to_camera(c2w), points.expand(num_views, -1, -1))  # [V, N, 3]
     depth = cam_points[..., 2]
     # Points behind or on the camera plane get a safe z; they are masked out as invisible anyway.
-    safe = torch.where(depth > 1e-6, cam_points, torch.cat([cam_points[..., :2], torch.ones_like(depth[..., None])], -1))
+    safe = torch.where((depth > 1e-6)[..., None], cam_points, torch.cat([cam_points[..., :2], torch.ones_like(depth[..., None])], -1))
     pixels = kornia_project_points(safe, intrinsics[:, None, :, :].expand(-1, points.shape[0], -1, -1))
     return pixels, depth
 

@@ -49,7 +49,7 @@ class ResUNetFPN(FeatureExtractor):
 
     ``forward`` returns ``FeatureMaps(radiance=[N, radiance_dim, H/4, W/4],
     semantic=[N, 4 * fpn_channels, H/2, W/2] or None)``; semantic channel block k holds FPN level k
-    (stride 2^(k+1)), finest first. Input images are raw RGB in [0, 1] with H and W divisible by 16.
+    (stride 2^(k+1)), finest first. Input images are raw RGB in [0, 1] with H and W multiples of 16, at least 32.
     """
 
     def __init__(
@@ -87,14 +87,15 @@ class ResUNetFPN(FeatureExtractor):
         return _LEVELS if self.fpn is not None else 0
 
     def forward(self, images: Tensor) -> FeatureMaps:
-        """Encode ``[N, 3, H, W]`` images in [0, 1] (H, W divisible by 16)."""
+        """Encode ``[N, 3, H, W]`` images in [0, 1] (H, W multiples of 16, at least 32)."""
         if images.dim() != 4 or images.shape[1] != 3:
             raise ConfigError(f"feature extractor input has shape {tuple(images.shape)}; expected [N, 3, H, W]")
         height, width = images.shape[-2:]
-        if height % _STRIDE or width % _STRIDE:
+        # Reflect padding needs at least 2 cells at the coarsest tap, hence the 32-pixel minimum.
+        if height % _STRIDE or width % _STRIDE or min(height, width) < 2 * _STRIDE:
             raise ConfigError(
-                f"image size {height}x{width} (HxW) is not divisible by {_STRIDE}, which the resunet_fpn "
-                f"extractor needs; resize or crop the images"
+                f"image size {height}x{width} (HxW) is not a multiple of {_STRIDE} of at least {2 * _STRIDE}, "
+                f"which the resunet_fpn extractor needs; resize or crop the images"
             )
         x0, x1, x2, x3 = self.backbone.encode(images)
         deep = x3.detach() if self.detach_deep_for_radiance else x3

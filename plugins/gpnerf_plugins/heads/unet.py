@@ -31,7 +31,8 @@ def split_levels(features: Tensor, levels: int) -> list[Tensor]:
     """Undo the extractor's level concatenation.
 
     ``[N, L * C, h, w]`` -> L maps ``[N, C, ceil(h / 2^k), ceil(w / 2^k)]``, finest first. Bilinear
-    resampling with align_corners=True exactly inverts the extractor's align_corners=True upsampling.
+    resampling with align_corners=True keeps the extractor's corner-aligned geometry (the round trip is
+    exact for features that vary linearly across the image).
     """
     height, width = features.shape[-2:]
     out = []

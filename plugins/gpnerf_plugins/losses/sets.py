@@ -37,7 +37,6 @@ from gpnerf_plugins.losses.terms import (
 )
 
 DGS_CENTERS = ("pred_weights", "gt_depth")
-TERMS = ("rgb", "ce", "sd", "dgs")
 
 
 @dataclass

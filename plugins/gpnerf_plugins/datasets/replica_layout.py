@@ -1,0 +1,346 @@
+"""Reader of one sequence in the Replica (Semantic-NeRF render) layout.
+
+A sequence folder holds::
+
+    rgb/rgb_<i>.png                          uint8 RGB(A)
+    depth/depth_<i>.png                      uint16, millimetres (0 = unknown)
+    semantic_class/semantic_class_<i>.png    raw class ids
+    semantic_instance/semantic_instance_<i>.png   optional, instance ids (0 = background)
+    traj_w_c.txt                             one row of 16 numbers per frame: row-major 4x4 camera-to-world,
+                                             OpenCV convention, metres
+
+Frames are ordered by the integer ``i`` and the k-th pose row belongs to the k-th frame. Intrinsics follow the
+Semantic-NeRF camera: a horizontal field of view (90 degrees) at the loaded resolution, square pixels and a
+centred principal point with pixel centres at integers.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence, Union
+
+import numpy as np
+import torch
+from PIL import Image
+from skimage import io as skio
+from skimage.transform import resize as sk_resize
+
+from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.types import Frame, Scene
+
+TRAJECTORY_FILE = "traj_w_c.txt"
+RGB_DIR, DEPTH_DIR, CLASS_DIR, INSTANCE_DIR = "rgb", "depth", "semantic_class", "semantic_instance"
+DEPTH_SCALE = 1000.0  # depth PNG units per metre
+
+SplitRule = Callable[[int], "tuple[Sequence[int], Sequence[int]]"]
+FrameSplit = Union["tuple[Sequence[int], Sequence[int]]", SplitRule, None]
+
+_RGB_NAME = re.compile(r"^rgb_(.+)\.png$")
+
+
+def every_nth_split(num_frames: int, every: int, offset: int | None = None) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """Hold out every ``every``-th frame for evaluation.
+
+    Args:
+        num_frames: frames in the sequence.
+        every: period of held-out frames; 0 holds out nothing.
+        offset: index of the first held-out frame (default ``every // 2``, so each held-out frame sits in the
+            middle of a run of training frames).
+
+    Returns:
+        ``(train_frames, eval_frames)``, disjoint and ascending.
+    """
+    if every < 0:
+        raise ConfigError(f"eval_every={every} is negative; expected 0 (no held-out frames) or a period >= 2")
+    if every == 0:
+        return tuple(range(num_frames)), ()
+    if every == 1:
+        raise ConfigError("eval_every=1 would hold out every frame; expected 0 or a period >= 2")
+    start = every // 2 if offset is None else offset
+    held = set(range(start, num_frames, every))
+    return tuple(i for i in range(num_frames) if i not in held), tuple(sorted(held))
+
+
+def hfov_intrinsics(height: int, width: int, hfov_deg: float, aspect_scale: float = 1.0) -> np.ndarray:
+    """Pinhole matrix ``[3, 3]`` of a camera with horizontal field of view ``hfov_deg`` at ``height`` x ``width``.
+
+    ``fx = W / (2 tan(hfov / 2))``, ``fy = fx * aspect_scale`` (1 unless a resize changed the aspect ratio),
+    ``cx = (W - 1) / 2``, ``cy = (H - 1) / 2``.
+    """
+    fx = width / (2.0 * math.tan(math.radians(hfov_deg) / 2.0))
+    return np.array(
+        [[fx, 0.0, (width - 1) / 2.0], [0.0, fx * aspect_scale, (height - 1) / 2.0], [0.0, 0.0, 1.0]],
+        dtype=np.float64,
+    )
+
+
+@dataclass(frozen=True)
+class FrameFiles:
+    """Files of one frame; ``number`` is the ``i`` of ``rgb_<i>.png``."""
+
+    number: int
+    rgb: Path
+    depth: Path
+    semantic: Path
+    instance: Path | None
+
+
+def read_trajectory(path: Path) -> np.ndarray:
+    """Parse ``traj_w_c.txt`` into ``[N, 4, 4]`` float64 camera-to-world matrices."""
+    if not path.is_file():
+        raise DataError(f"{path}: missing; expected one row of 16 numbers (row-major 4x4 camera-to-world) per frame")
+    poses = []
+    for line_no, line in enumerate(path.read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
+        fields = line.split()
+        try:
+            values = [float(v) for v in fields]
+        except ValueError:
+            raise DataError(f"{path}:{line_no}: non-numeric value in {line.strip()[:60]!r}; expected 16 numbers") from None
+        if len(values) != 16:
+            raise DataError(f"{path}:{line_no}: {len(values)} numbers; expected 16 (row-major 4x4 camera-to-world)")
+        pose = np.asarray(values, dtype=np.float64).reshape(4, 4)
+        if not np.isfinite(pose).all():
+            raise DataError(f"{path}:{line_no}: pose contains NaN or Inf; expected finite numbers")
+        if np.abs(pose[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-4:
+            raise DataError(
+                f"{path}:{line_no}: last row is {pose[3].tolist()}; expected 0 0 0 1 (a row-major camera-to-world matrix)"
+            )
+        poses.append(pose)
+    if not poses:
+        raise DataError(f"{path}: no poses; expected one row of 16 numbers per frame")
+    return np.stack(poses)
+
+
+def _list_frames(root: Path) -> list[FrameFiles]:
+    rgb_dir = root / RGB_DIR
+    if not rgb_dir.is_dir():
+        raise DataError(f"{rgb_dir}: missing; expected a folder of rgb_<i>.png frames")
+    has_instance = (root / INSTANCE_DIR).is_dir()
+    frames = []
+    for path in rgb_dir.iterdir():
+        match = _RGB_NAME.match(path.name)
+        if match is None:
+            continue
+        token = match.group(1)
+        if not token.isdigit():
+            raise DataError(f"{path}: frame name {token!r} is not a number; expected rgb_<i>.png with integer i")
+        depth = root / DEPTH_DIR / f"depth_{token}.png"
+        semantic = root / CLASS_DIR / f"semantic_class_{token}.png"
+        instance = root / INSTANCE_DIR / f"semantic_instance_{token}.png" if has_instance else None
+        for companion in (depth, semantic, instance):
+            if companion is not None and not companion.is_file():
+                raise DataError(f"{companion}: missing; expected it beside {path.name} (every rgb frame needs one)")
+        frames.append(FrameFiles(int(token), path, depth, semantic, instance))
+    if not frames:
+        raise DataError(f"{rgb_dir}: no rgb_<i>.png frames")
+    frames.sort(key=lambda f: f.number)
+    for a, b in zip(frames, frames[1:]):
+        if a.number == b.number:
+            raise DataError(f"{b.rgb}: frame number {b.number} also used by {a.rgb.name}; expected unique numbers")
+    return frames
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    """(H, W) from the PNG header, without decoding."""
+    try:
+        with Image.open(path) as image:
+            width, height = image.size
+    except Exception as exc:
+        raise DataError(f"{path}: unreadable image ({type(exc).__name__}: {exc}); expected a PNG") from None
+    return height, width
+
+
+def _read_png(path: Path) -> np.ndarray:
+    try:
+        return np.asarray(skio.imread(path))
+    except Exception as exc:
+        raise DataError(f"{path}: unreadable image ({type(exc).__name__}: {exc}); expected a PNG") from None
+
+
+def _nearest_indices(src: int, dst: int) -> np.ndarray:
+    """Source index of each destination pixel centre for a nearest-neighbour resize."""
+    return np.minimum(((np.arange(dst) + 0.5) * src / dst).astype(np.int64), src - 1)
+
+
+class ReplicaSequence:
+    """One Replica-layout sequence: file index and poses parsed eagerly, images decoded per frame.
+
+    Args:
+        path: the sequence folder (``.../office_0/Sequence_1``).
+        hfov_deg: horizontal field of view of the renders, degrees.
+        size: ``(H, W)`` to load frames at, or None for the files' size. RGB is resized with antialiasing,
+            depth and labels with nearest neighbour; intrinsics are derived at the loaded size.
+        label_map: int array, ``label_map[raw_id]`` is the class id; raw ids past its end, and entries equal to
+            ``ignore_index``, become ``ignore_index``. None keeps raw ids.
+        ignore_index: label value of unlabelled pixels.
+
+    Raises:
+        DataError: a missing or malformed file, named in the message.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        hfov_deg: float = 90.0,
+        size: tuple[int, int] | None = None,
+        label_map: np.ndarray | Sequence[int] | None = None,
+        ignore_index: int = 255,
+    ) -> None:
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise DataError(f"{self.path}: sequence folder missing; expected rgb/, depth/, semantic_class/ and {TRAJECTORY_FILE}")
+        if not 0.0 < hfov_deg < 180.0:
+            raise ConfigError(f"hfov_deg={hfov_deg}; expected a field of view in (0, 180) degrees")
+        self.ignore_index = int(ignore_index)
+        self.label_map = None if label_map is None else np.asarray(label_map, dtype=np.int64)
+        if self.label_map is not None and self.label_map.ndim != 1:
+            raise ConfigError(f"label_map has shape {self.label_map.shape}; expected a 1-D array raw id -> class id")
+        self.files = _list_frames(self.path)
+        poses = read_trajectory(self.path / TRAJECTORY_FILE)
+        if len(poses) != len(self.files):
+            raise DataError(
+                f"{self.path / TRAJECTORY_FILE}: {len(poses)} poses for {len(self.files)} rgb frames; expected one pose per frame"
+            )
+        self.native_size = self._check_sizes()
+        if size is not None and (len(size) != 2 or min(size) < 1):
+            raise ConfigError(f"size={size}; expected (height, width) with positive integers")
+        self.height, self.width = (int(size[0]), int(size[1])) if size is not None else self.native_size
+        aspect_scale = (self.height / self.native_size[0]) / (self.width / self.native_size[1])
+        self.intrinsics = torch.from_numpy(hfov_intrinsics(self.height, self.width, hfov_deg, aspect_scale)).float()
+        self.c2w = torch.from_numpy(poses).float()
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.files)
+
+    def _check_sizes(self) -> tuple[int, int]:
+        expected = _image_size(self.files[0].rgb)
+        for frame in self.files:
+            for path in (frame.rgb, frame.depth, frame.semantic, frame.instance):
+                if path is None:
+                    continue
+                found = _image_size(path)
+                if found != expected:
+                    raise DataError(
+                        f"{path}: image is {found[0]}x{found[1]} (HxW); expected {expected[0]}x{expected[1]} like {self.files[0].rgb.name}"
+                    )
+        return expected
+
+    def _labels(self, raw: np.ndarray, path: Path) -> np.ndarray:
+        if raw.ndim != 2 or not np.issubdtype(raw.dtype, np.integer):
+            raise DataError(f"{path}: {raw.dtype} image of shape {raw.shape}; expected a single-channel integer label PNG")
+        raw = raw.astype(np.int64)
+        if self.label_map is None:
+            return raw
+        out = np.full(raw.shape, self.ignore_index, dtype=np.int64)
+        known = (raw >= 0) & (raw < len(self.label_map))
+        out[known] = self.label_map[raw[known]]
+        return out
+
+    def _resize_nearest(self, image: np.ndarray) -> np.ndarray:
+        if image.shape[:2] == (self.height, self.width):
+            return image
+        rows = _nearest_indices(image.shape[0], self.height)
+        cols = _nearest_indices(image.shape[1], self.width)
+        return image[rows[:, None], cols[None, :]]
+
+    def load_frame(self, index: int) -> Frame:
+        """Decode frame ``index`` (position in the numeric order) at the loaded size."""
+        if not 0 <= index < self.num_frames:
+            raise DataError(f"{self.path}: frame index {index} out of range; expected 0..{self.num_frames - 1}")
+        files = self.files[index]
+        rgb = _read_png(files.rgb)
+        if rgb.ndim != 3 or rgb.shape[2] not in (3, 4) or rgb.dtype != np.uint8:
+            raise DataError(f"{files.rgb}: {rgb.dtype} image of shape {rgb.shape}; expected 8-bit RGB or RGBA")
+        rgb = rgb[..., :3].astype(np.float32) / 255.0
+        if rgb.shape[:2] != (self.height, self.width):
+            rgb = sk_resize(rgb, (self.height, self.width), order=1, anti_aliasing=True, preserve_range=True)
+            rgb = np.clip(rgb, 0.0, 1.0).astype(np.float32)
+        depth = _read_png(files.depth)
+        if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.integer):
+            raise DataError(f"{files.depth}: {depth.dtype} image of shape {depth.shape}; expected a single-channel uint16 PNG in millimetres")
+        depth = self._resize_nearest(depth).astype(np.float32) / DEPTH_SCALE
+        semantic = self._resize_nearest(self._labels(_read_png(files.semantic), files.semantic))
+        instance = None
+        if files.instance is not None:
+            raw = _read_png(files.instance)
+            if raw.ndim != 2 or not np.issubdtype(raw.dtype, np.integer):
+                raise DataError(f"{files.instance}: {raw.dtype} image of shape {raw.shape}; expected a single-channel integer PNG")
+            instance = torch.from_numpy(self._resize_nearest(raw.astype(np.int64)))
+        return Frame(
+            rgb=torch.from_numpy(np.ascontiguousarray(rgb)),
+            depth=torch.from_numpy(np.ascontiguousarray(depth)),
+            semantic=torch.from_numpy(np.ascontiguousarray(semantic)),
+            intrinsics=self.intrinsics.clone(),
+            c2w=self.c2w[index].clone(),
+            instance=instance,
+        )
+
+    def scene(
+        self,
+        *,
+        name: str | None = None,
+        split: FrameSplit = None,
+        near: float = 0.1,
+        far: float = 10.0,
+    ) -> Scene:
+        """Wrap the sequence as a ``Scene``.
+
+        Args:
+            name: scene name; default ``<parent folder>/<sequence folder>``.
+            split: ``(train_frames, eval_frames)`` index lists, or a rule ``num_frames -> (train, eval)`` such as
+                ``functools.partial(every_nth_split, every=20)``; None trains on every frame.
+            near, far: ray-sampling depth bounds in metres.
+        """
+        if split is None:
+            train, held = tuple(range(self.num_frames)), ()
+        elif callable(split):
+            train, held = split(self.num_frames)
+        else:
+            train, held = split
+        train, held = tuple(int(i) for i in train), tuple(int(i) for i in held)
+        for label, indices in (("train_frames", train), ("eval_frames", held)):
+            bad = [i for i in indices if not 0 <= i < self.num_frames]
+            if bad:
+                raise ConfigError(f"{label} of {self.path} has index {bad[0]}; expected 0..{self.num_frames - 1}")
+        overlap = sorted(set(train) & set(held))
+        if overlap:
+            raise ConfigError(f"frame {overlap[0]} of {self.path} is in both train_frames and eval_frames; expected disjoint lists")
+        if not 0.0 < near < far:
+            raise ConfigError(f"near={near}, far={far}; expected 0 < near < far (metres)")
+        n = self.num_frames
+        return Scene(
+            name=name if name is not None else f"{self.path.parent.name}/{self.path.name}",
+            c2w=self.c2w.clone(),
+            intrinsics=self.intrinsics.expand(n, 3, 3).clone(),
+            height=self.height,
+            width=self.width,
+            near=float(near),
+            far=float(far),
+            train_frames=train,
+            eval_frames=held,
+            load_frame=self.load_frame,
+        )
+
+
+def read_replica_sequence(
+    path: str | Path,
+    *,
+    name: str | None = None,
+    split: FrameSplit = None,
+    near: float = 0.1,
+    far: float = 10.0,
+    hfov_deg: float = 90.0,
+    size: tuple[int, int] | None = None,
+    label_map: np.ndarray | Sequence[int] | None = None,
+    ignore_index: int = 255,
+) -> Scene:
+    """Read one Replica-layout sequence as a ``Scene``; see ``ReplicaSequence`` and ``ReplicaSequence.scene``."""
+    sequence = ReplicaSequence(path, hfov_deg=hfov_deg, size=size, label_map=label_map, ignore_index=ignore_index)
+    return sequence.scene(name=name, split=split, near=near, far=far)
