@@ -1,0 +1,87 @@
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
+from omegaconf.errors import ConfigKeyError
+
+from gpnerf_core.cli import config_dir
+from gpnerf_core.config import register_schema
+from gpnerf_core.registry import KINDS, get_registry
+
+EXPERIMENTS = sorted(
+    str(p.relative_to(Path(config_dir()) / "experiment").with_suffix(""))
+    for p in (Path(config_dir()) / "experiment").rglob("*.yaml")
+)
+
+
+@pytest.fixture(scope="module")
+def registry():
+    registry = get_registry()
+    register_schema()
+    return registry
+
+
+def compose_with(overrides):
+    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
+        return compose(config_name="config", overrides=overrides)
+
+
+def test_default_config_composes_with_cpu_scale(registry):
+    cfg = compose_with(["+head=unet", "+loss=dgs"])
+    assert cfg.head.name == "unet" and cfg.loss.name == "dgs"
+    assert cfg.feature_extractor.name == "resunet_fpn" and cfg.field_aggregator.width == 32
+    assert cfg.model.coarse_samples == 24
+
+
+def test_paper_scale_restores_paper_sizes(registry):
+    cfg = compose_with(["scale=paper", "+head=unet", "+loss=dgs"])
+    assert list(cfg.feature_extractor.widths) == [64, 64, 128, 256]
+    assert cfg.feature_extractor.fpn_channels * 4 == 512
+    assert cfg.field_aggregator.width == 64 and cfg.field_aggregator.num_blocks == 8
+    assert (cfg.model.coarse_samples, cfg.model.fine_samples, cfg.model.num_source_views) == (48, 16, 10)
+    assert cfg.train.rays == 512 and cfg.train.lr.transformer == 1e-5
+
+
+@pytest.mark.parametrize("kind", list(KINDS))
+def test_every_registered_option_composes(registry, kind):
+    for name in registry.names(kind):
+        prefix = "+" if kind in ("head", "loss") else ""
+        extra = [] if kind in ("head", "loss") else ["+head=unet", "+loss=dgs"]
+        # CPU scale sets keys of the default components; other options compose with scale=paper
+        scale = [] if name in ("resunet_fpn", "gnt_view", "gnt_ray") or kind not in (
+            "feature_extractor", "field_aggregator", "ray_aggregator") else ["scale=paper"]
+        cfg = compose_with([f"{prefix}{kind}={name}", *extra, *scale])
+        assert cfg[kind].name == name
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_every_experiment_composes(registry, experiment):
+    cfg = compose_with([f"+experiment={experiment}"])
+    assert cfg.head is not None and cfg.loss is not None
+
+
+def test_table4_switches(registry):
+    expected = {
+        "table4/id1": ("ce", False, None),
+        "table4/id2": ("ce", True, None),
+        "table4/id3": ("sd", True, False),
+        "table4/id4": ("sd", True, True),
+        "table4/id5": ("dgs", True, True),
+    }
+    for experiment, (loss, joint, block) in expected.items():
+        cfg = compose_with([f"+experiment={experiment}"])
+        assert cfg.loss.name == loss and cfg.model.semantic_field.joint_attention is joint
+        if block is not None:
+            assert cfg.loss.teacher_stop_grad is block and cfg.loss.sd_weight > 0
+
+
+def test_misspelled_key_fails(registry):
+    with pytest.raises((ConfigCompositionException, ConfigKeyError)):
+        compose_with(["+head=unet", "+loss=dgs", "train.step=3"])
+
+
+def test_unknown_head_lists_known_options(registry):
+    with pytest.raises(ConfigCompositionException) as info:
+        compose_with(["+head=nope", "+loss=dgs"])
+    assert "unet" in str(info.value.__cause__ or info.value) or "unet" in str(info.value)

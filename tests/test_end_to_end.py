@@ -1,0 +1,146 @@
+"""The main job end to end on a tiny embedded dataset, through the real command line."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+TINY = [
+    "dataset.num_train_scenes=1",
+    "dataset.num_unseen_scenes=1",
+    "dataset.frames_per_scene=8",
+    "dataset.eval_every=4",
+    "dataset.height=48",
+    "dataset.width=64",
+    "feature_extractor.widths=[8,8,16,16]",
+    "feature_extractor.fpn_channels=8",
+    "field_aggregator.width=16",
+    "field_aggregator.num_blocks=2",
+    "model.coarse_samples=8",
+    "model.fine_samples=4",
+    "model.num_source_views=2",
+    "train.steps=4",
+    "train.rays=32",
+    "train.log_every=2",
+    "eval.chunk_rays=512",
+    "eval.max_views_per_scene=1",
+    "eval.save_images=1",
+    "threads=1",
+]
+
+
+def gpnerf(*args, cwd, cache):
+    env = dict(os.environ, GPNERF_CACHE=str(cache), GPNERF_DISABLE_PLUGIN_AUTOLOAD="1")
+    return subprocess.run(
+        [sys.executable, "-m", "gpnerf_core", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
+    )
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory):
+    return tmp_path_factory.mktemp("e2e")
+
+
+@pytest.fixture(scope="module")
+def first_run(workspace):
+    out = workspace / "run1"
+    result = gpnerf("run", "+head=unet", "+loss=dgs", *TINY, f"out_dir={out}", cwd=workspace, cache=workspace / "cache")
+    assert result.returncode == 0, result.stderr[-3000:]
+    return out, result
+
+
+def test_run_writes_metrics_pictures_and_checkpoint(first_run):
+    out, result = first_run
+    metrics = json.loads((out / "metrics.json").read_text())
+    for split in ("train_heldout", "unseen"):
+        values = metrics["eval"][split]
+        for protocol in ("miou/image_mean_present", "miou/dataset", "acc/total", "acc/class_mean",
+                         "psnr/clamped", "ssim/gaussian11"):
+            assert protocol in values, (split, protocol)
+        assert 0.0 <= values["miou/image_mean_present"] <= 1.0
+        assert "miou/image_mean_present" in values["baseline_majority"]
+        assert values["timing"]["seconds_per_frame"] > 0
+    assert metrics["train"]["steps"] == 4
+    assert (out / "config.yaml").is_file() and (out / "plugins.json").is_file()
+    assert (out / "training_curves.png").is_file()
+    assert len(json.loads((out / "training_curves.json").read_text())) == 2
+    assert list((out / "checkpoints").glob("step_0000004.pt"))
+    assert list((out / "images" / "train_heldout").glob("*_semantic.png"))
+    assert list((out / "images" / "unseen").glob("*_features_pca.png"))
+    assert "run folder:" in result.stdout and str(out.resolve()) in result.stdout
+
+
+def strip_timing(values):
+    if isinstance(values, dict):
+        return {k: strip_timing(v) for k, v in values.items()
+                if k not in ("timing", "seconds", "rays_per_second", "wall_seconds", "machine", "checkpoint")}
+    return values
+
+
+def test_same_seed_same_metrics(first_run, workspace):
+    out, _ = first_run
+    again = workspace / "run2"
+    result = gpnerf("run", "+head=unet", "+loss=dgs", *TINY, f"out_dir={again}", cwd=workspace, cache=workspace / "cache")
+    assert result.returncode == 0, result.stderr[-3000:]
+    first = json.loads((out / "metrics.json").read_text())
+    second = json.loads((again / "metrics.json").read_text())
+    assert strip_timing(first["eval"]) == strip_timing(second["eval"])
+    assert first["train"]["final_loss"] == second["train"]["final_loss"]
+
+
+def test_eval_command_reproduces_run_metrics(first_run, workspace):
+    out, _ = first_run
+    checkpoint = next((out / "checkpoints").glob("*.pt"))
+    evaluated = workspace / "eval"
+    result = gpnerf("eval", f"checkpoint={checkpoint}", "+head=unet", "+loss=dgs", *TINY, f"out_dir={evaluated}",
+                    cwd=workspace, cache=workspace / "cache")
+    assert result.returncode == 0, result.stderr[-3000:]
+    ran = json.loads((out / "metrics.json").read_text())["eval"]
+    evaluated_metrics = json.loads((evaluated / "metrics.json").read_text())["eval"]
+    assert strip_timing(ran) == strip_timing(evaluated_metrics)
+
+
+def test_unknown_head_lists_known_heads_and_fails(workspace):
+    result = gpnerf("run", "+head=nope", "+loss=dgs", cwd=workspace, cache=workspace / "cache")
+    assert result.returncode != 0
+    assert "unet" in result.stderr and "per_pixel" in result.stderr
+
+
+def test_unknown_loss_lists_known_losses_and_fails(workspace):
+    result = gpnerf("run", "+head=unet", "+loss=nope", cwd=workspace, cache=workspace / "cache")
+    assert result.returncode != 0
+    assert "dgs" in result.stderr
+
+
+def test_unknown_command_is_one_line_error(workspace):
+    result = gpnerf("trian", cwd=workspace, cache=workspace / "cache")
+    assert result.returncode == 2
+    assert result.stderr.strip().count("\n") == 0 and "known commands: run" in result.stderr
+
+
+def test_damaged_scene_folder_names_the_file(first_run, workspace):
+    cache = workspace / "cache"
+    depth_files = sorted(cache.rglob("depth_3.png"))
+    assert depth_files, "expected generated depth files in the cache"
+    damaged = depth_files[0]
+    backup = damaged.read_bytes()
+    damaged.unlink()
+    try:
+        result = gpnerf("run", "+head=unet", "+loss=dgs", *TINY, f"out_dir={workspace / 'bad'}", cwd=workspace,
+                        cache=cache)
+    finally:
+        damaged.write_bytes(backup)
+    assert result.returncode == 2
+    assert "depth_3.png" in result.stderr
+    assert "Traceback" not in result.stderr
+    assert not (workspace / "bad" / "metrics.json").exists()
+
+
+def test_plugins_command_lists_kinds(workspace):
+    result = gpnerf("plugins", cwd=workspace, cache=workspace / "cache")
+    assert result.returncode == 0
+    for name in ("resunet_fpn", "gnt_view", "gnt_ray", "unet", "dgs", "embedded", "nearest"):
+        assert name in result.stdout
