@@ -9,7 +9,7 @@ from __future__ import annotations
 import io
 import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -263,20 +263,22 @@ def plot_training_curves(
     history: Sequence[Mapping[str, Any]],
     path: str | os.PathLike[str],
     step_key: str = "step",
-    time_key: str = "wall_time_s",
+    time_key: str = "seconds",
+    loss_keys: Collection[str] | None = None,
 ) -> Path:
     """Chart every scalar series of a training history against step and against wall-clock time.
 
-    Keys starting with ``loss`` share the top row (log scale when all values are positive); every other scalar
-    gets one row per family (the part of its key before the first ``/``, e.g. ``psnr``, ``miou``), so series of
-    different units never share an axis. Non-numeric, missing or non-finite values are skipped, so metrics logged only at some steps
-    plot as sparse points joined by lines.
+    Loss series share the top row (log scale when all values are positive); every other scalar gets one row per
+    family (the part of its key before the first ``/``, e.g. ``psnr``, ``miou``), so series of different units
+    never share an axis. Non-numeric, missing or non-finite values are skipped, so metrics logged only at some
+    steps plot as sparse points joined by lines.
 
     Args:
         history: one mapping per logged step, each with ``step_key`` and optionally ``time_key`` (seconds since
             the start of training).
         path: PNG to write (atomically).
         step_key, time_key: names of the x-axis keys.
+        loss_keys: keys plotted as losses; None means every key starting with ``loss``.
 
     Returns:
         ``path``.
@@ -295,10 +297,15 @@ def plot_training_curves(
                 series.setdefault(key, []).append((index, float(value)))
     if not series:
         raise ValueError(f"history has no numeric series besides '{step_key}' and '{time_key}' to plot")
+    if loss_keys is None:
+        losses = [key for key in sorted(series) if key.startswith("loss")]
+    else:
+        losses = [key for key in sorted(series) if key in set(loss_keys)]
     families: dict[str, list[str]] = {}
     for key in sorted(series):
-        families.setdefault("loss" if key.startswith("loss") else key.split("/")[0], []).append(key)
-    rows = ([families.pop("loss")] if "loss" in families else []) + list(families.values())
+        if key not in losses:
+            families.setdefault(key.split("/")[0], []).append(key)
+    rows = ([losses] if losses else []) + list(families.values())
     axes_x = [(steps, "step")]
     if any(t is not None for t in times):
         axes_x.append((times, "wall-clock time (s)"))
@@ -311,12 +318,13 @@ def plot_training_curves(
             for key in keys:
                 points = [(xs[i], v) for i, v in series[key] if xs[i] is not None]
                 if points:
-                    axis.plot([p[0] for p in points], [p[1] for p in points], label=key, linewidth=1.2, marker=".",
-                              markersize=3)
-            if keys[0].startswith("loss") and all(v > 0 for key in keys for _, v in series[key]):
+                    xs_key, ys_key = zip(*points)
+                    axis.plot(xs_key, ys_key, label=key, linewidth=1.2, marker=".", markersize=3)
+            loss_row = keys is losses
+            if loss_row and all(v > 0 for key in keys for _, v in series[key]):
                 axis.set_yscale("log")
             axis.set_xlabel(xlabel)
-            axis.set_ylabel("loss" if keys[0].startswith("loss") else keys[0].split("/")[0])
+            axis.set_ylabel("loss" if loss_row else keys[0].split("/")[0])
             axis.grid(True, alpha=0.3)
             if axis.get_legend_handles_labels()[0]:
                 axis.legend(fontsize=7, loc="best")

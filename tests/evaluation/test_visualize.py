@@ -82,7 +82,8 @@ def test_pca_rgb_shape_and_determinism():
 
 @pytest.mark.parametrize("lead_sign", [1.0, -1.0])
 def test_pca_rgb_sign_convention(lead_sign):
-    # Features vary along one direction a; the first component is +-a / |a| with its largest loading positive.
+    # Features vary along one direction d; the first component is +-d / |d| with its largest loading positive, so
+    # the first channel rises with the ramp when d's largest entry is positive and falls otherwise.
     ramp = torch.linspace(0.0, 1.0, 12).reshape(3, 4)
     direction = torch.tensor([3.0, -1.0, 0.5, 0.0]) * lead_sign
     features = direction[:, None, None] * ramp[None]
@@ -130,7 +131,7 @@ def test_save_image_round_trip(tmp_path):
 
 def test_plot_training_curves(tmp_path):
     history = [
-        {"step": i, "wall_time_s": 0.5 * i, "loss/total": 1.0 / (i + 1), "loss/rgb": 0.5 / (i + 1), "note": "x"}
+        {"step": i, "seconds": 0.5 * i, "loss/total": 1.0 / (i + 1), "loss/rgb": 0.5 / (i + 1), "note": "x"}
         | ({"psnr/clamped": 20.0 + i, "miou/dataset": 0.1 * i} if i % 3 == 0 else {})
         for i in range(10)
     ]
@@ -149,7 +150,7 @@ def test_plot_training_curves_bad_history(tmp_path):
     with pytest.raises(ValueError, match="entry 1"):
         vis.plot_training_curves([{"step": 0, "loss": 1.0}, {"loss": 2.0}], tmp_path / "c.png")
     with pytest.raises(ValueError, match="no numeric series"):
-        vis.plot_training_curves([{"step": 0, "wall_time_s": 1.0}], tmp_path / "c.png")
+        vis.plot_training_curves([{"step": 0, "seconds": 1.0}], tmp_path / "c.png")
     assert os.listdir(tmp_path) == []
 
 
@@ -161,4 +162,5 @@ def test_pca_rgb_is_invariant_to_channel_order():
     image = vis.pca_rgb(features)
     for seed in range(6):
         order = torch.randperm(6, generator=torch.Generator().manual_seed(seed))
-        assert np.array_equal(vis.pca_rgb(features[order]), image)
+        # <= 1 grey level: float rounding of a permuted sum may move a pixel across a .5 boundary.
+        assert np.abs(vis.pca_rgb(features[order]).astype(int) - image).max() <= 1

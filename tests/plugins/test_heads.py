@@ -17,7 +17,9 @@ def _head(kind: str, num_outputs: int, in_dim: int = 32, **kwargs):
     torch.manual_seed(0)
     if kind == "per_pixel":
         return PerPixelHead(in_dim=in_dim, in_levels=4, num_outputs=num_outputs, hidden_dim=16, **kwargs)
-    return UNetHead(in_dim=in_dim, in_levels=4, num_outputs=num_outputs, decoder=kind, channels=16, norm_groups=4, **kwargs)
+    return UNetHead(
+        in_dim=in_dim, in_levels=4, num_outputs=num_outputs, decoder=kind, channels=16, norm_groups=4, **kwargs
+    )
 
 
 KINDS = ["unet", "semantic_fpn", "per_pixel"]

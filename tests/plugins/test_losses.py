@@ -228,11 +228,12 @@ def test_gt_depth_centre_through_the_set():
         num_rays=2, num_samples=4, channels=2, fine=False, coarse=coarse, teacher_at_rays=teacher,
         target_depth=torch.tensor([1.1, 0.0]),
     )
-    loss_set = WeightedLossSet(rgb_weight=0, ce_weight=0, sd_weight=0, dgs_weight=1.0, dgs_window=0, dgs_center="gt_depth")
+    dgs_only = dict(rgb_weight=0.0, ce_weight=0.0, sd_weight=0.0, dgs_weight=1.0, dgs_window=0)
+    loss_set = WeightedLossSet(**dgs_only, dgs_center="gt_depth")
     # Ray 0: nearest sample to 1.1 m is index 0 (cos 1 -> 0); ray 1 has no depth: argmax weight index 3.
     expected = (0.0 + (1 - 1 / math.sqrt(2))) / 2
     assert loss_set(inputs)["dgs"].item() == pytest.approx(expected, abs=1e-6)
-    pred = WeightedLossSet(rgb_weight=0, ce_weight=0, sd_weight=0, dgs_weight=1.0, dgs_window=0)
+    pred = WeightedLossSet(**dgs_only)
     assert pred(inputs)["dgs"].item() == pytest.approx(1 - 1 / math.sqrt(2), abs=1e-6)
 
 
@@ -294,6 +295,7 @@ def test_bad_options_are_config_errors(kwargs, match):
 def test_config_defaults_match_the_constructor():
     base = LossSetConfig()
     loss_set = WeightedLossSet()
-    assert loss_set.weights == {"rgb": base.rgb_weight, "ce": base.ce_weight, "sd": base.sd_weight, "dgs": base.dgs_weight}
+    expected = {"rgb": base.rgb_weight, "ce": base.ce_weight, "sd": base.sd_weight, "dgs": base.dgs_weight}
+    assert loss_set.weights == expected
     assert (loss_set.dgs_window, loss_set.dgs_center, loss_set.teacher_stop_grad) == (2, "pred_weights", True)
     assert [c().name for c in (RgbLossConfig, CeLossConfig, SdLossConfig, DgsLossConfig)] == ["rgb", "ce", "sd", "dgs"]

@@ -52,7 +52,8 @@ class ResizingHead(PerceptionHead):
         """Decode ``features`` ``[N, in_dim, h, w]`` into logits ``[N, K, *output_size]``."""
         if features.dim() != 4 or features.shape[1] != self.in_dim:
             raise ConfigError(
-                f"head input has shape {tuple(features.shape)}; expected [N, {self.in_dim}, h, w] (in_dim={self.in_dim})"
+                f"head input has shape {tuple(features.shape)}; "
+                f"expected [N, {self.in_dim}, h, w] (in_dim={self.in_dim})"
             )
         size = (int(output_size[0]), int(output_size[1]))
         if min(size) < 1:

@@ -79,7 +79,9 @@ class UNetDecoder(nn.Module):
             nn.Identity() if level_dim == channels else _msra_init(nn.Conv2d(level_dim, channels, 1))
             for _ in range(levels - 1)
         )
-        self.up_convs = nn.ModuleList(_msra_init(nn.Conv2d(channels, channels, 3, padding=1)) for _ in range(levels - 1))
+        self.up_convs = nn.ModuleList(
+            _msra_init(nn.Conv2d(channels, channels, 3, padding=1)) for _ in range(levels - 1)
+        )
         self.fuse = nn.ModuleList(ConvGNReLU(channels, channels, groups) for _ in range(levels - 1))
 
     def forward(self, levels: list[Tensor]) -> Tensor:

@@ -12,5 +12,5 @@ def gpnerf_register_losses() -> list[ComponentSpec]:
         ComponentSpec("rgb", WeightedLossSet, RgbLossConfig, "colour only (GNT)"),
         ComponentSpec("ce", WeightedLossSet, CeLossConfig, "colour + semantic cross-entropy"),
         ComponentSpec("sd", WeightedLossSet, SdLossConfig, "colour + cross-entropy + 2D semantic distillation"),
-        ComponentSpec("dgs", WeightedLossSet, DgsLossConfig, "colour + cross-entropy + 2D and depth-guided distillation"),
+        ComponentSpec("dgs", WeightedLossSet, DgsLossConfig, "colour + cross-entropy + 2D and depth-guided distill."),
     ]

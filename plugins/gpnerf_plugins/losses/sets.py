@@ -130,7 +130,9 @@ class WeightedLossSet(LossSet):
             if not math.isfinite(weight) or weight < 0:
                 raise ConfigError(f"loss.{term}_weight={weight}: expected a finite weight >= 0")
         if not any(weights.values()):
-            raise ConfigError("every loss weight (loss.rgb_weight, ce_weight, sd_weight, dgs_weight) is 0; nothing to train")
+            raise ConfigError(
+                "every loss weight (loss.rgb_weight, ce_weight, sd_weight, dgs_weight) is 0; nothing to train"
+            )
         if dgs_center not in DGS_CENTERS:
             raise ConfigError(f"loss.dgs_center={dgs_center!r}: expected one of {', '.join(DGS_CENTERS)}")
         if dgs_window < 0:

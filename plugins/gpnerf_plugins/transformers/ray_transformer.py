@@ -142,7 +142,7 @@ class GNTRayTransformer(RayAggregator):
         longer sums to 1, so it is renormalised here to keep depth a convex combination of sample depths.
         """
         rgb = self.rgb_fc(self.norm(tokens).mean(dim=1))
-        weights = last.ray_attention[:, :, -1].mean(dim=1)
+        weights = last.ray_attention[:, :, 0].mean(dim=1)
         if self.training and self.dropout > 0.0:
             weights = weights / weights.sum(dim=-1, keepdim=True).clamp_min(torch.finfo(weights.dtype).tiny)
         return RayReadout(rgb=rgb, weights=weights)
