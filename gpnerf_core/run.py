@@ -92,7 +92,8 @@ def run_task(cfg: DictConfig) -> dict[str, Any]:
     result = trainer.fit(progress=sys.stderr.isatty())
     atomic_write_json(run_dir / "training_curves.json", result.history)
     if result.history:
-        plot_training_curves(result.history, run_dir / "training_curves.png")
+        loss_keys = [k for k in result.history[-1] if k not in ("step", "seconds") and not k.startswith("lr_")]
+        plot_training_curves(result.history, run_dir / "training_curves.png", loss_keys=loss_keys)
     evaluation = evaluate(cfg, components, trainer.views, device, run_dir)
     metrics = {
         "config_sha256": (run_dir / "config.sha256").read_text().strip(),

@@ -423,7 +423,9 @@ class ImageQualityAccumulator:
     def __init__(self) -> None:
         self._scores: dict[str, dict[str, list[float]]] = {}
 
-    def update(self, pred: Tensor | np.ndarray, gt: Tensor | np.ndarray, group: str = DEFAULT_GROUP) -> dict[str, float]:
+    def update(
+        self, pred: Tensor | np.ndarray, gt: Tensor | np.ndarray, group: str = DEFAULT_GROUP
+    ) -> dict[str, float]:
         """Add one image pair (``[H, W, 3]`` each); returns its ``{PSNR_CLAMPED, SSIM_GAUSSIAN11}``."""
         scores = {PSNR_CLAMPED: psnr(pred, gt, clamp=True), SSIM_GAUSSIAN11: ssim(pred, gt)}
         bucket = self._scores.setdefault(group, {key: [] for key in self._KEYS})

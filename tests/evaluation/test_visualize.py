@@ -146,6 +146,16 @@ def test_plot_training_curves(tmp_path):
         assert chart.size == (600, 300)
 
 
+def test_plot_training_curves_explicit_loss_keys(tmp_path):
+    history = [{"step": i, "seconds": float(i), "rgb": 0.1, "ce": 2.0, "loss": 2.1, "lr": 1e-3} for i in range(3)]
+    path = vis.plot_training_curves(history, tmp_path / "c.png", loss_keys=["rgb", "ce", "loss"])
+    with Image.open(path) as chart:
+        assert chart.size == (1200, 600)  # rows: the three losses together, then lr
+    path = vis.plot_training_curves(history, tmp_path / "d.png")
+    with Image.open(path) as chart:
+        assert chart.size == (1200, 1200)  # without loss_keys: rows loss, ce, lr, rgb
+
+
 def test_plot_training_curves_bad_history(tmp_path):
     with pytest.raises(ValueError, match="entry 1"):
         vis.plot_training_curves([{"step": 0, "loss": 1.0}, {"loss": 2.0}], tmp_path / "c.png")

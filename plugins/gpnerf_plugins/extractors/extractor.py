@@ -98,7 +98,7 @@ class ResUNetFPN(FeatureExtractor):
                 f"which the resunet_fpn extractor needs; resize or crop the images"
             )
         x0, x1, x2, x3 = self.backbone.encode(images)
-        deep = x3
+        deep = x3.detach() if self.detach_deep_for_radiance else x3
         radiance = self.backbone.decode(x1, x2, deep)
         semantic = concat_levels(self.fpn([x0, x1, x2, x3])) if self.fpn is not None else None
         return FeatureMaps(radiance=radiance, semantic=semantic)
