@@ -40,4 +40,4 @@ def concat_levels(levels: list[Tensor]) -> Tensor:
     """
     size = levels[0].shape[-2:]
     resized = [levels[0]] + [F.interpolate(x, size=size, mode="bilinear", align_corners=True) for x in levels[1:]]
-    return torch.cat(resized[::-1], dim=1)
+    return torch.cat(resized, dim=1)

@@ -31,7 +31,7 @@ MISC_IDS = {"train": range(0, 800), "unseen": range(800, 1000)}
 FLOOR_FILE = "plane.urdf"
 FLOOR_TEXTURE = "checker_blue.png"
 WALL_MESH = "cube.obj"
-WALL_TEXTURES: tuple[str, ...] = ("colors16.png", "uvmap.png", "checker_grid.jpg")
+WALL_TEXTURES: tuple[str, ...] = ("colors16.png", "cube.png", "jenga/jenga.png")
 
 
 @dataclass(frozen=True)
@@ -67,15 +67,15 @@ _HALF_PI = math.pi / 2
 ASSETS: dict[str, Asset] = {
     a.key: a
     for a in (
-        Asset("table", "table", "table/table.urdf", size_range=(1.0, 1.3), rests_on_origin=True),
+        Asset("table", "table", "table/table.urdf", size_range=(1.0, 1.25), rests_on_origin=True),
         Asset("shelf", "shelf", "kiva_shelf/model.sdf", size_range=(0.6, 0.8)),
-        Asset("duck", "duck", "duck_vhacd.urdf", upright=(_HALF_PI, 0.0, 0.0), size_range=(0.22, 0.3)),
-        Asset("teddy", "teddy", "teddy_vhacd.urdf", upright=(_HALF_PI, 0.0, 0.0), size_range=(0.2, 0.28)),
-        Asset("lego", "toy_block", "lego/lego.urdf", size_range=(0.12, 0.18)),
-        Asset("jenga", "toy_block", "jenga/jenga.urdf", size_range=(0.25, 0.35)),
-        Asset("tray", "tray", "tray/traybox.urdf", size_range=(0.4, 0.55)),
-        Asset("mug", "misc_object", "objects/mug.urdf", size_range=(0.14, 0.2)),
-        Asset("random", "misc_object", "random_urdfs/{id:03d}/{id:03d}.urdf", size_range=(0.2, 0.32)),
+        Asset("duck", "duck", "duck_vhacd.urdf", upright=(_HALF_PI, 0.0, 0.0), size_range=(0.3, 0.4)),
+        Asset("teddy", "teddy", "teddy_vhacd.urdf", upright=(_HALF_PI, 0.0, 0.0), size_range=(0.28, 0.36)),
+        Asset("lego", "toy_block", "lego/lego.urdf", size_range=(0.16, 0.24)),
+        Asset("jenga", "toy_block", "jenga/jenga.urdf", size_range=(0.3, 0.4)),
+        Asset("tray", "tray", "tray/traybox.urdf", size_range=(0.45, 0.6)),
+        Asset("mug", "misc_object", "objects/mug.urdf", size_range=(0.18, 0.26)),
+        Asset("random", "misc_object", "random_urdfs/{id:03d}/{id:03d}.urdf", size_range=(0.25, 0.4)),
     )
 }
 TABLE_TOP_ASSETS = ("duck", "teddy", "lego", "jenga", "mug", "random")

@@ -108,7 +108,7 @@ def render_scene(folder: Path, params: SceneSetParams, split: str, index: int) -
     layout_rng, camera_rng = _scene_rngs(params.seed, split, index)
     layout = sample_layout(layout_rng, split, unit_extents)
     table = layout.table
-    poses = orbit(camera_rng, params.frames_per_scene, (table.x, table.y), 0.8 * layout.table_top)
+    poses = orbit(camera_rng, params.frames_per_scene, (table.x, table.y), layout.table_top)
     rows = [format_pose(c2w) for c2w in poses]
     max_depth = 0.0
     with RoomRenderer(layout) as renderer:

@@ -10,11 +10,11 @@ import numpy as np
 
 from gpnerf_plugins.datasets.embedded.catalog import ASSETS, FLOOR_ASSETS, MISC_IDS, TABLE_TOP_ASSETS, WALL_TEXTURES, Asset
 
-ROOM_HALF_SIZE = 3.0
-"""Walls stand at x, y = +-3 m around the origin (the camera orbit stays within 2 m of it)."""
-WALL_HEIGHT = 2.4
+ROOM_HALF_SIZE = 2.8
+"""Walls stand at x, y = +-2.8 m around the origin (the camera orbit stays within 1.8 m of it)."""
+WALL_HEIGHT = 3.0
 WALL_THICKNESS = 0.1
-FLOOR_RING = (0.05, 0.7)
+FLOOR_RING = (0.05, 0.5)
 """Floor objects stand this far (m) beyond the table's footprint circle, inside the camera orbit."""
 GAP = 0.03
 """Minimum clearance between two footprints, metres."""

@@ -6,12 +6,12 @@ import math
 
 import numpy as np
 
-RADIUS_RANGE = (1.4, 1.6)
+RADIUS_RANGE = (1.2, 1.4)
 """Mean orbit radius (m) is drawn from this range; it then varies by +-RADIUS_SWING along the orbit."""
-RADIUS_SWING = 0.12
-HEIGHT_RANGE = (1.0, 1.2)
+RADIUS_SWING = 0.1
+HEIGHT_RANGE = (0.95, 1.15)
 """Mean camera height (m) above the floor; it varies by +-HEIGHT_SWING along the orbit."""
-HEIGHT_SWING = 0.15
+HEIGHT_SWING = 0.12
 TARGET_JITTER = 0.08
 """Amplitude (m) of the smooth wander of the look-at point."""
 

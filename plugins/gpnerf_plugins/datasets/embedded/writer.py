@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any, Iterable
 
 import numpy as np
-from skimage import io as skio
+from PIL import Image
 
 from gpnerf_plugins.datasets.embedded.render import RenderedView
 from gpnerf_plugins.datasets.replica_layout import (
@@ -39,7 +39,8 @@ def depth_to_png(depth_m: np.ndarray) -> np.ndarray:
 
 
 def _save(path: Path, image: np.ndarray) -> None:
-    skio.imsave(path, image, check_contrast=False)
+    """PNG through Pillow: uint8 RGB, uint8 grey, or uint16 grey (mode I;16, bit-exact)."""
+    Image.fromarray(np.ascontiguousarray(image)).save(path, format="PNG")
 
 
 def write_sequence(folder: Path, views: Iterable[RenderedView], pose_rows: list[str]) -> None:

@@ -1,0 +1,136 @@
+"""The ``embedded`` dataset: generated pybullet rooms, read through the Replica-layout reader."""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.interfaces import SPLITS, SceneDataset
+from gpnerf_core.types import Scene
+from gpnerf_plugins.datasets.embedded import CLASS_NAMES, IGNORE_INDEX, SEQUENCE, SceneSetParams, ensure_generated
+from gpnerf_plugins.datasets.embedded.generate import check_params
+from gpnerf_plugins.datasets.replica_layout import ReplicaSequence, every_nth_split
+
+
+@dataclass
+class EmbeddedScenesConfig:
+    name: str = "embedded"
+    """Registry name of this dataset."""
+    root: str = ""
+    """Folder of a generated set (generated there if empty or missing); "" = the cache ($GPNERF_CACHE or ~/.cache/gpnerf)."""
+    num_train_scenes: int = 4
+    """Layouts whose train frames are trained on (eval frames held out)."""
+    num_unseen_scenes: int = 1
+    """Layouts never trained on, for the generalization test."""
+    frames_per_scene: int = 36
+    """Frames along each layout's camera orbit."""
+    height: int = 120
+    """Rendered image height, pixels."""
+    width: int = 160
+    """Rendered image width, pixels."""
+    seed: int = 0
+    """Seed of layouts and trajectories; the same seed gives byte-identical files."""
+    eval_every: int = 6
+    """Every eval_every-th frame (starting at eval_every // 2) is a held-out eval frame; 0 = none."""
+    near: float = 0.2
+    """Ray-sampling near bound, metres (the closest surface seen is about 0.5 m away)."""
+    far: float = 6.5
+    """Ray-sampling far bound, metres (the farthest wall point seen is under 6 m away)."""
+
+
+def _resolve(root: str) -> Path | None:
+    """None for the cache; a relative path is taken from the directory the command was started in."""
+    if not root:
+        return None
+    path = Path(root).expanduser()
+    if path.is_absolute():
+        return path
+    base = Path.cwd()
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.utils import get_original_cwd
+
+        if HydraConfig.initialized():
+            base = Path(get_original_cwd())
+    except ImportError:
+        pass
+    return base / path
+
+
+class EmbeddedScenes(SceneDataset):
+    """Rooms of pybullet_data objects, generated on first ``load_scene`` into ``root`` or the cache.
+
+    Scenes ``layout_00, ...`` form the train split and ``unseen_00, ...`` the unseen split. Constructing the
+    dataset validates its parameters but renders nothing. Frames are decoded on each ``Scene.load_frame`` call
+    (no caching; a 120x160 frame decodes in about a millisecond).
+    """
+
+    def __init__(
+        self,
+        root: str = "",
+        num_train_scenes: int = 4,
+        num_unseen_scenes: int = 1,
+        frames_per_scene: int = 36,
+        height: int = 120,
+        width: int = 160,
+        seed: int = 0,
+        eval_every: int = 6,
+        near: float = 0.2,
+        far: float = 6.5,
+    ) -> None:
+        self.params = SceneSetParams(num_train_scenes, num_unseen_scenes, frames_per_scene, height, width, seed)
+        every_nth_split(frames_per_scene, eval_every)  # raises ConfigError for a bad eval_every
+        if not 0.0 < near < far:
+            raise ConfigError(f"dataset.near={near}, dataset.far={far}; expected 0 < near < far (metres)")
+        self.eval_every = eval_every
+        self.near, self.far = float(near), float(far)
+        self._root_arg = _resolve(root)
+        self._root: Path | None = None
+        self._scenes: dict[str, Scene] = {}
+
+    @property
+    def class_names(self) -> tuple[str, ...]:
+        return CLASS_NAMES
+
+    @property
+    def ignore_index(self) -> int:
+        return IGNORE_INDEX
+
+    def scenes(self, split: str) -> tuple[str, ...]:
+        if split not in SPLITS:
+            raise ConfigError(f"unknown split {split!r}; expected one of: {', '.join(SPLITS)}")
+        return self.params.scene_names(split)
+
+    def prepare(self) -> Path:
+        """Generate the set if needed (once) and return its folder."""
+        if self._root is None:
+            root = ensure_generated(self.params, self._root_arg)
+            info = check_params(root, self.params)
+            if tuple(info.get("class_names", ())) != CLASS_NAMES or info.get("ignore_index") != IGNORE_INDEX:
+                raise DataError(
+                    f"{root / 'classes.json'}: class map {info.get('class_names')} (ignore {info.get('ignore_index')}); "
+                    f"expected {list(CLASS_NAMES)} (ignore {IGNORE_INDEX})"
+                )
+            self._hfov = float(info["hfov_deg"])
+            self._root = root
+        return self._root
+
+    def load_scene(self, name: str) -> Scene:
+        known = self.params.scene_names("train") + self.params.scene_names("unseen")
+        if name not in known:
+            raise ConfigError(f"unknown scene {name!r}; expected one of: {', '.join(known)}")
+        if name not in self._scenes:
+            root = self.prepare()
+            sequence = ReplicaSequence(
+                root / name / SEQUENCE,
+                hfov_deg=self._hfov,
+                label_map=np.arange(len(CLASS_NAMES)),
+                ignore_index=IGNORE_INDEX,
+            )
+            split = functools.partial(every_nth_split, every=self.eval_every)
+            self._scenes[name] = sequence.scene(name=name, split=split, near=self.near, far=self.far)
+        return self._scenes[name]
