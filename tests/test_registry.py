@@ -122,6 +122,7 @@ def test_entry_point_plugins_load_and_broken_ones_are_reported(tmp_path, monkeyp
     write_distribution(tmp_path, "gpnerf_head_fancy", "gpnerf_head_fancy_plugin", GOOD_PLUGIN, "gpnerf_head_fancy")
     write_distribution(tmp_path, "gpnerf_broken", "gpnerf_broken_plugin", "import no_such_module\n", "gpnerf_broken")
     monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delenv("GPNERF_DISABLE_PLUGIN_AUTOLOAD", raising=False)
     pm, problems, versions = make_plugin_manager(autoload=True)
     registry = collect(pm, problems, versions)
     entry = registry.get("head", "fancy_head")

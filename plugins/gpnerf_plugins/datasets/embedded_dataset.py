@@ -12,7 +12,7 @@ from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.interfaces import SPLITS, SceneDataset
 from gpnerf_core.types import Scene
 from gpnerf_plugins.datasets.embedded import CLASS_NAMES, IGNORE_INDEX, SEQUENCE, SceneSetParams, ensure_generated
-from gpnerf_plugins.datasets.embedded.generate import check_params
+from gpnerf_plugins.datasets.embedded.generation import check_params
 from gpnerf_plugins.datasets.replica_layout import ReplicaSequence, every_nth_split
 
 
@@ -28,9 +28,9 @@ class EmbeddedScenesConfig:
     """Layouts never trained on, for the generalization test."""
     frames_per_scene: int = 36
     """Frames along each layout's camera orbit."""
-    height: int = 120
-    """Rendered image height, pixels."""
-    width: int = 160
+    height: int = 96
+    """Rendered image height, pixels (a multiple of 16: the ResNet encoder halves it four times)."""
+    width: int = 128
     """Rendered image width, pixels."""
     seed: int = 0
     """Seed of layouts and trajectories; the same seed gives byte-identical files."""
@@ -75,8 +75,8 @@ class EmbeddedScenes(SceneDataset):
         num_train_scenes: int = 4,
         num_unseen_scenes: int = 1,
         frames_per_scene: int = 36,
-        height: int = 120,
-        width: int = 160,
+        height: int = 96,
+        width: int = 128,
         seed: int = 0,
         eval_every: int = 6,
         near: float = 0.2,
@@ -90,6 +90,7 @@ class EmbeddedScenes(SceneDataset):
         self.near, self.far = float(near), float(far)
         self._root_arg = _resolve(root)
         self._root: Path | None = None
+        self._hfov = 0.0
         self._scenes: dict[str, Scene] = {}
 
     @property

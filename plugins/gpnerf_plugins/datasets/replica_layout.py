@@ -35,8 +35,9 @@ TRAJECTORY_FILE = "traj_w_c.txt"
 RGB_DIR, DEPTH_DIR, CLASS_DIR, INSTANCE_DIR = "rgb", "depth", "semantic_class", "semantic_instance"
 DEPTH_SCALE = 1000.0  # depth PNG units per metre
 
-SplitRule = Callable[[int], "tuple[Sequence[int], Sequence[int]]"]
-FrameSplit = Union["tuple[Sequence[int], Sequence[int]]", SplitRule, None]
+SplitRule = Callable[[int], tuple[Sequence[int], Sequence[int]]]
+"""``num_frames -> (train_frames, eval_frames)``."""
+FrameSplit = Union[tuple[Sequence[int], Sequence[int]], SplitRule, None]
 
 _RGB_NAME = re.compile(r"^rgb_(.+)\.png$")
 
@@ -194,7 +195,9 @@ class ReplicaSequence:
     ) -> None:
         self.path = Path(path)
         if not self.path.is_dir():
-            raise DataError(f"{self.path}: sequence folder missing; expected rgb/, depth/, semantic_class/ and {TRAJECTORY_FILE}")
+            raise DataError(
+                f"{self.path}: sequence folder missing; expected rgb/, depth/, semantic_class/ and {TRAJECTORY_FILE}"
+            )
         if not 0.0 < hfov_deg < 180.0:
             raise ConfigError(f"hfov_deg={hfov_deg}; expected a field of view in (0, 180) degrees")
         self.ignore_index = int(ignore_index)
@@ -205,7 +208,8 @@ class ReplicaSequence:
         poses = read_trajectory(self.path / TRAJECTORY_FILE)
         if len(poses) != len(self.files):
             raise DataError(
-                f"{self.path / TRAJECTORY_FILE}: {len(poses)} poses for {len(self.files)} rgb frames; expected one pose per frame"
+                f"{self.path / TRAJECTORY_FILE}: {len(poses)} poses for {len(self.files)} rgb frames; "
+                "expected one pose per frame"
             )
         self.native_size = self._check_sizes()
         if size is not None and (len(size) != 2 or min(size) < 1):
@@ -228,7 +232,8 @@ class ReplicaSequence:
                 found = _image_size(path)
                 if found != expected:
                     raise DataError(
-                        f"{path}: image is {found[0]}x{found[1]} (HxW); expected {expected[0]}x{expected[1]} like {self.files[0].rgb.name}"
+                        f"{path}: image is {found[0]}x{found[1]} (HxW); "
+                        f"expected {expected[0]}x{expected[1]} like {self.files[0].rgb.name}"
                     )
         return expected
 
@@ -264,14 +269,19 @@ class ReplicaSequence:
             rgb = np.clip(rgb, 0.0, 1.0).astype(np.float32)
         depth = _read_png(files.depth)
         if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.integer):
-            raise DataError(f"{files.depth}: {depth.dtype} image of shape {depth.shape}; expected a single-channel uint16 PNG in millimetres")
+            raise DataError(
+                f"{files.depth}: {depth.dtype} image of shape {depth.shape}; "
+                "expected a single-channel uint16 PNG in millimetres"
+            )
         depth = self._resize_nearest(depth).astype(np.float32) / DEPTH_SCALE
         semantic = self._resize_nearest(self._labels(_read_png(files.semantic), files.semantic))
         instance = None
         if files.instance is not None:
             raw = _read_png(files.instance)
             if raw.ndim != 2 or not np.issubdtype(raw.dtype, np.integer):
-                raise DataError(f"{files.instance}: {raw.dtype} image of shape {raw.shape}; expected a single-channel integer PNG")
+                raise DataError(
+                    f"{files.instance}: {raw.dtype} image of shape {raw.shape}; expected a single-channel integer PNG"
+                )
             instance = torch.from_numpy(self._resize_nearest(raw.astype(np.int64)))
         return Frame(
             rgb=torch.from_numpy(np.ascontiguousarray(rgb)),
@@ -311,7 +321,9 @@ class ReplicaSequence:
                 raise ConfigError(f"{label} of {self.path} has index {bad[0]}; expected 0..{self.num_frames - 1}")
         overlap = sorted(set(train) & set(held))
         if overlap:
-            raise ConfigError(f"frame {overlap[0]} of {self.path} is in both train_frames and eval_frames; expected disjoint lists")
+            raise ConfigError(
+                f"frame {overlap[0]} of {self.path} is in both train_frames and eval_frames; expected disjoint lists"
+            )
         if not 0.0 < near < far:
             raise ConfigError(f"near={near}, far={far}; expected 0 < near < far (metres)")
         n = self.num_frames

@@ -1,7 +1,7 @@
 """Embedded default scenes: rooms built from pybullet_data meshes, written in the Replica layout."""
 
 from gpnerf_plugins.datasets.embedded.catalog import BACKGROUND_INSTANCE, CLASS_NAMES, IGNORE_INDEX
-from gpnerf_plugins.datasets.embedded.generate import (
+from gpnerf_plugins.datasets.embedded.generation import (
     GENERATOR_VERSION,
     HFOV_DEG,
     SEQUENCE,

@@ -4,24 +4,32 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Optional
 
 import numpy as np
 
-from gpnerf_plugins.datasets.embedded.catalog import ASSETS, FLOOR_ASSETS, MISC_IDS, TABLE_TOP_ASSETS, WALL_TEXTURES, Asset
+from gpnerf_plugins.datasets.embedded.catalog import (
+    ASSETS,
+    FLOOR_ASSETS,
+    MISC_IDS,
+    TABLE_TOP_ASSETS,
+    WALL_TEXTURES,
+    Asset,
+)
 
 ROOM_HALF_SIZE = 2.8
 """Walls stand at x, y = +-2.8 m around the origin (the camera orbit stays within 1.8 m of it)."""
 WALL_HEIGHT = 3.0
 WALL_THICKNESS = 0.1
 FLOOR_RING = (0.05, 0.5)
-"""Floor objects stand this far (m) beyond the table's footprint circle, inside the camera orbit."""
+"""Floor objects stand this far (m) beyond the table's footprint circle."""
 GAP = 0.03
 """Minimum clearance between two footprints, metres."""
 MAX_TRIES = 40
+"""Placement attempts per object before it is left out."""
 
 # (aabb_min, aabb_max) of an asset at scale 1, upright, yaw 0: supplied by the renderer, which can load models.
-ExtentsFn = Callable[[Asset, "int | None"], "tuple[np.ndarray, np.ndarray]"]
+ExtentsFn = Callable[[Asset, Optional[int]], tuple[np.ndarray, np.ndarray]]
 
 
 @dataclass(frozen=True)
@@ -74,7 +82,9 @@ class Layout:
         return (self.table, *self.objects)
 
 
-def _scaled(asset: Asset, extents: ExtentsFn, rng: np.random.Generator, mesh_id: int | None) -> tuple[float, float, np.ndarray, np.ndarray]:
+def _scaled(
+    asset: Asset, extents: ExtentsFn, rng: np.random.Generator, mesh_id: int | None
+) -> tuple[float, float, np.ndarray, np.ndarray]:
     """Draw a size; return (scale, footprint radius, scaled aabb_min, scaled aabb_max)."""
     lo, hi = extents(asset, mesh_id)
     size = rng.uniform(*asset.size_range)
@@ -138,9 +148,9 @@ def sample_layout(rng: np.random.Generator, split: str, extents: ExtentsFn) -> L
         margin_x, margin_y = half_x - o_radius - 0.02, half_y - o_radius - 0.02
         if margin_x <= 0 or margin_y <= 0:
             continue
+        cos_t, sin_t = math.cos(table.yaw), math.sin(table.yaw)
         for _ in range(MAX_TRIES):
             u, v = rng.uniform(-margin_x, margin_x), rng.uniform(-margin_y, margin_y)
-            cos_t, sin_t = math.cos(table.yaw), math.sin(table.yaw)
             x, y = table.x + u * cos_t - v * sin_t, table.y + u * sin_t + v * cos_t
             if _clear(x, y, o_radius, top, "table"):
                 top.append(Placement(asset.key, mesh_id, o_scale, x, y, yaw, "table", o_radius))

@@ -34,7 +34,9 @@ def _pybullet():
     return pybullet
 
 
-def projection_matrix(height: int, width: int, hfov_deg: float, near: float = RENDER_NEAR, far: float = RENDER_FAR) -> np.ndarray:
+def projection_matrix(
+    height: int, width: int, hfov_deg: float, near: float = RENDER_NEAR, far: float = RENDER_FAR
+) -> np.ndarray:
     """OpenGL projection ``[4, 4]`` whose TinyRenderer image has OpenCV intrinsics with pixel centres at integers.
 
     The camera is ``fx = fy = W / (2 tan(hfov / 2))``, ``cx = (W - 1) / 2``, ``cy = (H - 1) / 2``. TinyRenderer
@@ -78,7 +80,9 @@ def _load(p, client: int, asset: Asset, mesh_id: int | None, scale: float, orien
             body = p.loadSDF(path, globalScaling=scale, physicsClientId=client)[0]
             p.resetBasePositionAndOrientation(body, (0, 0, 0), orientation, physicsClientId=client)
         else:
-            body = p.loadURDF(path, baseOrientation=orientation, globalScaling=scale, useFixedBase=True, physicsClientId=client)
+            body = p.loadURDF(
+                path, baseOrientation=orientation, globalScaling=scale, useFixedBase=True, physicsClientId=client
+            )
     except p.error as exc:
         raise DataError(f"{path}: pybullet could not load it ({exc}); expected a valid model") from None
     return body

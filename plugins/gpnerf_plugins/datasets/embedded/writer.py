@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 from PIL import Image
@@ -43,19 +43,18 @@ def _save(path: Path, image: np.ndarray) -> None:
     Image.fromarray(np.ascontiguousarray(image)).save(path, format="PNG")
 
 
-def write_sequence(folder: Path, views: Iterable[RenderedView], pose_rows: list[str]) -> None:
-    """Write frames ``0..N-1`` and ``traj_w_c.txt`` into ``folder`` (created)."""
+def write_frame(folder: Path, index: int, view: RenderedView) -> None:
+    """Write frame ``index`` of a sequence folder (its rgb/, depth/, semantic_class/, semantic_instance/)."""
     for sub in (RGB_DIR, DEPTH_DIR, CLASS_DIR, INSTANCE_DIR):
         (folder / sub).mkdir(parents=True, exist_ok=True)
-    count = 0
-    for i, view in enumerate(views):
-        _save(folder / RGB_DIR / f"rgb_{i}.png", view.rgb)
-        _save(folder / DEPTH_DIR / f"depth_{i}.png", depth_to_png(view.depth))
-        _save(folder / CLASS_DIR / f"semantic_class_{i}.png", view.semantic)
-        _save(folder / INSTANCE_DIR / f"semantic_instance_{i}.png", view.instance)
-        count += 1
-    if count != len(pose_rows):
-        raise RuntimeError(f"{folder}: wrote {count} frames for {len(pose_rows)} poses")
+    _save(folder / RGB_DIR / f"rgb_{index}.png", view.rgb)
+    _save(folder / DEPTH_DIR / f"depth_{index}.png", depth_to_png(view.depth))
+    _save(folder / CLASS_DIR / f"semantic_class_{index}.png", view.semantic)
+    _save(folder / INSTANCE_DIR / f"semantic_instance_{index}.png", view.instance)
+
+
+def write_trajectory(folder: Path, pose_rows: list[str]) -> None:
+    """Write ``traj_w_c.txt``: one ``format_pose`` row per frame."""
     (folder / TRAJECTORY_FILE).write_text("".join(row + "\n" for row in pose_rows))
 
 
@@ -75,6 +74,7 @@ def write_readme(root: Path, info: dict[str, Any]) -> None:
         f"| {split} | {', '.join(names) or '-'} |" for split, names in info["scenes"].items()
     )
     param_rows = "\n".join(f"| {k} | {v} |" for k, v in sorted(params.items()))
+    seq = info["sequence"]
     text = f"""# Embedded scenes (gpnerf-core)
 
 Multi-object rooms built from the meshes and textures that ship with `pybullet_data`, rendered on the CPU with
@@ -83,12 +83,13 @@ from seed {info["seed"]}: the same parameters give byte-identical files.
 
 ## Layout (Replica / Semantic-NeRF renders)
 ```
-<scene>/{info["sequence"]}/rgb/rgb_<i>.png                              uint8 RGB
-<scene>/{info["sequence"]}/depth/depth_<i>.png                          uint16 millimetres (camera z), 0 = nothing hit
-<scene>/{info["sequence"]}/semantic_class/semantic_class_<i>.png        uint8 class id (table below), {info["ignore_index"]} = nothing hit
-<scene>/{info["sequence"]}/semantic_instance/semantic_instance_<i>.png  uint16 instance id, {info["background_instance"]} = floor, walls, nothing hit
-<scene>/{info["sequence"]}/traj_w_c.txt                                 per frame 16 numbers: row-major 4x4 camera-to-world (OpenCV: x right, y down, z forward), metres
+<scene>/{seq}/rgb/rgb_<i>.png                              uint8 RGB
+<scene>/{seq}/depth/depth_<i>.png                          uint16 millimetres (camera z), 0 = nothing hit
+<scene>/{seq}/semantic_class/semantic_class_<i>.png        uint8 class id (table below), {info["ignore_index"]} = nothing hit
+<scene>/{seq}/semantic_instance/semantic_instance_<i>.png  uint16 instance id, {info["background_instance"]} = floor, walls, nothing hit
+<scene>/{seq}/traj_w_c.txt                                 16 numbers per frame: row-major 4x4 camera-to-world
 ```
+Poses follow OpenCV (x right, y down, z forward), in metres.
 Camera: horizontal field of view {info["hfov_deg"]} degrees, so fx = fy = W / (2 tan(hfov/2)), cx = (W-1)/2,
 cy = (H-1)/2 with pixel centres at integers. World: z up, floor at z = 0.
 

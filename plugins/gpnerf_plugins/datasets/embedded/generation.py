@@ -27,8 +27,9 @@ from gpnerf_plugins.datasets.embedded.writer import (
     parse_pose,
     read_classes_json,
     write_classes_json,
+    write_frame,
     write_readme,
-    write_sequence,
+    write_trajectory,
 )
 
 GENERATOR_VERSION = "1"
@@ -112,12 +113,11 @@ def render_scene(folder: Path, params: SceneSetParams, split: str, index: int) -
     rows = [format_pose(c2w) for c2w in poses]
     max_depth = 0.0
     with RoomRenderer(layout) as renderer:
-        views = []
-        for row in rows:
+        for frame, row in enumerate(rows):
             view = renderer.render(parse_pose(row), params.height, params.width, HFOV_DEG)
+            write_frame(folder, frame, view)
             max_depth = max(max_depth, float(view.depth.max()))
-            views.append(view)
-    write_sequence(folder, views, rows)
+    write_trajectory(folder, rows)
     return max_depth
 
 
