@@ -126,7 +126,9 @@ class _RefGNT(nn.Module):
         self.view_crosstrans = nn.ModuleList(_RefBlock(dim, _RefViewAttn(dim)) for _ in range(blocks))
         self.view_selftrans = nn.ModuleList(_RefBlock(dim, _RefRayAttn(dim, 4)) for _ in range(blocks))
         self.q_fcs = nn.ModuleList(
-            nn.Sequential(nn.Linear(dim + 2 * enc, dim), nn.ReLU(), nn.Linear(dim, dim)) if i % 2 == 0 else nn.Identity()
+            nn.Sequential(nn.Linear(dim + 2 * enc, dim), nn.ReLU(), nn.Linear(dim, dim))
+            if i % 2 == 0
+            else nn.Identity()
             for i in range(blocks)
         )
         self.norm, self.rgb_fc = nn.LayerNorm(dim), nn.Linear(dim, 3)
@@ -178,6 +180,15 @@ def test_matches_literal_gnt_and_loads_its_state_dict():
     torch.testing.assert_close(ours["weights"], weights, rtol=1e-9, atol=1e-9)
     for a, b in zip(ours["view_attention"] + ours["ray_attention"], view_attns + ray_attns):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
+
+    # Same gradients for every GNT parameter from a loss on colour and on every attention map.
+    probes = [torch.randn_like(a) for a in view_attns + ray_attns]
+    for out, attns in ((ours["rgb"], ours["view_attention"] + ours["ray_attention"]), (rgb, view_attns + ray_attns)):
+        (out.square().sum() + sum((a * p).sum() for a, p in zip(attns, probes))).backward()
+    ref_grads = split_gnt_state_dict({k: p.grad for k, p in ref.named_parameters()})
+    for module, grads in ((field, ref_grads.field), (ray, ref_grads.ray)):
+        for name, p in module.named_parameters():
+            torch.testing.assert_close(p.grad, grads[name], rtol=1e-7, atol=1e-9, msg=name)
 
 
 # --- Properties ---------------------------------------------------------------------------------------

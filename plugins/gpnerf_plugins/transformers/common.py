@@ -39,6 +39,22 @@ def check_positive(owner: str, key: str, value: int) -> None:
         raise ConfigError(f"{owner}.{key} must be a positive integer, got {value!r}")
 
 
+def linear_rows(x: Tensor, layer: nn.Linear) -> Tensor:
+    """``layer`` applied to the rows of a 2-D ``x [N, in]``, giving a fresh ``[N, out]`` tensor.
+
+    Callers keep tensors 2-D around this so that in-place ops on the result do not modify a view (autograd
+    would then copy the whole gradient back through the base). The weight operand's memory layout decides
+    which way autograd computes the weight gradient, a GEMM reducing over the N rows; on CPU BLAS that
+    reduction is 2-3x faster with the narrower side first, so the transposed weight is made contiguous
+    when the layer widens (in < out) and used as a strided view otherwise.
+    """
+    weight = layer.weight
+    mat2 = weight.t().contiguous() if weight.shape[1] < weight.shape[0] else weight.t()
+    if layer.bias is None:
+        return x @ mat2
+    return torch.addmm(layer.bias, x, mat2)
+
+
 class FeedForward(nn.Module):
     """GNT's position-wise MLP: Linear(D, D*ratio) -> ReLU -> dropout -> Linear(D*ratio, D) -> dropout.
 
@@ -53,9 +69,10 @@ class FeedForward(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         """``[..., D]`` -> ``[..., D]``."""
-        h = F.relu(self.fc1(x), inplace=True)
+        h = linear_rows(x.reshape(-1, x.shape[-1]), self.fc1).relu_()
         h = maybe_dropout(h, self.dropout, self.training)
-        return maybe_dropout(self.fc2(h), self.dropout, self.training)
+        out = maybe_dropout(linear_rows(h, self.fc2), self.dropout, self.training)
+        return out.view(x.shape)
 
 
 def encoding_dim(num_frequencies: int, input_dim: int = 3) -> int:

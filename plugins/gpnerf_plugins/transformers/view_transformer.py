@@ -23,6 +23,7 @@ from gpnerf_core.types import FieldBlockOutput, ProjectedFeatures, RayBatch, Ray
 from gpnerf_plugins.transformers.common import (
     FeedForward,
     check_dropout,
+    linear_rows,
     check_positive,
     encoding_dim,
     masking_value,
@@ -109,24 +110,25 @@ class ViewAttention(nn.Module):
         """
         feats = context.view_features
         R, S, V, D = feats.shape
-        f = feats.reshape(-1, D)
+        f = feats.reshape(-1, D)  # [N, D], N = R * S * V; kept 2-D so in-place ops below touch no views
         w_k, w_v = self.k_fc.weight, self.v_fc.weight
         pos_in, pos_out = self.pos_fc[0], self.pos_fc[2]
         att_in, att_out = self.attn_fc[0], self.attn_fc[2]
 
-        pose_hidden = F.relu(pos_in(context.ray_diff.reshape(-1, 4)), inplace=True)  # [N, h]
+        pose_hidden = linear_rows(context.ray_diff.reshape(-1, 4), pos_in).relu_()  # [N, h]
         # V + P = f (Wv Wk)^T + pose_hidden Wp^T + bp, accumulated into one buffer.
         values = torch.addmm(pos_out.bias, f, (w_v @ w_k).t())
-        values.addmm_(pose_hidden, pos_out.weight.t())
+        values.addmm_(pose_hidden, pos_out.weight.t().contiguous())
         # First attention layer on K - Q + P, split into its per-view terms and a per-sample bias.
         hidden = f @ (att_in.weight @ w_k).t()
         hidden.addmm_(pose_hidden, (att_in.weight @ pos_out.weight).t())
         sample_bias = F.linear(x, -(att_in.weight @ self.q_fc.weight), att_in.bias + att_in.weight @ pos_out.bias)
-        hidden = F.relu(hidden.view(R, S, V, -1) + sample_bias[:, :, None], inplace=True)
-        logits = att_out(hidden)  # [R, S, V, D]
+        hidden = (hidden.view(R * S, V, -1) + sample_bias.view(R * S, 1, -1)).relu_()
+        logits = linear_rows(hidden.view(R * S * V, -1), att_out)  # [N, D]
         if context.hidden is not None:
-            logits.masked_fill_(context.hidden, masking_value(logits.dtype))
-        attention = maybe_dropout(torch.softmax(logits, dim=2), self.dropout, self.training)
+            logits.masked_fill_(context.hidden.reshape(-1, 1), masking_value(logits.dtype))
+        attention = torch.softmax(logits.view(R, S, V, D), dim=2)
+        attention = maybe_dropout(attention, self.dropout, self.training)
         out = torch.linalg.vecdot(values.view(R, S, V, D), attention, dim=2)
         return maybe_dropout(self.out_fc(out), self.dropout, self.training), attention
 
@@ -249,7 +251,9 @@ class GNTViewTransformer(FieldAggregator):
                 f"{tuple(rays.directions.shape)} do not match R={R}, S={S}; expected [R, S, 3] / [R, 3]"
             )
 
-        view_features = self.rgbfeat_fc(rgb_features)
+        first, last = self.rgbfeat_fc[0], self.rgbfeat_fc[2]
+        rows = linear_rows(rgb_features.reshape(-1, self.in_dim), first).relu_()
+        view_features = linear_rows(rows, last).view(R, S, V, self._width)
         tokens = view_features.amax(dim=2)
         visible = features.visible.bool()
         hidden = None if bool(visible.all()) else (~visible)[..., None]
