@@ -89,7 +89,7 @@ def run_task(cfg: DictConfig) -> dict[str, Any]:
     components = build_components(cfg)
     trainer = Trainer(cfg, components, device, run_dir, config_yaml)
     started = time.perf_counter()
-    result = trainer.fit(progress=sys.stderr.isatty())
+    result = trainer.fit(progress=True)
     atomic_write_json(run_dir / "training_curves.json", result.history)
     if result.history:
         loss_keys = [k for k in result.history[-1] if k not in ("step", "seconds") and not k.startswith("lr_")]

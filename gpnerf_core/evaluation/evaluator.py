@@ -176,14 +176,15 @@ def _save_pictures(
     far: float,
 ) -> None:
     pred_rgb = rendered.rgb.cpu()
+    s = rendered.stride  # rendered maps are shown at full size, one block per rendered cell
     atomic_save_png(prefix.with_name(prefix.name + "_rgb.png"), vis.side_by_side(
-        [_to_uint8(pred_rgb), _to_uint8(gt_rgb), vis.rgb_error_map(pred_rgb.clamp(0, 1), gt_rgb)],
+        [_upscale(_to_uint8(pred_rgb), s), _upscale(_to_uint8(gt_rgb), s),
+         _upscale(vis.rgb_error_map(pred_rgb.clamp(0, 1), gt_rgb), s)],
         ["rendered RGB", "ground truth", "|error|"],
     ))
     atomic_save_png(prefix.with_name(prefix.name + "_depth.png"), vis.side_by_side(
-        [vis.depth_to_color(rendered.depth.cpu(), near, far),
-         vis.depth_to_color(_nearest_downsample(target.depth, rendered.stride), near, far)],
-        ["rendered depth", "ground-truth depth"],
+        [_upscale(vis.depth_to_color(rendered.depth.cpu(), near, far), s), vis.depth_to_color(target.depth, near, far)],
+        ["rendered depth", "ground truth"],
     ))
     if prediction is not None:
         atomic_save_png(prefix.with_name(prefix.name + "_semantic.png"), vis.side_by_side(
@@ -193,11 +194,13 @@ def _save_pictures(
             ["predicted classes", "ground truth", "errors"],
         ))
     if rendered.semantic is not None:
-        atomic_save_png(prefix.with_name(prefix.name + "_features_pca.png"), vis.pca_rgb(rendered.semantic.cpu()))
+        atomic_save_png(
+            prefix.with_name(prefix.name + "_features_pca.png"), _upscale(vis.pca_rgb(rendered.semantic.cpu()), s)
+        )
 
 
-def _nearest_downsample(depth: torch.Tensor, stride: int) -> torch.Tensor:
-    return depth[stride // 2 :: stride, stride // 2 :: stride]
+def _upscale(image: np.ndarray, factor: int) -> np.ndarray:
+    return image.repeat(factor, axis=0).repeat(factor, axis=1)
 
 
 def print_summary(metrics: dict[str, Any], run_dir: Path) -> None:

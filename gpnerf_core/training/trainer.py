@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -160,7 +161,16 @@ class Trainer:
         if progress:
             from tqdm import tqdm
 
-            bar = tqdm(total=total_steps, initial=self.step, desc="train", unit="step", dynamic_ncols=True)
+            interactive = sys.stderr.isatty()
+            bar = tqdm(
+                total=total_steps,
+                initial=self.step,
+                desc="train",
+                unit="step",
+                dynamic_ncols=True,
+                mininterval=0.5 if interactive else 30.0,
+                file=sys.stderr,
+            )
         self.model.train()
         rays_done = 0
         started = time.perf_counter()
