@@ -10,12 +10,13 @@ from gpnerf_core.interfaces import (
     SceneDataset,
     ViewSelector,
 )
-from gpnerf_core.registry import ComponentSpec, get_registry
+from gpnerf_core.registry import ComponentSpec, DataTool, get_registry
 
 __version__ = "0.1.0"
 
 __all__ = [
     "ComponentSpec",
+    "DataTool",
     "FeatureExtractor",
     "FieldAggregator",
     "LossSet",

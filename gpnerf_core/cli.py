@@ -18,6 +18,7 @@ commands:
   run       train on the dataset's training scenes, then evaluate held-out views and unseen scenes
             (Hydra overrides follow, e.g. `run +head=unet +loss=dgs train.steps=200`; `-m` sweeps)
   eval      evaluate a checkpoint: `eval checkpoint=<path> [overrides]`
+  data      dataset tools: `data` lists them (check a layout, prepare ScanNet, make the embedded scenes)
   plugins   list registered components with provider and version, and plugins that failed to load
 """
 
@@ -76,7 +77,21 @@ def _plugins(argv: list[str]) -> int:
     return 0
 
 
-COMMANDS: dict[str, Callable[[list[str]], int]] = {"run": _run, "eval": _eval, "plugins": _plugins}
+def _data(argv: list[str]) -> int:
+    from gpnerf_core.registry import get_registry
+
+    tools = get_registry().data_tools
+    if not argv or argv[0] in ("-h", "--help"):
+        print("usage: python -m gpnerf_core data <tool> [arguments]\n\ntools:")
+        for name in sorted(tools):
+            print(f"  {name:<18} {tools[name][0].description}")
+        return 0
+    if argv[0] not in tools:
+        raise GpnerfError(f"unknown data tool {argv[0]!r}; known tools: {', '.join(sorted(tools)) or '(none)'}")
+    return int(tools[argv[0]][0].run(argv[1:]) or 0)
+
+
+COMMANDS: dict[str, Callable[[list[str]], int]] = {"run": _run, "eval": _eval, "data": _data, "plugins": _plugins}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 import pluggy
 
 if TYPE_CHECKING:
-    from gpnerf_core.registry import ComponentSpec
+    from gpnerf_core.registry import ComponentSpec, DataTool
 
 PROJECT_NAME = "gpnerf"
 hookspec = pluggy.HookspecMarker(PROJECT_NAME)
@@ -93,4 +93,16 @@ def gpnerf_register_view_selectors() -> list[ComponentSpec]:
 
     Returns:
         Specs for the Hydra group ``view_selector``.
+    """
+
+
+@hookspec
+def gpnerf_register_data_tools() -> list[DataTool]:
+    """Subcommands of ``python -m gpnerf_core data`` (checkers, converters, generators).
+
+    Each tool parses its own arguments and returns an exit code; user errors are raised as
+    ``gpnerf_core.errors.GpnerfError`` and printed on one line by the CLI.
+
+    Returns:
+        ``DataTool`` records; a name registered twice is an error naming both providers.
     """

@@ -59,6 +59,21 @@ class ComponentSpec:
 
 
 @dataclass(frozen=True)
+class DataTool:
+    """A subcommand of ``python -m gpnerf_core data``.
+
+    Attributes:
+        name: the subcommand (``check``, ``prepare-scannet``, ...).
+        run: ``run(argv) -> exit code``; parses its own arguments.
+        description: one line shown by ``python -m gpnerf_core data``.
+    """
+
+    name: str
+    run: Callable[[list[str]], int]
+    description: str = ""
+
+
+@dataclass(frozen=True)
 class RegisteredComponent:
     kind: str
     spec: ComponentSpec
@@ -73,6 +88,7 @@ class Registry:
     components: dict[str, dict[str, RegisteredComponent]] = field(default_factory=lambda: {k: {} for k in KINDS})
     problems: list[tuple[str, str]] = field(default_factory=list)
     plugin_versions: dict[str, str] = field(default_factory=dict)
+    data_tools: dict[str, tuple[DataTool, str]] = field(default_factory=dict)
 
     def names(self, kind: str) -> list[str]:
         return sorted(self.components[kind])
@@ -198,6 +214,19 @@ def collect(pm: pluggy.PluginManager, problems: list[tuple[str, str]], versions:
                 continue
             for spec in specs or ():
                 registry.add(kind, spec, impl.plugin_name, versions.get(impl.plugin_name, "unknown"))
+    for impl in pm.hook.gpnerf_register_data_tools.get_hookimpls():
+        try:
+            tools = impl.function()
+        except Exception as exc:
+            registry.problems.append((impl.plugin_name, f"gpnerf_register_data_tools raised {type(exc).__name__}: {exc}"))
+            continue
+        for tool in tools or ():
+            if tool.name in registry.data_tools:
+                raise PluginError(
+                    f"duplicate data tool {tool.name!r}: provided by both "
+                    f"{registry.data_tools[tool.name][1]!r} and {impl.plugin_name!r}"
+                )
+            registry.data_tools[tool.name] = (tool, impl.plugin_name)
     return registry
 
 

@@ -1,6 +1,7 @@
 """Registers the built-in datasets."""
 
-from gpnerf_core import ComponentSpec, hookimpl
+from gpnerf_core import ComponentSpec, DataTool, hookimpl
+from gpnerf_plugins.datasets import tools
 from gpnerf_plugins.datasets.embedded_dataset import EmbeddedScenes, EmbeddedScenesConfig
 
 
@@ -13,4 +14,17 @@ def gpnerf_register_datasets() -> list[ComponentSpec]:
             EmbeddedScenesConfig,
             "rooms of pybullet_data objects rendered on the CPU (Replica layout), generated once into a cache",
         )
+    ]
+
+
+@hookimpl
+def gpnerf_register_data_tools() -> list[DataTool]:
+    return [
+        DataTool("check", tools.check, "check a dataset folder: `data check <root> --layout replica|replica_instance|scannet`"),
+        DataTool("make", tools.make_embedded, "render the embedded scenes into the cache: `data make [--seed N ...]`"),
+        DataTool(
+            "prepare-scannet",
+            tools.prepare_scannet,
+            "turn a ScanNet scan (.sens + _2d-label-filt.zip) into the Semantic-Ray layout",
+        ),
     ]
