@@ -18,6 +18,7 @@ commands:
   run       train on the dataset's training scenes, then evaluate held-out views and unseen scenes
             (Hydra overrides follow, e.g. `run +head=unet +loss=dgs train.steps=200`; `-m` sweeps)
   eval      evaluate a checkpoint: `eval checkpoint=<path> [overrides]`
+  report    tabulate run folders (a sweep, the Table 4 ablation) beside the paper's numbers
   data      dataset tools: `data` lists them (check a layout, prepare ScanNet, make the embedded scenes)
   plugins   list registered components with provider and version, and plugins that failed to load
 """
@@ -91,7 +92,19 @@ def _data(argv: list[str]) -> int:
     return int(tools[argv[0]][0].run(argv[1:]) or 0)
 
 
-COMMANDS: dict[str, Callable[[list[str]], int]] = {"run": _run, "eval": _eval, "data": _data, "plugins": _plugins}
+def _report(argv: list[str]) -> int:
+    from gpnerf_core.report import main as report_main
+
+    return report_main(argv)
+
+
+COMMANDS: dict[str, Callable[[list[str]], int]] = {
+    "run": _run,
+    "eval": _eval,
+    "report": _report,
+    "data": _data,
+    "plugins": _plugins,
+}
 
 
 def main(argv: list[str] | None = None) -> int:

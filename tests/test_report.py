@@ -1,0 +1,33 @@
+import json
+
+import pytest
+import yaml
+
+from gpnerf_core.errors import DataError
+from gpnerf_core.report import find_runs, format_table
+
+
+def write_run(folder, loss, joint, miou):
+    folder.mkdir(parents=True)
+    config = {"head": {"name": "unet"}, "loss": loss, "model": {"semantic_field": {"joint_attention": joint}}}
+    (folder / "config.yaml").write_text(yaml.safe_dump(config))
+    metrics = {"train": {"steps": 10, "seconds": 1.5},
+               "eval": {"train_heldout": {"miou/image_mean_present": miou, "psnr/clamped": 20.0},
+                        "unseen": {"miou/image_mean_present": miou / 2}}}
+    (folder / "metrics.json").write_text(json.dumps(metrics))
+
+
+def test_rows_are_matched_to_table4_ids(tmp_path):
+    write_run(tmp_path / "0", {"name": "ce", "sd_weight": 0, "dgs_weight": 0, "teacher_stop_grad": True}, False, 0.5)
+    write_run(tmp_path / "1", {"name": "sd", "sd_weight": 0.25, "dgs_weight": 0, "teacher_stop_grad": False}, True, 0.4)
+    write_run(tmp_path / "2", {"name": "dgs", "sd_weight": 0.25, "dgs_weight": 0.25, "teacher_stop_grad": True}, True, 0.6)
+    table = format_table(find_runs([tmp_path])).splitlines()
+    assert len(table) == 5
+    assert table[2].split("|")[13].strip() == "1" and "56.45" in table[2]
+    assert table[3].split("|")[13].strip() == "3" and "| 40.00 | 20.00 |" in table[3]
+    assert table[4].split("|")[13].strip() == "5" and "59.92" in table[4]
+
+
+def test_missing_path_is_an_error(tmp_path):
+    with pytest.raises(DataError, match="found nothing"):
+        find_runs([tmp_path / "nope"])
