@@ -185,7 +185,8 @@ class Trainer:
                 self.history.append(entry)
             if bar is not None:
                 bar.update(1)
-                bar.set_postfix(loss=f"{values['loss']:.4f}", rays_s=f"{rays_done / (now - started):.0f}")
+                rate = rays_done / (now - started)
+                bar.set_postfix(loss=f"{values['loss']:.4f}", rays_s=f"{rate:.0f}", refresh=False)
             if cfg.checkpoint_every and self.step % int(cfg.checkpoint_every) == 0 and self.step < total_steps:
                 self._checkpoint(self.elapsed + now - started)
         if bar is not None:
