@@ -59,7 +59,8 @@ class Scene:
         height, width: image size every frame of the scene is loaded at.
         near, far: depth bounds in metres for ray sampling.
         train_frames: indices usable as training targets and as source views.
-        eval_frames: held-out targets, disjoint from ``train_frames``; never used as sources.
+        eval_frames: held-out targets, disjoint from ``train_frames`` (except under a dataset's explicitly named
+            ``paper_parity`` protocol, which reproduces the reference code's overlap); never used as sources.
         load_frame: ``index -> Frame``; the dataset decides caching.
     """
 

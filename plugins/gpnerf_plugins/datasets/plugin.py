@@ -3,6 +3,12 @@
 from gpnerf_core import ComponentSpec, DataTool, hookimpl
 from gpnerf_plugins.datasets import tools
 from gpnerf_plugins.datasets.embedded_dataset import EmbeddedScenes, EmbeddedScenesConfig
+from gpnerf_plugins.datasets.replica import (
+    ReplicaInstanceScenes,
+    ReplicaInstanceScenesConfig,
+    ReplicaScenes,
+    ReplicaScenesConfig,
+)
 
 
 @hookimpl
@@ -13,7 +19,19 @@ def gpnerf_register_datasets() -> list[ComponentSpec]:
             EmbeddedScenes,
             EmbeddedScenesConfig,
             "rooms of pybullet_data objects rendered on the CPU (Replica layout), generated once into a cache",
-        )
+        ),
+        ComponentSpec(
+            "replica",
+            ReplicaScenes,
+            ReplicaScenesConfig,
+            "Replica, Semantic-NeRF renders: 51 classes, held-out or paper-parity scene split",
+        ),
+        ComponentSpec(
+            "replica_instance",
+            ReplicaInstanceScenes,
+            ReplicaInstanceScenesConfig,
+            "Replica, DM-NeRF renders: raw instance ids, per-scene",
+        ),
     ]
 
 

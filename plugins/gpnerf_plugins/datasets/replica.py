@@ -1,0 +1,333 @@
+"""The ``replica`` (Semantic-NeRF renders) and ``replica_instance`` (DM-NeRF renders) datasets and their checkers.
+
+Differences from the reference loaders (GP-NeRF ``gpnerf/data_loaders/replica_dataset.py`` and
+``replica_instance_dataset.py``; REFERENCE.md 5.1, 5.2, 7):
+
+* Intrinsics (C5): the reference hard-codes fx=320, cx=320, fy=319.5, cy=229.5 for 640x480 (cx and fy swapped, cy
+  10 px off, and never rescaled in ``replica``). Here fx = fy = W / (2 tan(hfov / 2)), cx = (W - 1) / 2,
+  cy = (H - 1) / 2 at the loaded size, i.e. 320, 320, 319.5, 239.5 at 640x480 and 160, 160, 159.5, 119.5 at 320x240.
+* Scenes (C6): the released training list holds all eight scenes, the two test scenes included. ``heldout`` (default)
+  trains on six and tests on office_0 and room_0; ``paper_parity`` reproduces the released lists for comparison with
+  published numbers.
+* Frames (C7): ``replica_instance`` evaluates on positions 600, 620, ..., 880 while the reference trains on every even
+  position, all of those included. ``heldout`` removes them from training; ``paper_parity`` keeps the overlap.
+* Poses (C17): a NaN/Inf pose or a pose count that does not match the frames is a DataError naming the file, never a
+  silently shifted frame list.
+* Labels: raw ids above 101 are a DataError (``strict_labels``) instead of being clipped into the ignore class.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.interfaces import SPLITS, SceneDataset
+from gpnerf_core.types import Frame, Scene
+from gpnerf_plugins.datasets.replica_check import check_replica_instance_layout, check_replica_layout
+from gpnerf_plugins.datasets.replica_classes import CLASS_NAMES, IGNORE_INDEX, map_raw_labels
+from gpnerf_plugins.datasets.replica_dm_layout import InstanceSequence
+from gpnerf_plugins.datasets.replica_layout import ReplicaSequence
+from gpnerf_plugins.datasets.replica_splits import (
+    INSTANCE_SCENES_FILE,
+    check_frame_rule,
+    protocol_files,
+    read_split_file,
+    stepped_positions,
+)
+
+__all__ = [
+    "ReplicaInstanceScenes",
+    "ReplicaInstanceScenesConfig",
+    "ReplicaScenes",
+    "ReplicaScenesConfig",
+    "check_replica_instance_layout",
+    "check_replica_layout",
+]
+
+SEQUENCES = ("Sequence_1", "Sequence_2")
+UNSEEN_SEQUENCE = "Sequence_1"
+
+
+@dataclass
+class ReplicaScenesConfig:
+    name: str = "replica"
+    """Registry name of this dataset."""
+    root: str = ""
+    """Folder holding <scene>/Sequence_<n>/ (Semantic-NeRF renders); relative = from the launch directory."""
+    protocol: str = "heldout"
+    """heldout: 6 training scenes, office_0 and room_0 unseen; paper_parity: the released lists (leaky)."""
+    height: int = 240
+    """Loaded image height, pixels (0 with width 0 = the files' size)."""
+    width: int = 320
+    """Loaded image width, pixels (0 with height 0 = the files' size)."""
+    near: float = 0.1
+    """Ray-sampling near bound, metres."""
+    far: float = 10.0
+    """Ray-sampling far bound, metres."""
+    hfov_deg: float = 90.0
+    """Horizontal field of view of the renders, degrees (Semantic-NeRF: 90)."""
+    eval_start: int = 2
+    """Held-out frames are the positions [eval_start:eval_stop:eval_step][:eval_count] of each sequence."""
+    eval_stop: int = 700
+    """End (exclusive) of the held-out position range."""
+    eval_step: int = 20
+    """Spacing of held-out positions."""
+    eval_count: int = 10
+    """At most this many held-out frames per sequence (0 = no cap); all other frames are training frames."""
+    strict_labels: bool = True
+    """Raw label ids above 101 raise a DataError (false: they become ignore, as the reference's clipping does)."""
+
+
+@dataclass
+class ReplicaInstanceScenesConfig:
+    name: str = "replica_instance"
+    """Registry name of this dataset."""
+    root: str = ""
+    """Folder holding <scene>/ in the DM-NeRF Replica layout; a relative path is taken from the launch directory."""
+    protocol: str = "heldout"
+    """heldout: evaluation frames removed from training; paper_parity: the reference's overlapping frame sets."""
+    height: int = 240
+    """Loaded image height, pixels (0 with width 0 = the files' size)."""
+    width: int = 320
+    """Loaded image width, pixels (0 with height 0 = the files' size)."""
+    near: float = 0.1
+    """Ray-sampling near bound, metres."""
+    far: float = 6.0
+    """Ray-sampling far bound, metres."""
+    hfov_deg: float = 90.0
+    """Horizontal field of view of the renders, degrees (Semantic-NeRF: 90)."""
+    eval_start: int = 600
+    """Evaluation frames are the positions [eval_start:eval_stop:eval_step] (reference: [0:900:20][30:] = 600..880)."""
+    eval_stop: int = 900
+    """End (exclusive) of the evaluation position range."""
+    eval_step: int = 20
+    """Spacing of evaluation positions."""
+    train_stop: int = 900
+    """Training frames are the positions [0:train_stop:train_step] (minus evaluation frames under heldout)."""
+    train_step: int = 2
+    """Spacing of training positions."""
+    strict_labels: bool = True
+    """Raw class ids above 101 in an optional semantic_class folder raise a DataError (false: they become ignore)."""
+
+
+def _resolve_root(root: str) -> Path:
+    """The dataset folder; a relative path is taken from the directory the command was started in."""
+    if not root:
+        raise ConfigError("dataset.root is empty; expected the folder holding the Replica scenes (office_0/, ...)")
+    path = Path(root).expanduser()
+    if not path.is_absolute():
+        base = Path.cwd()
+        try:
+            from hydra.core.hydra_config import HydraConfig
+            from hydra.utils import get_original_cwd
+
+            if HydraConfig.initialized():
+                base = Path(get_original_cwd())
+        except ImportError:
+            pass
+        path = base / path
+    if not path.is_dir():
+        raise DataError(f"{path}: dataset.root folder missing; expected the folder holding the Replica scene folders")
+    return path
+
+
+def _check_common(height: int, width: int, near: float, far: float, hfov_deg: float) -> tuple[int, int] | None:
+    """Validate the shared settings; returns the load size or None for the files' size."""
+    if (height == 0) != (width == 0) or height < 0 or width < 0:
+        raise ConfigError(
+            f"dataset.height={height}, dataset.width={width}; expected both positive, or both 0 (the files' size)"
+        )
+    if not 0.0 < near < far:
+        raise ConfigError(f"dataset.near={near}, dataset.far={far}; expected 0 < near < far (metres)")
+    if not 0.0 < hfov_deg < 180.0:
+        raise ConfigError(f"dataset.hfov_deg={hfov_deg}; expected a field of view in (0, 180) degrees")
+    return (height, width) if height else None
+
+
+def _scene_folder(root: Path, scene: str, expected: str) -> Path:
+    folder = root / scene
+    if not folder.is_dir():
+        raise DataError(f"{folder}: scene folder missing; expected {expected}")
+    return folder
+
+
+class ReplicaScenes(SceneDataset):
+    """Semantic-NeRF's Replica renders ``<root>/<scene>/Sequence_<n>/``: 51 classes, scenes ``office_0/Sequence_1``, ...
+
+    ``train`` = both sequences of every training scene; ``unseen`` = ``Sequence_1`` of every test scene. Each sequence
+    holds out the positions ``[eval_start:eval_stop:eval_step][:eval_count]`` (2, 22, ..., 182 by default) as
+    ``eval_frames`` and trains on all others. Construction reads only the shipped split files; scenes are indexed on
+    first ``load_scene`` and frames decoded on each ``Scene.load_frame`` call.
+    """
+
+    def __init__(
+        self,
+        root: str = "",
+        protocol: str = "heldout",
+        height: int = 240,
+        width: int = 320,
+        near: float = 0.1,
+        far: float = 10.0,
+        hfov_deg: float = 90.0,
+        eval_start: int = 2,
+        eval_stop: int = 700,
+        eval_step: int = 20,
+        eval_count: int = 10,
+        strict_labels: bool = True,
+    ) -> None:
+        train_file, test_file = protocol_files(protocol)
+        self.size = _check_common(height, width, near, far, hfov_deg)
+        check_frame_rule("eval_start/eval_stop/eval_step/eval_count", eval_start, eval_stop, eval_step, eval_count)
+        self.protocol = protocol
+        self.near, self.far, self.hfov_deg = float(near), float(far), float(hfov_deg)
+        self.eval_rule = (eval_start, eval_stop, eval_step, eval_count)
+        self.strict_labels = strict_labels
+        self.train_scene_names = read_split_file(train_file)
+        self.test_scene_names = read_split_file(test_file)
+        leaked = sorted(set(self.train_scene_names) & set(self.test_scene_names))
+        if leaked:
+            warnings.warn(
+                f"replica protocol {protocol!r} trains on the unseen scenes {', '.join(leaked)} (the released split's "
+                "leak); use it only to compare with published numbers",
+                UserWarning,
+                stacklevel=2,
+            )
+        self._root_arg = root
+        self._root: Path | None = None
+        self._scenes: dict[str, Scene] = {}
+
+    @property
+    def class_names(self) -> tuple[str, ...]:
+        return CLASS_NAMES
+
+    @property
+    def ignore_index(self) -> int:
+        return IGNORE_INDEX
+
+    def scenes(self, split: str) -> tuple[str, ...]:
+        if split == "train":
+            return tuple(f"{scene}/{sequence}" for scene in self.train_scene_names for sequence in SEQUENCES)
+        if split == "unseen":
+            return tuple(f"{scene}/{UNSEEN_SEQUENCE}" for scene in self.test_scene_names)
+        raise ConfigError(f"unknown split {split!r}; expected one of: {', '.join(SPLITS)}")
+
+    def frame_split(self, num_frames: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """``(train_frames, eval_frames)`` positions of a sequence of ``num_frames`` frames; disjoint."""
+        held = stepped_positions(num_frames, *self.eval_rule)
+        held_set = set(held)
+        return tuple(i for i in range(num_frames) if i not in held_set), held
+
+    def load_scene(self, name: str) -> Scene:
+        known = self.scenes("train") + self.scenes("unseen")
+        if name not in known:
+            choices = ", ".join(dict.fromkeys(known))
+            raise ConfigError(f"unknown scene {name!r} for protocol {self.protocol!r}; expected one of: {choices}")
+        if name not in self._scenes:
+            if self._root is None:
+                self._root = _resolve_root(self._root_arg)
+            scene, sequence = name.split("/")
+            expected = f"Semantic-NeRF's Replica render of {scene} ({', '.join(SEQUENCES)})"
+            folder = _scene_folder(self._root, scene, expected)
+            reader = ReplicaSequence(
+                folder / sequence, hfov_deg=self.hfov_deg, size=self.size, ignore_index=IGNORE_INDEX
+            )
+            loaded = reader.scene(name=name, split=self.frame_split(reader.num_frames), near=self.near, far=self.far)
+            self._scenes[name] = dataclasses.replace(loaded, load_frame=functools.partial(self._load_frame, reader))
+        return self._scenes[name]
+
+    def _load_frame(self, reader: ReplicaSequence, index: int) -> Frame:
+        # The reader returns raw Replica ids (no label_map) so that ids outside Replica's table can be reported.
+        frame = reader.load_frame(index)
+        semantic = map_raw_labels(frame.semantic, reader.files[index].semantic, strict=self.strict_labels)
+        return dataclasses.replace(frame, semantic=semantic)
+
+
+class ReplicaInstanceScenes(SceneDataset):
+    """DM-NeRF's Replica renders ``<root>/<scene>/``: raw instance ids per frame, scenes named ``office_0``.
+
+    The per-scene setting of GP-NeRF's instance experiments: the ``train`` split is the scene list
+    ``replica_instance.txt`` and ``unseen`` is empty. Evaluation frames are the positions
+    ``[eval_start:eval_stop:eval_step]`` (600, 620, ..., 880), training frames ``[0:train_stop:train_step]`` (the even
+    positions) minus the evaluation frames; ``paper_parity`` keeps them in training, as the reference does.
+    ``Frame.semantic`` is all ignore unless the scene has a ``semantic_class`` folder, mapped to the 51 classes.
+    """
+
+    def __init__(
+        self,
+        root: str = "",
+        protocol: str = "heldout",
+        height: int = 240,
+        width: int = 320,
+        near: float = 0.1,
+        far: float = 6.0,
+        hfov_deg: float = 90.0,
+        eval_start: int = 600,
+        eval_stop: int = 900,
+        eval_step: int = 20,
+        train_stop: int = 900,
+        train_step: int = 2,
+        strict_labels: bool = True,
+    ) -> None:
+        protocol_files(protocol)  # same protocol names as ``replica``
+        self.size = _check_common(height, width, near, far, hfov_deg)
+        check_frame_rule("eval_start/eval_stop/eval_step", eval_start, eval_stop, eval_step)
+        check_frame_rule("train_stop/train_step", 0, train_stop, train_step)
+        self.protocol = protocol
+        self.near, self.far, self.hfov_deg = float(near), float(far), float(hfov_deg)
+        self.eval_rule = (eval_start, eval_stop, eval_step)
+        self.train_rule = (0, train_stop, train_step)
+        self.strict_labels = strict_labels
+        self.scene_names = read_split_file(INSTANCE_SCENES_FILE)
+        if protocol == "paper_parity":
+            warnings.warn(
+                "replica_instance protocol 'paper_parity' trains on its evaluation frames (the reference's overlap); "
+                "use it only to compare with published numbers",
+                UserWarning,
+                stacklevel=2,
+            )
+        self._root_arg = root
+        self._root: Path | None = None
+        self._scenes: dict[str, Scene] = {}
+
+    @property
+    def class_names(self) -> tuple[str, ...]:
+        return CLASS_NAMES
+
+    @property
+    def ignore_index(self) -> int:
+        return IGNORE_INDEX
+
+    def scenes(self, split: str) -> tuple[str, ...]:
+        if split == "train":
+            return self.scene_names
+        if split == "unseen":
+            return ()
+        raise ConfigError(f"unknown split {split!r}; expected one of: {', '.join(SPLITS)}")
+
+    def frame_split(self, num_frames: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """``(train_frames, eval_frames)`` positions; they overlap only under ``paper_parity``."""
+        held = stepped_positions(num_frames, *self.eval_rule)
+        pool = stepped_positions(num_frames, *self.train_rule)
+        if self.protocol == "paper_parity":
+            return pool, held
+        held_set = set(held)
+        return tuple(i for i in pool if i not in held_set), held
+
+    def load_scene(self, name: str) -> Scene:
+        if name not in self.scene_names:
+            raise ConfigError(f"unknown scene {name!r}; expected one of: {', '.join(self.scene_names)}")
+        if name not in self._scenes:
+            if self._root is None:
+                self._root = _resolve_root(self._root_arg)
+            expected = "DM-NeRF's Replica render (rgb/, depth/, semantic_instance/, traj_w_c.txt)"
+            folder = _scene_folder(self._root, name, expected)
+            reader = InstanceSequence(folder, hfov_deg=self.hfov_deg, size=self.size, strict_labels=self.strict_labels)
+            train, held = self.frame_split(reader.num_frames)
+            self._scenes[name] = reader.scene(
+                name=name, train_frames=train, eval_frames=held, near=self.near, far=self.far
+            )
+        return self._scenes[name]
