@@ -9,6 +9,7 @@ from gpnerf_plugins.datasets.replica import (
     ReplicaScenes,
     ReplicaScenesConfig,
 )
+from gpnerf_plugins.datasets.scannet import ScanNetScenes, ScanNetScenesConfig
 
 
 @hookimpl
@@ -31,6 +32,12 @@ def gpnerf_register_datasets() -> list[ComponentSpec]:
             ReplicaInstanceScenes,
             ReplicaInstanceScenesConfig,
             "Replica, DM-NeRF renders: raw instance ids, per-scene",
+        ),
+        ComponentSpec(
+            "scannet",
+            ScanNetScenes,
+            ScanNetScenesConfig,
+            "ScanNet scans (Semantic-Ray export layout), 20 benchmark classes",
         ),
     ]
 

@@ -1,0 +1,156 @@
+"""The ``scannet`` dataset: ScanNet scenes in the Semantic-Ray export layout, labelled with the 20 benchmark classes.
+
+``<root>/<sceneXXXX_YY>/`` folders (see ``scannet_files``) plus ``<root>/scannetv2-labels.combined.tsv``. The train
+and unseen splits are the reference's scene lists, shipped as ``splits/scannet_{train,test,val}.txt``.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.interfaces import SPLITS, SceneDataset
+from gpnerf_core.types import Scene
+from gpnerf_plugins.datasets.scannet_check import check_scannet_layout
+from gpnerf_plugins.datasets.scannet_files import SCENE_NAME
+from gpnerf_plugins.datasets.scannet_labels import (
+    IGNORE_INDEX,
+    LABEL_MAP_NAME,
+    SCANNET20_CLASS_NAMES,
+    LabelMap,
+    read_label_map,
+)
+from gpnerf_plugins.datasets.scannet_scene import PROTOCOLS, ScanNetScene
+from gpnerf_plugins.datasets.scannet_splits import read_split
+
+__all__ = ["ScanNetScenes", "ScanNetScenesConfig", "check_scannet_layout", "read_split"]
+
+
+@dataclass
+class ScanNetScenesConfig:
+    name: str = "scannet"
+    """Registry name of this dataset."""
+    root: str = ""
+    """Folder holding the sceneXXXX_YY folders (Semantic-Ray export layout; `data prepare-scannet` writes it)."""
+    label_map_file: str = ""
+    """ScanNet's scannetv2-labels.combined.tsv; "" = <root>/scannetv2-labels.combined.tsv."""
+    height: int = 240
+    """Image height frames are loaded at, pixels (the reference's 240)."""
+    width: int = 320
+    """Image width frames are loaded at, pixels (the reference's 320)."""
+    near: float = 0.1
+    """Ray-sampling near bound, metres (training and evaluation alike)."""
+    far: float = 6.0
+    """Ray-sampling far bound, metres (one range for training and evaluation; the reference trains with 10)."""
+    protocol: str = "heldout"
+    """Per-scene frames: "heldout" (numeric order, eval frames never trained on) or "paper_parity" (the reference's
+    lexicographic positions, fine-tuning frames overlapping the eval frames)."""
+    allow_missing_scenes: bool = False
+    """Skip split scenes absent from root with a warning instead of failing."""
+    train_scenes: list[str] = field(default_factory=list)
+    """Scenes of the train split; empty = the shipped splits/scannet_train.txt (198 scenes)."""
+    unseen_scenes: list[str] = field(default_factory=list)
+    """Scenes of the unseen split; empty = the shipped splits/scannet_test.txt (10 scenes)."""
+
+
+class ScanNetScenes(SceneDataset):
+    """ScanNet scenes under ``root``, 20 classes (``ignore_index`` 255).
+
+    Construction validates the options and touches no file. ``scenes`` checks that the split's folders exist;
+    ``load_scene`` reads the label map (once), the scene's poses and intrinsics; frames decode per
+    ``Scene.load_frame`` (no caching here).
+    """
+
+    def __init__(
+        self,
+        root: str = "",
+        label_map_file: str = "",
+        height: int = 240,
+        width: int = 320,
+        near: float = 0.1,
+        far: float = 6.0,
+        protocol: str = "heldout",
+        allow_missing_scenes: bool = False,
+        train_scenes: Sequence[str] = (),
+        unseen_scenes: Sequence[str] = (),
+    ) -> None:
+        if protocol not in PROTOCOLS:
+            raise ConfigError(f"dataset.protocol={protocol!r}; expected one of: {', '.join(PROTOCOLS)}")
+        if not 0.0 < near < far:
+            raise ConfigError(f"dataset.near={near}, dataset.far={far}; expected 0 < near < far (metres)")
+        if height < 1 or width < 1:
+            raise ConfigError(f"dataset.height={height}, dataset.width={width}; expected positive sizes in pixels")
+        for key, names in (("train_scenes", train_scenes), ("unseen_scenes", unseen_scenes)):
+            bad = [n for n in names if not SCENE_NAME.match(str(n))]
+            if bad:
+                raise ConfigError(f"dataset.{key} has {bad[0]!r}; expected scene names sceneXXXX_YY")
+        self.root = Path(root).expanduser() if root else None
+        self.label_map_path = Path(label_map_file).expanduser() if label_map_file else None
+        self.height, self.width = int(height), int(width)
+        self.near, self.far = float(near), float(far)
+        self.protocol = protocol
+        self.allow_missing_scenes = bool(allow_missing_scenes)
+        self._lists = {
+            "train": tuple(train_scenes) or read_split("train"),
+            "unseen": tuple(unseen_scenes) or read_split("test"),
+        }
+        self._label_map: LabelMap | None = None
+        self._scenes: dict[str, Scene] = {}
+
+    @property
+    def class_names(self) -> tuple[str, ...]:
+        return SCANNET20_CLASS_NAMES
+
+    @property
+    def ignore_index(self) -> int:
+        return IGNORE_INDEX
+
+    def _root(self) -> Path:
+        if self.root is None:
+            raise ConfigError("dataset.root is empty; expected the folder holding the sceneXXXX_YY folders")
+        if not self.root.is_dir():
+            raise DataError(f"{self.root}: expected the ScanNet folder holding sceneXXXX_YY folders, found nothing")
+        return self.root
+
+    def scenes(self, split: str) -> tuple[str, ...]:
+        """Scenes of ``split`` present under ``root``, in split-file order.
+
+        Raises:
+            DataError: a listed scene folder is missing (naming the first and the count) unless
+                ``allow_missing_scenes``, which warns instead; or no listed scene is present at all.
+        """
+        if split not in SPLITS:
+            raise ConfigError(f"unknown split {split!r}; expected one of: {', '.join(SPLITS)}")
+        root = self._root()
+        listed = self._lists[split]
+        present = tuple(name for name in listed if (root / name).is_dir())
+        missing = [name for name in listed if name not in present]
+        if missing:
+            message = (
+                f"{root / missing[0]}: missing ({len(missing)} of the {len(listed)} scenes of the {split} split are "
+                "missing); expected one folder per listed scene"
+            )
+            if not present:
+                raise DataError(f"{message}; none is present")
+            if not self.allow_missing_scenes:
+                raise DataError(f"{message}; set dataset.allow_missing_scenes=true to skip the missing ones")
+            warnings.warn(f"{message}; skipping them (allow_missing_scenes)", stacklevel=2)
+        return present
+
+    def label_map(self) -> LabelMap:
+        """The raw id -> class map, read once from ``label_map_file`` or ``<root>/scannetv2-labels.combined.tsv``."""
+        if self._label_map is None:
+            path = self.label_map_path if self.label_map_path is not None else self._root() / LABEL_MAP_NAME
+            self._label_map = read_label_map(path)
+        return self._label_map
+
+    def load_scene(self, name: str) -> Scene:
+        if not SCENE_NAME.match(name):
+            raise ConfigError(f"unknown scene {name!r}; expected a ScanNet scene name sceneXXXX_YY")
+        if name not in self._scenes:
+            reader = ScanNetScene(self._root() / name, label_map=self.label_map(), height=self.height, width=self.width)
+            self._scenes[name] = reader.scene(protocol=self.protocol, near=self.near, far=self.far)
+        return self._scenes[name]

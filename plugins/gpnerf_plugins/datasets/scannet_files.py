@@ -1,0 +1,218 @@
+"""Files of one scene in the ScanNet (Semantic-Ray export) layout: listing, pose and intrinsics parsing, image I/O.
+
+A scene folder ``<root>/sceneXXXX_YY/`` holds, for every frame ``<f>`` (an integer, the frame's index in the
+``.sens`` stream)::
+
+    color/<f>.jpg                    colour image (1296 x 968 in ScanNet)
+    depth/<f>.png                    uint16 depth in millimetres, 0 = unknown (640 x 480 in ScanNet)
+    label-filt/<f>.png               raw ScanNet category ids (16-bit, colour resolution)
+    pose/<f>.txt                     4 rows of 4 numbers: camera-to-world, OpenCV camera, metres;
+                                     all -inf (or any NaN/Inf) marks a frame the tracker lost
+    intrinsic/intrinsic_color.txt    4 x 4 pinhole matrix of the colour image (top-left 3 x 3 used)
+
+Loader and checker share these parsers; every problem is a ``LayoutError`` carrying path, frame, expected, found.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from gpnerf_core.errors import DataError
+from gpnerf_plugins.datasets.layout_check import Problem
+
+COLOR_DIR, DEPTH_DIR, LABEL_DIR, POSE_DIR = "color", "depth", "label-filt", "pose"
+INTRINSIC_COLOR = Path("intrinsic") / "intrinsic_color.txt"
+DEPTH_SCALE = 1000.0  # depth PNG units per metre
+SCENE_NAME = re.compile(r"^scene\d{4}_\d{2}$")
+
+
+class LayoutError(DataError):
+    """A missing or malformed file of the layout; the message is one line, like ``Problem.__str__``."""
+
+    def __init__(self, path: Path | str, expected: str, found: str, frame: str | None = None) -> None:
+        self.problem = Problem(str(path), frame, expected, found)
+        super().__init__(str(self.problem))
+
+
+@dataclass(frozen=True)
+class FrameFiles:
+    """The four files of frame ``token`` (the file stem, e.g. ``"10"``; ``number`` is its integer value)."""
+
+    token: str
+    number: int
+    color: Path
+    depth: Path
+    label: Path
+    pose: Path
+
+
+def scan_frames(scene_dir: Path) -> tuple[list[FrameFiles], list[LayoutError]]:
+    """List the frames of a scene in NUMERIC order and every problem of the listing.
+
+    A frame is a ``color/<f>.jpg``; it needs ``depth/<f>.png``, ``label-filt/<f>.png`` and ``pose/<f>.txt``.
+    Frames missing a companion are left out of the list and reported, as are ``.jpg`` names that are not
+    integers and two names for one number (``7.jpg``, ``07.jpg``). Other files in ``color/`` are ignored.
+    """
+    color_dir = scene_dir / COLOR_DIR
+    if not color_dir.is_dir():
+        return [], [LayoutError(color_dir, "a folder of <frame>.jpg colour images", "nothing")]
+    frames: list[FrameFiles] = []
+    problems: list[LayoutError] = []
+    for path in sorted(color_dir.iterdir()):
+        if path.suffix != ".jpg" or not path.is_file():
+            continue  # not a colour frame (e.g. a stray thumbnail); frames are the .jpg files
+        token = path.stem
+        if not token.isdigit():
+            problems.append(LayoutError(path, "a numeric frame name <integer>.jpg", f"{path.name!r}", token))
+            continue
+        files = FrameFiles(
+            token,
+            int(token),
+            path,
+            scene_dir / DEPTH_DIR / f"{token}.png",
+            scene_dir / LABEL_DIR / f"{token}.png",
+            scene_dir / POSE_DIR / f"{token}.txt",
+        )
+        missing = [p for p in (files.depth, files.label, files.pose) if not p.is_file()]
+        for companion in missing:
+            problems.append(LayoutError(companion, f"a file beside {COLOR_DIR}/{path.name}", "nothing", token))
+        if not missing:
+            frames.append(files)
+    frames.sort(key=lambda f: f.number)
+    for a, b in zip(frames, frames[1:]):
+        if a.number == b.number:
+            problems.append(
+                LayoutError(b.color, f"one file per frame number (also named {a.color.name})", b.color.name, b.token)
+            )
+    return frames, problems
+
+
+def _read_matrix(path: Path, what: str, frame: str | None) -> np.ndarray:
+    """A text file of 4 rows of 4 numbers -> ``[4, 4]`` float64 (NaN/Inf allowed here)."""
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise LayoutError(path, f"a {what} (4 rows of 4 numbers)", "nothing", frame) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise LayoutError(path, f"a {what} (4 rows of 4 numbers)", f"an unreadable file ({exc})", frame) from None
+    rows = [line.split() for line in text.splitlines() if line.strip()]
+    shape = f"{len(rows)} rows of {sorted({len(r) for r in rows}) or [0]} numbers"
+    if len(rows) != 4 or any(len(r) != 4 for r in rows):
+        raise LayoutError(path, f"a {what} (4 rows of 4 numbers)", shape, frame)
+    try:
+        return np.array([[float(v) for v in r] for r in rows], dtype=np.float64)
+    except ValueError:
+        bad = next(v for r in rows for v in r if not _is_float(v))
+        raise LayoutError(path, f"a {what} (4 rows of 4 numbers)", f"the non-number {bad!r}", frame) from None
+
+
+def _is_float(value: str) -> bool:
+    try:
+        float(value)
+    except ValueError:
+        return False
+    return True
+
+
+def read_pose(path: Path, frame: str | None = None) -> np.ndarray:
+    """``pose/<f>.txt`` -> ``[4, 4]`` float64 camera-to-world; non-finite entries mean an invalid pose (returned as is).
+
+    Raises:
+        LayoutError: not 4 x 4 numbers, or a finite pose whose last row is not ``0 0 0 1``.
+    """
+    pose = _read_matrix(path, "camera-to-world pose", frame)
+    if np.isfinite(pose).all() and np.abs(pose[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-4:
+        raise LayoutError(path, "last row 0 0 0 1 (a camera-to-world matrix)", f"{pose[3].tolist()}", frame)
+    return pose
+
+
+def pose_is_valid(pose: np.ndarray) -> bool:
+    """False for the poses ScanNet marks invalid (-inf), or any NaN/Inf."""
+    return bool(np.isfinite(pose).all())
+
+
+def read_intrinsic(path: Path) -> np.ndarray:
+    """``intrinsic/intrinsic_color.txt`` -> ``[3, 3]`` float64 pinhole matrix (top-left block of the 4 x 4).
+
+    Raises:
+        LayoutError: missing, not 4 x 4 numbers, non-finite, non-positive focal lengths or a last row not ``0 0 1``.
+    """
+    matrix = _read_matrix(path, "4 x 4 intrinsic matrix", None)
+    k = matrix[:3, :3]
+    if not np.isfinite(k).all():
+        raise LayoutError(path, "finite intrinsics", "NaN or Inf")
+    if k[0, 0] <= 0 or k[1, 1] <= 0:
+        raise LayoutError(path, "positive focal lengths fx, fy", f"fx={k[0, 0]}, fy={k[1, 1]}")
+    if np.abs(k[2] - (0.0, 0.0, 1.0)).max() > 1e-6:
+        raise LayoutError(path, "third row 0 0 1 (a pinhole matrix)", f"{k[2].tolist()}")
+    return k
+
+
+def scale_intrinsics(k: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """Intrinsics ``[3, 3]`` after resizing the image by ``sx`` horizontally and ``sy`` vertically.
+
+    Pixel centres sit at integers (``gpnerf_core.types``), so a resize maps ``u + 0.5`` to ``sx (u + 0.5)``:
+    ``fx' = sx fx``, ``cx' = sx (cx + 0.5) - 0.5`` (likewise in y). This is the mapping of area-aligned
+    resizes (PIL, skimage, the nearest-neighbour pick below).
+    """
+    a = np.array([[sx, 0.0, (sx - 1.0) / 2.0], [0.0, sy, (sy - 1.0) / 2.0], [0.0, 0.0, 1.0]])
+    return a @ k
+
+
+def image_size(path: Path, frame: str | None = None) -> tuple[int, int]:
+    """``(H, W)`` from the image header, without decoding."""
+    try:
+        with Image.open(path) as image:
+            width, height = image.size
+    except FileNotFoundError:
+        raise LayoutError(path, "an image", "nothing", frame) from None
+    except Exception as exc:
+        raise LayoutError(path, "a readable image", f"{type(exc).__name__}: {exc}", frame) from None
+    return height, width
+
+
+def decode_image(path: Path, frame: str | None, kind: str) -> Image.Image:
+    """Fully decode an image (a truncated or corrupt file raises ``LayoutError``, never a PIL traceback)."""
+    try:
+        with Image.open(path) as image:
+            image.load()
+            return image.copy()
+    except FileNotFoundError:
+        raise LayoutError(path, kind, "nothing", frame) from None
+    except Exception as exc:
+        raise LayoutError(path, f"a complete {kind}", f"{type(exc).__name__}: {exc}", frame) from None
+
+
+def integer_image(image: Image.Image, path: Path, frame: str | None, kind: str) -> np.ndarray:
+    """A single-channel integer image (8/16/32-bit PNG) as ``[H, W]`` int64."""
+    if image.mode not in ("L", "I", "I;16", "I;16B", "I;16L"):
+        raise LayoutError(path, f"a single-channel integer {kind} PNG", f"mode {image.mode}", frame)
+    return np.asarray(image).astype(np.int64)
+
+
+def nearest_indices(src: int, dst: int) -> np.ndarray:
+    """Source index of each destination pixel centre for an area-aligned nearest-neighbour resize."""
+    return np.minimum(((np.arange(dst) + 0.5) * src / dst).astype(np.int64), src - 1)
+
+
+def resize_nearest(image: np.ndarray, height: int, width: int) -> np.ndarray:
+    """``[h, w, ...]`` -> ``[height, width, ...]`` by nearest neighbour (labels, depth)."""
+    if image.shape[:2] == (height, width):
+        return image
+    rows = nearest_indices(image.shape[0], height)
+    cols = nearest_indices(image.shape[1], width)
+    return image[rows[:, None], cols[None, :]]
+
+
+def aspect_mismatch(size: tuple[int, int], reference: tuple[int, int], tolerance: float = 0.02) -> bool:
+    """True when ``(H, W)`` has an aspect ratio more than ``tolerance`` (relative) away from ``reference``'s.
+
+    ScanNet depth (640 x 480, 4:3) and colour (1296 x 968) differ by 0.4%, which passes.
+    """
+    ratio = (size[1] / size[0]) / (reference[1] / reference[0])
+    return abs(ratio - 1.0) > tolerance

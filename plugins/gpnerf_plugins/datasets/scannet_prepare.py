@@ -1,0 +1,232 @@
+"""``python -m gpnerf_core data prepare-scannet <scan folder> [--out <root>] [--frame-skip N] [--overwrite]``.
+
+Turns one ScanNet scan as downloaded (``<scan>/<scan>.sens`` and ``<scan>/<scan>_2d-label-filt.zip``) into the
+layout ``ScanNetScenes`` reads (``scannet_files``): ``<out>/<scan>/{color,depth,label-filt,pose,intrinsic}``.
+Colour JPEGs and label PNGs are copied as stored; depth is written as uint16 millimetre PNGs; poses as 4 rows of
+4 numbers (invalid ones stay ``-inf`` and the loader drops them). The scene is written into a temporary folder
+beside the destination and renamed into place at the end, so an error leaves nothing half-written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import re
+import shutil
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_plugins.datasets.scannet_files import (
+    COLOR_DIR,
+    DEPTH_DIR,
+    DEPTH_SCALE,
+    INTRINSIC_COLOR,
+    LABEL_DIR,
+    POSE_DIR,
+    SCENE_NAME,
+)
+from gpnerf_plugins.datasets.scannet_labels import LABEL_MAP_NAME, LABEL_MAP_SOURCE
+from gpnerf_plugins.datasets.sens import SensFrame, SensReader
+
+DEFAULT_OUT = "data/scannet"
+_LABEL_ENTRY = re.compile(r"(?:^|/)label-filt/(\d+)\.png$")
+
+
+@dataclass(frozen=True)
+class PrepareResult:
+    """What ``prepare_scan`` wrote: ``frames`` frame folders' worth of files into ``folder``."""
+
+    scene: str
+    folder: Path
+    frames: int
+    total_frames: int
+    invalid_poses: int
+
+
+def _matrix_text(matrix: np.ndarray) -> str:
+    """4 rows of 4 numbers; ``%.9g`` round-trips float32 exactly, ``-inf`` stays ``-inf``."""
+    return "".join(" ".join(f"{float(v):.9g}" for v in row) + "\n" for row in matrix)
+
+
+def _label_entries(archive: zipfile.ZipFile, path: Path) -> dict[int, zipfile.ZipInfo]:
+    entries: dict[int, zipfile.ZipInfo] = {}
+    for info in archive.infolist():
+        match = _LABEL_ENTRY.search(info.filename)
+        if match is None:
+            continue
+        number = int(match.group(1))
+        if number in entries:
+            raise DataError(f"{path}: {info.filename} and {entries[number].filename} both label frame {number}")
+        entries[number] = info
+    if not entries:
+        raise DataError(f"{path}: no label-filt/<frame>.png inside; expected ScanNet's _2d-label-filt.zip")
+    return entries
+
+
+def _check_jpeg(data: bytes, reader: SensReader, index: int) -> None:
+    header = reader.header
+    try:
+        with Image.open(io.BytesIO(data)) as image:
+            fmt, size = image.format, image.size
+    except Exception as exc:
+        raise DataError(f"{reader.path}: colour of frame {index} is not a readable image ({exc})") from None
+    if fmt != "JPEG" or size != (header.color_width, header.color_height):
+        raise DataError(
+            f"{reader.path}: colour of frame {index} is a {size[0]}x{size[1]} {fmt}; "
+            f"expected a {header.color_width}x{header.color_height} JPEG as the header says"
+        )
+
+
+def _label_bytes(archive: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path) -> bytes:
+    try:
+        data = archive.read(info)
+        with Image.open(io.BytesIO(data)) as image:
+            fmt, mode = image.format, image.mode
+            image.verify()
+    except Exception as exc:
+        raise DataError(f"{path}: {info.filename} is unreadable ({type(exc).__name__}: {exc})") from None
+    if fmt != "PNG" or mode not in ("L", "I", "I;16", "I;16B", "I;16L"):
+        raise DataError(f"{path}: {info.filename} is a {fmt} of mode {mode}; expected a single-channel integer PNG")
+    return data
+
+
+def _depth_millimetres(reader: SensReader, frame: SensFrame) -> np.ndarray:
+    depth = reader.depth_image(frame)
+    shift = reader.header.depth_shift
+    if shift == DEPTH_SCALE:
+        return depth
+    scaled = np.rint(depth.astype(np.float64) * (DEPTH_SCALE / shift))
+    return np.clip(scaled, 0, np.iinfo(np.uint16).max).astype(np.uint16)
+
+
+def _write_scene(
+    folder: Path, reader: SensReader, archive: zipfile.ZipFile, zip_path: Path, every: int
+) -> tuple[int, int]:
+    """Write the layout into ``folder``; returns ``(frames written, of which with an invalid pose)``."""
+    header = reader.header
+    labels = _label_entries(archive, zip_path)
+    if len(labels) != header.num_frames:
+        raise DataError(
+            f"{zip_path}: {len(labels)} label-filt images for {header.num_frames} frames in {reader.path}; "
+            "expected one label image per frame"
+        )
+    absent = sorted(set(range(header.num_frames)) - set(labels))
+    if absent:
+        raise DataError(
+            f"{zip_path}: no label-filt/{absent[0]}.png; expected labels for frames 0..{header.num_frames - 1}"
+        )
+    if header.color_compression != "jpeg":
+        raise DataError(f"{reader.path}: colour compression {header.color_compression}; expected jpeg (ScanNet's)")
+    if not np.isfinite(header.depth_shift) or header.depth_shift <= 0:
+        raise DataError(
+            f"{reader.path}: depth shift {header.depth_shift}; expected a positive number (1000 in ScanNet)"
+        )
+    for sub in (COLOR_DIR, DEPTH_DIR, LABEL_DIR, POSE_DIR, INTRINSIC_COLOR.parent.name):
+        (folder / sub).mkdir(parents=True)
+    (folder / INTRINSIC_COLOR).write_text(_matrix_text(header.intrinsic_color))
+    (folder / INTRINSIC_COLOR.parent / "intrinsic_depth.txt").write_text(_matrix_text(header.intrinsic_depth))
+    written = invalid = 0
+    for frame in reader.frames(every):
+        name = str(frame.index)
+        _check_jpeg(frame.color, reader, frame.index)
+        (folder / COLOR_DIR / f"{name}.jpg").write_bytes(frame.color)
+        Image.fromarray(_depth_millimetres(reader, frame)).save(folder / DEPTH_DIR / f"{name}.png")
+        (folder / LABEL_DIR / f"{name}.png").write_bytes(_label_bytes(archive, labels[frame.index], zip_path))
+        (folder / POSE_DIR / f"{name}.txt").write_text(_matrix_text(frame.camera_to_world))
+        written += 1
+        invalid += int(not np.isfinite(frame.camera_to_world).all())
+    return written, invalid
+
+
+def prepare_scan(
+    scan_dir: str | Path, out_root: str | Path, *, frame_skip: int = 1, overwrite: bool = False
+) -> PrepareResult:
+    """Convert one ScanNet scan folder into ``<out_root>/<scan name>/``.
+
+    Args:
+        scan_dir: the downloaded scan folder ``.../sceneXXXX_YY`` with ``sceneXXXX_YY.sens`` and
+            ``sceneXXXX_YY_2d-label-filt.zip``.
+        out_root: the dataset root to write the scene folder into.
+        frame_skip: keep frames ``0, N, 2N, ...`` (names keep the stream index, like ScanNet's exporter).
+        overwrite: replace an existing scene folder (the old one is removed only after the new one is complete).
+
+    Raises:
+        DataError: a missing or malformed input (one line naming the file), or the destination exists.
+    """
+    scan_dir = Path(scan_dir).expanduser().resolve()
+    out_root = Path(out_root).expanduser().resolve()
+    if frame_skip < 1:
+        raise ConfigError(f"--frame-skip {frame_skip}; expected 1 or more")
+    scene = scan_dir.name
+    if not scan_dir.is_dir():
+        raise DataError(f"{scan_dir}: expected a ScanNet scan folder holding {scene}.sens, found nothing")
+    if not SCENE_NAME.match(scene):
+        raise DataError(f"{scan_dir}: folder name {scene!r}; expected a ScanNet scan folder named sceneXXXX_YY")
+    sens_path = scan_dir / f"{scene}.sens"
+    zip_path = scan_dir / f"{scene}_2d-label-filt.zip"
+    if not sens_path.is_file():
+        raise DataError(f"{sens_path}: missing; expected the scan's RGB-D stream from the ScanNet release")
+    if not zip_path.is_file():
+        raise DataError(f"{zip_path}: missing; expected the scan's filtered 2D labels from the ScanNet release")
+    destination = out_root / scene
+    if destination == scan_dir:
+        raise DataError(f"{destination}: is the scan folder itself; expected --out to name a different dataset root")
+    if destination.exists() and not overwrite:
+        raise DataError(f"{destination}: already exists; expected a new folder (pass --overwrite to replace it)")
+    out_root.mkdir(parents=True, exist_ok=True)
+    temporary = Path(tempfile.mkdtemp(prefix=f".{scene}.partial-", dir=out_root))
+    try:
+        try:
+            archive = zipfile.ZipFile(zip_path)
+        except (zipfile.BadZipFile, OSError) as exc:
+            raise DataError(f"{zip_path}: not a readable zip archive ({exc})") from None
+        with archive, SensReader(sens_path) as reader:
+            try:
+                written, invalid = _write_scene(temporary, reader, archive, zip_path, frame_skip)
+            except OSError as exc:
+                raise DataError(f"{temporary}: writing failed ({exc})") from None
+            total = reader.header.num_frames
+        if destination.exists():
+            retired = Path(tempfile.mkdtemp(prefix=f".{scene}.old-", dir=out_root))
+            destination.rename(retired / scene)
+            temporary.rename(destination)
+            shutil.rmtree(retired, ignore_errors=True)
+        else:
+            temporary.rename(destination)
+    except BaseException:
+        shutil.rmtree(temporary, ignore_errors=True)
+        raise
+    return PrepareResult(scene, destination, written, total, invalid)
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one-line ConfigError instead of argparse's exit 2 with usage
+        raise ConfigError(f"{self.prog}: {message}")
+
+
+def main(argv: list[str]) -> int:
+    """Entry point of ``data prepare-scannet``; prints how many frames were written and where."""
+    parser = _Parser(
+        prog="gpnerf_core data prepare-scannet",
+        description="Turn a ScanNet scan (.sens + _2d-label-filt.zip) into the layout the scannet dataset reads.",
+    )
+    parser.add_argument("scan", type=Path, help="the scan folder sceneXXXX_YY holding sceneXXXX_YY.sens")
+    parser.add_argument("--out", type=Path, default=Path(DEFAULT_OUT), help=f"dataset root (default {DEFAULT_OUT})")
+    parser.add_argument("--frame-skip", type=int, default=1, help="keep every N-th frame (default 1: all)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing scene folder")
+    args = parser.parse_args(argv)
+    result = prepare_scan(args.scan, args.out, frame_skip=args.frame_skip, overwrite=args.overwrite)
+    print(
+        f"wrote {result.frames} of {result.total_frames} frames of {result.scene} to {result.folder} "
+        f"(frame skip {args.frame_skip}; {result.invalid_poses} with an invalid pose, which the loader drops)"
+    )
+    tsv = result.folder.parent / LABEL_MAP_NAME
+    if not tsv.is_file():
+        print(f"note: the scannet dataset also needs {tsv} ({LABEL_MAP_SOURCE})")
+    return 0

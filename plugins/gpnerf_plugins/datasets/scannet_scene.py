@@ -1,0 +1,201 @@
+"""One ScanNet scene folder (Semantic-Ray export layout) as a ``Scene``, and the per-scene frame protocols.
+
+Frames are indexed in NUMERIC order of their names after dropping frames with an invalid pose. Colour is resized
+with antialiasing (PIL bilinear, area-aligned), depth and labels with nearest neighbour, and the colour intrinsics
+are scaled by the true ratios ``width / W_color`` and ``height / H_color``.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+from PIL import Image
+
+from gpnerf_core.errors import ConfigError
+from gpnerf_core.types import Frame, Scene
+from gpnerf_plugins.datasets.scannet_files import (
+    DEPTH_SCALE,
+    INTRINSIC_COLOR,
+    FrameFiles,
+    LayoutError,
+    aspect_mismatch,
+    decode_image,
+    image_size,
+    integer_image,
+    pose_is_valid,
+    read_intrinsic,
+    read_pose,
+    resize_nearest,
+    scale_intrinsics,
+    scan_frames,
+)
+from gpnerf_plugins.datasets.scannet_labels import IGNORE_INDEX, LabelMap
+
+PROTOCOLS = ("heldout", "paper_parity")
+EVAL_POSITIONS = slice(2, 700, 20)
+"""Positions (in the scene's frame list) of the evaluation targets, capped at ``NUM_EVAL_FRAMES``: 2, 22, ..., 182."""
+NUM_EVAL_FRAMES = 10
+FINETUNE_POSITIONS = slice(0, 700, 3)
+"""The reference's fine-tuning targets (``paper_parity`` only); they include eval positions 42, 102 and 162."""
+
+
+def frame_split(tokens: Sequence[str], protocol: str) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """Train and eval frame indices of a scene.
+
+    Args:
+        tokens: frame names in the scene's (numeric) frame order, invalid-pose frames already dropped.
+        protocol: ``heldout``: eval = positions ``[2:700:20][:10]`` of the numeric order, train = every other frame
+            (disjoint). ``paper_parity``: the same positions taken in the LEXICOGRAPHIC order of the names
+            ("0", "1", "10", "100", ...) as the reference does, and train = lexicographic positions ``[0:700:3]``,
+            which overlap the eval frames (the reference's fine-tuning leak, kept for parity only).
+
+    Returns:
+        ``(train_frames, eval_frames)``, each ascending, as indices into ``tokens``.
+    """
+    n = len(tokens)
+    if protocol == "heldout":
+        held = list(range(n))[EVAL_POSITIONS][:NUM_EVAL_FRAMES]
+        held_set = set(held)
+        return tuple(i for i in range(n) if i not in held_set), tuple(held)
+    if protocol == "paper_parity":
+        lexicographic = sorted(range(n), key=lambda i: tokens[i])
+        held = sorted(lexicographic[EVAL_POSITIONS][:NUM_EVAL_FRAMES])
+        return tuple(sorted(lexicographic[FINETUNE_POSITIONS])), tuple(held)
+    raise ConfigError(f"dataset.protocol={protocol!r}; expected one of: {', '.join(PROTOCOLS)}")
+
+
+class ScanNetScene:
+    """A scene folder: frame index, poses and intrinsics read eagerly; images decoded per ``load_frame``.
+
+    Args:
+        path: the ``sceneXXXX_YY`` folder.
+        label_map: raw id -> ScanNet-20 class.
+        height, width: size frames are loaded at, pixels.
+
+    Raises:
+        DataError: a missing or malformed file (the first one found), or no frame with a valid pose.
+    """
+
+    def __init__(self, path: str | Path, *, label_map: LabelMap, height: int, width: int) -> None:
+        self.path = Path(path)
+        if not self.path.is_dir():
+            expected = "a scene folder with color/, depth/, label-filt/, pose/ and intrinsic/"
+            raise LayoutError(self.path, expected, "nothing")
+        if height < 1 or width < 1:
+            raise ConfigError(f"dataset.height={height}, dataset.width={width}; expected positive sizes in pixels")
+        self.label_map = label_map
+        self.height, self.width = int(height), int(width)
+        frames, problems = scan_frames(self.path)
+        if problems:
+            raise problems[0]
+        if not frames:
+            raise LayoutError(self.path / "color", "at least one <frame>.jpg", "no frames")
+        poses = [read_pose(f.pose, f.token) for f in frames]
+        valid = [pose_is_valid(p) for p in poses]
+        dropped = len(frames) - sum(valid)
+        if dropped:
+            warnings.warn(
+                f"{self.path}: dropped {dropped} of {len(frames)} frames whose pose is not finite "
+                "(ScanNet marks lost tracking with -inf), together with their colour, depth and label files",
+                stacklevel=2,
+            )
+        self.files: list[FrameFiles] = [f for f, ok in zip(frames, valid) if ok]
+        if not self.files:
+            found = f"{len(frames)} invalid poses"
+            raise LayoutError(self.path / "pose", "at least one frame with a finite pose", found)
+        self.c2w = torch.from_numpy(np.stack([p for p, ok in zip(poses, valid) if ok])).float()
+        self.color_size = image_size(self.files[0].color, self.files[0].token)
+        k_color = read_intrinsic(self.path / INTRINSIC_COLOR)
+        sx, sy = self.width / self.color_size[1], self.height / self.color_size[0]
+        self.intrinsics = torch.from_numpy(scale_intrinsics(k_color, sx, sy)).float()
+        self.dropped_invalid_poses = dropped
+        self._warned_unknown = False
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.files)
+
+    @property
+    def tokens(self) -> tuple[str, ...]:
+        """Frame names in index order."""
+        return tuple(f.token for f in self.files)
+
+    def _color(self, files: FrameFiles) -> np.ndarray:
+        image = decode_image(files.color, files.token, "JPEG colour image")
+        found = (image.height, image.width)
+        if found != self.color_size:
+            raise LayoutError(
+                files.color,
+                f"{self.color_size[1]}x{self.color_size[0]} (WxH) like {self.files[0].color.name}",
+                f"{found[1]}x{found[0]}",
+                files.token,
+            )
+        image = image.convert("RGB")
+        if found != (self.height, self.width):
+            image = image.resize((self.width, self.height), Image.Resampling.BILINEAR)
+        return np.asarray(image, dtype=np.float32) / 255.0
+
+    def _aligned(self, path: Path, files: FrameFiles, kind: str) -> np.ndarray:
+        values = integer_image(decode_image(path, files.token, f"{kind} PNG"), path, files.token, kind)
+        if aspect_mismatch(values.shape, self.color_size):
+            raise LayoutError(
+                path,
+                f"the aspect ratio of the colour images ({self.color_size[1]}x{self.color_size[0]} WxH)",
+                f"{values.shape[1]}x{values.shape[0]}",
+                files.token,
+            )
+        return resize_nearest(values, self.height, self.width)
+
+    def _labels(self, files: FrameFiles) -> np.ndarray:
+        raw = self._aligned(files.label, files, "label")
+        if raw.min(initial=0) < 0:
+            raise LayoutError(files.label, "non-negative ScanNet category ids", f"{int(raw.min())}", files.token)
+        labels, unknown, count = self.label_map.apply(raw)
+        if count and not self._warned_unknown:
+            self._warned_unknown = True
+            shown = ", ".join(str(int(v)) for v in unknown[:8]) + (", ..." if len(unknown) > 8 else "")
+            warnings.warn(
+                f"{self.path.name}: {count} label pixels of frame {files.token} have ids {shown} that "
+                f"{self.label_map.path} does not list; mapped to ignore ({IGNORE_INDEX}) "
+                "(reported once per scene)",
+                stacklevel=3,
+            )
+        return labels
+
+    def load_frame(self, index: int) -> Frame:
+        """Decode frame ``index`` (position in the numeric order, invalid poses dropped) at ``height`` x ``width``."""
+        if not 0 <= index < self.num_frames:
+            raise LayoutError(self.path, f"a frame index in 0..{self.num_frames - 1}", str(index))
+        files = self.files[index]
+        rgb = self._color(files)
+        depth = self._aligned(files.depth, files, "depth").astype(np.float32) / DEPTH_SCALE
+        semantic = self._labels(files)
+        return Frame(
+            rgb=torch.from_numpy(np.ascontiguousarray(rgb)),
+            depth=torch.from_numpy(np.ascontiguousarray(depth)),
+            semantic=torch.from_numpy(np.ascontiguousarray(semantic)),
+            intrinsics=self.intrinsics.clone(),
+            c2w=self.c2w[index].clone(),
+        )
+
+    def scene(self, *, protocol: str = "heldout", near: float = 0.1, far: float = 6.0) -> Scene:
+        """Wrap as a ``Scene`` named after the folder, frames split by ``frame_split(protocol)``."""
+        if not 0.0 < near < far:
+            raise ConfigError(f"dataset.near={near}, dataset.far={far}; expected 0 < near < far (metres)")
+        train, held = frame_split(self.tokens, protocol)
+        return Scene(
+            name=self.path.name,
+            c2w=self.c2w.clone(),
+            intrinsics=self.intrinsics.expand(self.num_frames, 3, 3).clone(),
+            height=self.height,
+            width=self.width,
+            near=float(near),
+            far=float(far),
+            train_frames=train,
+            eval_frames=held,
+            load_frame=self.load_frame,
+        )
