@@ -85,3 +85,9 @@ def test_unknown_head_lists_known_options(registry):
     with pytest.raises(ConfigCompositionException) as info:
         compose_with(["+head=nope", "+loss=dgs"])
     assert "unet" in str(info.value.__cause__ or info.value) or "unet" in str(info.value)
+
+
+@pytest.mark.parametrize("dataset", ["scannet", "replica", "replica_instance"])
+def test_real_datasets_compose_with_experiments(registry, dataset):
+    cfg = compose_with([f"dataset={dataset}", "dataset.root=/data", "+experiment=table4/id5"])
+    assert cfg.dataset.name == dataset and cfg.loss.name == "dgs"

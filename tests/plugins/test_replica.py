@@ -522,3 +522,24 @@ def test_instance_checker_flags_the_semantic_nerf_layout(replica_root):
     report = check_replica_instance_layout(replica_root)
     assert [Path(p.path).name for p in report.problems] == ["office_0", "office_1", report.root.name]
     assert all("--layout replica" in p.found for p in report.problems[:2])
+
+
+# ---------------------------------------------------------------------------------------------------- pipeline
+
+
+def test_replica_trains_and_evaluates_through_the_unchanged_pipeline(replica_root, tmp_path):
+    from pipeline_check import train_and_evaluate
+
+    for index, scene in enumerate(("office_2", "office_3", "office_4", "room_1", "room_2")):
+        for sequence in (1, 2):
+            write_frames(replica_root / scene / f"Sequence_{sequence}", range(6), scene=3 + 2 * index + sequence)
+    write_frames(replica_root / "room_0" / "Sequence_1", range(6), scene=20)
+    metrics = train_and_evaluate(
+        ["dataset=replica", f"dataset.root={replica_root}", "dataset.height=32", "dataset.width=48",
+         "dataset.eval_step=2", "dataset.eval_count=2"],
+        tmp_path / "run",
+    )
+    for split in ("train_heldout", "unseen"):
+        values = metrics["eval"][split]
+        assert values["count/images"] >= 1 and 0.0 <= values["miou/image_mean_present"] <= 1.0
+        assert len(values["iou/dataset_per_class"]) == 51

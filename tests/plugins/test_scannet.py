@@ -405,3 +405,20 @@ def test_data_check_command_exits_0_then_1(root):
     bad = _data_check(root)
     assert bad.returncode == 1, bad.stdout + bad.stderr
     assert "scene0160_00/pose/3.txt (frame 3): expected a file beside color/3.jpg, found nothing" in bad.stdout
+
+
+# ----------------------------------------------------------------------------------------------------- pipeline
+
+
+def test_scannet_trains_and_evaluates_through_the_unchanged_pipeline(root, tmp_path):
+    from pipeline_check import train_and_evaluate
+
+    metrics = train_and_evaluate(
+        ["dataset=scannet", f"dataset.root={root}", "dataset.height=32", "dataset.width=48",
+         "dataset.train_scenes=[scene0000_00]", "dataset.unseen_scenes=[scene0160_00]"],
+        tmp_path / "run",
+    )
+    for split in ("train_heldout", "unseen"):
+        values = metrics["eval"][split]
+        assert values["count/images"] >= 1 and 0.0 <= values["miou/image_mean_present"] <= 1.0
+        assert len(values["iou/dataset_per_class"]) == 20
