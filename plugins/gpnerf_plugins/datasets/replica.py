@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import warnings
+from abc import abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -148,14 +149,74 @@ def _check_common(height: int, width: int, near: float, far: float, hfov_deg: fl
     return (height, width) if height else None
 
 
-def _scene_folder(root: Path, scene: str, expected: str) -> Path:
-    folder = root / scene
-    if not folder.is_dir():
-        raise DataError(f"{folder}: scene folder missing; expected {expected}")
-    return folder
+class _ReplicaDataset(SceneDataset):
+    """What both Replica datasets share: load settings, the 51 classes, a lazily resolved root, one reader per scene.
+
+    Subclasses define ``_reader(name)`` (validates the scene name, opens its folder) and ``frame_split``.
+    """
+
+    def __init__(
+        self,
+        root: str,
+        protocol: str,
+        height: int,
+        width: int,
+        near: float,
+        far: float,
+        hfov_deg: float,
+        strict_labels: bool,
+    ) -> None:
+        self.size = _check_common(height, width, near, far, hfov_deg)
+        self.protocol = protocol
+        self.near, self.far, self.hfov_deg = float(near), float(far), float(hfov_deg)
+        self.strict_labels = strict_labels
+        self._root_arg = root
+        self._root: Path | None = None
+        self._scenes: dict[str, Scene] = {}
+
+    @property
+    def class_names(self) -> tuple[str, ...]:
+        return CLASS_NAMES
+
+    @property
+    def ignore_index(self) -> int:
+        return IGNORE_INDEX
+
+    @abstractmethod
+    def frame_split(self, num_frames: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """``(train_frames, eval_frames)`` positions of a scene of ``num_frames`` frames."""
+
+    @abstractmethod
+    def _reader(self, name: str) -> ReplicaSequence:
+        """The reader of scene ``name``; ConfigError for a name outside the splits."""
+
+    def _scene_folder(self, scene: str, expected: str) -> Path:
+        if self._root is None:
+            self._root = _resolve_root(self._root_arg)
+        folder = self._root / scene
+        if not folder.is_dir():
+            raise DataError(f"{folder}: scene folder missing; expected {expected}")
+        return folder
+
+    def load_scene(self, name: str) -> Scene:
+        if name not in self._scenes:
+            reader = self._reader(name)
+            split = self.frame_split(reader.num_frames)
+            overlap = self.protocol == "paper_parity"
+            loaded = reader.scene(name=name, split=split, near=self.near, far=self.far, allow_overlap=overlap)
+            self._scenes[name] = dataclasses.replace(loaded, load_frame=functools.partial(self._load_frame, reader))
+        return self._scenes[name]
+
+    def _load_frame(self, reader: ReplicaSequence, index: int) -> Frame:
+        # The reader returns raw Replica ids (no label_map) so that ids outside Replica's table can be reported.
+        frame = reader.load_frame(index)
+        path = reader.files[index].semantic
+        if path is None:  # no semantic_class folder: already all IGNORE_INDEX
+            return frame
+        return dataclasses.replace(frame, semantic=map_raw_labels(frame.semantic, path, strict=self.strict_labels))
 
 
-class ReplicaScenes(SceneDataset):
+class ReplicaScenes(_ReplicaDataset):
     """Semantic-NeRF's Replica renders ``<root>/<scene>/Sequence_<n>/``: 51 classes, scenes ``office_0/Sequence_1``, ...
 
     ``train`` = both sequences of every training scene; ``unseen`` = ``Sequence_1`` of every test scene. Each sequence
@@ -180,12 +241,9 @@ class ReplicaScenes(SceneDataset):
         strict_labels: bool = True,
     ) -> None:
         train_file, test_file = protocol_files(protocol)
-        self.size = _check_common(height, width, near, far, hfov_deg)
+        super().__init__(root, protocol, height, width, near, far, hfov_deg, strict_labels)
         check_frame_rule("eval_start/eval_stop/eval_step/eval_count", eval_start, eval_stop, eval_step, eval_count)
-        self.protocol = protocol
-        self.near, self.far, self.hfov_deg = float(near), float(far), float(hfov_deg)
         self.eval_rule = (eval_start, eval_stop, eval_step, eval_count)
-        self.strict_labels = strict_labels
         self.train_scene_names = read_split_file(train_file)
         self.test_scene_names = read_split_file(test_file)
         leaked = sorted(set(self.train_scene_names) & set(self.test_scene_names))
@@ -196,17 +254,6 @@ class ReplicaScenes(SceneDataset):
                 UserWarning,
                 stacklevel=2,
             )
-        self._root_arg = root
-        self._root: Path | None = None
-        self._scenes: dict[str, Scene] = {}
-
-    @property
-    def class_names(self) -> tuple[str, ...]:
-        return CLASS_NAMES
-
-    @property
-    def ignore_index(self) -> int:
-        return IGNORE_INDEX
 
     def scenes(self, split: str) -> tuple[str, ...]:
         if split == "train":
@@ -221,32 +268,18 @@ class ReplicaScenes(SceneDataset):
         held_set = set(held)
         return tuple(i for i in range(num_frames) if i not in held_set), held
 
-    def load_scene(self, name: str) -> Scene:
+    def _reader(self, name: str) -> ReplicaSequence:
         known = self.scenes("train") + self.scenes("unseen")
         if name not in known:
             choices = ", ".join(dict.fromkeys(known))
             raise ConfigError(f"unknown scene {name!r} for protocol {self.protocol!r}; expected one of: {choices}")
-        if name not in self._scenes:
-            if self._root is None:
-                self._root = _resolve_root(self._root_arg)
-            scene, sequence = name.split("/")
-            expected = f"Semantic-NeRF's Replica render of {scene} ({', '.join(SEQUENCES)})"
-            folder = _scene_folder(self._root, scene, expected)
-            reader = ReplicaSequence(
-                folder / sequence, hfov_deg=self.hfov_deg, size=self.size, ignore_index=IGNORE_INDEX
-            )
-            loaded = reader.scene(name=name, split=self.frame_split(reader.num_frames), near=self.near, far=self.far)
-            self._scenes[name] = dataclasses.replace(loaded, load_frame=functools.partial(self._load_frame, reader))
-        return self._scenes[name]
-
-    def _load_frame(self, reader: ReplicaSequence, index: int) -> Frame:
-        # The reader returns raw Replica ids (no label_map) so that ids outside Replica's table can be reported.
-        frame = reader.load_frame(index)
-        semantic = map_raw_labels(frame.semantic, reader.files[index].semantic, strict=self.strict_labels)
-        return dataclasses.replace(frame, semantic=semantic)
+        scene, sequence = name.split("/")
+        expected = f"Semantic-NeRF's Replica render of {scene} ({', '.join(SEQUENCES)})"
+        folder = self._scene_folder(scene, expected)
+        return ReplicaSequence(folder / sequence, hfov_deg=self.hfov_deg, size=self.size, ignore_index=IGNORE_INDEX)
 
 
-class ReplicaInstanceScenes(SceneDataset):
+class ReplicaInstanceScenes(_ReplicaDataset):
     """DM-NeRF's Replica renders ``<root>/<scene>/``: raw instance ids per frame, scenes named ``office_0``.
 
     The per-scene setting of GP-NeRF's instance experiments: the ``train`` split is the scene list
@@ -273,14 +306,11 @@ class ReplicaInstanceScenes(SceneDataset):
         strict_labels: bool = True,
     ) -> None:
         protocol_files(protocol)  # same protocol names as ``replica``
-        self.size = _check_common(height, width, near, far, hfov_deg)
+        super().__init__(root, protocol, height, width, near, far, hfov_deg, strict_labels)
         check_frame_rule("eval_start/eval_stop/eval_step", eval_start, eval_stop, eval_step)
         check_frame_rule("train_stop/train_step", 0, train_stop, train_step)
-        self.protocol = protocol
-        self.near, self.far, self.hfov_deg = float(near), float(far), float(hfov_deg)
         self.eval_rule = (eval_start, eval_stop, eval_step)
         self.train_rule = (0, train_stop, train_step)
-        self.strict_labels = strict_labels
         self.scene_names = read_split_file(INSTANCE_SCENES_FILE)
         if protocol == "paper_parity":
             warnings.warn(
@@ -289,17 +319,6 @@ class ReplicaInstanceScenes(SceneDataset):
                 UserWarning,
                 stacklevel=2,
             )
-        self._root_arg = root
-        self._root: Path | None = None
-        self._scenes: dict[str, Scene] = {}
-
-    @property
-    def class_names(self) -> tuple[str, ...]:
-        return CLASS_NAMES
-
-    @property
-    def ignore_index(self) -> int:
-        return IGNORE_INDEX
 
     def scenes(self, split: str) -> tuple[str, ...]:
         if split == "train":
@@ -317,17 +336,8 @@ class ReplicaInstanceScenes(SceneDataset):
         held_set = set(held)
         return tuple(i for i in pool if i not in held_set), held
 
-    def load_scene(self, name: str) -> Scene:
+    def _reader(self, name: str) -> ReplicaSequence:
         if name not in self.scene_names:
             raise ConfigError(f"unknown scene {name!r}; expected one of: {', '.join(self.scene_names)}")
-        if name not in self._scenes:
-            if self._root is None:
-                self._root = _resolve_root(self._root_arg)
-            expected = "DM-NeRF's Replica render (rgb/, depth/, semantic_instance/, traj_w_c.txt)"
-            folder = _scene_folder(self._root, name, expected)
-            reader = InstanceSequence(folder, hfov_deg=self.hfov_deg, size=self.size, strict_labels=self.strict_labels)
-            train, held = self.frame_split(reader.num_frames)
-            self._scenes[name] = reader.scene(
-                name=name, train_frames=train, eval_frames=held, near=self.near, far=self.far
-            )
-        return self._scenes[name]
+        folder = self._scene_folder(name, "DM-NeRF's Replica render (rgb/, depth/, semantic_instance/, traj_w_c.txt)")
+        return InstanceSequence(folder, hfov_deg=self.hfov_deg, size=self.size, ignore_index=IGNORE_INDEX)

@@ -10,17 +10,17 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
-from skimage import io as skio
 
+from gpnerf_plugins.datasets.image_io import ImageError, describe, is_integer_map, is_rgb8, one_line_error, read_png
 from gpnerf_plugins.datasets.layout_check import LayoutReport, Problem
 from gpnerf_plugins.datasets.replica_classes import CLASS_NAMES, MAX_RAW_ID, raw_to_class_table
-from gpnerf_plugins.datasets.replica_dm_layout import frame_file_pattern, one_line_error
 from gpnerf_plugins.datasets.replica_layout import (
     CLASS_DIR,
     DEPTH_DIR,
     INSTANCE_DIR,
     RGB_DIR,
     TRAJECTORY_FILE,
+    frame_file_pattern,
 )
 from gpnerf_plugins.datasets.replica_splits import INSTANCE_SCENES_FILE, PROTOCOL_FILES, read_split_file
 
@@ -94,24 +94,16 @@ class _Walk:
         self.counts["poses"] += rows
         return rows
 
-    def decode(self, path: Path, frame: int) -> np.ndarray | None:
-        try:
-            return np.asarray(skio.imread(path))
-        except Exception as exc:
-            self.problem(path, frame, "a readable PNG", one_line_error(exc))
-            return None
-
     def image(self, path: Path, frame: int, kind: str, size: tuple[int, int] | None) -> np.ndarray | None:
         """Decode and check format and size (against ``size``); None if unusable."""
-        image = self.decode(path, frame)
-        if image is None:
+        try:
+            image = read_png(path)
+        except ImageError as exc:
+            self.problem(path, frame, "a readable PNG", exc.reason)
             return None
-        if kind == RGB_DIR:
-            if image.ndim != 3 or image.shape[2] not in (3, 4) or image.dtype != np.uint8:
-                self.problem(path, frame, "an 8-bit RGB or RGBA PNG", f"{image.dtype} image of shape {image.shape}")
-                return None
-        elif image.ndim != 2 or not np.issubdtype(image.dtype, np.integer):
-            self.problem(path, frame, "a single-channel integer PNG", f"{image.dtype} image of shape {image.shape}")
+        if not (is_rgb8(image) if kind == RGB_DIR else is_integer_map(image)):
+            expected = "an 8-bit RGB or RGBA PNG" if kind == RGB_DIR else "a single-channel integer PNG"
+            self.problem(path, frame, expected, describe(image))
             return None
         if size is not None and image.shape[:2] != size:
             expected = f"a {size[0]}x{size[1]} (HxW) image like the rgb frames"

@@ -4,7 +4,7 @@ A sequence folder holds::
 
     rgb/rgb_<i>.png                          uint8 RGB(A)
     depth/depth_<i>.png                      uint16, millimetres (0 = unknown)
-    semantic_class/semantic_class_<i>.png    raw class ids
+    semantic_class/semantic_class_<i>.png    raw class ids (optional with ``require_semantic=False``)
     semantic_instance/semantic_instance_<i>.png   optional, instance ids (0 = background)
     traj_w_c.txt                             one row of 16 numbers per frame: row-major 4x4 camera-to-world,
                                              OpenCV convention, metres
@@ -24,12 +24,16 @@ from typing import Callable, Sequence, Union
 
 import numpy as np
 import torch
-from PIL import Image
-from skimage import io as skio
-from skimage.transform import resize as sk_resize
 
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.types import Frame, Scene
+from gpnerf_plugins.datasets.image_io import (
+    image_size,
+    read_integer_png,
+    read_rgb_png,
+    resize_nearest,
+    resize_rgb,
+)
 
 TRAJECTORY_FILE = "traj_w_c.txt"
 RGB_DIR, DEPTH_DIR, CLASS_DIR, INSTANCE_DIR = "rgb", "depth", "semantic_class", "semantic_instance"
@@ -39,7 +43,10 @@ SplitRule = Callable[[int], tuple[Sequence[int], Sequence[int]]]
 """``num_frames -> (train_frames, eval_frames)``."""
 FrameSplit = Union[tuple[Sequence[int], Sequence[int]], SplitRule, None]
 
-_RGB_NAME = re.compile(r"^rgb_(.+)\.png$")
+
+def frame_file_pattern(prefix: str) -> re.Pattern[str]:
+    """``<prefix>_<token>.png``; group 1 is the token (a frame number in a valid folder)."""
+    return re.compile(rf"^{re.escape(prefix)}_(.+)\.png$")
 
 
 def every_nth_split(num_frames: int, every: int, offset: int | None = None) -> tuple[tuple[int, ...], tuple[int, ...]]:
@@ -80,12 +87,12 @@ def hfov_intrinsics(height: int, width: int, hfov_deg: float, aspect_scale: floa
 
 @dataclass(frozen=True)
 class FrameFiles:
-    """Files of one frame; ``number`` is the ``i`` of ``rgb_<i>.png``."""
+    """Files of one frame; ``number`` is the ``i`` of ``rgb_<i>.png``; None for a kind the sequence lacks."""
 
     number: int
     rgb: Path
     depth: Path
-    semantic: Path
+    semantic: Path | None
     instance: Path | None
 
 
@@ -117,21 +124,24 @@ def read_trajectory(path: Path) -> np.ndarray:
     return np.stack(poses)
 
 
-def _list_frames(root: Path) -> list[FrameFiles]:
+def _list_frames(root: Path, require_semantic: bool, require_instance: bool) -> list[FrameFiles]:
+    """Frames in numeric order; every rgb frame needs a file of each kind that is required or has a folder."""
     rgb_dir = root / RGB_DIR
     if not rgb_dir.is_dir():
         raise DataError(f"{rgb_dir}: missing; expected a folder of rgb_<i>.png frames")
-    has_instance = (root / INSTANCE_DIR).is_dir()
+    has_semantic = require_semantic or (root / CLASS_DIR).is_dir()
+    has_instance = require_instance or (root / INSTANCE_DIR).is_dir()
+    pattern = frame_file_pattern("rgb")
     frames = []
     for path in rgb_dir.iterdir():
-        match = _RGB_NAME.match(path.name)
+        match = pattern.match(path.name)
         if match is None:
             continue
         token = match.group(1)
         if not token.isdigit():
             raise DataError(f"{path}: frame name {token!r} is not a number; expected rgb_<i>.png with integer i")
         depth = root / DEPTH_DIR / f"depth_{token}.png"
-        semantic = root / CLASS_DIR / f"semantic_class_{token}.png"
+        semantic = root / CLASS_DIR / f"semantic_class_{token}.png" if has_semantic else None
         instance = root / INSTANCE_DIR / f"semantic_instance_{token}.png" if has_instance else None
         for companion in (depth, semantic, instance):
             if companion is not None and not companion.is_file():
@@ -146,28 +156,6 @@ def _list_frames(root: Path) -> list[FrameFiles]:
     return frames
 
 
-def _image_size(path: Path) -> tuple[int, int]:
-    """(H, W) from the PNG header, without decoding."""
-    try:
-        with Image.open(path) as image:
-            width, height = image.size
-    except Exception as exc:
-        raise DataError(f"{path}: unreadable image ({type(exc).__name__}: {exc}); expected a PNG") from None
-    return height, width
-
-
-def _read_png(path: Path) -> np.ndarray:
-    try:
-        return np.asarray(skio.imread(path))
-    except Exception as exc:
-        raise DataError(f"{path}: unreadable image ({type(exc).__name__}: {exc}); expected a PNG") from None
-
-
-def _nearest_indices(src: int, dst: int) -> np.ndarray:
-    """Source index of each destination pixel centre for a nearest-neighbour resize."""
-    return np.minimum(((np.arange(dst) + 0.5) * src / dst).astype(np.int64), src - 1)
-
-
 class ReplicaSequence:
     """One Replica-layout sequence: file index and poses parsed eagerly, images decoded per frame.
 
@@ -179,10 +167,17 @@ class ReplicaSequence:
         label_map: int array, ``label_map[raw_id]`` is the class id; raw ids past its end, and entries equal to
             ``ignore_index``, become ``ignore_index``. None keeps raw ids.
         ignore_index: label value of unlabelled pixels.
+        require_semantic: every frame needs a ``semantic_class`` file; False makes the folder optional (without
+            it ``Frame.semantic`` is all ``ignore_index``).
+        require_instance: every frame needs a ``semantic_instance`` file; False makes the folder optional (without
+            it ``Frame.instance`` is None).
 
     Raises:
         DataError: a missing or malformed file, named in the message.
     """
+
+    folder_kind = "sequence"
+    """How errors name ``path``."""
 
     def __init__(
         self,
@@ -192,11 +187,15 @@ class ReplicaSequence:
         size: tuple[int, int] | None = None,
         label_map: np.ndarray | Sequence[int] | None = None,
         ignore_index: int = 255,
+        require_semantic: bool = True,
+        require_instance: bool = False,
     ) -> None:
         self.path = Path(path)
         if not self.path.is_dir():
+            folders = [RGB_DIR, DEPTH_DIR] + [CLASS_DIR] * require_semantic + [INSTANCE_DIR] * require_instance
             raise DataError(
-                f"{self.path}: sequence folder missing; expected rgb/, depth/, semantic_class/ and {TRAJECTORY_FILE}"
+                f"{self.path}: {self.folder_kind} folder missing; "
+                f"expected {', '.join(f'{folder}/' for folder in folders)} and {TRAJECTORY_FILE}"
             )
         if not 0.0 < hfov_deg < 180.0:
             raise ConfigError(f"hfov_deg={hfov_deg}; expected a field of view in (0, 180) degrees")
@@ -204,7 +203,7 @@ class ReplicaSequence:
         self.label_map = None if label_map is None else np.asarray(label_map, dtype=np.int64)
         if self.label_map is not None and self.label_map.ndim != 1:
             raise ConfigError(f"label_map has shape {self.label_map.shape}; expected a 1-D array raw id -> class id")
-        self.files = _list_frames(self.path)
+        self.files = _list_frames(self.path, require_semantic, require_instance)
         poses = read_trajectory(self.path / TRAJECTORY_FILE)
         if len(poses) != len(self.files):
             raise DataError(
@@ -224,12 +223,12 @@ class ReplicaSequence:
         return len(self.files)
 
     def _check_sizes(self) -> tuple[int, int]:
-        expected = _image_size(self.files[0].rgb)
+        expected = image_size(self.files[0].rgb)
         for frame in self.files:
             for path in (frame.rgb, frame.depth, frame.semantic, frame.instance):
                 if path is None:
                     continue
-                found = _image_size(path)
+                found = image_size(path)
                 if found != expected:
                     raise DataError(
                         f"{path}: image is {found[0]}x{found[1]} (HxW); "
@@ -237,10 +236,7 @@ class ReplicaSequence:
                     )
         return expected
 
-    def _labels(self, raw: np.ndarray, path: Path) -> np.ndarray:
-        if raw.ndim != 2 or not np.issubdtype(raw.dtype, np.integer):
-            raise DataError(f"{path}: {raw.dtype} image of shape {raw.shape}; expected a single-channel integer label PNG")
-        raw = raw.astype(np.int64)
+    def _map_labels(self, raw: np.ndarray) -> np.ndarray:
         if self.label_map is None:
             return raw
         out = np.full(raw.shape, self.ignore_index, dtype=np.int64)
@@ -248,48 +244,27 @@ class ReplicaSequence:
         out[known] = self.label_map[raw[known]]
         return out
 
-    def _resize_nearest(self, image: np.ndarray) -> np.ndarray:
-        if image.shape[:2] == (self.height, self.width):
-            return image
-        rows = _nearest_indices(image.shape[0], self.height)
-        cols = _nearest_indices(image.shape[1], self.width)
-        return image[rows[:, None], cols[None, :]]
-
     def load_frame(self, index: int) -> Frame:
         """Decode frame ``index`` (position in the numeric order) at the loaded size."""
         if not 0 <= index < self.num_frames:
             raise DataError(f"{self.path}: frame index {index} out of range; expected 0..{self.num_frames - 1}")
-        files = self.files[index]
-        rgb = _read_png(files.rgb)
-        if rgb.ndim != 3 or rgb.shape[2] not in (3, 4) or rgb.dtype != np.uint8:
-            raise DataError(f"{files.rgb}: {rgb.dtype} image of shape {rgb.shape}; expected 8-bit RGB or RGBA")
-        rgb = rgb[..., :3].astype(np.float32) / 255.0
-        if rgb.shape[:2] != (self.height, self.width):
-            rgb = sk_resize(rgb, (self.height, self.width), order=1, anti_aliasing=True, preserve_range=True)
-            rgb = np.clip(rgb, 0.0, 1.0).astype(np.float32)
-        depth = _read_png(files.depth)
-        if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.integer):
-            raise DataError(
-                f"{files.depth}: {depth.dtype} image of shape {depth.shape}; "
-                "expected a single-channel uint16 PNG in millimetres"
-            )
-        depth = self._resize_nearest(depth).astype(np.float32) / DEPTH_SCALE
-        semantic = self._resize_nearest(self._labels(_read_png(files.semantic), files.semantic))
+        files, h, w = self.files[index], self.height, self.width
+        rgb = resize_rgb(read_rgb_png(files.rgb), h, w)
+        depth = resize_nearest(read_integer_png(files.depth, "depth in millimetres"), h, w)
+        if files.semantic is None:
+            semantic = np.full((h, w), self.ignore_index, dtype=np.int64)
+        else:
+            semantic = resize_nearest(self._map_labels(read_integer_png(files.semantic, "class ids")), h, w)
         instance = None
         if files.instance is not None:
-            raw = _read_png(files.instance)
-            if raw.ndim != 2 or not np.issubdtype(raw.dtype, np.integer):
-                raise DataError(
-                    f"{files.instance}: {raw.dtype} image of shape {raw.shape}; expected a single-channel integer PNG"
-                )
-            instance = torch.from_numpy(self._resize_nearest(raw.astype(np.int64)))
+            instance = resize_nearest(read_integer_png(files.instance, "instance ids"), h, w)
         return Frame(
-            rgb=torch.from_numpy(np.ascontiguousarray(rgb)),
-            depth=torch.from_numpy(np.ascontiguousarray(depth)),
-            semantic=torch.from_numpy(np.ascontiguousarray(semantic)),
+            rgb=_tensor(rgb),
+            depth=_tensor(depth.astype(np.float32) / DEPTH_SCALE),
+            semantic=_tensor(semantic),
             intrinsics=self.intrinsics.clone(),
             c2w=self.c2w[index].clone(),
-            instance=instance,
+            instance=None if instance is None else _tensor(instance),
         )
 
     def scene(
@@ -299,6 +274,7 @@ class ReplicaSequence:
         split: FrameSplit = None,
         near: float = 0.1,
         far: float = 10.0,
+        allow_overlap: bool = False,
     ) -> Scene:
         """Wrap the sequence as a ``Scene``.
 
@@ -307,6 +283,7 @@ class ReplicaSequence:
             split: ``(train_frames, eval_frames)`` index lists, or a rule ``num_frames -> (train, eval)`` such as
                 ``functools.partial(every_nth_split, every=20)``; None trains on every frame.
             near, far: ray-sampling depth bounds in metres.
+            allow_overlap: accept frames in both lists (only for a paper-parity protocol); else a ConfigError.
         """
         if split is None:
             train, held = tuple(range(self.num_frames)), ()
@@ -320,7 +297,7 @@ class ReplicaSequence:
             if bad:
                 raise ConfigError(f"{label} of {self.path} has index {bad[0]}; expected 0..{self.num_frames - 1}")
         overlap = sorted(set(train) & set(held))
-        if overlap:
+        if overlap and not allow_overlap:
             raise ConfigError(
                 f"frame {overlap[0]} of {self.path} is in both train_frames and eval_frames; expected disjoint lists"
             )
@@ -339,6 +316,10 @@ class ReplicaSequence:
             eval_frames=held,
             load_frame=self.load_frame,
         )
+
+
+def _tensor(array: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(array))
 
 
 def read_replica_sequence(

@@ -9,10 +9,12 @@ import numpy as np
 from PIL import Image
 
 from gpnerf_core.errors import DataError
+from gpnerf_plugins.datasets.image_io import one_line_error
 from gpnerf_plugins.datasets.layout_check import LayoutReport
 from gpnerf_plugins.datasets.scannet_files import (
     COLOR_DIR,
     DEPTH_DIR,
+    INTEGER_MODES,
     INTRINSIC_COLOR,
     LABEL_DIR,
     POSE_DIR,
@@ -22,8 +24,8 @@ from gpnerf_plugins.datasets.scannet_files import (
     aspect_mismatch,
     decode_image,
     image_size,
-    integer_image,
     pose_is_valid,
+    read_integer_image,
     read_intrinsic,
     read_pose,
     scan_frames,
@@ -38,7 +40,6 @@ from gpnerf_plugins.datasets.scannet_labels import (
 from gpnerf_plugins.datasets.scannet_splits import read_split
 
 IGNORE_NAME = "ignore"
-_INTEGER_MODES = ("L", "I", "I;16", "I;16B", "I;16L")
 
 
 def _jpeg_complete(path: Path, frame: str) -> None:
@@ -60,10 +61,10 @@ def _png_complete(path: Path, frame: str, kind: str) -> tuple[int, int]:
             fmt, mode, (width, height) = image.format, image.mode, image.size
             image.verify()
     except Exception as exc:
-        raise LayoutError(path, f"a complete {kind} PNG", f"{type(exc).__name__}: {exc}", frame) from None
+        raise LayoutError(path, f"a complete {kind} PNG", one_line_error(exc), frame) from None
     if fmt != "PNG":
         raise LayoutError(path, f"a {kind} PNG", f"a {fmt} file", frame)
-    if mode not in _INTEGER_MODES:
+    if mode not in INTEGER_MODES:
         raise LayoutError(path, f"a single-channel integer {kind} PNG", f"mode {mode}", frame)
     return height, width
 
@@ -166,7 +167,7 @@ class _SceneCheck:
 
     def histogram(self, files: FrameFiles) -> None:
         try:
-            raw = integer_image(decode_image(files.label, files.token, "label PNG"), files.label, files.token, "label")
+            raw = read_integer_image(files.label, files.token, "label")
         except LayoutError as error:
             self.problem(error)
             return

@@ -23,12 +23,16 @@ import numpy as np
 from PIL import Image
 
 from gpnerf_core.errors import DataError
+from gpnerf_plugins.datasets import image_io
+from gpnerf_plugins.datasets.image_io import ImageError
 from gpnerf_plugins.datasets.layout_check import Problem
 
 COLOR_DIR, DEPTH_DIR, LABEL_DIR, POSE_DIR = "color", "depth", "label-filt", "pose"
 INTRINSIC_COLOR = Path("intrinsic") / "intrinsic_color.txt"
 DEPTH_SCALE = 1000.0  # depth PNG units per metre
 SCENE_NAME = re.compile(r"^scene\d{4}_\d{2}$")
+INTEGER_MODES = ("L", "I", "I;16", "I;16B", "I;16L")
+"""PIL modes of a single-channel integer (8/16/32-bit) PNG."""
 
 
 class LayoutError(DataError):
@@ -164,49 +168,35 @@ def scale_intrinsics(k: np.ndarray, sx: float, sy: float) -> np.ndarray:
     return a @ k
 
 
+def _layout_error(error: ImageError, missing: str, unreadable: str, frame: str | None) -> LayoutError:
+    """``error`` as a layout problem: expected ``missing``, found nothing; or expected ``unreadable``, found why."""
+    if error.missing:
+        return LayoutError(error.path, missing, "nothing", frame)
+    return LayoutError(error.path, unreadable, error.reason, frame)
+
+
 def image_size(path: Path, frame: str | None = None) -> tuple[int, int]:
     """``(H, W)`` from the image header, without decoding."""
     try:
-        with Image.open(path) as image:
-            width, height = image.size
-    except FileNotFoundError:
-        raise LayoutError(path, "an image", "nothing", frame) from None
-    except Exception as exc:
-        raise LayoutError(path, "a readable image", f"{type(exc).__name__}: {exc}", frame) from None
-    return height, width
+        return image_io.image_size(path)
+    except ImageError as error:
+        raise _layout_error(error, "an image", "a readable image", frame) from None
 
 
 def decode_image(path: Path, frame: str | None, kind: str) -> Image.Image:
     """Fully decode an image (a truncated or corrupt file raises ``LayoutError``, never a PIL traceback)."""
     try:
-        with Image.open(path) as image:
-            image.load()
-            return image.copy()
-    except FileNotFoundError:
-        raise LayoutError(path, kind, "nothing", frame) from None
-    except Exception as exc:
-        raise LayoutError(path, f"a complete {kind}", f"{type(exc).__name__}: {exc}", frame) from None
+        return image_io.decode_image(path)
+    except ImageError as error:
+        raise _layout_error(error, kind, f"a complete {kind}", frame) from None
 
 
-def integer_image(image: Image.Image, path: Path, frame: str | None, kind: str) -> np.ndarray:
-    """A single-channel integer image (8/16/32-bit PNG) as ``[H, W]`` int64."""
-    if image.mode not in ("L", "I", "I;16", "I;16B", "I;16L"):
+def read_integer_image(path: Path, frame: str | None, kind: str) -> np.ndarray:
+    """A single-channel integer ``kind`` PNG (depth, label) as ``[H, W]`` int64."""
+    image = decode_image(path, frame, f"{kind} PNG")
+    if image.mode not in INTEGER_MODES:
         raise LayoutError(path, f"a single-channel integer {kind} PNG", f"mode {image.mode}", frame)
     return np.asarray(image).astype(np.int64)
-
-
-def nearest_indices(src: int, dst: int) -> np.ndarray:
-    """Source index of each destination pixel centre for an area-aligned nearest-neighbour resize."""
-    return np.minimum(((np.arange(dst) + 0.5) * src / dst).astype(np.int64), src - 1)
-
-
-def resize_nearest(image: np.ndarray, height: int, width: int) -> np.ndarray:
-    """``[h, w, ...]`` -> ``[height, width, ...]`` by nearest neighbour (labels, depth)."""
-    if image.shape[:2] == (height, width):
-        return image
-    rows = nearest_indices(image.shape[0], height)
-    cols = nearest_indices(image.shape[1], width)
-    return image[rows[:, None], cols[None, :]]
 
 
 def aspect_mismatch(size: tuple[int, int], reference: tuple[int, int], tolerance: float = 0.02) -> bool:

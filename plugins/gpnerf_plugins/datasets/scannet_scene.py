@@ -17,6 +17,7 @@ from PIL import Image
 
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.types import Frame, Scene
+from gpnerf_plugins.datasets.image_io import resize_nearest
 from gpnerf_plugins.datasets.scannet_files import (
     DEPTH_SCALE,
     INTRINSIC_COLOR,
@@ -25,11 +26,10 @@ from gpnerf_plugins.datasets.scannet_files import (
     aspect_mismatch,
     decode_image,
     image_size,
-    integer_image,
     pose_is_valid,
+    read_integer_image,
     read_intrinsic,
     read_pose,
-    resize_nearest,
     scale_intrinsics,
     scan_frames,
 )
@@ -140,7 +140,7 @@ class ScanNetScene:
         return np.asarray(image, dtype=np.float32) / 255.0
 
     def _aligned(self, path: Path, files: FrameFiles, kind: str) -> np.ndarray:
-        values = integer_image(decode_image(path, files.token, f"{kind} PNG"), path, files.token, kind)
+        values = read_integer_image(path, files.token, kind)
         if aspect_mismatch(values.shape, self.color_size):
             raise LayoutError(
                 path,
