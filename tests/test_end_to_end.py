@@ -144,3 +144,18 @@ def test_plugins_command_lists_kinds(workspace):
     assert result.returncode == 0
     for name in ("resunet_fpn", "gnt_view", "gnt_ray", "unet", "dgs", "embedded", "nearest"):
         assert name in result.stdout
+
+
+def test_multirun_sweep_runs_every_job_and_report_tabulates_them(workspace):
+    sweep = workspace / "sweep"
+    tiny = [o for o in TINY if not o.startswith(("train.steps", "eval.save_images"))]
+    result = gpnerf(
+        "run", "-m", "+experiment=table4/id2,table4/id4", *tiny, "train.steps=1", "eval.save_images=0",
+        f"hydra.sweep.dir={sweep}", cwd=workspace, cache=workspace / "cache",
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1"]
+    report = gpnerf("report", str(sweep), cwd=workspace, cache=workspace / "cache")
+    assert report.returncode == 0, report.stderr
+    rows = [line for line in report.stdout.splitlines() if line.startswith("| ") and "run" not in line]
+    assert [row.split("|")[13].strip() for row in rows] == ["2", "4"]
