@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import json
 import platform
 import sys
 import time
@@ -130,7 +129,3 @@ def eval_task(cfg: DictConfig) -> dict[str, Any]:
     atomic_write_json(run_dir / "metrics.json", metrics)
     print_summary(metrics, run_dir)
     return metrics
-
-
-def dumps(metrics: dict[str, Any]) -> str:
-    return json.dumps(metrics, indent=2, sort_keys=True)
