@@ -33,3 +33,11 @@ def train_and_evaluate(dataset_overrides: list[str], run_dir: Path) -> dict:
     result = trainer.fit(progress=False)
     assert result.steps == 2 and all(torch.isfinite(torch.tensor(h["loss"])) for h in result.history)
     return evaluate(cfg, components, trainer.views, torch.device("cpu"), run_dir)
+
+
+def assert_both_splits_scored(metrics: dict, num_classes: int) -> None:
+    """Both evaluation splits scored at least one image, with an mIoU in [0, 1] over ``num_classes`` classes."""
+    for split in ("train_heldout", "unseen"):
+        values = metrics["eval"][split]
+        assert values["count/images"] >= 1 and 0.0 <= values["miou/image_mean_present"] <= 1.0
+        assert len(values["iou/dataset_per_class"]) == num_classes

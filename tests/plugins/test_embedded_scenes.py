@@ -103,14 +103,11 @@ def test_same_seed_gives_identical_bytes_and_another_seed_differs(tiny_set, tmp_
     assert (other / seq / "rgb" / "rgb_0.png").read_bytes() != (tiny_set / seq / "rgb" / "rgb_0.png").read_bytes()
 
 
-def _reprojection(a: Frame, b: Frame) -> tuple[float, float, float, float]:
-    """Project frame a's pixels into b with a's depth.
+def _points_in_b(a: Frame, b: Frame, k: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """a's valid pixels unprojected with a's depth and intrinsics ``k``, in b's camera frame.
 
-    Returns (co-visible fraction of a's valid pixels, depth agreement, class agreement, instance agreement);
-    co-visible pixels land inside b on a surface with no closer surface in front (an occluded point is not
-    co-visible), and agreement is over co-visible pixels.
+    Returns (points ``[N, 3]`` in b's camera coordinates, a's valid-depth mask ``[H, W]``).
     """
-    k, kb = a.intrinsics.double(), b.intrinsics.double()
     height, width = a.depth.shape
     v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij")
     depth = a.depth.double()
@@ -118,7 +115,19 @@ def _reprojection(a: Frame, b: Frame) -> tuple[float, float, float, float]:
     cam = torch.stack([(u - k[0, 2]) / k[0, 0] * depth, (v - k[1, 2]) / k[1, 1] * depth, depth], -1)[valid]
     world = cam @ a.c2w.double()[:3, :3].T + a.c2w.double()[:3, 3]
     w2c = torch.linalg.inv(b.c2w.double())
-    in_b = world @ w2c[:3, :3].T + w2c[:3, 3]
+    return world @ w2c[:3, :3].T + w2c[:3, 3], valid
+
+
+def _reprojection(a: Frame, b: Frame) -> tuple[float, float, float, float]:
+    """Project frame a's pixels into b with a's depth.
+
+    Returns (co-visible fraction of a's valid pixels, depth agreement, class agreement, instance agreement);
+    co-visible pixels land inside b on a surface with no closer surface in front (an occluded point is not
+    co-visible), and agreement is over co-visible pixels.
+    """
+    kb = b.intrinsics.double()
+    height, width = a.depth.shape
+    in_b, valid = _points_in_b(a, b, a.intrinsics.double())
     z = in_b[:, 2]
     ub = torch.round(kb[0, 0] * in_b[:, 0] / z + kb[0, 2]).long()
     vb = torch.round(kb[1, 1] * in_b[:, 1] / z + kb[1, 2]).long()
@@ -170,13 +179,7 @@ def _median_depth_residual(a: Frame, b: Frame, shift: tuple[float, float]) -> fl
     k[0, 2] += shift[0]
     k[1, 2] += shift[1]
     height, width = a.depth.shape
-    v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij")
-    depth = a.depth.double()
-    valid = depth > 0
-    cam = torch.stack([(u - k[0, 2]) / k[0, 0] * depth, (v - k[1, 2]) / k[1, 1] * depth, depth], -1)[valid]
-    world = cam @ a.c2w.double()[:3, :3].T + a.c2w.double()[:3, 3]
-    w2c = torch.linalg.inv(b.c2w.double())
-    in_b = world @ w2c[:3, :3].T + w2c[:3, 3]
+    in_b, _ = _points_in_b(a, b, k)
     z = in_b[:, 2]
     ub, vb = k[0, 0] * in_b[:, 0] / z + k[0, 2], k[1, 1] * in_b[:, 1] / z + k[1, 2]
     inside = (z > 0) & (ub >= 0) & (ub <= width - 1) & (vb >= 0) & (vb <= height - 1)

@@ -411,14 +411,11 @@ def test_data_check_command_exits_0_then_1(root):
 
 
 def test_scannet_trains_and_evaluates_through_the_unchanged_pipeline(root, tmp_path):
-    from pipeline_check import train_and_evaluate
+    from pipeline_check import assert_both_splits_scored, train_and_evaluate
 
     metrics = train_and_evaluate(
         ["dataset=scannet", f"dataset.root={root}", "dataset.height=32", "dataset.width=48",
          "dataset.train_scenes=[scene0000_00]", "dataset.unseen_scenes=[scene0160_00]"],
         tmp_path / "run",
     )
-    for split in ("train_heldout", "unseen"):
-        values = metrics["eval"][split]
-        assert values["count/images"] >= 1 and 0.0 <= values["miou/image_mean_present"] <= 1.0
-        assert len(values["iou/dataset_per_class"]) == 20
+    assert_both_splits_scored(metrics, 20)
