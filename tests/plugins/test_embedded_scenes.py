@@ -26,8 +26,8 @@ from gpnerf_plugins.datasets.embedded import (
     generate,
 )
 from gpnerf_plugins.datasets.embedded import generation as generate_module
-from gpnerf_plugins.datasets.embedded_dataset import EmbeddedScenes, EmbeddedScenesConfig
-from gpnerf_plugins.datasets.replica_layout import ReplicaSequence
+from gpnerf_plugins.datasets.embedded.dataset import EmbeddedScenes, EmbeddedScenesConfig
+from gpnerf_plugins.datasets.replica.layout import ReplicaSequence
 
 TINY = dict(num_train_scenes=1, num_unseen_scenes=1, frames_per_scene=12, height=48, width=64, seed=0)
 

@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 from PIL import Image
 
 from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_plugins.datasets.replica import (
+from gpnerf_plugins.datasets.replica.dataset import (
     ReplicaInstanceScenes,
     ReplicaInstanceScenesConfig,
     ReplicaScenes,
@@ -24,14 +24,14 @@ from gpnerf_plugins.datasets.replica import (
     check_replica_instance_layout,
     check_replica_layout,
 )
-from gpnerf_plugins.datasets.replica_classes import (
+from gpnerf_plugins.datasets.replica.classes import (
     CLASS_NAMES,
     IGNORE_INDEX,
     RAW_CLASS_NAMES,
     VALID_RAW_IDS,
     raw_to_class_table,
 )
-from gpnerf_plugins.datasets.replica_splits import read_split_file
+from gpnerf_plugins.datasets.replica.splits import read_split_file
 
 H, W = 24, 32
 # raw ids: 3 -> class 0 (basket), 7 -> 1 (bed), 93 -> 47 (wall), 98 -> 50 (rug); 0 (other) and 50 (mat) -> ignore

@@ -12,7 +12,7 @@ import torch
 from PIL import Image
 
 from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_plugins.datasets.replica_layout import (
+from gpnerf_plugins.datasets.replica.layout import (
     ReplicaSequence,
     every_nth_split,
     hfov_intrinsics,

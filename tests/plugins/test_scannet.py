@@ -14,9 +14,9 @@ import torch
 from PIL import Image
 
 from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_plugins.datasets.scannet import ScanNetScenes, check_scannet_layout, read_split
-from gpnerf_plugins.datasets.scannet_labels import SCANNET20_CLASS_NAMES
-from gpnerf_plugins.datasets.scannet_scene import frame_split
+from gpnerf_plugins.datasets.scannet.dataset import ScanNetScenes, check_scannet_layout, read_split
+from gpnerf_plugins.datasets.scannet.labels import SCANNET20_CLASS_NAMES
+from gpnerf_plugins.datasets.scannet.scene import frame_split
 
 COLOR_HW = (48, 64)  # colour images, like ScanNet's 968 x 1296 scaled down
 DEPTH_HW = (24, 32)  # depth at half the colour resolution, like ScanNet's 480 x 640

@@ -22,9 +22,9 @@ import torch
 from PIL import Image
 
 from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_plugins.datasets.scannet import ScanNetScenes
-from gpnerf_plugins.datasets.scannet_prepare import main, prepare_scan
-from gpnerf_plugins.datasets.sens import SensReader
+from gpnerf_plugins.datasets.scannet.dataset import ScanNetScenes
+from gpnerf_plugins.datasets.scannet.prepare import main, prepare_scan
+from gpnerf_plugins.datasets.scannet.sens import SensReader
 
 SCENE = "scene0042_00"
 COLOR_HW, DEPTH_HW = (48, 64), (24, 32)

@@ -1,1 +1,1 @@
-"""Built-in datasets."""
+"""Built-in datasets: one subpackage per dataset (embedded, replica, scannet), shared code in common/."""

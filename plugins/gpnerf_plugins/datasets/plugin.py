@@ -2,14 +2,14 @@
 
 from gpnerf_core import ComponentSpec, DataTool, hookimpl
 from gpnerf_plugins.datasets import tools
-from gpnerf_plugins.datasets.embedded_dataset import EmbeddedScenes, EmbeddedScenesConfig
-from gpnerf_plugins.datasets.replica import (
+from gpnerf_plugins.datasets.embedded.dataset import EmbeddedScenes, EmbeddedScenesConfig
+from gpnerf_plugins.datasets.replica.dataset import (
     ReplicaInstanceScenes,
     ReplicaInstanceScenesConfig,
     ReplicaScenes,
     ReplicaScenesConfig,
 )
-from gpnerf_plugins.datasets.scannet import ScanNetScenes, ScanNetScenesConfig
+from gpnerf_plugins.datasets.scannet.dataset import ScanNetScenes, ScanNetScenesConfig
 
 
 @hookimpl

@@ -7,24 +7,24 @@ from pathlib import Path
 from typing import Callable
 
 from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_plugins.datasets.layout_check import LayoutReport
+from gpnerf_plugins.datasets.common.layout_check import LayoutReport
 
 
 def layout_checkers() -> dict[str, Callable[[Path], LayoutReport]]:
     """Checkers by layout name (imported lazily: checking one layout never imports the others)."""
 
     def replica(root: Path) -> LayoutReport:
-        from gpnerf_plugins.datasets.replica import check_replica_layout
+        from gpnerf_plugins.datasets.replica.dataset import check_replica_layout
 
         return check_replica_layout(root)
 
     def replica_instance(root: Path) -> LayoutReport:
-        from gpnerf_plugins.datasets.replica import check_replica_instance_layout
+        from gpnerf_plugins.datasets.replica.dataset import check_replica_instance_layout
 
         return check_replica_instance_layout(root)
 
     def scannet(root: Path) -> LayoutReport:
-        from gpnerf_plugins.datasets.scannet import check_scannet_layout
+        from gpnerf_plugins.datasets.scannet.dataset import check_scannet_layout
 
         return check_scannet_layout(root)
 
@@ -50,7 +50,7 @@ def check(argv: list[str]) -> int:
 
 
 def make_embedded(argv: list[str]) -> int:
-    from gpnerf_plugins.datasets.embedded_dataset import EmbeddedScenes, EmbeddedScenesConfig
+    from gpnerf_plugins.datasets.embedded.dataset import EmbeddedScenes, EmbeddedScenesConfig
 
     defaults = EmbeddedScenesConfig()
     parser = _Parser(prog="gpnerf_core data make", description="Render the embedded scenes into the cache (or --root).")
@@ -65,6 +65,6 @@ def make_embedded(argv: list[str]) -> int:
 
 
 def prepare_scannet(argv: list[str]) -> int:
-    from gpnerf_plugins.datasets.scannet_prepare import main as prepare_main
+    from gpnerf_plugins.datasets.scannet.prepare import main as prepare_main
 
     return prepare_main(argv)

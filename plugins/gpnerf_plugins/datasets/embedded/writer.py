@@ -10,7 +10,7 @@ import numpy as np
 from PIL import Image
 
 from gpnerf_plugins.datasets.embedded.render import RenderedView
-from gpnerf_plugins.datasets.replica_layout import (
+from gpnerf_plugins.datasets.replica.layout import (
     CLASS_DIR,
     DEPTH_DIR,
     DEPTH_SCALE,

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from gpnerf_plugins.datasets.image_io import ImageError, describe, is_integer_map, is_rgb8, one_line_error, read_png
-from gpnerf_plugins.datasets.layout_check import LayoutReport, Problem
-from gpnerf_plugins.datasets.replica_classes import CLASS_NAMES, MAX_RAW_ID, raw_to_class_table
-from gpnerf_plugins.datasets.replica_layout import (
+from gpnerf_plugins.datasets.common.image_io import ImageError, describe, is_integer_map, is_rgb8, one_line_error, read_png
+from gpnerf_plugins.datasets.common.layout_check import LayoutReport, Problem
+from gpnerf_plugins.datasets.replica.classes import CLASS_NAMES, MAX_RAW_ID, raw_to_class_table
+from gpnerf_plugins.datasets.replica.layout import (
     CLASS_DIR,
     DEPTH_DIR,
     INSTANCE_DIR,
@@ -22,7 +22,7 @@ from gpnerf_plugins.datasets.replica_layout import (
     TRAJECTORY_FILE,
     frame_file_pattern,
 )
-from gpnerf_plugins.datasets.replica_splits import INSTANCE_SCENES_FILE, PROTOCOL_FILES, read_split_file
+from gpnerf_plugins.datasets.replica.splits import INSTANCE_SCENES_FILE, PROTOCOL_FILES, read_split_file
 
 POSE_ROW = "a row of 16 numbers (row-major 4x4 camera-to-world)"
 

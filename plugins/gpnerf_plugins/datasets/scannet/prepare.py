@@ -1,7 +1,7 @@
 """``python -m gpnerf_core data prepare-scannet <scan folder> [--out <root>] [--frame-skip N] [--overwrite]``.
 
 Turns one ScanNet scan as downloaded (``<scan>/<scan>.sens`` and ``<scan>/<scan>_2d-label-filt.zip``) into the
-layout ``ScanNetScenes`` reads (``scannet_files``): ``<out>/<scan>/{color,depth,label-filt,pose,intrinsic}``.
+layout ``ScanNetScenes`` reads (``scannet.files``): ``<out>/<scan>/{color,depth,label-filt,pose,intrinsic}``.
 Colour JPEGs and label PNGs are copied as stored; depth is written as uint16 millimetre PNGs; poses as 4 rows of
 4 numbers (invalid ones stay ``-inf`` and the loader drops them). The scene is written into a temporary folder
 beside the destination and renamed into place at the end, so an error leaves nothing half-written.
@@ -22,7 +22,7 @@ import numpy as np
 from PIL import Image
 
 from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_plugins.datasets.scannet_files import (
+from gpnerf_plugins.datasets.scannet.files import (
     COLOR_DIR,
     DEPTH_DIR,
     DEPTH_SCALE,
@@ -31,8 +31,8 @@ from gpnerf_plugins.datasets.scannet_files import (
     POSE_DIR,
     SCENE_NAME,
 )
-from gpnerf_plugins.datasets.scannet_labels import LABEL_MAP_NAME, LABEL_MAP_SOURCE
-from gpnerf_plugins.datasets.sens import SensFrame, SensReader
+from gpnerf_plugins.datasets.scannet.labels import LABEL_MAP_NAME, LABEL_MAP_SOURCE
+from gpnerf_plugins.datasets.scannet.sens import SensFrame, SensReader
 
 DEFAULT_OUT = "data/scannet"
 _LABEL_ENTRY = re.compile(r"(?:^|/)label-filt/(\d+)\.png$")

@@ -1,6 +1,6 @@
 """The ``scannet`` dataset: ScanNet scenes in the Semantic-Ray export layout, labelled with the 20 benchmark classes.
 
-``<root>/<sceneXXXX_YY>/`` folders (see ``scannet_files``) plus ``<root>/scannetv2-labels.combined.tsv``. The train
+``<root>/<sceneXXXX_YY>/`` folders (see ``scannet.files``) plus ``<root>/scannetv2-labels.combined.tsv``. The train
 and unseen splits are the reference's scene lists, shipped as ``splits/scannet_{train,test,val}.txt``.
 """
 
@@ -14,37 +14,34 @@ from typing import Sequence
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.interfaces import SPLITS, SceneDataset
 from gpnerf_core.types import Scene
-from gpnerf_plugins.datasets.scannet_check import check_scannet_layout
-from gpnerf_plugins.datasets.scannet_files import SCENE_NAME
-from gpnerf_plugins.datasets.scannet_labels import (
+from gpnerf_plugins.datasets.base import DatasetConfig
+from gpnerf_plugins.datasets.scannet.check import check_scannet_layout
+from gpnerf_plugins.datasets.scannet.files import SCENE_NAME
+from gpnerf_plugins.datasets.scannet.labels import (
     IGNORE_INDEX,
     LABEL_MAP_NAME,
     SCANNET20_CLASS_NAMES,
     LabelMap,
     read_label_map,
 )
-from gpnerf_plugins.datasets.scannet_scene import PROTOCOLS, ScanNetScene
-from gpnerf_plugins.datasets.scannet_splits import read_split
+from gpnerf_plugins.datasets.scannet.scene import PROTOCOLS, ScanNetScene
+from gpnerf_plugins.datasets.scannet.splits import read_split
 
 __all__ = ["ScanNetScenes", "ScanNetScenesConfig", "check_scannet_layout", "read_split"]
 
 
 @dataclass
-class ScanNetScenesConfig:
+class ScanNetScenesConfig(DatasetConfig):
+    """Options of the ScanNet scenes.
+
+    ``root`` holds the sceneXXXX_YY folders (Semantic-Ray export layout; `data prepare-scannet` writes it). The default
+    size is the reference's 240 x 320; ``far`` is one range for training and evaluation (the reference trains with 10).
+    """
+
     name: str = "scannet"
     """Registry name of this dataset."""
-    root: str = ""
-    """Folder holding the sceneXXXX_YY folders (Semantic-Ray export layout; `data prepare-scannet` writes it)."""
     label_map_file: str = ""
     """ScanNet's scannetv2-labels.combined.tsv; "" = <root>/scannetv2-labels.combined.tsv."""
-    height: int = 240
-    """Image height frames are loaded at, pixels (the reference's 240)."""
-    width: int = 320
-    """Image width frames are loaded at, pixels (the reference's 320)."""
-    near: float = 0.1
-    """Ray-sampling near bound, metres (training and evaluation alike)."""
-    far: float = 6.0
-    """Ray-sampling far bound, metres (one range for training and evaluation; the reference trains with 10)."""
     protocol: str = "heldout"
     """Per-scene frames: "heldout" (numeric order, eval frames never trained on) or "paper_parity" (the reference's
     lexicographic positions, fine-tuning frames overlapping the eval frames)."""
@@ -66,14 +63,14 @@ class ScanNetScenes(SceneDataset):
 
     def __init__(
         self,
-        root: str = "",
-        label_map_file: str = "",
-        height: int = 240,
-        width: int = 320,
-        near: float = 0.1,
-        far: float = 6.0,
-        protocol: str = "heldout",
-        allow_missing_scenes: bool = False,
+        root: str = ScanNetScenesConfig.root,
+        label_map_file: str = ScanNetScenesConfig.label_map_file,
+        height: int = ScanNetScenesConfig.height,
+        width: int = ScanNetScenesConfig.width,
+        near: float = ScanNetScenesConfig.near,
+        far: float = ScanNetScenesConfig.far,
+        protocol: str = ScanNetScenesConfig.protocol,
+        allow_missing_scenes: bool = ScanNetScenesConfig.allow_missing_scenes,
         train_scenes: Sequence[str] = (),
         unseen_scenes: Sequence[str] = (),
     ) -> None:

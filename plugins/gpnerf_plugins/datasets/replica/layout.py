@@ -27,7 +27,7 @@ import torch
 
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.types import Frame, Scene
-from gpnerf_plugins.datasets.image_io import (
+from gpnerf_plugins.datasets.common.image_io import (
     image_size,
     read_integer_png,
     read_rgb_png,

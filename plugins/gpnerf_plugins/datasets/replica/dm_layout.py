@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from gpnerf_core.errors import DataError
-from gpnerf_plugins.datasets.replica_layout import RGB_DIR, ReplicaSequence
+from gpnerf_plugins.datasets.replica.layout import RGB_DIR, ReplicaSequence
 
 
 class InstanceSequence(ReplicaSequence):

@@ -23,9 +23,9 @@ import numpy as np
 from PIL import Image
 
 from gpnerf_core.errors import DataError
-from gpnerf_plugins.datasets import image_io
-from gpnerf_plugins.datasets.image_io import ImageError
-from gpnerf_plugins.datasets.layout_check import Problem
+from gpnerf_plugins.datasets.common import image_io
+from gpnerf_plugins.datasets.common.image_io import ImageError
+from gpnerf_plugins.datasets.common.layout_check import Problem
 
 COLOR_DIR, DEPTH_DIR, LABEL_DIR, POSE_DIR = "color", "depth", "label-filt", "pose"
 INTRINSIC_COLOR = Path("intrinsic") / "intrinsic_color.txt"

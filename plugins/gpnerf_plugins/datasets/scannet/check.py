@@ -9,9 +9,9 @@ import numpy as np
 from PIL import Image
 
 from gpnerf_core.errors import DataError
-from gpnerf_plugins.datasets.image_io import one_line_error
-from gpnerf_plugins.datasets.layout_check import LayoutReport
-from gpnerf_plugins.datasets.scannet_files import (
+from gpnerf_plugins.datasets.common.image_io import one_line_error
+from gpnerf_plugins.datasets.common.layout_check import LayoutReport
+from gpnerf_plugins.datasets.scannet.files import (
     COLOR_DIR,
     DEPTH_DIR,
     INTEGER_MODES,
@@ -30,14 +30,14 @@ from gpnerf_plugins.datasets.scannet_files import (
     read_pose,
     scan_frames,
 )
-from gpnerf_plugins.datasets.scannet_labels import (
+from gpnerf_plugins.datasets.scannet.labels import (
     IGNORE_INDEX,
     LABEL_MAP_NAME,
     SCANNET20_CLASS_NAMES,
     LabelMap,
     read_label_map,
 )
-from gpnerf_plugins.datasets.scannet_splits import read_split
+from gpnerf_plugins.datasets.scannet.splits import read_split
 
 IGNORE_NAME = "ignore"
 

@@ -28,11 +28,13 @@ from pathlib import Path
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.interfaces import SPLITS, SceneDataset
 from gpnerf_core.types import Frame, Scene
-from gpnerf_plugins.datasets.replica_check import check_replica_instance_layout, check_replica_layout
-from gpnerf_plugins.datasets.replica_classes import CLASS_NAMES, IGNORE_INDEX, map_raw_labels
-from gpnerf_plugins.datasets.replica_dm_layout import InstanceSequence
-from gpnerf_plugins.datasets.replica_layout import ReplicaSequence
-from gpnerf_plugins.datasets.replica_splits import (
+from gpnerf_plugins.datasets.base import DatasetConfig
+from gpnerf_plugins.datasets.common.paths import from_launch_dir
+from gpnerf_plugins.datasets.replica.check import check_replica_instance_layout, check_replica_layout
+from gpnerf_plugins.datasets.replica.classes import CLASS_NAMES, IGNORE_INDEX, map_raw_labels
+from gpnerf_plugins.datasets.replica.dm_layout import InstanceSequence
+from gpnerf_plugins.datasets.replica.layout import ReplicaSequence
+from gpnerf_plugins.datasets.replica.splits import (
     INSTANCE_SCENES_FILE,
     check_frame_rule,
     protocol_files,
@@ -54,19 +56,17 @@ UNSEEN_SEQUENCE = "Sequence_1"
 
 
 @dataclass
-class ReplicaScenesConfig:
+class ReplicaScenesConfig(DatasetConfig):
+    """Options of Semantic-NeRF's Replica renders.
+
+    ``root`` holds <scene>/Sequence_<n>/; a relative path is taken from the launch directory. ``height`` and ``width``
+    both 0 load the files' size.
+    """
+
     name: str = "replica"
     """Registry name of this dataset."""
-    root: str = ""
-    """Folder holding <scene>/Sequence_<n>/ (Semantic-NeRF renders); relative = from the launch directory."""
     protocol: str = "heldout"
     """heldout: 6 training scenes, office_0 and room_0 unseen; paper_parity: the released lists (leaky)."""
-    height: int = 240
-    """Loaded image height, pixels (0 with width 0 = the files' size)."""
-    width: int = 320
-    """Loaded image width, pixels (0 with height 0 = the files' size)."""
-    near: float = 0.1
-    """Ray-sampling near bound, metres."""
     far: float = 10.0
     """Ray-sampling far bound, metres."""
     hfov_deg: float = 90.0
@@ -84,21 +84,17 @@ class ReplicaScenesConfig:
 
 
 @dataclass
-class ReplicaInstanceScenesConfig:
+class ReplicaInstanceScenesConfig(DatasetConfig):
+    """Options of DM-NeRF's Replica renders.
+
+    ``root`` holds <scene>/ in the DM-NeRF Replica layout; a relative path is taken from the launch directory.
+    ``height`` and ``width`` both 0 load the files' size.
+    """
+
     name: str = "replica_instance"
     """Registry name of this dataset."""
-    root: str = ""
-    """Folder holding <scene>/ in the DM-NeRF Replica layout; a relative path is taken from the launch directory."""
     protocol: str = "heldout"
     """heldout: evaluation frames removed from training; paper_parity: the reference's overlapping frame sets."""
-    height: int = 240
-    """Loaded image height, pixels (0 with width 0 = the files' size)."""
-    width: int = 320
-    """Loaded image width, pixels (0 with height 0 = the files' size)."""
-    near: float = 0.1
-    """Ray-sampling near bound, metres."""
-    far: float = 6.0
-    """Ray-sampling far bound, metres."""
     hfov_deg: float = 90.0
     """Horizontal field of view of the renders, degrees (Semantic-NeRF: 90)."""
     eval_start: int = 600
@@ -119,18 +115,7 @@ def _resolve_root(root: str) -> Path:
     """The dataset folder; a relative path is taken from the directory the command was started in."""
     if not root:
         raise ConfigError("dataset.root is empty; expected the folder holding the Replica scenes (office_0/, ...)")
-    path = Path(root).expanduser()
-    if not path.is_absolute():
-        base = Path.cwd()
-        try:
-            from hydra.core.hydra_config import HydraConfig
-            from hydra.utils import get_original_cwd
-
-            if HydraConfig.initialized():
-                base = Path(get_original_cwd())
-        except ImportError:
-            pass
-        path = base / path
+    path = from_launch_dir(root)
     if not path.is_dir():
         raise DataError(f"{path}: dataset.root folder missing; expected the folder holding the Replica scene folders")
     return path
@@ -227,18 +212,18 @@ class ReplicaScenes(_ReplicaDataset):
 
     def __init__(
         self,
-        root: str = "",
-        protocol: str = "heldout",
-        height: int = 240,
-        width: int = 320,
-        near: float = 0.1,
-        far: float = 10.0,
-        hfov_deg: float = 90.0,
-        eval_start: int = 2,
-        eval_stop: int = 700,
-        eval_step: int = 20,
-        eval_count: int = 10,
-        strict_labels: bool = True,
+        root: str = ReplicaScenesConfig.root,
+        protocol: str = ReplicaScenesConfig.protocol,
+        height: int = ReplicaScenesConfig.height,
+        width: int = ReplicaScenesConfig.width,
+        near: float = ReplicaScenesConfig.near,
+        far: float = ReplicaScenesConfig.far,
+        hfov_deg: float = ReplicaScenesConfig.hfov_deg,
+        eval_start: int = ReplicaScenesConfig.eval_start,
+        eval_stop: int = ReplicaScenesConfig.eval_stop,
+        eval_step: int = ReplicaScenesConfig.eval_step,
+        eval_count: int = ReplicaScenesConfig.eval_count,
+        strict_labels: bool = ReplicaScenesConfig.strict_labels,
     ) -> None:
         train_file, test_file = protocol_files(protocol)
         super().__init__(root, protocol, height, width, near, far, hfov_deg, strict_labels)
@@ -291,19 +276,19 @@ class ReplicaInstanceScenes(_ReplicaDataset):
 
     def __init__(
         self,
-        root: str = "",
-        protocol: str = "heldout",
-        height: int = 240,
-        width: int = 320,
-        near: float = 0.1,
-        far: float = 6.0,
-        hfov_deg: float = 90.0,
-        eval_start: int = 600,
-        eval_stop: int = 900,
-        eval_step: int = 20,
-        train_stop: int = 900,
-        train_step: int = 2,
-        strict_labels: bool = True,
+        root: str = ReplicaInstanceScenesConfig.root,
+        protocol: str = ReplicaInstanceScenesConfig.protocol,
+        height: int = ReplicaInstanceScenesConfig.height,
+        width: int = ReplicaInstanceScenesConfig.width,
+        near: float = ReplicaInstanceScenesConfig.near,
+        far: float = ReplicaInstanceScenesConfig.far,
+        hfov_deg: float = ReplicaInstanceScenesConfig.hfov_deg,
+        eval_start: int = ReplicaInstanceScenesConfig.eval_start,
+        eval_stop: int = ReplicaInstanceScenesConfig.eval_stop,
+        eval_step: int = ReplicaInstanceScenesConfig.eval_step,
+        train_stop: int = ReplicaInstanceScenesConfig.train_stop,
+        train_step: int = ReplicaInstanceScenesConfig.train_step,
+        strict_labels: bool = ReplicaInstanceScenesConfig.strict_labels,
     ) -> None:
         protocol_files(protocol)  # same protocol names as ``replica``
         super().__init__(root, protocol, height, width, near, far, hfov_deg, strict_labels)

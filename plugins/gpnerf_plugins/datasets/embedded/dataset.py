@@ -11,17 +11,23 @@ import numpy as np
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.interfaces import SPLITS, SceneDataset
 from gpnerf_core.types import Scene
+from gpnerf_plugins.datasets.base import DatasetConfig
+from gpnerf_plugins.datasets.common.paths import from_launch_dir
 from gpnerf_plugins.datasets.embedded import CLASS_NAMES, IGNORE_INDEX, SEQUENCE, SceneSetParams, ensure_generated
 from gpnerf_plugins.datasets.embedded.generation import check_params
-from gpnerf_plugins.datasets.replica_layout import ReplicaSequence, every_nth_split
+from gpnerf_plugins.datasets.replica.layout import ReplicaSequence, every_nth_split
 
 
 @dataclass
-class EmbeddedScenesConfig:
+class EmbeddedScenesConfig(DatasetConfig):
+    """Options of the generated rooms.
+
+    ``root`` is the folder of a generated set (generated there if empty or missing); "" = the cache ($GPNERF_CACHE or
+    ~/.cache/gpnerf). A relative path is taken from the launch directory.
+    """
+
     name: str = "embedded"
     """Registry name of this dataset."""
-    root: str = ""
-    """Folder of a generated set (generated there if empty or missing); "" = the cache ($GPNERF_CACHE or ~/.cache/gpnerf)."""
     num_train_scenes: int = 4
     """Layouts whose train frames are trained on (eval frames held out)."""
     num_unseen_scenes: int = 1
@@ -42,25 +48,6 @@ class EmbeddedScenesConfig:
     """Ray-sampling far bound, metres (the farthest wall point seen is under 6 m away)."""
 
 
-def _resolve(root: str) -> Path | None:
-    """None for the cache; a relative path is taken from the directory the command was started in."""
-    if not root:
-        return None
-    path = Path(root).expanduser()
-    if path.is_absolute():
-        return path
-    base = Path.cwd()
-    try:
-        from hydra.core.hydra_config import HydraConfig
-        from hydra.utils import get_original_cwd
-
-        if HydraConfig.initialized():
-            base = Path(get_original_cwd())
-    except ImportError:
-        pass
-    return base / path
-
-
 class EmbeddedScenes(SceneDataset):
     """Rooms of pybullet_data objects, generated on first ``load_scene`` into ``root`` or the cache.
 
@@ -71,16 +58,16 @@ class EmbeddedScenes(SceneDataset):
 
     def __init__(
         self,
-        root: str = "",
-        num_train_scenes: int = 4,
-        num_unseen_scenes: int = 1,
-        frames_per_scene: int = 36,
-        height: int = 96,
-        width: int = 128,
-        seed: int = 0,
-        eval_every: int = 6,
-        near: float = 0.2,
-        far: float = 6.5,
+        root: str = EmbeddedScenesConfig.root,
+        num_train_scenes: int = EmbeddedScenesConfig.num_train_scenes,
+        num_unseen_scenes: int = EmbeddedScenesConfig.num_unseen_scenes,
+        frames_per_scene: int = EmbeddedScenesConfig.frames_per_scene,
+        height: int = EmbeddedScenesConfig.height,
+        width: int = EmbeddedScenesConfig.width,
+        seed: int = EmbeddedScenesConfig.seed,
+        eval_every: int = EmbeddedScenesConfig.eval_every,
+        near: float = EmbeddedScenesConfig.near,
+        far: float = EmbeddedScenesConfig.far,
     ) -> None:
         self.params = SceneSetParams(num_train_scenes, num_unseen_scenes, frames_per_scene, height, width, seed)
         every_nth_split(frames_per_scene, eval_every)  # raises ConfigError for a bad eval_every
@@ -88,7 +75,7 @@ class EmbeddedScenes(SceneDataset):
             raise ConfigError(f"dataset.near={near}, dataset.far={far}; expected 0 < near < far (metres)")
         self.eval_every = eval_every
         self.near, self.far = float(near), float(far)
-        self._root_arg = _resolve(root)
+        self._root_arg = from_launch_dir(root) if root else None  # None: the cache
         self._root: Path | None = None
         self._hfov = 0.0
         self._scenes: dict[str, Scene] = {}

@@ -17,8 +17,8 @@ from PIL import Image
 
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.types import Frame, Scene
-from gpnerf_plugins.datasets.image_io import resize_nearest
-from gpnerf_plugins.datasets.scannet_files import (
+from gpnerf_plugins.datasets.common.image_io import resize_nearest
+from gpnerf_plugins.datasets.scannet.files import (
     DEPTH_SCALE,
     INTRINSIC_COLOR,
     FrameFiles,
@@ -33,7 +33,7 @@ from gpnerf_plugins.datasets.scannet_files import (
     scale_intrinsics,
     scan_frames,
 )
-from gpnerf_plugins.datasets.scannet_labels import IGNORE_INDEX, LabelMap
+from gpnerf_plugins.datasets.scannet.labels import IGNORE_INDEX, LabelMap
 
 PROTOCOLS = ("heldout", "paper_parity")
 EVAL_POSITIONS = slice(2, 700, 20)

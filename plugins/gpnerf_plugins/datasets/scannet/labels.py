@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gpnerf_plugins.datasets.scannet_files import LayoutError
+from gpnerf_plugins.datasets.scannet.files import LayoutError
 
 LABEL_MAP_NAME = "scannetv2-labels.combined.tsv"
 LABEL_MAP_SOURCE = (

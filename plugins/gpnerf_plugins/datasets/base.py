@@ -1,0 +1,29 @@
+"""The config fields every built-in dataset shares: ``DatasetConfig``, subclassed by each dataset's config.
+
+A dataset whose default differs overrides the field in its subclass (as the loss sets do with ``LossSetConfig``); its
+constructor reads the defaults from its config (``root: str = ReplicaScenesConfig.root``), so each lives in one place.
+What a shared field means for one dataset (what ``root`` holds, what ``""`` or a size of 0 selects) is in that config's
+class docstring.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class DatasetConfig:
+    """Where the scenes are, the size frames are loaded at and the ray-sampling range."""
+
+    name: str = ""
+    """Registry name of the dataset (each subclass defaults it to its own)."""
+    root: str = ""
+    """Folder holding the dataset's scenes."""
+    height: int = 240
+    """Image height frames are loaded at, pixels."""
+    width: int = 320
+    """Image width frames are loaded at, pixels."""
+    near: float = 0.1
+    """Ray-sampling near bound, metres (training and evaluation alike)."""
+    far: float = 6.0
+    """Ray-sampling far bound, metres (training and evaluation alike)."""

@@ -1,0 +1,1 @@
+"""Code shared by more than one dataset: image decoding, layout-check reports, dataset root folders."""

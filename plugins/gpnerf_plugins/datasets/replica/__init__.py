@@ -1,0 +1,1 @@
+"""Replica: the ``replica`` and ``replica_instance`` datasets, their layout readers, checkers, classes and splits."""
