@@ -5,8 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-import torch
-
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.interfaces import LossSet, SceneDataset, ViewSelector
 from gpnerf_core.pipeline import GeneralizableNeRF
@@ -20,18 +18,6 @@ class Components:
     view_selector: ViewSelector
     model: GeneralizableNeRF
     loss: LossSet | None
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except RuntimeError:
-        raise ConfigError(f"device={name!r} is not a torch device; expected auto, cpu or cuda[:N]") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError(f"device={name!r} but CUDA is not available; use device=cpu or device=auto")
-    return device
 
 
 def build_model(cfg: Any, num_classes: int, registry: Registry | None = None) -> GeneralizableNeRF:
@@ -73,6 +59,8 @@ def build_model(cfg: Any, num_classes: int, registry: Registry | None = None) ->
         coarse_samples=cfg.model.coarse_samples,
         fine_samples=cfg.model.fine_samples,
         detach_source_semantics=cfg.model.detach_source_semantics,
+        fuse_rendered=cfg.train.fuse_rendered,
+        checkpoint_blocks=cfg.model.checkpoint_blocks,
     )
 
 

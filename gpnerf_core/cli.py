@@ -17,7 +17,7 @@ USAGE = """usage: python -m gpnerf_core <command> [options]
 commands:
   run       train on the dataset's training scenes, then evaluate held-out views and unseen scenes
             (Hydra overrides follow, e.g. `run +head=unet +loss=dgs train.steps=200`; `-m` sweeps)
-  eval      evaluate a checkpoint: `eval checkpoint=<path> [overrides]`
+  eval      evaluate a checkpoint with the config it was trained with: `eval checkpoint=<path> [overrides]`
   report    tabulate run folders (a sweep, the Table 4 ablation) beside the paper's numbers
   data      dataset tools: `data` lists them (check a layout, prepare ScanNet, make the embedded scenes)
   plugins   list registered components with provider and version, and plugins that failed to load
@@ -51,10 +51,30 @@ def _run(argv: list[str]) -> int:
 
 def _eval(argv: list[str]) -> int:
     from gpnerf_core.run import eval_task
+    from gpnerf_core.training.checkpoint import read_checkpoint
 
-    if not any(a.startswith("checkpoint=") for a in argv):
+    given = [a for a in argv if a.startswith("checkpoint=")]
+    if not given:
         raise GpnerfError("eval needs checkpoint=<path to a .pt file written by run>")
-    return _hydra_entry(eval_task, argv, "gpnerf_core eval")
+    stored = read_checkpoint(given[-1].split("=", 1)[1]).get("overrides", [])
+    return _hydra_entry(eval_task, merge_overrides(stored, argv), "gpnerf_core eval")
+
+
+def merge_overrides(stored: list[str], given: list[str]) -> list[str]:
+    """The checkpoint's overrides (minus run-specific ones) followed by the command's; the command's win.
+
+    A group the checkpoint added with ``+`` stays added when the command switches it without ``+``
+    (``head=per_pixel`` after ``+head=unet``). Flags (``-m``) keep their place in front.
+    """
+    from gpnerf_core.run import RUN_SPECIFIC_KEYS, override_key
+
+    flags = [a for a in given if a.startswith("-")]
+    overrides = [a for a in given if not a.startswith("-")]
+    user_keys = {override_key(o) for o in overrides}
+    added = {override_key(o) for o in stored if o.startswith("+") and not o.startswith("++")}
+    kept = [o for o in stored if override_key(o) not in user_keys and override_key(o) not in RUN_SPECIFIC_KEYS]
+    adjusted = [f"+{o}" if override_key(o) in added and not o.startswith(("+", "~")) else o for o in overrides]
+    return [*flags, *kept, *adjusted]
 
 
 def _plugins(argv: list[str]) -> int:

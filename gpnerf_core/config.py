@@ -33,6 +33,13 @@ class ModelConfig:
     detach_source_semantics: bool = True
     """Rendered-feature losses do not train the extractor through the source views (released code)."""
     semantic_field: SemanticFieldConfig = field(default_factory=SemanticFieldConfig)
+    checkpoint_blocks: bool = False
+    """Activation checkpointing of the transformer blocks: recompute them in the backward pass (less memory)."""
+    init: Optional[str] = None
+    """Start from these weights: an official GNT checkpoint (``net_coarse`` + ``feature_net``) or a gpnerf-core
+    checkpoint (its model weights only). Ignored when resuming."""
+    init_strict: bool = True
+    """Refuse an init checkpoint holding keys no component maps (False: load the rest and list them)."""
 
 
 @dataclass
@@ -50,7 +57,10 @@ class TrainConfig:
     steps: int = 200_000
     """Optimizer steps (one target view each)."""
     rays: int = 512
-    """Rays per step."""
+    """Rays per target view per step (a step renders ``rays x targets_per_step`` rays over all processes)."""
+    targets_per_step: int = 1
+    """Target views per step over all processes (the global batch; the paper: 1 per GPU). Under torchrun the
+    world size must divide it; each process takes its share."""
     lr: LearningRates = field(default_factory=LearningRates)
     lr_decay_rate: float = 0.6
     """Learning rates are multiplied by this factor every ``lr_decay_steps`` steps (exponentially, per step)."""
@@ -65,6 +75,15 @@ class TrainConfig:
     """Steps between checkpoints (0 = only the final one)."""
     resume: Optional[str] = None
     """Checkpoint to resume from (restores model, optimizer, step and random state)."""
+    resume_strict: bool = True
+    """Refuse to resume when the model or loss config differs from the checkpoint's (False: print the
+    differences and go on)."""
+    precision: str = "fp32"
+    """``fp32``, or ``bf16``: the forward pass and the losses under bfloat16 autocast (CPU and CUDA); weights,
+    gradients and the optimizer stay float32."""
+    loggers: list[str] = field(default_factory=lambda: ["csv"])
+    """Where training scalars and evaluation metrics also go: ``csv`` (``scalars.csv`` in the run folder) and/or
+    ``tensorboard`` (``tensorboard/`` event files; needs the ``tensorboard`` extra). Rank 0 only."""
 
 
 @dataclass
@@ -101,12 +120,39 @@ class RootConfig:
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     out_dir: str = ""
-    """Run folder; empty = Hydra's output directory."""
+    """Run folder; empty = Hydra's output directory. Nothing is written under ``outputs/`` when it is set."""
+    overwrite: bool = False
+    """Replace the run a non-empty ``out_dir`` holds (its checkpoints, metrics and pictures are deleted)."""
     checkpoint: Optional[str] = None
     """Checkpoint the ``eval`` command evaluates."""
 
 
+def run_dir_resolver(out_dir: str, default: str) -> str:
+    """``hydra.run.dir``: ``out_dir`` when set, else Hydra's dated default, so nothing lands under ``outputs/``."""
+    return out_dir or default
+
+
 def register_schema() -> None:
+    """Store the schema in Hydra's ConfigStore and register the resolvers ``conf/config.yaml`` uses."""
     from hydra.core.config_store import ConfigStore
+    from omegaconf import OmegaConf
 
     ConfigStore.instance().store(name="gpnerf_schema", node=RootConfig)
+    OmegaConf.register_new_resolver("gpnerf_run_dir", run_dir_resolver, replace=True)
+
+
+def compose(overrides: list[str] | tuple[str, ...] = ()) -> Any:
+    """The config ``python -m gpnerf_core run <overrides>`` would run, composed without running it.
+
+    For notebooks, tests and scripts: ``compose(["+head=unet", "+loss=dgs", "train.steps=10"])``.
+    """
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    from gpnerf_core.cli import config_dir
+    from gpnerf_core.registry import get_registry
+
+    get_registry()
+    register_schema()
+    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
+        return hydra_compose(config_name="config", overrides=list(overrides))

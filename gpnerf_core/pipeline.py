@@ -1,4 +1,10 @@
-"""The generalizable NeRF assembled from its four stages, a semantic field and a perception head."""
+"""The generalizable NeRF assembled from its four stages, a semantic field and a perception head.
+
+``GeneralizableNeRF.forward`` is the training pass of GP-NeRF's Fig. 2, top-down: encode the source views (and the
+target view, the teacher), render the chosen rays with the field and ray aggregators, render the semantic field
+from their attention, write the rendered features into the teacher map (the fused map) and decode it with the
+perception head. ``predict`` renders whole views for evaluation and rendering.
+"""
 
 from __future__ import annotations
 
@@ -6,8 +12,10 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
+from torch.utils.checkpoint import checkpoint as activation_checkpoint
 
 from gpnerf_core.errors import ConfigError
+from gpnerf_core.fusion import cells_of_pixels, fuse_rendered, gather_cells
 from gpnerf_core.geometry import (
     Projector,
     importance_depths,
@@ -18,27 +26,43 @@ from gpnerf_core.geometry import (
 )
 from gpnerf_core.interfaces import FeatureExtractor, FieldAggregator, PerceptionHead, RayAggregator
 from gpnerf_core.semantic_field import SemanticFieldRenderer
-from gpnerf_core.types import FeatureMaps, HeadOutput, RayBatch, RaySamples, RenderedRays, SourceViews
+from gpnerf_core.types import (
+    FeatureMaps,
+    FieldBlockOutput,
+    HeadOutput,
+    RayBatch,
+    RayBlockOutput,
+    RaySamples,
+    RenderedRays,
+    SourceViews,
+    StepBatch,
+    StepOutput,
+    TargetCamera,
+    TargetView,
+    ViewOutput,
+)
 
 
 @dataclass(frozen=True)
-class RenderedImage:
-    """A target view rendered on a stride grid.
+class Prediction:
+    """A whole target view rendered on a stride grid, and the head's output on the rendered map.
 
     Attributes:
         rgb: ``[h, w, 3]`` (unclamped); depth: ``[h, w]`` metres.
         semantic: ``[C, h, w]`` rendered semantic map, or None.
-        stride: pixels of the full image per rendered cell.
+        logits: ``[1, K, H, W]`` head output at the full image size, or None.
+        stride: pixels of the full image per rendered cell (h = H / stride).
     """
 
     rgb: Tensor
     depth: Tensor
     semantic: Tensor | None
+    logits: Tensor | None
     stride: int
 
 
 class GeneralizableNeRF(nn.Module):
-    """Extractor -> projector -> field aggregator <-> ray aggregator -> semantic field -> head.
+    """Extractor -> projector -> field aggregator <-> ray aggregator -> semantic field -> fused map -> head.
 
     Args:
         extractor, field, ray: the stages; the ray aggregator must have as many blocks as the field aggregator.
@@ -48,6 +72,10 @@ class GeneralizableNeRF(nn.Module):
             (0 = one pass).
         detach_source_semantics: stop rendered-feature losses from training the extractor through the
             source views (the released code does, REFERENCE §3 (ii)).
+        fuse_rendered: the head decodes the fused map in training (paper); False decodes the teacher map
+            alone (released code).
+        checkpoint_blocks: recompute each transformer block pair in the backward pass instead of keeping its
+            activations (activation checkpointing; less memory, more compute).
     """
 
     def __init__(
@@ -60,7 +88,9 @@ class GeneralizableNeRF(nn.Module):
         semantic: SemanticFieldRenderer | None,
         coarse_samples: int,
         fine_samples: int,
-        detach_source_semantics: bool = True,
+        detach_source_semantics: bool,
+        fuse_rendered: bool,
+        checkpoint_blocks: bool,
     ) -> None:
         super().__init__()
         if field.num_blocks != ray.num_blocks:
@@ -79,6 +109,8 @@ class GeneralizableNeRF(nn.Module):
         self.coarse_samples = coarse_samples
         self.fine_samples = fine_samples
         self.detach_source_semantics = detach_source_semantics
+        self.fuse_rendered = fuse_rendered
+        self.checkpoint_blocks = checkpoint_blocks
         self.projector = Projector()
 
     @property
@@ -95,50 +127,132 @@ class GeneralizableNeRF(nn.Module):
             groups["head"] = list(self.head.parameters())
         return groups
 
+    # ---- the training pass (GP-NeRF Fig. 2, top-down) ----------------------------------------------------------
+
+    def forward(self, batch: StepBatch, *, semantics: bool, sample_semantics: bool = False) -> StepOutput:
+        """Render the chosen rays of every target view of ``batch`` and decode its fused map.
+
+        Args:
+            batch: the target views of this process's step.
+            semantics: render semantic features and run the head (the loss set needs them).
+            sample_semantics: also return per-sample semantic features (the D.G loss).
+
+        Returns:
+            One ``ViewOutput`` per target view. In training mode the samples are jittered with the generator
+            seeded by each view's ``render_seed``; in eval mode they are deterministic.
+        """
+        if semantics and not self.has_semantics:
+            raise ConfigError("semantic outputs were requested but the model has no head or semantic field")
+        return StepOutput(tuple(self.forward_view(view, semantics, sample_semantics) for view in batch.views))
+
+    def forward_view(self, view: TargetView, semantics: bool, sample_semantics: bool) -> ViewOutput:
+        """The training pass of one target view (see ``forward``)."""
+        sources = view.sources
+        num_sources = sources.num_views
+        # 1. Multi-scale features of the source views; the target's own semantic map is the teacher.
+        images = torch.cat([sources.rgb, view.image[None]]) if semantics else sources.rgb
+        maps = self.encode(images)
+        source_maps = FeatureMaps(
+            radiance=maps.radiance[:num_sources],
+            semantic=maps.semantic[:num_sources] if maps.semantic is not None else None,
+        )
+        # 2. Rays through the chosen pixels: radiance and semantic fields, coarse then fine.
+        camera = view.camera
+        rays = rays_through_pixels(view.pixels, camera.intrinsics, camera.c2w, camera.near, camera.far)
+        generator = None
+        if self.training:
+            generator = torch.Generator(device=view.pixels.device).manual_seed(view.render_seed)
+        coarse, fine = self.render_rays(
+            rays,
+            sources,
+            source_maps,
+            randomized=self.training,
+            with_semantic=semantics,
+            with_sample_semantic=sample_semantics,
+            generator=generator,
+        )
+        if not semantics:
+            return ViewOutput(coarse=coarse, fine=fine)
+        # 3. The fused map: rendered features replace the teacher's features in the cells the rays hit.
+        teacher = maps.semantic[num_sources:]
+        cells = cells_of_pixels(view.pixels, camera.image_size, tuple(teacher.shape[-2:]))
+        last = fine if fine is not None else coarse
+        head_input = fuse_rendered(teacher, last.semantic, cells) if self.fuse_rendered else teacher
+        # 4. The context-aware perception head on the whole map.
+        return ViewOutput(
+            coarse=coarse,
+            fine=fine,
+            teacher_map=teacher,
+            teacher_at_rays=gather_cells(teacher, cells),
+            head_input=head_input,
+            logits=self.decode(head_input, camera.image_size).logits,
+        )
+
+    # ---- whole views (evaluation, rendering) ---------------------------------------------------------------------
+
+    @torch.inference_mode()
+    def predict(self, camera: TargetCamera, sources: SourceViews, *, stride: int, chunk_rays: int) -> Prediction:
+        """Render a whole target view and decode the rendered semantic map.
+
+        Args:
+            camera: the target camera.
+            sources: its source views.
+            stride: render every ``stride``-th pixel (cell centres); 0 = the semantic map's stride, so the head
+                sees a complete map.
+            chunk_rays: rays rendered at once (bounds memory).
+
+        Source features are computed once and reused for every chunk; per-sample semantic features are never
+        materialised.
+        """
+        features = self.encode(sources.rgb)
+        stride = stride or self.semantic_stride(features, camera.height)
+        height, width = camera.image_size
+        if height % stride or width % stride:
+            raise ConfigError(f"image size {height}x{width} is not divisible by eval.render_stride={stride}")
+        pixels = pixel_grid(height, width, stride, device=camera.c2w.device)
+        rays = rays_through_pixels(pixels, camera.intrinsics, camera.c2w, camera.near, camera.far)
+        rgb, depth, semantic = [], [], []
+        for start in range(0, rays.num_rays, chunk_rays):
+            coarse, fine = self.render_rays(
+                rays.chunk(start, start + chunk_rays),
+                sources,
+                features,
+                randomized=False,
+                with_semantic=self.has_semantics,
+            )
+            last = fine if fine is not None else coarse
+            rgb.append(last.rgb)
+            depth.append(last.depth)
+            if last.semantic is not None:
+                semantic.append(last.semantic)
+        h, w = height // stride, width // stride
+        semantic_map = torch.cat(semantic).T.reshape(-1, h, w) if semantic else None
+        logits = self.decode(semantic_map[None], camera.image_size).logits if semantic_map is not None else None
+        return Prediction(
+            rgb=torch.cat(rgb).reshape(h, w, 3),
+            depth=torch.cat(depth).reshape(h, w),
+            semantic=semantic_map,
+            logits=logits,
+            stride=stride,
+        )
+
+    @torch.inference_mode()
+    def teacher_logits(self, image: Tensor) -> Tensor:
+        """The 2D-only reference: the head on the target image's own semantic map, ``[3, H, W]`` -> ``[1, K, H, W]``."""
+        return self.decode(self.encode(image[None]).semantic, tuple(image.shape[-2:])).logits
+
+    @staticmethod
+    def semantic_stride(features: FeatureMaps, height: int) -> int:
+        """Pixels per cell of the semantic map (1 without one)."""
+        if features.semantic is None:
+            return 1
+        return max(1, height // int(features.semantic.shape[-2]))
+
+    # ---- the stages ------------------------------------------------------------------------------------------------
+
     def encode(self, images: Tensor) -> FeatureMaps:
         """Feature maps of ``[N, 3, H, W]`` images."""
         return self.extractor(images)
-
-    def render_pass(
-        self,
-        rays: RayBatch,
-        samples: RaySamples,
-        sources: SourceViews,
-        features: FeatureMaps,
-        *,
-        with_semantic: bool,
-        with_sample_semantic: bool = False,
-    ) -> RenderedRays:
-        """One pass of the transformers over given samples."""
-        with_semantic = with_semantic and self.semantic is not None and features.semantic is not None
-        if with_semantic and self.detach_source_semantics:
-            features = FeatureMaps(radiance=features.radiance, semantic=features.semantic.detach())
-        projected = self.projector(samples, rays.origins, sources, features, with_semantic=with_semantic)
-        tokens, context = self.field.begin(projected, samples, rays)
-        view_attention, ray_attention = [], []
-        last = None
-        for index in range(self.field.num_blocks):
-            field_out = self.field.block(index, tokens, context)
-            last = self.ray.block(index, field_out.tokens)
-            tokens = last.tokens
-            if with_semantic:
-                view_attention.append(field_out.view_attention)
-                ray_attention.append(last.ray_attention)
-        readout = self.ray.readout(tokens, last)
-        depth = (readout.weights * samples.depths).sum(dim=-1)
-        semantic = sample_semantic = None
-        if with_semantic:
-            semantic, sample_semantic = self.semantic(
-                projected.semantic, view_attention, ray_attention, with_samples=with_sample_semantic
-            )
-        return RenderedRays(
-            rgb=readout.rgb,
-            weights=readout.weights,
-            depth=depth,
-            samples=samples,
-            semantic=semantic,
-            sample_semantic=sample_semantic,
-        )
 
     def render_rays(
         self,
@@ -182,52 +296,59 @@ class GeneralizableNeRF(nn.Module):
         )
         return coarse, fine
 
+    def render_pass(
+        self,
+        rays: RayBatch,
+        samples: RaySamples,
+        sources: SourceViews,
+        features: FeatureMaps,
+        *,
+        with_semantic: bool,
+        with_sample_semantic: bool = False,
+    ) -> RenderedRays:
+        """One pass of the transformers over given samples; semantics from their attention when asked."""
+        with_semantic = with_semantic and self.semantic is not None and features.semantic is not None
+        if with_semantic and self.detach_source_semantics:
+            features = FeatureMaps(radiance=features.radiance, semantic=features.semantic.detach())
+        projected = self.projector(samples, rays.origins, sources, features, with_semantic=with_semantic)
+        tokens, context = self.field.begin(projected, samples, rays)
+        recompute = self.checkpoint_blocks and torch.is_grad_enabled()
+        view_attention, ray_attention = [], []
+        last = None
+        for index in range(self.field.num_blocks):
+            if recompute:
+                field_out, last = activation_checkpoint(
+                    self._block_pair, index, tokens, context, use_reentrant=False
+                )
+            else:
+                field_out, last = self._block_pair(index, tokens, context)
+            tokens = last.tokens
+            if with_semantic:
+                view_attention.append(field_out.view_attention)
+                ray_attention.append(last.ray_attention)
+        readout = self.ray.readout(tokens, last)
+        depth = (readout.weights * samples.depths).sum(dim=-1)
+        semantic = sample_semantic = None
+        if with_semantic:
+            semantic, sample_semantic = self.semantic(
+                projected.semantic, view_attention, ray_attention, with_samples=with_sample_semantic
+            )
+        return RenderedRays(
+            rgb=readout.rgb,
+            weights=readout.weights,
+            depth=depth,
+            samples=samples,
+            semantic=semantic,
+            sample_semantic=sample_semantic,
+        )
+
+    def _block_pair(self, index: int, tokens: Tensor, context: object) -> tuple[FieldBlockOutput, RayBlockOutput]:
+        """Field block ``index`` then ray block ``index`` (GNT interleaves them)."""
+        field_out = self.field.block(index, tokens, context)
+        return field_out, self.ray.block(index, field_out.tokens)
+
     def decode(self, semantic_map: Tensor, output_size: tuple[int, int]) -> HeadOutput:
         """Run the perception head on a ``[N, C, h, w]`` semantic map."""
         if self.head is None:
             raise ConfigError("this model has no perception head: add one with +head=<name>")
         return self.head(semantic_map, output_size)
-
-    @torch.inference_mode()
-    def render_image(
-        self,
-        *,
-        intrinsics: Tensor,
-        c2w: Tensor,
-        height: int,
-        width: int,
-        near: float,
-        far: float,
-        sources: SourceViews,
-        features: FeatureMaps,
-        stride: int,
-        chunk_rays: int,
-    ) -> RenderedImage:
-        """Render a whole target view on the ``stride`` grid in chunks of ``chunk_rays`` rays.
-
-        Source features are computed once by the caller and reused for every chunk; per-sample semantic
-        features are never materialised here.
-        """
-        if height % stride or width % stride:
-            raise ConfigError(f"image size {height}x{width} is not divisible by eval.render_stride={stride}")
-        pixels = pixel_grid(height, width, stride, device=c2w.device)
-        rays = rays_through_pixels(pixels, intrinsics, c2w, near, far)
-        rgb, depth, semantic = [], [], []
-        for start in range(0, rays.num_rays, chunk_rays):
-            chunk = rays.chunk(start, start + chunk_rays)
-            coarse, fine = self.render_rays(
-                chunk, sources, features, randomized=False, with_semantic=self.has_semantics
-            )
-            last = fine if fine is not None else coarse
-            rgb.append(last.rgb)
-            depth.append(last.depth)
-            if last.semantic is not None:
-                semantic.append(last.semantic)
-        h, w = height // stride, width // stride
-        semantic_map = torch.cat(semantic).T.reshape(-1, h, w) if semantic else None
-        return RenderedImage(
-            rgb=torch.cat(rgb).reshape(h, w, 3),
-            depth=torch.cat(depth).reshape(h, w),
-            semantic=semantic_map,
-            stride=stride,
-        )

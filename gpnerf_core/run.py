@@ -1,32 +1,70 @@
-"""The jobs behind ``run`` and ``eval``: compose, build, train, evaluate, write the run folder."""
+"""The jobs behind ``run`` and ``eval``: compose, build, train, evaluate, write the run folder.
+
+Both run as one process or as N under torchrun. Rank 0 alone writes the run folder, which it first locks
+(``RunFolder``); every other process learns the folder from rank 0.
+"""
 
 from __future__ import annotations
 
-import hashlib
-import platform
+import os
+import shlex
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
-from gpnerf_core.build import build_components, resolve_device
-from gpnerf_core.errors import GpnerfError
+from gpnerf_core.build import build_components
+from gpnerf_core.device import check_precision
+from gpnerf_core.distributed import Distributed, init_distributed
+from gpnerf_core.errors import ConfigError, GpnerfError
 from gpnerf_core.io import atomic_write_json, atomic_write_text
+from gpnerf_core.run_folder import RunFolder, RunFolderError
+from gpnerf_core.training.checkpoint import (
+    MODEL_SECTIONS,
+    NOT_MODEL_KEYS,
+    RunRecord,
+    config_differences,
+    format_differences,
+    load_weights,
+    read_checkpoint,
+)
+from gpnerf_core.training.interrupt import TrainingInterrupted
+
+RUN_SPECIFIC_KEYS = ("checkpoint", "out_dir", "overwrite", "train.resume")
+"""Overrides that name this run's files, not its model: never carried from a checkpoint into another run."""
+
+
+def _hydra_config() -> Any:
+    from hydra.core.hydra_config import HydraConfig
+
+    return HydraConfig.get() if HydraConfig.initialized() else None
 
 
 def _run_dir(cfg: DictConfig) -> Path:
     if cfg.out_dir:
         return Path(cfg.out_dir)
-    from hydra.core.hydra_config import HydraConfig
+    hydra = _hydra_config()
+    if hydra is None:
+        raise ConfigError("out_dir is empty and no Hydra run directory exists; set out_dir=<folder>")
+    return Path(hydra.runtime.output_dir)
 
-    return Path(HydraConfig.get().runtime.output_dir)
+
+def task_overrides() -> tuple[str, ...]:
+    """The Hydra overrides of this job as typed (``+head=unet``, ``train.steps=10``, ...)."""
+    hydra = _hydra_config()
+    return tuple(hydra.overrides.task) if hydra is not None else ()
+
+
+def override_key(override: str) -> str:
+    """``+head=unet`` -> ``head``; ``train.steps=10`` -> ``train.steps``."""
+    return override.split("=", 1)[0].lstrip("+~")
 
 
 def _machine() -> dict[str, Any]:
-    import os
+    import platform
 
     return {
         "platform": platform.platform(),
@@ -37,22 +75,32 @@ def _machine() -> dict[str, Any]:
     }
 
 
-def _prepare(cfg: DictConfig) -> tuple[Path, torch.device, str]:
-    if cfg.threads:
-        torch.set_num_threads(int(cfg.threads))
-    torch.manual_seed(int(cfg.seed))
-    device = resolve_device(cfg.device)
-    run_dir = _run_dir(cfg)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    config_yaml = OmegaConf.to_yaml(cfg, resolve=True)
-    atomic_write_text(run_dir / "config.yaml", config_yaml)
-    atomic_write_text(run_dir / "config.sha256", hashlib.sha256(config_yaml.encode()).hexdigest() + "\n")
+def _record(cfg: DictConfig) -> RunRecord:
+    from gpnerf_core.registry import KINDS, get_registry
+
+    registry = get_registry()
+    components = {}
+    for kind in KINDS:
+        node = cfg.get(kind)
+        if node is not None and "name" in node and str(node.name) in registry.components[kind]:
+            entry = registry.components[kind][str(node.name)]
+            components[kind] = {"name": entry.spec.name, "provider": entry.provider, "version": entry.version}
+    return RunRecord(
+        config_yaml=OmegaConf.to_yaml(cfg, resolve=True), overrides=task_overrides(), components=components
+    )
+
+
+def _write_run_files(run_dir: Path, record: RunRecord) -> None:
     from gpnerf_core.registry import get_registry
 
     registry = get_registry()
+    atomic_write_text(run_dir / "config.yaml", record.config_yaml)
+    atomic_write_text(run_dir / "config.sha256", record.config_sha256 + "\n")
+    atomic_write_text(run_dir / "overrides.yaml", OmegaConf.to_yaml(list(record.overrides)))
     atomic_write_json(
         run_dir / "plugins.json",
         {
+            "used": record.components,
             "components": [
                 {"kind": e.kind, "name": e.spec.name, "provider": e.provider, "version": e.version}
                 for entries in registry.components.values()
@@ -61,11 +109,67 @@ def _prepare(cfg: DictConfig) -> tuple[Path, torch.device, str]:
             "problems": [{"plugin": p, "reason": r} for p, r in registry.problems],
         },
     )
-    return run_dir, device, config_yaml
 
 
-def _guarded(job):
-    """Turn user-facing errors into one line on stderr and exit code 2 (Hydra would print a traceback)."""
+def _prepare(cfg: DictConfig, dist: Distributed, *, resuming: bool) -> tuple[RunFolder, RunRecord]:
+    """Threads and seed, then rank 0 claims the run folder and writes what the run is made from."""
+    if cfg.threads:
+        torch.set_num_threads(int(cfg.threads))
+    torch.manual_seed(int(cfg.seed))
+    _refuse_shared_out_dir(cfg)
+    run_dir = Path(dist.broadcast_object(str(_run_dir(cfg)) if dist.is_main else None))
+    folder = RunFolder(run_dir)
+    outcome: tuple[str, Any] = ("ok", [])
+    if dist.is_main:
+        try:
+            outcome = ("ok", folder.claim(resuming=resuming, overwrite=bool(cfg.overwrite)))
+        except GpnerfError as exc:
+            outcome = ("error", str(exc))
+    outcome = dist.broadcast_object(outcome)
+    if outcome[0] == "error":
+        raise RunFolderError(outcome[1])
+    record = _record(cfg)
+    if dist.is_main:
+        for note in outcome[1]:
+            print(f"note: {note}", file=sys.stderr)
+        try:
+            _write_run_files(run_dir, record)
+        except BaseException:
+            folder.release()
+            raise
+    return folder, record
+
+
+def _refuse_shared_out_dir(cfg: DictConfig) -> None:
+    """Under ``-m`` every job would write one fixed ``out_dir``: refuse unless it depends on the job."""
+    from hydra.types import RunMode
+
+    hydra = _hydra_config()
+    if hydra is None or hydra.mode != RunMode.MULTIRUN or not cfg.out_dir:
+        return
+    typed = [o for o in task_overrides() if override_key(o) == "out_dir"]
+    if not typed or "${" not in typed[-1]:
+        raise ConfigError(
+            f"out_dir={cfg.out_dir} with -m: every job of the sweep would write that one folder; leave out_dir "
+            "unset (jobs go under hydra.sweep.dir) or make it depend on the job, e.g. 'out_dir=runs/${hydra:job.num}'"
+        )
+
+
+def resume_command(run_dir: Path, checkpoint: Path | None) -> str:
+    """The command that resumes this run from ``checkpoint`` in the same folder."""
+    kept = [o for o in task_overrides() if override_key(o) not in RUN_SPECIFIC_KEYS]
+    args = [*kept, f"out_dir={run_dir}", f"train.resume={checkpoint}"]
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1:
+        local = os.environ.get("LOCAL_WORLD_SIZE", str(world))
+        nodes = " (on every node, with the same --nnodes/--rdzv-endpoint)" if int(local) != world else ""
+        launcher = f"torchrun --nproc_per_node={local} -m gpnerf_core run"
+        return f"{launcher} {' '.join(shlex.quote(a) for a in args)}{nodes}"
+    return f"python -m gpnerf_core run {' '.join(shlex.quote(a) for a in args)}"
+
+
+def _guarded(job: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
+    """Errors caused by input, and interruptions, become one line on stderr and an exit code, never a traceback."""
 
     def wrapper(cfg: DictConfig) -> Any:
         try:
@@ -73,59 +177,169 @@ def _guarded(job):
         except GpnerfError as exc:
             print(f"error: {exc}", file=sys.stderr)
             sys.exit(2)
+        except TrainingInterrupted as stop:
+            if stop.checkpoint is not None:
+                print(
+                    f"interrupted ({stop}): checkpoint {stop.checkpoint}; resume with: "
+                    f"{resume_command(stop.checkpoint.parent.parent, stop.checkpoint)}",
+                    file=sys.stderr,
+                )
+            sys.exit(stop.exit_code)
+        except KeyboardInterrupt:
+            print("interrupted (SIGINT) outside the training loop; files already written stay as they are", file=sys.stderr)
+            sys.exit(130)
+
+    wrapper.__name__ = job.__name__
+    return wrapper
+
+
+def _distributed(job: Callable[[DictConfig, Distributed], Any]) -> Callable[[DictConfig], Any]:
+    """Join the torchrun process group (if any) around ``job`` and leave it afterwards."""
+
+    def wrapper(cfg: DictConfig) -> Any:
+        dist = init_distributed(cfg.device)
+        try:
+            return job(cfg, dist)
+        finally:
+            dist.shutdown()
 
     wrapper.__name__ = job.__name__
     return wrapper
 
 
 @_guarded
-def run_task(cfg: DictConfig) -> dict[str, Any]:
+@_distributed
+def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.evaluation.evaluator import evaluate, print_summary
     from gpnerf_core.evaluation.visualize import plot_training_curves
+    from gpnerf_core.training.init_weights import init_weights
+    from gpnerf_core.training.loggers import check_loggers, make_loggers
     from gpnerf_core.training.trainer import Trainer
 
-    run_dir, device, config_yaml = _prepare(cfg)
-    components = build_components(cfg)
-    trainer = Trainer(cfg, components, device, run_dir, config_yaml)
-    started = time.perf_counter()
-    result = trainer.fit(progress=True)
-    atomic_write_json(run_dir / "training_curves.json", result.history)
-    if result.history:
-        loss_keys = [k for k in result.history[-1] if k not in ("step", "seconds") and not k.startswith("lr_")]
-        plot_training_curves(result.history, run_dir / "training_curves.png", loss_keys=loss_keys)
-    evaluation = evaluate(cfg, components, trainer.views, device, run_dir)
-    metrics = {
-        "config_sha256": (run_dir / "config.sha256").read_text().strip(),
-        "seed": int(cfg.seed),
-        "machine": _machine(),
-        "train": {
-            "steps": result.steps,
-            "seconds": round(result.seconds, 2),
-            "rays_per_second": round(result.rays_per_second, 1),
-            "final_loss": result.history[-1]["loss"] if result.history else None,
-            "checkpoint": str(result.checkpoint) if result.checkpoint else None,
-        },
-        **evaluation,
-        "wall_seconds": round(time.perf_counter() - started, 2),
-    }
-    atomic_write_json(run_dir / "metrics.json", metrics)
-    print_summary(metrics, run_dir)
+    check_loggers(list(cfg.train.loggers))
+    check_precision(cfg.train.precision)
+    resuming = bool(cfg.train.resume)
+    folder, record = _prepare(cfg, dist, resuming=resuming)
+    run_dir = folder.path
+    with folder:
+        components = build_components(cfg)
+        if cfg.model.init and not resuming:
+            report = init_weights(components.model, Path(cfg.model.init), strict=bool(cfg.model.init_strict))
+            if dist.is_main:
+                print(report, file=sys.stderr)
+        trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record)
+        if dist.is_main:
+            for note in trainer.notes:
+                print(f"note: {note}", file=sys.stderr)
+        loggers = make_loggers(list(cfg.train.loggers), run_dir, trainer.resumed_step) if dist.is_main else []
+        try:
+            started = time.perf_counter()
+            result = trainer.fit(progress=True, loggers=loggers)
+            if dist.is_main:
+                atomic_write_json(run_dir / "training_curves.json", result.history)
+                if result.history:
+                    loss_keys = [*trainer.loss_names, "loss"]
+                    plot_training_curves(result.history, run_dir / "training_curves.png", loss_keys=loss_keys)
+            evaluation = evaluate(cfg, components, trainer.frames, run_dir, dist)
+            metrics = {
+                "config_sha256": record.config_sha256,
+                "seed": int(cfg.seed),
+                "machine": _machine(),
+                "train": {
+                    "steps": result.steps,
+                    "seconds": round(result.seconds, 2),
+                    "rays_per_second": round(result.rays_per_second, 1),
+                    "final_loss": result.history[-1]["loss"] if result.history else None,
+                    "checkpoint": str(result.checkpoint) if result.checkpoint else None,
+                    "world_size": result.world_size,
+                    "targets_per_step": int(cfg.train.targets_per_step),
+                    "targets_per_rank": result.targets_per_rank,
+                    "rays_per_step": result.rays_per_step,
+                    "backend": dist.backend,
+                    "precision": str(cfg.train.precision),
+                },
+                **evaluation,
+                "wall_seconds": round(time.perf_counter() - started, 2),
+            }
+            if dist.is_main:
+                for logger in loggers:
+                    logger.log(result.steps, eval_scalars(evaluation))
+                atomic_write_json(run_dir / "metrics.json", metrics)
+                print_summary(metrics, run_dir)
+        finally:
+            for logger in loggers:
+                logger.close()
     return metrics
+
+
+def eval_scalars(evaluation: dict[str, Any]) -> dict[str, float]:
+    """The numeric top-level metrics of every split as ``eval/<split>/<protocol id>`` tags."""
+    scalars = {}
+    for split, values in evaluation.get("eval", {}).items():
+        for key, value in values.items():
+            if isinstance(value, (int, float)) and not isinstance(value, bool):
+                scalars[f"eval/{split}/{key}"] = float(value)
+        for key, value in values.get("timing", {}).items():
+            if isinstance(value, (int, float)):
+                scalars[f"eval/{split}/timing/{key}"] = float(value)
+    return scalars
 
 
 @_guarded
-def eval_task(cfg: DictConfig) -> dict[str, Any]:
+@_distributed
+def eval_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.evaluation.evaluator import evaluate, print_summary
-    from gpnerf_core.training.checkpoint import load_checkpoint
-    from gpnerf_core.views import SceneViews
+    from gpnerf_core.frames import FrameCache
 
     checkpoint = Path(cfg.checkpoint)
-    run_dir, device, _ = _prepare(cfg)
-    components = build_components(cfg)
-    state = load_checkpoint(checkpoint, components.model)
-    components.model.to(device)
-    evaluation = evaluate(cfg, components, SceneViews(components.dataset, device), device, run_dir)
-    metrics = {"checkpoint": str(checkpoint), "checkpoint_step": state["step"], "machine": _machine(), **evaluation}
-    atomic_write_json(run_dir / "metrics.json", metrics)
-    print_summary(metrics, run_dir)
+    state = read_checkpoint(checkpoint)
+    notes = restore_model_config(cfg, state["config"], state.get("overrides", []))
+    folder, record = _prepare(cfg, dist, resuming=False)
+    with folder:
+        if dist.is_main:
+            ignore = ("checkpoint", "out_dir", "overwrite")
+            differences = config_differences(state["config"], record.config_yaml, ignore=ignore)
+            if differences:
+                print(f"eval: differences from the checkpoint's config: {format_differences(differences)}", file=sys.stderr)
+            for note in notes:
+                print(f"note: {note}", file=sys.stderr)
+        components = build_components(cfg)
+        load_weights(components.model, state["model"], f"checkpoint {checkpoint}")
+        components.model.to(dist.device)
+        evaluation = evaluate(cfg, components, FrameCache(components.dataset, dist.device), folder.path, dist)
+        metrics = {
+            "checkpoint": str(checkpoint),
+            "checkpoint_step": state["step"],
+            "checkpoint_config_sha256": state["config_sha256"],
+            "config_sha256": record.config_sha256,
+            "machine": _machine(),
+            **evaluation,
+        }
+        if dist.is_main:
+            atomic_write_json(folder.path / "metrics.json", metrics)
+            print_summary(metrics, folder.path)
     return metrics
+
+
+def restore_model_config(cfg: DictConfig, checkpoint_yaml: str, checkpoint_overrides: list[str]) -> list[str]:
+    """Give ``cfg`` the checkpoint's model and loss settings wherever this command did not override them.
+
+    ``eval`` composes its config from the checkpoint's overrides plus the user's; if a default changed since the
+    checkpoint was written, the recomposed model would differ from the trained one. Such keys are set back to the
+    checkpoint's values (and reported); keys the user overrode keep the user's value.
+    """
+    typed = [override_key(o) for o in task_overrides() if o not in checkpoint_overrides]
+    current = OmegaConf.to_yaml(cfg, resolve=True)
+    restored = []
+    for key, old, _ in config_differences(checkpoint_yaml, current, MODEL_SECTIONS, NOT_MODEL_KEYS):
+        if any(key == t or key.startswith(t + ".") for t in typed):
+            continue
+        with open_dict(cfg):
+            if old == "<absent>":
+                parent, _, leaf = key.rpartition(".")
+                node = OmegaConf.select(cfg, parent) if parent else cfg
+                node.pop(leaf, None)
+            else:
+                OmegaConf.update(cfg, key, old, merge=False)
+        restored.append(key)
+    return [f"kept the checkpoint's value of {', '.join(restored)} (the defaults changed since it was written)"] if restored else []

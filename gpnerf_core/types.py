@@ -117,6 +117,73 @@ class FeatureMaps:
 
 
 @dataclass(frozen=True)
+class TargetCamera:
+    """The camera of a target (novel) view.
+
+    Attributes:
+        intrinsics: ``[3, 3]`` pinhole matrix at ``height`` x ``width``.
+        c2w: ``[4, 4]`` camera-to-world pose (OpenCV).
+        height, width: image size in pixels.
+        near, far: depth bounds in metres for ray sampling.
+    """
+
+    intrinsics: Tensor
+    c2w: Tensor
+    height: int
+    width: int
+    near: float
+    far: float
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return self.height, self.width
+
+
+@dataclass(frozen=True)
+class TargetView:
+    """One target view of a training step: what the model renders and what the loss set compares it with.
+
+    Made by the step sampler; every tensor is on the training device.
+
+    Attributes:
+        scene: scene name; frame: the target's frame index in the scene.
+        camera: the target camera.
+        image: ``[3, H, W]`` target RGB in [0, 1] (ground truth, and the teacher's input).
+        depth: ``[H, W]`` target depth in metres, 0 = unknown.
+        labels: ``[H, W]`` int64 class ids or the dataset's ignore index.
+        sources: the chosen source views.
+        pixels: ``[R, 2]`` the chosen target pixels ``(u, v)``; the rays are cast through them (the one copy).
+        render_seed: seeds this view's stochastic rendering (sample jitter, importance sampling), so a view
+            renders the same on any rank and at any world size.
+    """
+
+    scene: str
+    frame: int
+    camera: TargetCamera
+    image: Tensor
+    depth: Tensor
+    labels: Tensor
+    sources: SourceViews
+    pixels: Tensor
+    render_seed: int
+
+    @property
+    def num_rays(self) -> int:
+        return int(self.pixels.shape[0])
+
+
+@dataclass(frozen=True)
+class StepBatch:
+    """The target views one process trains on in one step (its share of the global batch)."""
+
+    views: tuple[TargetView, ...]
+
+    @property
+    def num_rays(self) -> int:
+        return sum(view.num_rays for view in self.views)
+
+
+@dataclass(frozen=True)
 class RayBatch:
     """Rays cast from the target camera.
 
@@ -247,6 +314,41 @@ class HeadOutput:
     """
 
     logits: Tensor
+
+
+@dataclass(frozen=True)
+class ViewOutput:
+    """What the model's forward pass produces for one target view (R rays), before any loss.
+
+    Attributes:
+        coarse, fine: the rendering passes (fine is None with no importance samples).
+        teacher_map: ``[1, C_sem, h, w]`` semantic map the extractor computes on the target image itself (None when
+            semantics are off).
+        teacher_at_rays: ``[R, C_sem]`` the teacher map at the rays' pixels, NOT detached (the loss set decides
+            whether the gradient is blocked), or None.
+        head_input: ``[1, C_sem, h, w]`` the map the head decoded: the fused map (rendered features written into
+            the teacher map) or the teacher map alone, or None.
+        logits: ``[1, K, H, W]`` head output at the target's size, or None.
+    """
+
+    coarse: RenderedRays
+    fine: RenderedRays | None
+    teacher_map: Tensor | None = None
+    teacher_at_rays: Tensor | None = None
+    head_input: Tensor | None = None
+    logits: Tensor | None = None
+
+    @property
+    def last(self) -> RenderedRays:
+        """The pass that carries semantics: fine when present, else coarse."""
+        return self.fine if self.fine is not None else self.coarse
+
+
+@dataclass(frozen=True)
+class StepOutput:
+    """The model's forward pass over a ``StepBatch``: one ``ViewOutput`` per target view, in batch order."""
+
+    views: tuple[ViewOutput, ...]
 
 
 @dataclass(frozen=True)

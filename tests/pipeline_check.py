@@ -1,17 +1,16 @@
-"""Shared by the dataset tests: train and evaluate a tiny GP-NeRF on any SceneDataset, through the real pipeline."""
+"""Shared by the tests: compose tiny configs and train and evaluate a tiny GP-NeRF through the real pipeline."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import torch
-from hydra import compose, initialize_config_dir
 
 from gpnerf_core.build import build_components
-from gpnerf_core.cli import config_dir
-from gpnerf_core.config import register_schema
+from gpnerf_core.config import compose
+from gpnerf_core.distributed import Distributed
 from gpnerf_core.evaluation.evaluator import evaluate
-from gpnerf_core.registry import get_registry
+from gpnerf_core.training.checkpoint import RunRecord
 from gpnerf_core.training.trainer import Trainer
 
 TINY_MODEL = [
@@ -20,19 +19,30 @@ TINY_MODEL = [
     "train.rays=16", "train.steps=2", "train.log_every=1", "eval.chunk_rays=256", "eval.save_images=1", "threads=1",
 ]
 
+TINY_SCENES = [
+    "dataset.num_train_scenes=1", "dataset.num_unseen_scenes=1", "dataset.frames_per_scene=6", "dataset.eval_every=3",
+    "dataset.height=32", "dataset.width=48",
+]
+
+
+def make_trainer(cfg, run_dir: Path, dist: Distributed | None = None, components=None) -> Trainer:
+    """A Trainer on ``cfg`` writing to ``run_dir`` (single CPU process unless ``dist`` is given)."""
+    from omegaconf import OmegaConf
+
+    record = RunRecord(config_yaml=OmegaConf.to_yaml(cfg, resolve=True), overrides=(), components={})
+    components = components or build_components(cfg)
+    return Trainer(cfg, components, dist=dist or Distributed.single(), run_dir=run_dir, record=record)
+
 
 def train_and_evaluate(dataset_overrides: list[str], run_dir: Path) -> dict:
     """Compose ``+head=unet +loss=dgs`` with the dataset overrides, train 2 steps, evaluate; returns the metrics."""
-    get_registry()
-    register_schema()
-    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=["+head=unet", "+loss=dgs", *TINY_MODEL, *dataset_overrides])
+    cfg = compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *dataset_overrides])
     torch.manual_seed(0)
     components = build_components(cfg)
-    trainer = Trainer(cfg, components, torch.device("cpu"), run_dir, "")
+    trainer = make_trainer(cfg, run_dir, components=components)
     result = trainer.fit(progress=False)
     assert result.steps == 2 and all(torch.isfinite(torch.tensor(h["loss"])) for h in result.history)
-    return evaluate(cfg, components, trainer.views, torch.device("cpu"), run_dir)
+    return evaluate(cfg, components, trainer.frames, run_dir, Distributed.single())
 
 
 def assert_both_splits_scored(metrics: dict, num_classes: int) -> None:

@@ -1,10 +1,15 @@
-"""Evaluation: render whole held-out views in chunks, run the head once per view, score with tagged protocols."""
+"""Evaluation: render whole held-out views, decode them, score them with tagged protocols.
+
+Each view is evaluated on its own into a small ``ViewRecord`` (confusion matrices, PSNR/SSIM, timing, and the
+pictures of the first few views); the records are then summarised in view order. Under torchrun each process
+evaluates every ``world_size``-th view and the records are gathered, so the metrics equal a single process's.
+"""
 
 from __future__ import annotations
 
-import resource
 import sys
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -13,31 +18,54 @@ import torch
 import torch.nn.functional as F
 
 from gpnerf_core.build import Components
+from gpnerf_core.device import peak_memory_mb
+from gpnerf_core.distributed import Distributed
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.evaluation import metrics as M
 from gpnerf_core.evaluation import visualize as vis
+from gpnerf_core.frames import FrameCache, choose_sources
 from gpnerf_core.io import atomic_save_png
-from gpnerf_core.views import SceneViews, choose_sources
+from gpnerf_core.pipeline import Prediction
+from gpnerf_core.types import Frame, Scene
 
 SPLIT_LABELS = {"train": "train_heldout", "unseen": "unseen"}
 
 
-def peak_memory_mb(device: torch.device) -> float:
-    """Peak resident memory of this process (CPU) or peak allocated memory (CUDA), in MiB."""
-    if device.type == "cuda":
-        return torch.cuda.max_memory_allocated(device) / 2**20
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+@dataclass
+class ViewRecord:
+    """What the summary needs from one evaluated view; small and picklable (gathered across processes).
+
+    Attributes:
+        position: the view's place in its split's target list (the summary's order).
+        scene, frame: which view.
+        quality: ``{PSNR_CLAMPED, SSIM_GAUSSIAN11}``.
+        confusion, teacher_confusion, baseline_confusion: ``[K, K]`` of the rendered prediction, of the 2D
+            reference and of the majority class; None without semantics.
+        seconds: encode + render + decode time; rays: rays rendered.
+        pictures: ``{file suffix: uint8 image}`` for the first ``eval.save_images`` views, else empty.
+    """
+
+    position: int
+    scene: str
+    frame: int
+    quality: dict[str, float]
+    confusion: torch.Tensor | None
+    teacher_confusion: torch.Tensor | None
+    baseline_confusion: torch.Tensor | None
+    seconds: float
+    rays: int
+    pictures: dict[str, np.ndarray] = field(default_factory=dict)
 
 
-def majority_class(components: Components, views: SceneViews, max_frames_per_scene: int = 8) -> int:
+def majority_class(components: Components, frames: FrameCache, max_frames_per_scene: int = 8) -> int:
     """Most frequent class over (a spread sample of) the training scenes' training frames."""
     dataset = components.dataset
     labels = []
     for name in dataset.scenes("train"):
-        scene = views.scene(name)
-        frames = scene.train_frames
-        step = max(1, len(frames) // max_frames_per_scene)
-        labels += [views.frame(scene, i).semantic for i in frames[::step]]
+        scene = frames.scene(name)
+        indices = scene.train_frames
+        step = max(1, len(indices) // max_frames_per_scene)
+        labels += [frames.frame(scene, i).semantic for i in indices[::step]]
     counts = M.class_pixel_counts(labels, dataset.num_classes, dataset.ignore_index)
     return int(np.argmax(counts))
 
@@ -53,150 +81,183 @@ def _to_uint8(image: torch.Tensor) -> np.ndarray:
     return (image.clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
 
 
-def evaluate(cfg: Any, components: Components, views: SceneViews, device: torch.device, run_dir: Path) -> dict[str, Any]:
-    """Evaluate every configured split; returns ``{"eval": {split: metrics}}`` ready for metrics.json."""
-    model = components.model.to(device).eval()
-    dataset = components.dataset
-    eval_cfg = cfg.eval
-    semantics = model.has_semantics
-    baseline_class = majority_class(components, views) if semantics else None
-    results: dict[str, Any] = {}
-    for split in eval_cfg.splits:
+def evaluate(
+    cfg: Any,
+    components: Components,
+    frames: FrameCache,
+    run_dir: Path,
+    dist: Distributed,
+) -> dict[str, Any]:
+    """Evaluate every configured split; returns ``{"eval": {split: metrics}, ...}`` ready for metrics.json.
+
+    Every process returns the same result; rank 0 alone writes the pictures.
+    """
+    for split in cfg.eval.splits:
         if split not in SPLIT_LABELS:
             raise ConfigError(f"eval.splits contains {split!r}; expected some of {', '.join(SPLIT_LABELS)}")
-        results[SPLIT_LABELS[split]] = _evaluate_split(
-            cfg, components, views, device, run_dir / "images" / SPLIT_LABELS[split], split, baseline_class
-        )
+    model = components.model.to(dist.device).eval()
+    dataset = components.dataset
+    semantics = model.has_semantics
+    baseline_class = majority_class(components, frames) if semantics else None
+    results: dict[str, Any] = {}
+    for split in cfg.eval.splits:
+        label = SPLIT_LABELS[split]
+        targets = _targets(cfg, components, frames, split)
+        if not targets:
+            results[label] = {"count/images": 0, "note": f"split {split!r} has no evaluation frames"}
+            continue
+        mine = [
+            _evaluate_view(cfg, components, frames, position, scene, index, baseline_class)
+            for position, (scene, index) in enumerate(targets)
+            if position % dist.world_size == dist.rank
+        ]
+        records = sorted((r for shard in dist.all_gather_object(mine) for r in shard), key=lambda r: r.position)
+        memory = dist.all_reduce(torch.tensor(peak_memory_mb(dist.device), device=dist.device), op="max")
+        if dist.is_main:
+            _write_pictures(run_dir / "images" / label, records)
+        results[label] = summarize(records, dataset.num_classes, dataset.ignore_index, semantics, float(memory))
     return {
         "eval": results,
         "baseline_class": None if baseline_class is None else dataset.class_names[baseline_class],
         "lpips": M.lpips_vgg_status(),
+        "eval_world_size": dist.world_size,
     }
 
 
-def _evaluate_split(
+def _targets(cfg: Any, components: Components, frames: FrameCache, split: str) -> list[tuple[Scene, int]]:
+    """The split's evaluation views in a fixed order (capped per scene by ``eval.max_views_per_scene``)."""
+    cap = int(cfg.eval.max_views_per_scene)
+    targets = []
+    for name in components.dataset.scenes(split):
+        scene = frames.scene(name)
+        indices = list(scene.eval_frames)
+        if cap:
+            indices = indices[:: max(1, len(indices) // cap)][:cap]
+        targets += [(scene, index) for index in indices]
+    return targets
+
+
+def _evaluate_view(
     cfg: Any,
     components: Components,
-    views: SceneViews,
-    device: torch.device,
-    image_dir: Path,
-    split: str,
+    frames: FrameCache,
+    position: int,
+    scene: Scene,
+    index: int,
     baseline_class: int | None,
-) -> dict[str, Any]:
+) -> ViewRecord:
     model, dataset = components.model, components.dataset
-    eval_cfg = cfg.eval
-    semantics = model.has_semantics
     num_classes, ignore = dataset.num_classes, dataset.ignore_index
-    rendered_seg = M.SegmentationAccumulator(num_classes, ignore)
-    teacher_seg = M.SegmentationAccumulator(num_classes, ignore)
+    target = frames.frame(scene, index)
+    sources = frames.source_views(
+        scene, choose_sources(components.view_selector, scene, index, cfg.model.num_source_views, None)
+    )
+    started = time.perf_counter()
+    prediction = model.predict(
+        frames.camera(scene, target),
+        sources,
+        stride=int(cfg.eval.render_stride),
+        chunk_rays=int(cfg.eval.chunk_rays),
+    )
+    classes = prediction.logits.argmax(dim=1)[0].cpu() if prediction.logits is not None else None
+    seconds = time.perf_counter() - started
+    gt_rgb = _area_downsample(target.rgb, prediction.stride)
+    quality = {M.PSNR_CLAMPED: M.psnr(prediction.rgb.cpu(), gt_rgb), M.SSIM_GAUSSIAN11: M.ssim(prediction.rgb.cpu(), gt_rgb)}
+    confusion = teacher_confusion = baseline_confusion = None
+    if classes is not None:
+        confusion = M.confusion_matrix(classes, target.semantic, num_classes, ignore)
+        teacher = model.teacher_logits(target.rgb.permute(2, 0, 1).to(frames.device)).argmax(dim=1)[0].cpu()
+        teacher_confusion = M.confusion_matrix(teacher, target.semantic, num_classes, ignore)
+        constant = torch.full_like(target.semantic, baseline_class)
+        baseline_confusion = M.confusion_matrix(constant, target.semantic, num_classes, ignore)
+    pictures = {}
+    if position < int(cfg.eval.save_images):
+        pictures = _pictures(target, prediction, classes, gt_rgb, num_classes, ignore, scene.near, scene.far)
+    return ViewRecord(
+        position=position,
+        scene=scene.name,
+        frame=index,
+        quality=quality,
+        confusion=confusion,
+        teacher_confusion=teacher_confusion,
+        baseline_confusion=baseline_confusion,
+        seconds=seconds,
+        rays=int(prediction.rgb.shape[0] * prediction.rgb.shape[1]),
+        pictures=pictures,
+    )
+
+
+def summarize(
+    records: list[ViewRecord], num_classes: int, ignore_index: int, semantics: bool, peak_memory: float
+) -> dict[str, Any]:
+    """The split's metrics from its view records, taken in order."""
     quality = M.ImageQualityAccumulator()
-    baseline_targets: list[tuple[torch.Tensor, str]] = []
-    rays_rendered, render_seconds, frames_done, saved = 0, 0.0, 0, 0
-    targets = []
-    for name in dataset.scenes(split):
-        scene = views.scene(name)
-        frames = list(scene.eval_frames)
-        if eval_cfg.max_views_per_scene:
-            step = max(1, len(frames) // int(eval_cfg.max_views_per_scene))
-            frames = frames[::step][: int(eval_cfg.max_views_per_scene)]
-        targets += [(scene, index) for index in frames]
-    if not targets:
-        return {"count/images": 0, "note": f"split {split!r} has no evaluation frames"}
-    for scene, index in targets:
-        target = views.frame(scene, index)
-        height, width = target.height, target.width
-        source_indices = choose_sources(components.view_selector, scene, index, cfg.model.num_source_views, None)
-        sources = views.source_views(scene, source_indices)
-        started = time.perf_counter()
-        with torch.inference_mode():
-            features = model.encode(sources.rgb)
-            stride = int(eval_cfg.render_stride) or _semantic_stride(features, height)
-            rendered = model.render_image(
-                intrinsics=target.intrinsics.to(device),
-                c2w=target.c2w.to(device),
-                height=height,
-                width=width,
-                near=scene.near,
-                far=scene.far,
-                sources=sources,
-                features=features,
-                stride=stride,
-                chunk_rays=int(eval_cfg.chunk_rays),
-            )
-            prediction = teacher_prediction = None
-            if semantics and rendered.semantic is not None:
-                logits = model.decode(rendered.semantic[None], (height, width)).logits
-                prediction = logits.argmax(dim=1)[0].cpu()
-        render_seconds += time.perf_counter() - started
-        rays_rendered += rendered.rgb.shape[0] * rendered.rgb.shape[1]
-        frames_done += 1
-        gt_rgb = _area_downsample(target.rgb, stride)
-        quality.update(rendered.rgb.cpu(), gt_rgb, group=scene.name)
-        if prediction is not None:
-            rendered_seg.update(prediction, target.semantic, group=scene.name)
-            baseline_targets.append((target.semantic, scene.name))
-            with torch.inference_mode():
-                teacher_map = model.encode(target.rgb.permute(2, 0, 1)[None].to(device)).semantic
-                teacher_prediction = model.decode(teacher_map, (height, width)).logits.argmax(dim=1)[0].cpu()
-            teacher_seg.update(teacher_prediction, target.semantic, group=scene.name)
-        if saved < int(eval_cfg.save_images):
-            _save_pictures(image_dir / f"{scene.name.replace('/', '_')}_{index:04d}", target, rendered, prediction,
-                           gt_rgb, num_classes, ignore, scene.near, scene.far)
-            saved += 1
-    result: dict[str, Any] = {}
-    result.update(quality.compute())
+    rendered = M.SegmentationAccumulator(num_classes, ignore_index)
+    teacher = M.SegmentationAccumulator(num_classes, ignore_index)
+    baseline = M.SegmentationAccumulator(num_classes, ignore_index)
+    for record in records:
+        quality.add_scores(record.quality, group=record.scene)
+        if record.confusion is not None:
+            rendered.add_confusion(record.confusion, group=record.scene)
+            teacher.add_confusion(record.teacher_confusion, group=record.scene)
+            baseline.add_confusion(record.baseline_confusion, group=record.scene)
+    result: dict[str, Any] = dict(quality.compute())
     if semantics:
-        result.update(rendered_seg.compute())
-        result["per_scene"] = rendered_seg.compute_per_group()
-        result["baseline_majority"] = M.constant_prediction_metrics(baseline_targets, baseline_class, num_classes, ignore)
-        result["teacher_2d"] = teacher_seg.compute()
+        result.update(rendered.compute())
+        result["per_scene"] = rendered.compute_per_group()
+        result["baseline_majority"] = baseline.compute()
+        result["teacher_2d"] = teacher.compute()
+    seconds = sum(r.seconds for r in records)
+    rays = sum(r.rays for r in records)
     result["timing"] = {
-        "seconds_per_frame": round(render_seconds / frames_done, 4),
-        "rays_per_second": round(rays_rendered / render_seconds, 1) if render_seconds > 0 else None,
-        "peak_memory_mb": round(peak_memory_mb(device), 1),
+        "seconds_per_frame": round(seconds / len(records), 4),
+        "rays_per_second": round(rays / seconds, 1) if seconds > 0 else None,
+        "peak_memory_mb": round(peak_memory, 1),
     }
     return result
 
 
-def _semantic_stride(features: Any, height: int) -> int:
-    if features.semantic is None:
-        return 1
-    return max(1, height // int(features.semantic.shape[-2]))
-
-
-def _save_pictures(
-    prefix: Path,
-    target: Any,
-    rendered: Any,
-    prediction: torch.Tensor | None,
+def _pictures(
+    target: Frame,
+    prediction: Prediction,
+    classes: torch.Tensor | None,
     gt_rgb: torch.Tensor,
     num_classes: int,
     ignore: int,
     near: float,
     far: float,
-) -> None:
-    pred_rgb = rendered.rgb.cpu()
-    s = rendered.stride  # rendered maps are shown at full size, one block per rendered cell
-    atomic_save_png(prefix.with_name(prefix.name + "_rgb.png"), vis.side_by_side(
-        [_upscale(_to_uint8(pred_rgb), s), _upscale(_to_uint8(gt_rgb), s),
-         _upscale(vis.rgb_error_map(pred_rgb.clamp(0, 1), gt_rgb), s)],
-        ["rendered RGB", "ground truth", "|error|"],
-    ))
-    atomic_save_png(prefix.with_name(prefix.name + "_depth.png"), vis.side_by_side(
-        [_upscale(vis.depth_to_color(rendered.depth.cpu(), near, far), s), vis.depth_to_color(target.depth, near, far)],
-        ["rendered depth", "ground truth"],
-    ))
-    if prediction is not None:
-        atomic_save_png(prefix.with_name(prefix.name + "_semantic.png"), vis.side_by_side(
-            [vis.colorize_labels(prediction, num_classes, ignore),
+) -> dict[str, np.ndarray]:
+    """The pictures of one view, by file suffix; rendered maps are shown at full size, a block per cell."""
+    pred_rgb = prediction.rgb.cpu()
+    s = prediction.stride
+    pictures = {
+        "rgb": vis.side_by_side(
+            [_upscale(_to_uint8(pred_rgb), s), _upscale(_to_uint8(gt_rgb), s),
+             _upscale(vis.rgb_error_map(pred_rgb.clamp(0, 1), gt_rgb), s)],
+            ["rendered RGB", "ground truth", "|error|"],
+        ),
+        "depth": vis.side_by_side(
+            [_upscale(vis.depth_to_color(prediction.depth.cpu(), near, far), s), vis.depth_to_color(target.depth, near, far)],
+            ["rendered depth", "ground truth"],
+        ),
+    }
+    if classes is not None:
+        pictures["semantic"] = vis.side_by_side(
+            [vis.colorize_labels(classes, num_classes, ignore),
              vis.colorize_labels(target.semantic, num_classes, ignore),
-             vis.error_map(prediction, target.semantic, ignore)],
+             vis.error_map(classes, target.semantic, ignore)],
             ["predicted classes", "ground truth", "errors"],
-        ))
-    if rendered.semantic is not None:
-        atomic_save_png(
-            prefix.with_name(prefix.name + "_features_pca.png"), _upscale(vis.pca_rgb(rendered.semantic.cpu()), s)
         )
+    if prediction.semantic is not None:
+        pictures["features_pca"] = _upscale(vis.pca_rgb(prediction.semantic.cpu()), s)
+    return pictures
+
+
+def _write_pictures(folder: Path, records: list[ViewRecord]) -> None:
+    for record in records:
+        stem = f"{record.scene.replace('/', '_')}_{record.frame:04d}"
+        for suffix, image in record.pictures.items():
+            atomic_save_png(folder / f"{stem}_{suffix}.png", image)
 
 
 def _upscale(image: np.ndarray, factor: int) -> np.ndarray:
@@ -208,7 +269,10 @@ def print_summary(metrics: dict[str, Any], run_dir: Path) -> None:
     lines = []
     train = metrics.get("train")
     if train:
-        lines.append(f"trained {train['steps']} steps in {train['seconds']:.0f} s ({train['rays_per_second']:.0f} rays/s)")
+        lines.append(
+            f"trained {train['steps']} steps in {train['seconds']:.0f} s ({train['rays_per_second']:.0f} rays/s"
+            + (f", {train['world_size']} processes)" if train.get("world_size", 1) > 1 else ")")
+        )
     for split, values in metrics.get("eval", {}).items():
         parts = [f"{split:>14}:"]
         if M.MIOU_IMAGE_MEAN_PRESENT in values:

@@ -251,7 +251,16 @@ class SegmentationAccumulator:
         Returns:
             This image's per-image scores, or None if it had no valid GT pixel (then it is only counted).
         """
-        confusion = confusion_matrix(pred, target, self.num_classes, self.ignore_index).cpu()
+        return self.add_confusion(confusion_matrix(pred, target, self.num_classes, self.ignore_index), group)
+
+    def add_confusion(self, confusion: Tensor, group: str = DEFAULT_GROUP) -> dict[str, float] | None:
+        """Add one image given its ``[K, K]`` confusion matrix (rows GT, columns prediction); as ``update``.
+
+        Feeding the matrices of a sharded evaluation in image order gives exactly the single-process metrics.
+        """
+        confusion = confusion.cpu()
+        if tuple(confusion.shape) != (self.num_classes, self.num_classes):
+            raise ValueError(f"confusion matrix has shape {list(confusion.shape)}; expected [{self.num_classes}, {self.num_classes}]")
         if group not in self._confusion:
             self._confusion[group] = torch.zeros_like(confusion)
             self._image_scores[group] = {key: [] for key in self._IMAGE_KEYS}
@@ -428,10 +437,14 @@ class ImageQualityAccumulator:
     ) -> dict[str, float]:
         """Add one image pair (``[H, W, 3]`` each); returns its ``{PSNR_CLAMPED, SSIM_GAUSSIAN11}``."""
         scores = {PSNR_CLAMPED: psnr(pred, gt, clamp=True), SSIM_GAUSSIAN11: ssim(pred, gt)}
+        self.add_scores(scores, group)
+        return scores
+
+    def add_scores(self, scores: dict[str, float], group: str = DEFAULT_GROUP) -> None:
+        """Add one image's ``{PSNR_CLAMPED, SSIM_GAUSSIAN11}`` computed elsewhere (a sharded evaluation)."""
         bucket = self._scores.setdefault(group, {key: [] for key in self._KEYS})
         for key in self._KEYS:
             bucket[key].append(scores[key])
-        return scores
 
     def compute(self) -> dict[str, Any]:
         """``{PSNR_CLAMPED, SSIM_GAUSSIAN11, COUNT_IMAGES, COUNT_GROUPS}``; scalars are None before any update."""

@@ -7,11 +7,14 @@ from gpnerf_core.interfaces.head import PerceptionHead
 from gpnerf_core.interfaces.loss import LossSet
 from gpnerf_core.interfaces.ray_aggregator import RayAggregator
 from gpnerf_core.interfaces.view_selector import ViewSelector
+from gpnerf_core.interfaces.weights import ImportedWeights, ImportsWeights
 
 __all__ = [
     "SPLITS",
     "FeatureExtractor",
     "FieldAggregator",
+    "ImportedWeights",
+    "ImportsWeights",
     "LossSet",
     "PerceptionHead",
     "RayAggregator",

@@ -6,10 +6,11 @@ from abc import ABC, abstractmethod
 
 from torch import Tensor, nn
 
+from gpnerf_core.interfaces.weights import ImportsWeights
 from gpnerf_core.types import FeatureMaps
 
 
-class FeatureExtractor(nn.Module, ABC):
+class FeatureExtractor(ImportsWeights, nn.Module, ABC):
     """Encodes images into a radiance feature map and, optionally, a multi-level semantic map.
 
     Built with plain keyword arguments from its config. Downstream stages read the widths below, so no

@@ -7,10 +7,11 @@ from typing import Any
 
 from torch import Tensor, nn
 
+from gpnerf_core.interfaces.weights import ImportsWeights
 from gpnerf_core.types import FieldBlockOutput, ProjectedFeatures, RayBatch, RaySamples
 
 
-class FieldAggregator(nn.Module, ABC):
+class FieldAggregator(ImportsWeights, nn.Module, ABC):
     """Builds per-sample tokens by attending over the V source views, block by block.
 
     The pipeline interleaves its blocks with a ray aggregator's (block b of both, then block b + 1), as GNT

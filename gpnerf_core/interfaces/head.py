@@ -6,10 +6,11 @@ from abc import ABC, abstractmethod
 
 from torch import Tensor, nn
 
+from gpnerf_core.interfaces.weights import ImportsWeights
 from gpnerf_core.types import HeadOutput
 
 
-class PerceptionHead(nn.Module, ABC):
+class PerceptionHead(ImportsWeights, nn.Module, ABC):
     """Turns a ``[N, C_sem, h, w]`` feature map into per-pixel scores.
 
     Constructed with ``in_dim`` (C_sem), ``in_levels`` (equal channel blocks, finest first) and

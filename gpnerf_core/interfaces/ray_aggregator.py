@@ -6,10 +6,11 @@ from abc import ABC, abstractmethod
 
 from torch import Tensor, nn
 
+from gpnerf_core.interfaces.weights import ImportsWeights
 from gpnerf_core.types import RayBlockOutput, RayReadout
 
 
-class RayAggregator(nn.Module, ABC):
+class RayAggregator(ImportsWeights, nn.Module, ABC):
     """Mixes the S sample tokens of each ray by attention and reads out colour and weights.
 
     Constructed with ``in_dim`` = the field aggregator's token width. Every block returns its attention

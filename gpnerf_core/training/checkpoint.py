@@ -1,76 +1,208 @@
-"""Checkpoints that resume exactly: model, optimizer, schedule, step, random state, config and versions."""
+"""Checkpoints that explain themselves and resume exactly.
+
+A checkpoint holds the model, optimizer and schedule, the step, every process's random state and the step
+sampler's, and what made it: the composed config (YAML) and its hash, the Hydra overrides that composed it,
+the components used (kind, name, provider, version) and the software versions. It is loaded with
+``torch.load(weights_only=True)``: nothing in it is unpickled as code.
+"""
 
 from __future__ import annotations
 
+import hashlib
 import platform
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable, Mapping
 
 import torch
+import yaml
 
-from gpnerf_core.errors import DataError
+from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.io import atomic_torch_save
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+"""Schema version of the checkpoint dictionary; bumped whenever a key changes meaning."""
+
+MODEL_SECTIONS = ("feature_extractor", "field_aggregator", "ray_aggregator", "head", "loss", "model")
+"""Config sections that define the model and its loss: resuming with other values is refused."""
+
+NOT_MODEL_KEYS = ("model.init", "model.init_strict", "model.checkpoint_blocks")
+"""Keys inside ``MODEL_SECTIONS`` that change how weights start or how memory is spent, not the model."""
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """What a run was made from, written into each of its checkpoints.
+
+    Attributes:
+        config_yaml: the composed, resolved config.
+        overrides: the Hydra overrides that composed it (``+head=unet``, ``train.steps=10``, ...).
+        components: ``{kind: {"name", "provider", "version"}}`` of the components the config selects.
+    """
+
+    config_yaml: str
+    overrides: tuple[str, ...]
+    components: dict[str, dict[str, str]]
+
+    @property
+    def config_sha256(self) -> str:
+        return hashlib.sha256(self.config_yaml.encode()).hexdigest()
 
 
 def software_versions() -> dict[str, str]:
     from gpnerf_core import __version__
-    from gpnerf_core.registry import get_registry
 
-    versions = {"gpnerf_core": __version__, "torch": torch.__version__, "python": platform.python_version()}
-    versions.update({f"plugin:{name}": v for name, v in get_registry().plugin_versions.items()})
-    return versions
+    return {"gpnerf_core": str(__version__), "torch": str(torch.__version__), "python": platform.python_version()}
 
 
 def save_checkpoint(
     path: Path,
     *,
+    record: RunRecord,
     model: torch.nn.Module,
     optimizer: torch.optim.Optimizer,
     scheduler: Any,
     step: int,
-    generator: torch.Generator,
+    sampler: Mapping[str, Any],
+    rng_states: list[dict[str, Any]],
     history: list[dict[str, float]],
     elapsed: float,
-    config_yaml: str,
-) -> None:
+) -> Path:
+    """Write a checkpoint atomically (a reader never sees half a file).
+
+    Args:
+        rng_states: one ``{"cpu": ByteTensor, "cuda": ByteTensor | None}`` per process, in rank order.
+    """
     state = {
         "format": FORMAT_VERSION,
+        "step": step,
         "model": model.state_dict(),
         "optimizer": optimizer.state_dict(),
         "scheduler": scheduler.state_dict(),
-        "step": step,
-        "generator": generator.get_state(),
-        "torch_rng": torch.get_rng_state(),
+        "sampler": dict(sampler),
+        "rng": list(rng_states),
         "history": history,
         "elapsed": elapsed,
-        "config": config_yaml,
+        "config": record.config_yaml,
+        "config_sha256": record.config_sha256,
+        "overrides": list(record.overrides),
+        "components": record.components,
         "versions": software_versions(),
     }
-    atomic_torch_save(path, state)
+    return atomic_torch_save(path, state)
 
 
-def load_checkpoint(
-    path: Path, model: torch.nn.Module, *, optimizer: Any = None, scheduler: Any = None
-) -> dict[str, Any]:
-    """Load ``path`` into ``model`` (and optimizer/scheduler when given); restores the global torch RNG."""
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    """Load a gpnerf-core checkpoint's dictionary safely (``weights_only``), with one-line errors."""
+    path = Path(path)
+    state = read_torch_file(path)
+    if not isinstance(state, dict) or "format" not in state:
+        raise DataError(f"checkpoint {path} is not a gpnerf-core checkpoint (no 'format' key)")
+    if state["format"] != FORMAT_VERSION:
+        raise DataError(
+            f"checkpoint {path} has format {state['format']!r}; this gpnerf-core reads format {FORMAT_VERSION} "
+            "(it was written by another version: evaluate it with that version, or retrain)"
+        )
+    return state
+
+
+def read_torch_file(path: Path) -> Any:
+    """``torch.load(path, weights_only=True)`` on the CPU; a missing, truncated or foreign file is one line."""
     if not path.is_file():
         raise DataError(f"checkpoint {path} does not exist")
     try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:
-        raise DataError(f"checkpoint {path} could not be read: {type(exc).__name__}: {exc}") from None
-    if not isinstance(state, dict) or state.get("format") != FORMAT_VERSION:
-        raise DataError(f"checkpoint {path} is not a gpnerf-core checkpoint of format {FORMAT_VERSION}")
-    missing, unexpected = model.load_state_dict(state["model"], strict=False)
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        if "weights_only" in str(exc) or "Unsupported global" in str(exc):
+            reason = "it holds Python objects that are not weights (only tensors and plain containers load safely)"
+        raise DataError(f"checkpoint {path} could not be read: {reason} (truncated or not a torch file?)") from None
+
+
+def load_weights(module: torch.nn.Module, state: Mapping[str, torch.Tensor], source: str) -> None:
+    """Load ``state`` into ``module`` strictly; a missing, extra or differently shaped tensor is one line.
+
+    Args:
+        source: names where the weights came from in the error (a file path).
+    """
+    own = module.state_dict()
+    missing = [key for key in own if key not in state]
+    unexpected = [key for key in state if key not in own]
     if missing or unexpected:
+        detail = f"missing {missing[0]!r}" if missing else f"unexpected {unexpected[0]!r}"
         raise DataError(
-            f"checkpoint {path} does not match the configured model: missing {missing[:3]}, unexpected {unexpected[:3]}"
+            f"{source} does not match the configured model: {detail} "
+            f"({len(missing)} missing, {len(unexpected)} unexpected tensors)"
         )
-    if optimizer is not None:
-        optimizer.load_state_dict(state["optimizer"])
-    if scheduler is not None:
-        scheduler.load_state_dict(state["scheduler"])
-    torch.set_rng_state(state["torch_rng"])
-    return state
+    check_shapes(own, state, source)
+    module.load_state_dict(state)
+
+
+def check_shapes(own: Mapping[str, torch.Tensor], state: Mapping[str, torch.Tensor], source: str) -> None:
+    """Raise on the first tensor of ``state`` whose shape differs from ``own``'s, naming key and both shapes."""
+    for key, value in state.items():
+        if key in own and tuple(own[key].shape) != tuple(value.shape):
+            raise DataError(
+                f"{source}: tensor {key!r} has shape {list(value.shape)}, the configured model expects "
+                f"{list(own[key].shape)} (a different model size?)"
+            )
+
+
+def config_differences(
+    old_yaml: str, new_yaml: str, sections: Iterable[str] | None = None, ignore: Iterable[str] = ()
+) -> list[tuple[str, Any, Any]]:
+    """``(dotted key, old value, new value)`` for every leaf that differs between two config YAMLs.
+
+    Args:
+        sections: compare only these top-level sections (None: everything).
+        ignore: dotted keys (and their subtrees) left out.
+    """
+    old, new = yaml.safe_load(old_yaml) or {}, yaml.safe_load(new_yaml) or {}
+    if sections is not None:
+        wanted = tuple(sections)
+        old = {k: v for k, v in old.items() if k in wanted}
+        new = {k: v for k, v in new.items() if k in wanted}
+    ignored = tuple(ignore)
+    return [
+        (key, a, b)
+        for key, a, b in _leaf_differences(old, new, "")
+        if not any(key == i or key.startswith(i + ".") for i in ignored)
+    ]
+
+
+_ABSENT = "<absent>"
+
+
+def _leaf_differences(old: Any, new: Any, prefix: str) -> list[tuple[str, Any, Any]]:
+    if isinstance(old, dict) and isinstance(new, dict):
+        out = []
+        for key in list(old) + [k for k in new if k not in old]:
+            sub = f"{prefix}.{key}" if prefix else str(key)
+            out += _leaf_differences(old.get(key, _ABSENT), new.get(key, _ABSENT), sub)
+        return out
+    return [] if old == new else [(prefix, old, new)]
+
+
+def format_differences(differences: list[tuple[str, Any, Any]], limit: int = 12) -> str:
+    """``key: old -> new`` joined by ``; `` (at most ``limit``, then a count)."""
+    parts = [f"{key}: {old!r} -> {new!r}" for key, old, new in differences[:limit]]
+    if len(differences) > limit:
+        parts.append(f"... and {len(differences) - limit} more")
+    return "; ".join(parts)
+
+
+def check_resume_config(path: Path, checkpoint_yaml: str, config_yaml: str, strict: bool) -> list[str]:
+    """Compare the model and loss sections of a checkpoint's config with this run's.
+
+    Returns:
+        Lines describing accepted differences (``strict`` False); raises ConfigError when ``strict``.
+    """
+    differences = config_differences(checkpoint_yaml, config_yaml, MODEL_SECTIONS, NOT_MODEL_KEYS)
+    if not differences:
+        return []
+    if strict:
+        raise ConfigError(
+            f"train.resume={path}: the checkpoint was trained with another model or loss config "
+            f"({format_differences(differences)}); use the same settings, or train.resume_strict=false to resume anyway"
+        )
+    return [f"resuming despite config differences: {format_differences(differences)}"]

@@ -1,31 +1,53 @@
-"""The training loop: one target view per step, coarse + fine rendering, fused-map head, weighted loss terms."""
+"""The training loop: sample the step's target views, forward, loss, backward, optimizer step.
+
+One process, or one of N under torchrun: the model is wrapped in ``DistributedDataParallel`` (gradients
+averaged over processes), each process trains on its share of the global batch of target views, and rank 0
+alone writes checkpoints, curves and the progress bar.
+"""
 
 from __future__ import annotations
 
+import hashlib
 import math
 import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import torch
 from torch import Tensor
+from torch.nn.parallel import DistributedDataParallel
 
 from gpnerf_core.build import Components
+from gpnerf_core.device import autocast, check_precision, peak_memory_mb
+from gpnerf_core.distributed import Distributed
 from gpnerf_core.errors import ConfigError, NonFiniteError
-from gpnerf_core.fusion import cells_of_pixels, fuse_rendered, gather_cells
-from gpnerf_core.geometry import rays_through_pixels
-from gpnerf_core.training.checkpoint import load_checkpoint, save_checkpoint
-from gpnerf_core.types import FeatureMaps, LossInputs
-from gpnerf_core.views import SceneViews, choose_sources
+from gpnerf_core.frames import FrameCache
+from gpnerf_core.training.checkpoint import RunRecord, check_resume_config, read_checkpoint, load_weights, save_checkpoint
+from gpnerf_core.training.interrupt import StopRequest, TrainingInterrupted
+from gpnerf_core.training.loggers import ScalarLogger
+from gpnerf_core.training.sampler import StepSampler
+from gpnerf_core.types import LossInputs, StepBatch, StepOutput, TargetView, ViewOutput
 
 
 @dataclass
 class TrainResult:
+    """What ``Trainer.fit`` did.
+
+    Attributes:
+        steps: the step reached; seconds: training time including earlier runs of a resumed run.
+        rays_per_second: rays over all processes per second of this run.
+        world_size, targets_per_rank, rays_per_step: the layout of the global batch (``rays_per_step`` is
+            summed over processes and target views).
+    """
+
     steps: int
     seconds: float
     rays_per_second: float
+    world_size: int
+    targets_per_rank: int
+    rays_per_step: int
     history: list[dict[str, float]] = field(default_factory=list)
     checkpoint: Path | None = None
 
@@ -46,24 +68,69 @@ def exponential_decay(rate: float, steps: int) -> Callable[[int], float]:
     return lambda step: rate ** (step / steps)
 
 
-class Trainer:
-    """Trains ``components.model`` with ``components.loss`` on the dataset's training scenes."""
+def loss_inputs(view: TargetView, output: ViewOutput, ignore_index: int) -> LossInputs:
+    """What a loss set reads for one target view: its outputs and the ground truth at its rays."""
+    rows, cols = view.pixels[:, 1].long(), view.pixels[:, 0].long()
+    return LossInputs(
+        coarse=output.coarse,
+        fine=output.fine,
+        target_rgb=view.image[:, rows, cols].T,
+        target_depth=view.depth[rows, cols],
+        logits=output.logits,
+        labels=view.labels[None] if output.logits is not None else None,
+        teacher_at_rays=output.teacher_at_rays,
+        ignore_index=ignore_index,
+    )
 
-    def __init__(self, cfg: Any, components: Components, device: torch.device, run_dir: Path, config_yaml: str) -> None:
+
+def process_seed(seed: int, rank: int) -> int:
+    """Seed of a process's global torch RNG (dropout): distinct per rank, fixed by (seed, rank)."""
+    return int.from_bytes(hashlib.sha256(f"{seed}:{rank}".encode()).digest()[:8], "little") >> 1
+
+
+class Trainer:
+    """Trains ``components.model`` with ``components.loss`` on the dataset's training scenes.
+
+    Args:
+        cfg: the composed config.
+        components: model, loss set, dataset and view selector.
+        dist: this process's place in the job (single process by default).
+        run_dir: where rank 0 writes checkpoints.
+        record: what the run was made from, written into every checkpoint.
+    """
+
+    def __init__(
+        self,
+        cfg: Any,
+        components: Components,
+        *,
+        dist: Distributed,
+        run_dir: Path,
+        record: RunRecord,
+    ) -> None:
         if components.loss is None:
             raise ConfigError("training needs a loss set: add +loss=<name> (e.g. +loss=dgs)")
+        check_precision(cfg.train.precision)
         self.cfg = cfg
-        self.components = components
-        self.model = components.model.to(device)
-        self.loss = components.loss.to(device)
-        self.device = device
+        self.dist = dist
+        self.device = dist.device
         self.run_dir = run_dir
-        self.config_yaml = config_yaml
-        self.views = SceneViews(components.dataset, device)
-        self.scene_names = list(components.dataset.scenes("train"))
-        if not self.scene_names:
-            raise ConfigError(f"dataset {cfg.dataset.name!r} has no training scenes")
-        self.generator = torch.Generator().manual_seed(int(cfg.seed))
+        self.record = record
+        self.model = components.model.to(self.device)
+        self.loss = components.loss.to(self.device)
+        self.ignore_index = components.dataset.ignore_index
+        self.frames = FrameCache(components.dataset, self.device)
+        self.sampler = StepSampler(
+            self.frames,
+            components.view_selector,
+            scene_names=components.dataset.scenes("train"),
+            num_source_views=int(cfg.model.num_source_views),
+            rays_per_view=int(cfg.train.rays),
+            targets_per_step=int(cfg.train.targets_per_step),
+            seed=int(cfg.seed),
+            rank=dist.rank,
+            world_size=dist.world_size,
+        )
         self.optimizer = make_optimizer(self.model, cfg.train.lr)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(
             self.optimizer, exponential_decay(cfg.train.lr_decay_rate, cfg.train.lr_decay_steps)
@@ -71,155 +138,208 @@ class Trainer:
         self.step = 0
         self.history: list[dict[str, float]] = []
         self.elapsed = 0.0
+        self.notes: list[str] = []
+        self.loss_names: list[str] = []
+        """Names of the loss set's terms, known after the first step."""
+        if dist.enabled:
+            torch.manual_seed(process_seed(int(cfg.seed), dist.rank))
+        if cfg.train.resume:
+            self._resume(Path(cfg.train.resume))
+        self.wrapped: torch.nn.Module = self.model
+        if dist.enabled:
+            # find_unused_parameters: a loss set may leave whole modules unused (rgb alone: no head, no FPN).
+            self.wrapped = DistributedDataParallel(
+                self.model,
+                device_ids=[self.device.index] if self.device.type == "cuda" else None,
+                find_unused_parameters=True,
+            )
 
-    def _randint(self, high: int) -> int:
-        return int(torch.randint(high, (1,), generator=self.generator))
+    @property
+    def resumed_step(self) -> int | None:
+        return self.step if self.cfg.train.resume else None
 
-    def train_step(self) -> dict[str, float]:
-        cfg = self.cfg
-        model, loss_set = self.model, self.loss
-        scene = self.views.scene(self.scene_names[self._randint(len(self.scene_names))])
-        target_index = scene.train_frames[self._randint(len(scene.train_frames))]
-        source_indices = choose_sources(
-            self.components.view_selector, scene, target_index, cfg.model.num_source_views, self.generator
-        )
-        sources = self.views.source_views(scene, source_indices)
-        target = self.views.frame(scene, target_index)
-        height, width = target.height, target.width
-        num_views = sources.num_views
+    # ---- one step ----------------------------------------------------------------------------------------------
 
-        semantics = loss_set.needs_semantics
-        images = sources.rgb
-        if semantics:
-            images = torch.cat([images, target.rgb.permute(2, 0, 1)[None].to(self.device)])
-        maps = model.encode(images)
-        source_maps = FeatureMaps(
-            radiance=maps.radiance[:num_views],
-            semantic=maps.semantic[:num_views] if maps.semantic is not None else None,
-        )
+    def train_step(self, stop: StopRequest | None = None) -> tuple[dict[str, Tensor], int, int | None]:
+        """Sample, forward, loss, backward, step.
 
-        num_rays = min(int(cfg.train.rays), height * width)
-        flat = torch.randperm(height * width, generator=self.generator)[:num_rays]
-        pixels = torch.stack([flat % width, flat // width], dim=-1).to(torch.float32).to(self.device)
-        rays = rays_through_pixels(
-            pixels, target.intrinsics.to(self.device), target.c2w.to(self.device), scene.near, scene.far
-        )
-        coarse, fine = model.render_rays(
-            rays,
-            sources,
-            source_maps,
-            randomized=True,
-            with_semantic=semantics,
-            with_sample_semantic=loss_set.needs_sample_semantics,
-            generator=self.generator,
-        )
-        rows = pixels[:, 1].long(), pixels[:, 0].long()
-        logits = labels = teacher_at_rays = None
-        if semantics:
-            teacher = maps.semantic[num_views:]
-            cells = cells_of_pixels(pixels, (height, width), tuple(teacher.shape[-2:]))
-            teacher_at_rays = gather_cells(teacher, cells)
-            last = fine if fine is not None else coarse
-            head_input = fuse_rendered(teacher, last.semantic, cells) if cfg.train.fuse_rendered else teacher
-            logits = model.decode(head_input, (height, width)).logits
-            labels = target.semantic[None].to(self.device)
-        inputs = LossInputs(
-            coarse=coarse,
-            fine=fine,
-            target_rgb=target.rgb.to(self.device)[rows],
-            target_depth=target.depth.to(self.device)[rows],
-            logits=logits,
-            labels=labels,
-            teacher_at_rays=teacher_at_rays,
-            ignore_index=self.components.dataset.ignore_index,
-        )
-        terms = loss_set(inputs)
-        for name, value in terms.items():
-            if not torch.isfinite(value).all():
-                raise NonFiniteError(
-                    f"step {self.step}: loss term {name!r} is {value.item()} "
-                    f"(scene {scene.name!r}, target frame {target_index}); training stopped"
-                )
+        Returns:
+            ``(terms, rays, stop_signal)``: the weighted loss terms of this process (detached), the rays it
+            rendered, and the signal every process agreed to stop on (None: go on).
+        """
+        batch = self.sampler.next_batch()
+        with autocast(self.device, self.cfg.train.precision):
+            output = self.wrapped(
+                batch, semantics=self.loss.needs_semantics, sample_semantics=self.loss.needs_sample_semantics
+            )
+            terms = self._loss_terms(batch, output)
+        stop_signal = self._check_and_agree(terms, batch, stop)
         total: Tensor = sum(terms.values())
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(
-            self.model.parameters(), cfg.train.grad_clip if cfg.train.grad_clip > 0 else math.inf
-        )
+        clip = self.cfg.train.grad_clip
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), clip if clip > 0 else math.inf)
         if not torch.isfinite(grad_norm):
             raise NonFiniteError(f"step {self.step}: gradient norm is {grad_norm.item()}; training stopped")
         self.optimizer.step()
         self.scheduler.step()
-        return {name: float(value.detach()) for name, value in terms.items()} | {"loss": float(total.detach())}
+        detached = {name: value.detach() for name, value in terms.items()} | {"loss": total.detach()}
+        return detached, batch.num_rays, stop_signal
 
-    def fit(self, progress: bool = True) -> TrainResult:
-        cfg = self.cfg.train
-        if cfg.resume:
-            self._resume(Path(cfg.resume))
-        total_steps = int(cfg.steps)
-        bar = None
-        if progress:
-            from tqdm import tqdm
+    def _loss_terms(self, batch: StepBatch, output: StepOutput) -> dict[str, Tensor]:
+        """Each term averaged over this process's target views (so DDP's mean over processes is the global mean)."""
+        per_view = [self.loss(loss_inputs(view, out, self.ignore_index)) for view, out in zip(batch.views, output.views)]
+        return {name: sum(terms[name].float() for terms in per_view) / len(per_view) for name in per_view[0]}
 
-            interactive = sys.stderr.isatty()
-            bar = tqdm(
-                total=total_steps,
-                initial=self.step,
-                desc="train",
-                unit="step",
-                dynamic_ncols=True,
-                mininterval=0.5 if interactive else 30.0,
-                file=sys.stderr,
+    def _check_and_agree(self, terms: dict[str, Tensor], batch: StepBatch, stop: StopRequest | None) -> int | None:
+        """Stop every process on a non-finite term anywhere, and agree on a stop signal, before backward."""
+        bad = next((name for name, value in terms.items() if not torch.isfinite(value).all()), None)
+        flags = torch.tensor(
+            [float(bad is not None), float(stop.signum or 0) if stop is not None else 0.0], device=self.device
+        )
+        self.dist.all_reduce(flags, op="max")
+        if bad is not None:
+            views = ", ".join(f"scene {v.scene!r} frame {v.frame}" for v in batch.views)
+            raise NonFiniteError(
+                f"step {self.step}: loss term {bad!r} is {terms[bad].item()} ({views}); training stopped"
             )
+        if flags[0] > 0:
+            raise NonFiniteError(f"step {self.step}: a loss term is not finite on another process; training stopped")
+        return int(flags[1]) or None
+
+    # ---- the loop ----------------------------------------------------------------------------------------------
+
+    def fit(self, progress: bool = True, loggers: Sequence[ScalarLogger] = ()) -> TrainResult:
+        """Train to ``train.steps``, checkpointing every ``train.checkpoint_every`` steps and at the end.
+
+        Raises:
+            TrainingInterrupted: on SIGINT/SIGTERM, after a checkpoint at the current step.
+        """
+        cfg = self.cfg.train
+        total_steps = int(cfg.steps)
+        bar = self._progress_bar(total_steps) if progress and self.dist.is_main else None
         self.model.train()
         rays_done = 0
         started = time.perf_counter()
-        while self.step < total_steps:
-            values = self.train_step()
-            self.step += 1
-            rays_done += int(cfg.rays)
-            now = time.perf_counter()
-            if self.step % int(cfg.log_every) == 0 or self.step == total_steps:
-                entry = {"step": float(self.step), "seconds": self.elapsed + now - started} | values
-                entry["lr_feature_extractor"] = self.optimizer.param_groups[0]["lr"]
-                self.history.append(entry)
+        try:
+            with StopRequest() as stop:
+                while self.step < total_steps:
+                    terms, rays, stop_signal = self.train_step(stop)
+                    self.loss_names = [name for name in terms if name != "loss"]
+                    self.step += 1
+                    rays_done += rays
+                    now = time.perf_counter()
+                    if self.step % int(cfg.log_every) == 0 or self.step == total_steps:
+                        self._log(terms, rays_done, now - started, self.elapsed + now - started, loggers)
+                    if bar is not None:
+                        bar.update(1)
+                        if self.history and self.history[-1]["step"] == self.step:
+                            bar.set_postfix(loss=f"{self.history[-1]['loss']:.4f}", refresh=False)
+                    if stop_signal is not None:
+                        path = self._checkpoint(self.elapsed + now - started)
+                        raise TrainingInterrupted(stop_signal, self.step, path)
+                    if cfg.checkpoint_every and self.step % int(cfg.checkpoint_every) == 0 and self.step < total_steps:
+                        self._checkpoint(self.elapsed + now - started)
+        finally:
             if bar is not None:
-                bar.update(1)
-                rate = rays_done / (now - started)
-                bar.set_postfix(loss=f"{values['loss']:.4f}", rays_s=f"{rate:.0f}", refresh=False)
-            if cfg.checkpoint_every and self.step % int(cfg.checkpoint_every) == 0 and self.step < total_steps:
-                self._checkpoint(self.elapsed + now - started)
-        if bar is not None:
-            bar.close()
+                bar.close()
         seconds = time.perf_counter() - started
         self.elapsed += seconds
         checkpoint = self._checkpoint(self.elapsed)
+        global_rays = float(self.dist.all_reduce(torch.tensor(float(rays_done), device=self.device)))
         return TrainResult(
             steps=self.step,
             seconds=self.elapsed,
-            rays_per_second=rays_done / seconds if seconds > 0 else 0.0,
+            rays_per_second=global_rays / seconds if seconds > 0 else 0.0,
+            world_size=self.dist.world_size,
+            targets_per_rank=self.sampler.targets_per_rank,
+            rays_per_step=int(cfg.rays) * int(cfg.targets_per_step),
             history=self.history,
             checkpoint=checkpoint,
         )
 
-    def _checkpoint(self, elapsed: float) -> Path:
-        path = self.run_dir / "checkpoints" / f"step_{self.step:07d}.pt"
-        save_checkpoint(
-            path,
+    def _progress_bar(self, total_steps: int) -> Any:
+        from tqdm import tqdm
+
+        return tqdm(
+            total=total_steps,
+            initial=self.step,
+            desc="train",
+            unit="step",
+            dynamic_ncols=True,
+            mininterval=0.5 if sys.stderr.isatty() else 30.0,
+            file=sys.stderr,
+        )
+
+    def _log(
+        self, terms: dict[str, Tensor], rays_done: int, run_seconds: float, total_seconds: float,
+        loggers: Sequence[ScalarLogger],
+    ) -> None:
+        """A history entry (values averaged over processes) and the same scalars to the loggers (rank 0)."""
+        names = list(terms)
+        summed = torch.stack([terms[name].to(self.device, torch.float32) for name in names] + [
+            torch.tensor(float(rays_done), device=self.device)
+        ])
+        self.dist.all_reduce(summed)
+        memory = self.dist.all_reduce(torch.tensor(peak_memory_mb(self.device), device=self.device), op="max")
+        values = {name: float(summed[i]) / self.dist.world_size for i, name in enumerate(names)}
+        entry = {"step": float(self.step), "seconds": total_seconds} | values
+        for group in self.optimizer.param_groups:
+            entry[f"lr/{group['name']}"] = group["lr"]
+        entry["rays_per_second"] = float(summed[-1]) / run_seconds if run_seconds > 0 else 0.0
+        entry["peak_memory_mb"] = float(memory)
+        self.history.append(entry)
+        scalars = {f"train/{name}": values[name] for name in names}
+        scalars |= {f"train/lr/{g['name']}": g["lr"] for g in self.optimizer.param_groups}
+        scalars |= {"train/rays_per_second": entry["rays_per_second"], "train/peak_memory_mb": entry["peak_memory_mb"]}
+        for logger in loggers:
+            logger.log(self.step, scalars)
+
+    # ---- checkpoints -------------------------------------------------------------------------------------------
+
+    def _rng_state(self) -> dict[str, Any]:
+        cuda = torch.cuda.get_rng_state(self.device) if self.device.type == "cuda" else None
+        return {"cpu": torch.get_rng_state(), "cuda": cuda}
+
+    def _checkpoint(self, elapsed: float) -> Path | None:
+        """Write a checkpoint at the current step (rank 0; every process contributes its random state)."""
+        rng_states = self.dist.all_gather_object(self._rng_state())
+        if not self.dist.is_main:
+            return None
+        return save_checkpoint(
+            self.run_dir / "checkpoints" / f"step_{self.step:07d}.pt",
+            record=self.record,
             model=self.model,
             optimizer=self.optimizer,
             scheduler=self.scheduler,
             step=self.step,
-            generator=self.generator,
+            sampler=self.sampler.state_dict(),
+            rng_states=rng_states,
             history=self.history,
             elapsed=elapsed,
-            config_yaml=self.config_yaml,
         )
-        return path
 
     def _resume(self, path: Path) -> None:
-        state = load_checkpoint(path, self.model, optimizer=self.optimizer, scheduler=self.scheduler)
-        self.step = state["step"]
-        self.generator.set_state(state["generator"])
+        state = read_checkpoint(path)
+        self.notes += check_resume_config(path, state["config"], self.record.config_yaml, self.cfg.train.resume_strict)
+        load_weights(self.model, state["model"], f"checkpoint {path}")
+        try:
+            self.optimizer.load_state_dict(state["optimizer"])
+            self.scheduler.load_state_dict(state["scheduler"])
+        except (ValueError, KeyError) as exc:
+            raise ConfigError(f"train.resume={path}: its optimizer state does not fit this model ({exc})") from None
+        self.sampler.load_state_dict(state["sampler"])
+        self.step = int(state["step"])
         self.history = list(state["history"])
         self.elapsed = float(state["elapsed"])
+        rng = state["rng"]
+        if len(rng) == self.dist.world_size:
+            torch.set_rng_state(rng[self.dist.rank]["cpu"])
+            if self.device.type == "cuda" and rng[self.dist.rank]["cuda"] is not None:
+                torch.cuda.set_rng_state(rng[self.dist.rank]["cuda"], self.device)
+        else:
+            torch.manual_seed(process_seed(int(self.cfg.seed) + self.step, self.dist.rank))
+            self.notes.append(
+                f"the checkpoint was written by {len(rng)} processes and this run has {self.dist.world_size}: "
+                "target views, pixels and samples resume exactly, dropout draws do not"
+            )

@@ -1,35 +1,22 @@
-"""Training loop behaviour: non-finite losses stop training, resume is exact, parameter groups get their rates."""
+"""Training loop: one forward shared with evaluation, batches of target views, NaN stops, exact resume, lr groups."""
 
 from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
 from gpnerf_core.build import build_components
-from gpnerf_core.cli import config_dir
-from gpnerf_core.config import register_schema
-from gpnerf_core.errors import NonFiniteError
+from gpnerf_core.config import compose
+from gpnerf_core.errors import ConfigError, DataError, NonFiniteError
 from gpnerf_core.interfaces import LossSet
-from gpnerf_core.registry import get_registry
-from gpnerf_core.training.trainer import Trainer
-
-TINY = [
-    "dataset.num_train_scenes=1", "dataset.num_unseen_scenes=1", "dataset.frames_per_scene=6", "dataset.eval_every=3",
-    "dataset.height=32", "dataset.width=48", "feature_extractor.widths=[8,8,8,16]", "feature_extractor.fpn_channels=4",
-    "field_aggregator.width=16", "field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2",
-    "model.num_source_views=2", "train.rays=16", "train.log_every=1", "threads=1",
-]
+from gpnerf_core.training.checkpoint import read_checkpoint
+from gpnerf_core.training.trainer import loss_inputs
+from gpnerf_core.types import StepBatch
+from pipeline_check import TINY_MODEL, TINY_SCENES, make_trainer
 
 
 def tiny_cfg(tmp_path, *extra):
-    get_registry()
-    register_schema()
-    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
-        return compose(
-            config_name="config",
-            overrides=["+head=unet", "+loss=dgs", *TINY, f"dataset.root={tmp_path / 'scenes'}", *extra],
-        )
+    return compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES, f"dataset.root={tmp_path / 'scenes'}", *extra])
 
 
 class PoisonedLoss(LossSet):
@@ -47,42 +34,167 @@ class PoisonedLoss(LossSet):
         return {"rgb": value, "sd": value * (float("nan") if self.calls == 2 else 0.0)}
 
 
-def test_nan_loss_stops_training_naming_step_and_term(tmp_path):
+def test_nan_loss_stops_training_naming_step_term_and_view(tmp_path):
     cfg = tiny_cfg(tmp_path, "train.steps=3")
     components = build_components(cfg)
     components.loss = PoisonedLoss()
-    trainer = Trainer(cfg, components, torch.device("cpu"), tmp_path / "run", "")
-    with pytest.raises(NonFiniteError, match=r"step 1: loss term 'sd' is nan"):
+    trainer = make_trainer(cfg, tmp_path / "run", components=components)
+    with pytest.raises(NonFiniteError, match=r"step 1: loss term 'sd' is nan \(scene 'layout_00' frame \d+\)"):
         trainer.fit(progress=False)
     assert not (tmp_path / "run" / "checkpoints").exists()
 
 
 def test_learning_rate_groups(tmp_path):
     cfg = tiny_cfg(tmp_path, "train.lr.feature_extractor=0.1", "train.lr.transformer=0.2", "train.lr.head=0.3")
-    trainer = Trainer(cfg, build_components(cfg), torch.device("cpu"), tmp_path / "run", "")
+    trainer = make_trainer(cfg, tmp_path / "run")
     rates = {group["name"]: group["lr"] for group in trainer.optimizer.param_groups}
     assert rates == {"feature_extractor": 0.1, "transformer": 0.2, "head": 0.3}
     extractor_params = {id(p) for p in trainer.model.extractor.parameters()}
     assert {id(p) for p in trainer.optimizer.param_groups[0]["params"]} == extractor_params
 
 
+def test_forward_gives_every_output_the_losses_read(tmp_path):
+    cfg = tiny_cfg(tmp_path)
+    trainer = make_trainer(cfg, tmp_path / "run")
+    batch = trainer.sampler.next_batch()
+    view = batch.views[0]
+    output = trainer.model(batch, semantics=True, sample_semantics=True).views[0]
+    rays, (height, width) = view.num_rays, view.camera.image_size
+    assert output.coarse.rgb.shape == (rays, 3) and output.fine.rgb.shape == (rays, 3)
+    assert output.fine.sample_semantic.shape[:2] == (rays, 8)  # 6 coarse + 2 fine samples
+    channels = output.teacher_map.shape[1]
+    assert output.teacher_at_rays.shape == (rays, channels)
+    assert output.logits.shape[-2:] == (height, width)
+    # The fused map is the teacher map except in the cells the rays hit, which hold rendered features.
+    changed = (output.head_input != output.teacher_map).any(dim=1).flatten()
+    cells = (view.pixels[:, 1].long() // 2) * (width // 2) + view.pixels[:, 0].long() // 2
+    hit = torch.zeros_like(changed)
+    hit[cells] = True
+    assert not changed[~hit].any() and changed[hit].all()
+    inputs = loss_inputs(view, output, ignore_index=255)
+    row, col = int(view.pixels[0, 1]), int(view.pixels[0, 0])
+    assert torch.equal(inputs.target_rgb[0], view.image[:, row, col])
+
+
+def test_rendering_noise_follows_the_view_seed_not_the_process(tmp_path):
+    cfg = tiny_cfg(tmp_path)
+    trainer = make_trainer(cfg, tmp_path / "run")
+    batch = trainer.sampler.next_batch()
+    first = trainer.model(batch, semantics=False).views[0].coarse.samples.depths
+    torch.manual_seed(1234)  # the global RNG plays no part
+    again = trainer.model(batch, semantics=False).views[0].coarse.samples.depths
+    assert torch.equal(first, again)
+    trainer.model.eval()
+    deterministic = trainer.model(batch, semantics=False).views[0].coarse.samples.depths
+    assert not torch.equal(first, deterministic)
+
+
+def test_two_targets_per_step_is_the_mean_of_each_target_alone(tmp_path):
+    """The loss of a 2-view step is the mean of the two views' losses (what DDP's gradient average needs)."""
+    cfg = tiny_cfg(tmp_path, "train.targets_per_step=2")
+    trainer = make_trainer(cfg, tmp_path / "run")
+    batch = trainer.sampler.next_batch()
+    assert len(batch.views) == 2
+    both = trainer._loss_terms(batch, trainer.model(batch, semantics=True, sample_semantics=True))
+    singles = [
+        trainer._loss_terms(StepBatch((v,)), trainer.model(StepBatch((v,)), semantics=True, sample_semantics=True))
+        for v in batch.views
+    ]
+    for name, value in both.items():
+        torch.testing.assert_close(value, (singles[0][name] + singles[1][name]) / 2)
+
+
+def test_global_batch_is_split_across_processes_the_same_way_at_any_world_size(tmp_path):
+    cfg = tiny_cfg(tmp_path, "train.targets_per_step=4")
+    one = make_trainer(cfg, tmp_path / "a").sampler
+    from gpnerf_core.training.sampler import StepSampler
+
+    def sampler(rank, world):
+        return StepSampler(one.frames, one.selector, scene_names=one.scene_names, num_source_views=2,
+                           rays_per_view=16, targets_per_step=4, seed=0, rank=rank, world_size=world)
+
+    whole = [(v.scene, v.frame, v.render_seed) for v in sampler(0, 1).next_batch().views]
+    halves = [(v.scene, v.frame, v.render_seed) for r in (0, 1) for v in sampler(r, 2).next_batch().views]
+    assert whole == halves
+    with pytest.raises(ConfigError, match="targets_per_step=4 is not divisible by the world size 3"):
+        sampler(0, 3)
+
+
 def test_resume_continues_exactly(tmp_path):
     torch.manual_seed(0)
     cfg = tiny_cfg(tmp_path, "train.steps=4", "train.checkpoint_every=2")
-    straight = Trainer(cfg, build_components(cfg), torch.device("cpu"), tmp_path / "a", "")
+    straight = make_trainer(cfg, tmp_path / "a")
     straight_result = straight.fit(progress=False)
 
     torch.manual_seed(0)
-    first = Trainer(cfg, build_components(cfg), torch.device("cpu"), tmp_path / "b", "")
-    half_cfg = tiny_cfg(tmp_path, "train.steps=2")
-    first.cfg = half_cfg
+    first = make_trainer(tiny_cfg(tmp_path, "train.steps=2"), tmp_path / "b")
     first.fit(progress=False)
     checkpoint = Path(tmp_path / "b" / "checkpoints" / "step_0000002.pt")
 
     torch.manual_seed(123)  # resuming must not depend on the state the process happens to be in
-    resumed_cfg = tiny_cfg(tmp_path, "train.steps=4", f"train.resume={checkpoint}")
-    resumed = Trainer(resumed_cfg, build_components(resumed_cfg), torch.device("cpu"), tmp_path / "c", "")
+    resumed = make_trainer(tiny_cfg(tmp_path, "train.steps=4", f"train.resume={checkpoint}"), tmp_path / "c")
     resumed_result = resumed.fit(progress=False)
     assert [h["loss"] for h in resumed_result.history] == [h["loss"] for h in straight_result.history]
     for (name, a), (_, b) in zip(straight.model.state_dict().items(), resumed.model.state_dict().items()):
         assert torch.equal(a, b), name
+
+
+def test_checkpoint_explains_itself(tmp_path):
+    cfg = tiny_cfg(tmp_path, "train.steps=1")
+    trainer = make_trainer(cfg, tmp_path / "run")
+    path = trainer.fit(progress=False).checkpoint
+    state = read_checkpoint(path)
+    assert state["format"] == 2 and state["step"] == 1
+    assert "feature_extractor" in state["config"] and len(state["config_sha256"]) == 64
+    assert {"gpnerf_core", "torch"} <= set(state["versions"])
+    # Loadable without unpickling code.
+    torch.load(path, weights_only=True)
+
+
+def test_resume_with_another_model_config_is_refused_naming_the_keys(tmp_path):
+    trainer = make_trainer(tiny_cfg(tmp_path, "train.steps=1"), tmp_path / "run")
+    checkpoint = trainer.fit(progress=False).checkpoint
+    other = tiny_cfg(tmp_path, "train.steps=2", f"train.resume={checkpoint}", "loss.sd_weight=0.5")
+    with pytest.raises(ConfigError, match=r"loss.sd_weight: 0.25 -> 0.5.*train.resume_strict=false"):
+        make_trainer(other, tmp_path / "run2")
+    relaxed = tiny_cfg(tmp_path, "train.steps=2", f"train.resume={checkpoint}", "loss.sd_weight=0.5",
+                       "train.resume_strict=false")
+    trainer = make_trainer(relaxed, tmp_path / "run2")
+    assert trainer.step == 1 and any("loss.sd_weight" in note for note in trainer.notes)
+
+
+def test_checkpoint_of_another_model_size_names_the_first_tensor(tmp_path):
+    trainer = make_trainer(tiny_cfg(tmp_path, "train.steps=1"), tmp_path / "run")
+    checkpoint = trainer.fit(progress=False).checkpoint
+    wider = tiny_cfg(tmp_path, f"train.resume={checkpoint}", "feature_extractor.widths=[8,8,8,24]", "train.resume_strict=false")
+    with pytest.raises(DataError) as error:
+        make_trainer(wider, tmp_path / "run2")
+    message = str(error.value)
+    assert "\n" not in message and "has shape [" in message and "expects [" in message and "extractor." in message
+
+
+def test_truncated_checkpoint_is_one_line(tmp_path):
+    trainer = make_trainer(tiny_cfg(tmp_path, "train.steps=1"), tmp_path / "run")
+    checkpoint = trainer.fit(progress=False).checkpoint
+    cut = tmp_path / "cut.pt"
+    cut.write_bytes(checkpoint.read_bytes()[:2000])
+    with pytest.raises(DataError) as error:
+        read_checkpoint(cut)
+    assert str(error.value).startswith(f"checkpoint {cut} could not be read") and "\n" not in str(error.value)
+
+
+def test_activation_checkpointing_gives_the_same_loss_and_gradients(tmp_path):
+    results = []
+    for flag in ("false", "true"):
+        torch.manual_seed(0)
+        trainer = make_trainer(tiny_cfg(tmp_path, f"model.checkpoint_blocks={flag}"), tmp_path / flag)
+        batch = trainer.sampler.next_batch()
+        terms = trainer._loss_terms(batch, trainer.model(batch, semantics=True, sample_semantics=True))
+        sum(terms.values()).backward()
+        results.append((terms, {n: p.grad.clone() for n, p in trainer.model.named_parameters() if p.grad is not None}))
+    (terms_a, grads_a), (terms_b, grads_b) = results
+    for name in terms_a:
+        torch.testing.assert_close(terms_a[name], terms_b[name], rtol=0, atol=0)
+    assert grads_a.keys() == grads_b.keys()
+    for name in grads_a:
+        torch.testing.assert_close(grads_a[name], grads_b[name], rtol=1e-5, atol=1e-7, msg=name)

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Any, Mapping, Sequence
 
 from torch import Tensor
 
 from gpnerf_core.errors import ConfigError
-from gpnerf_core.interfaces import FeatureExtractor
+from gpnerf_core.interfaces import FeatureExtractor, ImportedWeights
 from gpnerf_core.types import FeatureMaps
 from gpnerf_plugins.extractors.fpn import FPN, concat_levels
 from gpnerf_plugins.extractors.resunet import ResUNet
@@ -85,6 +85,15 @@ class ResUNetFPN(FeatureExtractor):
     @property
     def semantic_levels(self) -> int:
         return _LEVELS if self.fpn is not None else 0
+
+    def import_weights(self, checkpoint: Mapping[str, Any], fmt: str) -> ImportedWeights | None:
+        """``fmt="gnt"``: an official GNT checkpoint's ``feature_net`` is the ResUNet (same names); no FPN."""
+        state = checkpoint.get("feature_net") if fmt == "gnt" else None
+        if not isinstance(state, Mapping):
+            return None
+        return ImportedWeights(
+            {f"backbone.{key.removeprefix('module.')}": (f"feature_net.{key}", value) for key, value in state.items()}
+        )
 
     def forward(self, images: Tensor) -> FeatureMaps:
         """Encode ``[N, 3, H, W]`` images in [0, 1] (H, W multiples of 16, at least 32)."""

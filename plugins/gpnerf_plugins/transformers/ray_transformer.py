@@ -9,15 +9,17 @@ block's attention row of the first sample, averaged over heads.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, Mapping
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_core.interfaces import RayAggregator
+from gpnerf_core.interfaces import ImportedWeights, RayAggregator
 from gpnerf_core.types import RayBlockOutput, RayReadout
 from gpnerf_plugins.transformers.common import FeedForward, check_dropout, check_positive, maybe_dropout
+from gpnerf_plugins.transformers.gnt_weights import import_gnt_transformer
 
 OWNER = "ray_aggregator gnt_ray"
 
@@ -126,6 +128,10 @@ class GNTRayTransformer(RayAggregator):
     @property
     def num_blocks(self) -> int:
         return len(self.blocks)
+
+    def import_weights(self, checkpoint: Mapping[str, Any], fmt: str) -> ImportedWeights | None:
+        """``fmt="gnt"``: this aggregator's share of an official GNT checkpoint's ``net_coarse``."""
+        return import_gnt_transformer(checkpoint, "ray") if fmt == "gnt" else None
 
     def block(self, index: int, tokens: Tensor) -> RayBlockOutput:
         """Block ``index`` on ``tokens [R, S, D]`` -> ``RayBlockOutput(tokens, ray_attention [R, H, S, S])``."""

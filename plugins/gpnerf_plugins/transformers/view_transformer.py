@@ -12,13 +12,14 @@ Kept GNT quirks, needed to load its weights and reproduce its outputs:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, Mapping
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_core.interfaces import FieldAggregator
+from gpnerf_core.interfaces import FieldAggregator, ImportedWeights
 from gpnerf_core.types import FieldBlockOutput, ProjectedFeatures, RayBatch, RaySamples
 from gpnerf_plugins.transformers.common import (
     FeedForward,
@@ -30,6 +31,7 @@ from gpnerf_plugins.transformers.common import (
     maybe_dropout,
     positional_encoding,
 )
+from gpnerf_plugins.transformers.gnt_weights import import_gnt_transformer
 
 OWNER = "field_aggregator gnt_view"
 
@@ -218,6 +220,10 @@ class GNTViewTransformer(FieldAggregator):
     @property
     def num_blocks(self) -> int:
         return len(self.blocks)
+
+    def import_weights(self, checkpoint: Mapping[str, Any], fmt: str) -> ImportedWeights | None:
+        """``fmt="gnt"``: this aggregator's share of an official GNT checkpoint's ``net_coarse``."""
+        return import_gnt_transformer(checkpoint, "field") if fmt == "gnt" else None
 
     def begin(
         self, features: ProjectedFeatures, samples: RaySamples, rays: RayBatch

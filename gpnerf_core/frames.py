@@ -1,4 +1,4 @@
-"""Loading scenes and frames for training and evaluation, with a small in-memory cache."""
+"""Scenes and frames of a dataset, loaded once and cached, and the source views of a target."""
 
 from __future__ import annotations
 
@@ -9,11 +9,17 @@ import torch
 
 from gpnerf_core.errors import DataError
 from gpnerf_core.interfaces import SceneDataset, ViewSelector
-from gpnerf_core.types import Frame, Scene, SourceViews
+from gpnerf_core.types import Frame, Scene, SourceViews, TargetCamera
 
 
-class SceneViews:
-    """Scenes of a dataset, their frames (LRU-cached) and source-view assembly on a device."""
+class FrameCache:
+    """A dataset's scenes (kept) and frames (least recently used evicted first), with source-view assembly.
+
+    Args:
+        dataset: the scene dataset.
+        device: where ``source_views`` puts its tensors.
+        max_cached_frames: frames kept decoded in memory.
+    """
 
     def __init__(self, dataset: SceneDataset, device: torch.device, max_cached_frames: int = 512) -> None:
         self.dataset = dataset
@@ -23,6 +29,7 @@ class SceneViews:
         self._frames: OrderedDict[tuple[str, int], Frame] = OrderedDict()
 
     def scene(self, name: str) -> Scene:
+        """The scene ``name``, loaded and checked on first use (finite poses, at least one training frame)."""
         if name not in self._scenes:
             scene = self.dataset.load_scene(name)
             if not torch.isfinite(scene.c2w).all():
@@ -33,6 +40,7 @@ class SceneViews:
         return self._scenes[name]
 
     def frame(self, scene: Scene, index: int) -> Frame:
+        """Frame ``index`` of ``scene`` (CPU tensors)."""
         key = (scene.name, index)
         if key in self._frames:
             self._frames.move_to_end(key)
@@ -44,11 +52,23 @@ class SceneViews:
         return frame
 
     def source_views(self, scene: Scene, indices: Sequence[int]) -> SourceViews:
+        """The frames ``indices`` of ``scene`` as source views on the device."""
         frames = [self.frame(scene, i) for i in indices]
         return SourceViews(
             rgb=torch.stack([f.rgb.permute(2, 0, 1) for f in frames]).to(self.device),
             intrinsics=torch.stack([f.intrinsics for f in frames]).to(self.device),
             c2w=torch.stack([f.c2w for f in frames]).to(self.device),
+        )
+
+    def camera(self, scene: Scene, frame: Frame) -> TargetCamera:
+        """The camera of ``frame`` (a frame of ``scene``) as a target, on the device."""
+        return TargetCamera(
+            intrinsics=frame.intrinsics.to(self.device),
+            c2w=frame.c2w.to(self.device),
+            height=frame.height,
+            width=frame.width,
+            near=scene.near,
+            far=scene.far,
         )
 
 

@@ -1,0 +1,66 @@
+"""Devices: which one a process uses, what it has used, and the precision the forward pass runs in."""
+
+from __future__ import annotations
+
+import contextlib
+import resource
+from typing import ContextManager
+
+import torch
+
+from gpnerf_core.errors import ConfigError
+
+PRECISIONS = {"fp32": None, "bf16": torch.bfloat16}
+"""``train.precision`` values and the autocast dtype each selects (None: no autocast)."""
+
+
+def resolve_device(name: str, local_rank: int = 0, world_size: int = 1) -> torch.device:
+    """The device for ``device=<name>``: ``auto`` (CUDA when available), ``cpu``, ``cuda`` or ``cuda:N``.
+
+    Under a multi-process launch each process takes ``cuda:<local_rank>``, so ``cuda:N`` is refused there.
+    """
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise ConfigError(f"device={name!r} is not a torch device; expected auto, cpu or cuda[:N]") from None
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigError(f"device={name!r} but CUDA is not available; use device=cpu or device=auto")
+        if world_size > 1:
+            if device.index is not None:
+                raise ConfigError(
+                    f"device={name!r} under a {world_size}-process launch: use device=cuda (or auto); "
+                    "each process takes the GPU of its LOCAL_RANK"
+                )
+            if local_rank >= torch.cuda.device_count():
+                raise ConfigError(
+                    f"LOCAL_RANK={local_rank} but this node has {torch.cuda.device_count()} GPUs; "
+                    "start at most one process per GPU (--nproc_per_node)"
+                )
+            device = torch.device("cuda", local_rank)
+        elif device.index is None:
+            device = torch.device("cuda", torch.cuda.current_device())
+    return device
+
+
+def peak_memory_mb(device: torch.device) -> float:
+    """Peak resident memory of this process (CPU) or peak allocated memory on ``device`` (CUDA), in MiB."""
+    if device.type == "cuda":
+        return torch.cuda.max_memory_allocated(device) / 2**20
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def check_precision(precision: str) -> None:
+    if precision not in PRECISIONS:
+        raise ConfigError(f"train.precision={precision!r}: expected one of {', '.join(PRECISIONS)}")
+
+
+def autocast(device: torch.device, precision: str) -> ContextManager:
+    """The autocast context of ``precision`` on ``device`` (a no-op for fp32)."""
+    check_precision(precision)
+    dtype = PRECISIONS[precision]
+    if dtype is None:
+        return contextlib.nullcontext()
+    return torch.autocast(device_type=device.type, dtype=dtype)

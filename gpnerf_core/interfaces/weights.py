@@ -1,0 +1,33 @@
+"""Optional interface of components that can start from another code base's checkpoint (GNT's, ...)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+from torch import Tensor
+
+
+@dataclass(frozen=True)
+class ImportedWeights:
+    """A component's share of a foreign checkpoint.
+
+    Attributes:
+        tensors: ``{key in the component's own state dict: (key in the checkpoint, tensor)}``; the checkpoint
+            key is dotted from the checkpoint's top level (``net_coarse.q_fcs.0.0.weight``) so reports name it.
+    """
+
+    tensors: dict[str, tuple[str, Tensor]]
+
+
+class ImportsWeights:
+    """Mixin of every model component: ``import_weights`` maps a foreign checkpoint onto the component.
+
+    The default supports no format. ``model.init=<file>`` calls it on each stage with the loaded checkpoint
+    dictionary; the core checks names and shapes against the component's state dict and reports what was loaded,
+    what the component still lacks and what no component took.
+    """
+
+    def import_weights(self, checkpoint: Mapping[str, Any], fmt: str) -> ImportedWeights | None:
+        """Map ``checkpoint`` (format ``fmt``, e.g. ``"gnt"``) onto this component; None when unsupported."""
+        return None
