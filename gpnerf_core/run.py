@@ -214,10 +214,12 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.evaluation.visualize import plot_training_curves
     from gpnerf_core.training.init_weights import init_weights
     from gpnerf_core.training.loggers import check_loggers, make_loggers
+    from gpnerf_core.training.sampler import check_global_batch
     from gpnerf_core.training.trainer import Trainer
 
     check_loggers(list(cfg.train.loggers))
     check_precision(cfg.train.precision)
+    check_global_batch(int(cfg.train.targets_per_step), dist.world_size)
     resuming = bool(cfg.train.resume)
     folder, record = _prepare(cfg, dist, resuming=resuming)
     run_dir = folder.path

@@ -28,6 +28,7 @@ TINY = [
     "eval.max_views_per_scene=1",
     "eval.save_images=1",
     "threads=1",
+    "train.loggers=[csv,tensorboard]",
 ]
 
 
@@ -70,6 +71,45 @@ def test_run_writes_metrics_pictures_and_checkpoint(first_run):
     assert list((out / "images" / "train_heldout").glob("*_semantic.png"))
     assert list((out / "images" / "unseen").glob("*_features_pca.png"))
     assert "run folder:" in result.stdout and str(out.resolve()) in result.stdout
+    assert not (out.parent / "outputs").exists()  # with out_dir set, nothing lands under outputs/
+    assert not (out / ".gpnerf.lock").exists()  # released at the end
+
+
+def test_checkpoint_explains_itself(first_run):
+    import torch
+
+    out, _ = first_run
+    state = torch.load(out / "checkpoints" / "step_0000004.pt", weights_only=True)
+    assert state["config_sha256"] == (out / "config.sha256").read_text().strip()
+    assert state["overrides"][:2] == ["+head=unet", "+loss=dgs"]
+    assert state["components"]["head"]["name"] == "unet" and state["components"]["loss"]["name"] == "dgs"
+    assert state["components"]["head"]["provider"] == "gpnerf_plugins.heads.plugin"
+
+
+def test_scalars_go_to_csv_and_tensorboard(first_run):
+    import csv
+
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    out, _ = first_run
+    rows = list(csv.DictReader((out / "scalars.csv").open()))
+    tags = {row["tag"] for row in rows}
+    assert {"train/loss", "train/rgb", "train/ce", "train/sd", "train/dgs", "train/lr/head", "train/rays_per_second",
+            "train/peak_memory_mb", "eval/unseen/miou/image_mean_present"} <= tags
+    assert [row["step"] for row in rows if row["tag"] == "train/loss"] == ["2", "4"]
+    events = EventAccumulator(str(out / "tensorboard"))
+    events.Reload()
+    assert {"train/loss", "eval/train_heldout/psnr/clamped"} <= set(events.Tags()["scalars"])
+    assert [e.step for e in events.Scalars("train/loss")] == [2, 4]
+
+
+def test_second_run_into_a_finished_run_folder_is_refused(first_run, workspace):
+    out, _ = first_run
+    before = sorted(p.name for p in out.iterdir())
+    result = gpnerf("run", "+head=unet", "+loss=dgs", *TINY, f"out_dir={out}", cwd=workspace, cache=workspace / "cache")
+    assert result.returncode == 2
+    assert result.stderr.strip().count("\n") == 0 and f"run folder {out} is not empty" in result.stderr
+    assert sorted(p.name for p in out.iterdir()) == before
 
 
 def strip_timing(values):
@@ -94,12 +134,23 @@ def test_eval_command_reproduces_run_metrics(first_run, workspace):
     out, _ = first_run
     checkpoint = next((out / "checkpoints").glob("*.pt"))
     evaluated = workspace / "eval"
-    result = gpnerf("eval", f"checkpoint={checkpoint}", "+head=unet", "+loss=dgs", *TINY, f"out_dir={evaluated}",
-                    cwd=workspace, cache=workspace / "cache")
+    # No +head/+loss/model sizes: eval rebuilds the model from the checkpoint's own config.
+    result = gpnerf("eval", f"checkpoint={checkpoint}", f"out_dir={evaluated}", cwd=workspace, cache=workspace / "cache")
     assert result.returncode == 0, result.stderr[-3000:]
     ran = json.loads((out / "metrics.json").read_text())["eval"]
     evaluated_metrics = json.loads((evaluated / "metrics.json").read_text())["eval"]
     assert strip_timing(ran) == strip_timing(evaluated_metrics)
+
+
+def test_eval_overrides_apply_and_differences_are_printed(first_run, workspace):
+    out, _ = first_run
+    checkpoint = next((out / "checkpoints").glob("*.pt"))
+    evaluated = workspace / "eval_unseen"
+    result = gpnerf("eval", f"checkpoint={checkpoint}", "eval.splits=[unseen]", "eval.save_images=0",
+                    f"out_dir={evaluated}", cwd=workspace, cache=workspace / "cache")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "differences from the checkpoint's config: eval.save_images: 1 -> 0" in result.stderr
+    assert list(json.loads((evaluated / "metrics.json").read_text())["eval"]) == ["unseen"]
 
 
 def test_unknown_head_lists_known_heads_and_fails(workspace):

@@ -15,6 +15,17 @@ SEED_RANGE = 2**62
 """Per-view seeds are drawn from [0, SEED_RANGE)."""
 
 
+def check_global_batch(targets_per_step: int, world_size: int) -> None:
+    """Every process trains on the same number of target views: the world size must divide the global batch."""
+    if targets_per_step < 1:
+        raise ConfigError(f"train.targets_per_step={targets_per_step}: expected a positive number of target views")
+    if targets_per_step % world_size:
+        raise ConfigError(
+            f"train.targets_per_step={targets_per_step} is not divisible by the world size {world_size}: "
+            "every process trains on the same number of target views; choose a multiple of the process count"
+        )
+
+
 class StepSampler:
     """Draws the global batch of target views of every step and hands this process its share.
 
@@ -51,11 +62,7 @@ class StepSampler:
     ) -> None:
         if not scene_names:
             raise ConfigError("the dataset has no training scenes")
-        if targets_per_step % world_size:
-            raise ConfigError(
-                f"train.targets_per_step={targets_per_step} is not divisible by the world size {world_size}: "
-                "every process trains on the same number of target views; choose a multiple of the process count"
-            )
+        check_global_batch(targets_per_step, world_size)
         self.frames = frames
         self.selector = selector
         self.scene_names = list(scene_names)

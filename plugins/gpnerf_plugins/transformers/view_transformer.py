@@ -120,7 +120,7 @@ class ViewAttention(nn.Module):
         pose_hidden = linear_rows(context.ray_diff.reshape(-1, 4), pos_in).relu_()  # [N, h]
         # V + P = f (Wv Wk)^T + pose_hidden Wp^T + bp, accumulated into one buffer.
         values = torch.addmm(pos_out.bias, f, (w_v @ w_k).t())
-        values.addmm_(pose_hidden, pos_out.weight.t().contiguous())
+        values.addmm_(pose_hidden, pos_out.weight.t().to(values.dtype).contiguous())  # in-place: no autocast
         # First attention layer on K - Q + P, split into its per-view terms and a per-sample bias.
         hidden = f @ (att_in.weight @ w_k).t()
         hidden.addmm_(pose_hidden, (att_in.weight @ pos_out.weight).t())
@@ -264,14 +264,16 @@ class GNTViewTransformer(FieldAggregator):
         visible = features.visible.bool()
         hidden = None if bool(visible.all()) else (~visible)[..., None]
         dtype = view_features.dtype
-        directions = rays.directions.to(dtype)
+        # sin(2^9 x) of metre coordinates needs float32 at least: bfloat16 would turn it into noise.
+        encoding_dtype = torch.promote_types(dtype, torch.float32)
+        directions = rays.directions.to(encoding_dtype)
         directions = directions / directions.norm(dim=-1, keepdim=True)
         context = GNTViewContext(
             view_features=view_features,
             ray_diff=features.ray_diff.to(dtype),
             visible=visible,
             hidden=hidden,
-            point_encoding=positional_encoding(samples.points.to(dtype), self.pos_frequencies),
+            point_encoding=positional_encoding(samples.points.to(encoding_dtype), self.pos_frequencies),
             direction_encoding=positional_encoding(directions, self.pos_frequencies),
         )
         return tokens, context

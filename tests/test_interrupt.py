@@ -1,0 +1,79 @@
+"""Ctrl-C and SIGTERM stop training cleanly: a checkpoint at the current step, the resume command, 130/143."""
+
+import json
+import os
+import shlex
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+TINY = [
+    "+head=unet", "+loss=dgs", "dataset.num_train_scenes=1", "dataset.num_unseen_scenes=1",
+    "dataset.frames_per_scene=6", "dataset.eval_every=3", "dataset.height=32", "dataset.width=48",
+    "feature_extractor.widths=[8,8,8,16]", "feature_extractor.fpn_channels=4", "field_aggregator.width=16",
+    "field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2", "model.num_source_views=2",
+    "train.rays=16", "train.log_every=1", "eval.splits=[unseen]", "eval.max_views_per_scene=1", "eval.save_images=0",
+    "threads=1",
+]
+
+
+def environment(cache):
+    return dict(os.environ, GPNERF_CACHE=str(cache), GPNERF_DISABLE_PLUGIN_AUTOLOAD="1", OMP_NUM_THREADS="1")
+
+
+def start(out, cache, *extra):
+    return subprocess.Popen(
+        [sys.executable, "-m", "gpnerf_core", "run", *TINY, "train.steps=100000", f"out_dir={out}", *extra],
+        env=environment(cache), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+
+
+def wait_for_steps(out, steps, process, timeout=300):
+    """Block until ``scalars.csv`` has logged ``steps`` steps (training is running)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        scalars = out / "scalars.csv"
+        if scalars.exists() and scalars.read_text().count("train/loss") >= steps:
+            return
+        if process.poll() is not None:
+            pytest.fail(f"training ended early: {process.communicate()[1][-2000:]}")
+        time.sleep(0.2)
+    process.kill()
+    pytest.fail("training did not start in time")
+
+
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_signal_writes_a_checkpoint_and_prints_the_resume_command(tmp_path, sig, code):
+    out, cache = tmp_path / "run", tmp_path / "cache"
+    process = start(out, cache)
+    wait_for_steps(out, 2, process)
+    process.send_signal(sig)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == code, stderr[-2000:]
+    assert "Traceback" not in stderr
+    line = next(line for line in stderr.splitlines() if line.startswith("interrupted ("))
+    assert signal.Signals(sig).name in line
+    checkpoints = sorted((out / "checkpoints").glob("step_*.pt"))
+    assert checkpoints and str(checkpoints[-1]) in line
+    assert not (out / ".gpnerf.lock").exists() and not (out / "metrics.json").exists()
+    if sig == signal.SIGINT:
+        resume_and_finish(line, checkpoints[-1], out, cache)
+
+
+def resume_and_finish(line, checkpoint, out, cache):
+    """Run the printed resume command (with a near step budget) in the same folder; it picks up where it stopped."""
+    command = shlex.split(line.split("resume with: ", 1)[1])
+    assert command[:4] == ["python", "-m", "gpnerf_core", "run"]
+    assert f"out_dir={out}" in command and f"train.resume={checkpoint}" in command
+    step = int(checkpoint.stem.split("_")[1])
+    args = [a for a in command[4:] if not a.startswith("train.steps=")] + [f"train.steps={step + 2}"]
+    result = subprocess.run([sys.executable, "-m", "gpnerf_core", "run", *args], env=environment(cache),
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["train"]["steps"] == step + 2
+    history = json.loads((out / "training_curves.json").read_text())
+    assert [int(h["step"]) for h in history] == list(range(1, step + 3))
