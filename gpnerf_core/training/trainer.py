@@ -147,16 +147,34 @@ class Trainer:
             self._resume(Path(cfg.train.resume))
         self.wrapped: torch.nn.Module = self.model
         if dist.enabled:
-            # find_unused_parameters: a loss set may leave whole modules unused (rgb alone: no head, no FPN).
+            # A loss set may leave whole modules without gradient (rgb alone: no head, no FPN); DDP must then search
+            # the graph every step for parameters that will never be ready. Search only when a probe step finds some.
+            unused = torch.tensor(float(bool(self._parameters_without_gradient())), device=self.device)
             self.wrapped = DistributedDataParallel(
                 self.model,
                 device_ids=[self.device.index] if self.device.type == "cuda" else None,
-                find_unused_parameters=True,
+                find_unused_parameters=bool(self.dist.all_reduce(unused, op="max")),
             )
 
     @property
     def resumed_step(self) -> int | None:
         return self.step if self.cfg.train.resume else None
+
+    def _parameters_without_gradient(self) -> list[str]:
+        """Parameters one forward/backward leaves without gradient; the sampler and RNG states are restored after."""
+        sampler_state, rng_state = self.sampler.state_dict(), self._rng_state()
+        batch = self.sampler.next_batch()
+        with autocast(self.device, self.cfg.train.precision):
+            output = self.model(
+                batch, semantics=self.loss.needs_semantics, sample_semantics=self.loss.needs_sample_semantics
+            )
+            total = sum(self._loss_terms(batch, output).values())
+        total.backward()
+        unused = [name for name, p in self.model.named_parameters() if p.requires_grad and p.grad is None]
+        self.optimizer.zero_grad(set_to_none=True)
+        self.sampler.load_state_dict(sampler_state)
+        self._set_rng_state(rng_state)
+        return unused
 
     # ---- one step ----------------------------------------------------------------------------------------------
 
@@ -301,6 +319,11 @@ class Trainer:
         cuda = torch.cuda.get_rng_state(self.device) if self.device.type == "cuda" else None
         return {"cpu": torch.get_rng_state(), "cuda": cuda}
 
+    def _set_rng_state(self, state: dict[str, Any]) -> None:
+        torch.set_rng_state(state["cpu"])
+        if self.device.type == "cuda" and state["cuda"] is not None:
+            torch.cuda.set_rng_state(state["cuda"], self.device)
+
     def _checkpoint(self, elapsed: float) -> Path | None:
         """Write a checkpoint at the current step (rank 0; every process contributes its random state)."""
         rng_states = self.dist.all_gather_object(self._rng_state())
@@ -334,9 +357,7 @@ class Trainer:
         self.elapsed = float(state["elapsed"])
         rng = state["rng"]
         if len(rng) == self.dist.world_size:
-            torch.set_rng_state(rng[self.dist.rank]["cpu"])
-            if self.device.type == "cuda" and rng[self.dist.rank]["cuda"] is not None:
-                torch.cuda.set_rng_state(rng[self.dist.rank]["cuda"], self.device)
+            self._set_rng_state(rng[self.dist.rank])
         else:
             torch.manual_seed(process_seed(int(self.cfg.seed) + self.step, self.dist.rank))
             self.notes.append(

@@ -98,3 +98,13 @@ def test_world_size_that_does_not_divide_the_batch_is_refused_before_training(wo
     assert result.returncode != 0
     assert "train.targets_per_step=3 is not divisible by the world size 2" in result.stderr
     assert not (out / "checkpoints").exists()
+
+
+def test_a_loss_set_that_leaves_modules_unused_trains_under_ddp(workspace):
+    """+loss=rgb gives the head and the FPN no gradient: DDP is told so, and says nothing about unused parameters."""
+    out = workspace / "rgb_only"
+    tiny = [o for o in TINY if o != "+loss=dgs"]
+    result = launch(2, "run", *tiny, "+loss=rgb", "train.steps=2", "eval.splits=[]", f"out_dir={out}", workspace=workspace)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "unused" not in result.stderr
+    assert json.loads((out / "metrics.json").read_text())["train"]["steps"] == 2

@@ -22,13 +22,12 @@ def both_precisions(tmp_path_factory):
     torch.manual_seed(0)
     trainer = make_trainer(cfg, root / "run")
     batch = trainer.sampler.next_batch()
-    fp32 = trainer.model(batch, semantics=True, sample_semantics=True)
-    fp32_terms = trainer._loss_terms(batch, fp32)
-    with autocast(torch.device("cpu"), "bf16"):
-        bf16 = trainer.model(batch, semantics=True, sample_semantics=True)
-        bf16_terms = trainer._loss_terms(batch, bf16)
-    fp32_terms = {name: value.detach() for name, value in fp32_terms.items()}
-    bf16_terms = {name: value.detach() for name, value in bf16_terms.items()}
+    with torch.no_grad():
+        fp32 = trainer.model(batch, semantics=True, sample_semantics=True)
+        fp32_terms = trainer._loss_terms(batch, fp32)
+        with autocast(torch.device("cpu"), "bf16"):
+            bf16 = trainer.model(batch, semantics=True, sample_semantics=True)
+            bf16_terms = trainer._loss_terms(batch, bf16)
     return (fp32, fp32_terms), (bf16, bf16_terms)
 
 
