@@ -176,6 +176,7 @@ def _guarded(job: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
             return job(cfg)
         except GpnerfError as exc:
             print(f"error: {exc}", file=sys.stderr)
+            _remove_if_empty(cfg)
             sys.exit(2)
         except TrainingInterrupted as stop:
             if stop.checkpoint is not None:
@@ -191,6 +192,14 @@ def _guarded(job: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
 
     wrapper.__name__ = job.__name__
     return wrapper
+
+
+def _remove_if_empty(cfg: DictConfig) -> None:
+    """Hydra creates the run folder before the job starts; a job refused before writing anything leaves none."""
+    try:
+        _run_dir(cfg).rmdir()
+    except (OSError, GpnerfError):
+        pass
 
 
 def _distributed(job: Callable[[DictConfig, Distributed], Any]) -> Callable[[DictConfig], Any]:

@@ -20,11 +20,11 @@ from gpnerf_core.errors import GpnerfError
 
 LOCK_NAME = ".gpnerf.lock"
 
+SETUP_FILES = ("config.yaml", "config.sha256", "overrides.yaml", "plugins.json")
+"""Written before training starts: a folder holding only these is a run that never trained, and is reused."""
+
 RUN_FILES = (
-    "config.yaml",
-    "config.sha256",
-    "overrides.yaml",
-    "plugins.json",
+    *SETUP_FILES,
     "metrics.json",
     "training_curves.json",
     "training_curves.png",
@@ -68,7 +68,7 @@ class RunFolder:
         if stale:
             notes.append(stale)
         try:
-            others = sorted(p.name for p in self.path.iterdir() if p.name != LOCK_NAME)
+            others = sorted(p.name for p in self.path.iterdir() if p.name not in (LOCK_NAME, *SETUP_FILES))
             if others and not resuming:
                 foreign = [name for name in others if name not in RUN_FILES + RUN_FOLDERS]
                 if not overwrite:

@@ -75,3 +75,11 @@ def test_an_uncreatable_folder_is_one_line(tmp_path):
     (tmp_path / "file").write_text("")
     with pytest.raises(RunFolderError, match="cannot be created"):
         RunFolder(tmp_path / "file" / "run").claim(resuming=False, overwrite=False)
+
+
+def test_a_run_that_never_trained_does_not_block_its_folder(tmp_path):
+    """A run refused after writing its config (e.g. a bad model.init) leaves a folder the fixed command can reuse."""
+    for name in ("config.yaml", "config.sha256", "overrides.yaml", "plugins.json"):
+        (tmp_path / name).write_text("x")
+    with RunFolder(tmp_path) as folder:
+        assert folder.claim(resuming=False, overwrite=False) == []
