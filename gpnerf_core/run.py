@@ -242,6 +242,13 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
         if dist.is_main:
             for note in trainer.notes:
                 print(f"note: {note}", file=sys.stderr)
+            if dist.enabled:
+                print(
+                    f"distributed: {dist.world_size} processes ({dist.backend}), "
+                    f"{trainer.sampler.targets_per_rank} target view(s) each, "
+                    f"{int(cfg.train.rays) * int(cfg.train.targets_per_step)} rays per step in all",
+                    file=sys.stderr,
+                )
         loggers = make_loggers(list(cfg.train.loggers), run_dir, trainer.resumed_step) if dist.is_main else []
         try:
             started = time.perf_counter()

@@ -71,6 +71,7 @@ def test_ddp_run_records_its_layout_and_only_rank_zero_writes(runs):
     assert train["world_size"] == 2 and train["targets_per_rank"] == 1 and train["rays_per_step"] == 32
     assert train["backend"] == "gloo"
     assert result.stdout.count("run folder:") == 1  # one summary, from rank 0
+    assert "distributed: 2 processes (gloo), 1 target view(s) each, 32 rays per step in all" in result.stderr
     assert len(list((ddp / "checkpoints").glob("*.pt"))) == 1
     assert not (ddp.parent / "outputs").exists()
 
