@@ -187,7 +187,7 @@ def _guarded(job: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
                 )
             sys.exit(stop.exit_code)
         except KeyboardInterrupt:
-            print("interrupted (SIGINT) outside the training loop; files already written stay as they are", file=sys.stderr)
+            print("interrupted (SIGINT) outside the training loop; files already written stay", file=sys.stderr)
             sys.exit(130)
 
     wrapper.__name__ = job.__name__
@@ -318,7 +318,8 @@ def eval_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             ignore = ("checkpoint", "out_dir", "overwrite")
             differences = config_differences(state["config"], record.config_yaml, ignore=ignore)
             if differences:
-                print(f"eval: differences from the checkpoint's config: {format_differences(differences)}", file=sys.stderr)
+                print(f"eval: differences from the checkpoint's config: {format_differences(differences)}",
+                      file=sys.stderr)
             for note in notes:
                 print(f"note: {note}", file=sys.stderr)
         components = build_components(cfg)
@@ -360,4 +361,6 @@ def restore_model_config(cfg: DictConfig, checkpoint_yaml: str, checkpoint_overr
             else:
                 OmegaConf.update(cfg, key, old, merge=False)
         restored.append(key)
-    return [f"kept the checkpoint's value of {', '.join(restored)} (the defaults changed since it was written)"] if restored else []
+    if not restored:
+        return []
+    return [f"kept the checkpoint's value of {', '.join(restored)} (the defaults changed since it was written)"]

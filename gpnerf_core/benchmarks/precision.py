@@ -52,7 +52,8 @@ def main(argv: list[str]) -> int:
         results[name] = json.loads(done.stdout.strip().splitlines()[-1])
     base = results.get("fp32")
     print(f"overrides: {' '.join(overrides)}")
-    print(f"{'variant':<28} {'step s (median)':>16} {'min':>8} {'peak MiB':>10} {'vs fp32 time':>13} {'vs fp32 mem':>12}")
+    header = ("variant", "step s (median)", "min", "peak MiB", "vs fp32 time", "vs fp32 mem")
+    print(f"{header[0]:<28} {header[1]:>16} {header[2]:>8} {header[3]:>10} {header[4]:>13} {header[5]:>12}")
     for name, r in results.items():
         time_ratio = r["step_seconds_median"] / base["step_seconds_median"] if base else float("nan")
         mem_ratio = r["peak_memory_mb"] / base["peak_memory_mb"] if base else float("nan")

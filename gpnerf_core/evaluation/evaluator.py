@@ -162,7 +162,8 @@ def _evaluate_view(
     classes = prediction.logits.argmax(dim=1)[0].cpu() if prediction.logits is not None else None
     seconds = time.perf_counter() - started
     gt_rgb = _area_downsample(target.rgb, prediction.stride)
-    quality = {M.PSNR_CLAMPED: M.psnr(prediction.rgb.cpu(), gt_rgb), M.SSIM_GAUSSIAN11: M.ssim(prediction.rgb.cpu(), gt_rgb)}
+    rendered_rgb = prediction.rgb.cpu()
+    quality = {M.PSNR_CLAMPED: M.psnr(rendered_rgb, gt_rgb), M.SSIM_GAUSSIAN11: M.ssim(rendered_rgb, gt_rgb)}
     confusion = teacher_confusion = baseline_confusion = None
     if classes is not None:
         confusion = M.confusion_matrix(classes, target.semantic, num_classes, ignore)
@@ -237,7 +238,8 @@ def _pictures(
             ["rendered RGB", "ground truth", "|error|"],
         ),
         "depth": vis.side_by_side(
-            [_upscale(vis.depth_to_color(prediction.depth.cpu(), near, far), s), vis.depth_to_color(target.depth, near, far)],
+            [_upscale(vis.depth_to_color(prediction.depth.cpu(), near, far), s),
+             vis.depth_to_color(target.depth, near, far)],
             ["rendered depth", "ground truth"],
         ),
     }

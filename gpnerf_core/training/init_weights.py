@@ -119,7 +119,9 @@ def init_weights(model: GeneralizableNeRF, path: Path, *, strict: bool = True) -
 
 def _gpnerf_plan(checkpoint: Mapping[str, Any], path: Path) -> tuple[dict[str, tuple[str, Tensor]], list[str]]:
     if checkpoint["format"] != FORMAT_VERSION:
-        raise DataError(f"model.init={path}: gpnerf-core checkpoint format {checkpoint['format']!r}; expected {FORMAT_VERSION}")
+        raise DataError(
+            f"model.init={path}: gpnerf-core checkpoint format {checkpoint['format']!r}; expected {FORMAT_VERSION}"
+        )
     plan = {key: (f"model.{key}", value) for key, value in checkpoint["model"].items()}
     return plan, [source for source, _ in plan.values()]
 

@@ -24,7 +24,13 @@ from gpnerf_core.device import autocast, check_precision, peak_memory_mb
 from gpnerf_core.distributed import Distributed
 from gpnerf_core.errors import ConfigError, NonFiniteError
 from gpnerf_core.frames import FrameCache
-from gpnerf_core.training.checkpoint import RunRecord, check_resume_config, read_checkpoint, load_weights, save_checkpoint
+from gpnerf_core.training.checkpoint import (
+    RunRecord,
+    check_resume_config,
+    load_weights,
+    read_checkpoint,
+    save_checkpoint,
+)
 from gpnerf_core.training.interrupt import StopRequest, TrainingInterrupted
 from gpnerf_core.training.loggers import ScalarLogger
 from gpnerf_core.training.sampler import StepSampler
@@ -206,7 +212,9 @@ class Trainer:
 
     def _loss_terms(self, batch: StepBatch, output: StepOutput) -> dict[str, Tensor]:
         """Each term averaged over this process's target views (so DDP's mean over processes is the global mean)."""
-        per_view = [self.loss(loss_inputs(view, out, self.ignore_index)) for view, out in zip(batch.views, output.views)]
+        per_view = [
+            self.loss(loss_inputs(view, out, self.ignore_index)) for view, out in zip(batch.views, output.views)
+        ]
         return {name: sum(terms[name].float() for terms in per_view) / len(per_view) for name in per_view[0]}
 
     def _check_and_agree(self, terms: dict[str, Tensor], batch: StepBatch, stop: StopRequest | None) -> int | None:
