@@ -6,9 +6,10 @@ then Hydra parses the remaining arguments, so overrides, ``+head=...`` and ``-m`
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 from gpnerf_core.errors import GpnerfError
 
@@ -36,11 +37,27 @@ def _hydra_entry(task: Callable, argv: list[str], prog: str) -> int:
     from gpnerf_core.config import register_schema
     from gpnerf_core.registry import get_registry
 
-    get_registry()
+    check_component_choices(argv, get_registry())
     register_schema()
     sys.argv = [prog, *argv]
     hydra.main(version_base="1.3", config_path=config_dir(), config_name="config")(task)()
     return 0
+
+
+def check_component_choices(argv: list[str], registry: Any) -> None:
+    """Refuse ``[+]head=<name>`` (and every other component group) naming no registered component, in one line that
+    lists the known names and any plugin that failed to load, before Hydra says only "could not find"."""
+    from gpnerf_core.registry import KINDS
+
+    for argument in argv:
+        key, sep, value = argument.partition("=")
+        group = key.lstrip("+~")
+        if not sep or group not in KINDS or "${" in value:
+            continue
+        for name in value.split(","):  # a -m sweep over options
+            name = name.strip()
+            if name and name != "null" and not any(c in name for c in "*?[("):
+                registry.get(group, name)
 
 
 def _run(argv: list[str]) -> int:
@@ -78,6 +95,7 @@ def merge_overrides(stored: list[str], given: list[str]) -> list[str]:
 
 
 def _plugins(argv: list[str]) -> int:
+    """List components (kind, name, provider, version), disabled plugins and problems; exit 1 on problems."""
     from gpnerf_core.registry import get_registry
 
     if argv:
@@ -91,10 +109,15 @@ def _plugins(argv: list[str]) -> int:
     widths = [max(len(row[i]) for row in rows) for i in range(4)]
     for row in rows:
         print("  ".join(cell.ljust(widths[i]) for i, cell in enumerate(row[:4])) + "  " + row[4])
+    if registry.disabled:
+        print("\ndisabled:")
+        for name in registry.disabled:
+            print(f"  {name}")
     if registry.problems:
         print("\nproblems:")
-        for plugin, reason in registry.problems:
-            print(f"  {plugin}: {reason}")
+        for problem in registry.problems:
+            print(f"  {problem}")
+        return 1
     return 0
 
 
@@ -139,5 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return COMMANDS[command](rest)
     except GpnerfError as exc:
+        if os.environ.get("GPNERF_DEBUG"):
+            raise
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -14,7 +14,7 @@ import torch
 from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint as activation_checkpoint
 
-from gpnerf_core.errors import ConfigError
+from gpnerf_core.errors import ConfigError, PluginError
 from gpnerf_core.fusion import cells_of_pixels, fuse_rendered, gather_cells
 from gpnerf_core.geometry import (
     Projector,
@@ -348,7 +348,16 @@ class GeneralizableNeRF(nn.Module):
         return field_out, self.ray.block(index, field_out.tokens)
 
     def decode(self, semantic_map: Tensor, output_size: tuple[int, int]) -> HeadOutput:
-        """Run the perception head on a ``[N, C, h, w]`` semantic map."""
+        """Run the perception head on a ``[N, C, h, w]`` semantic map; its output is checked against the contract."""
         if self.head is None:
             raise ConfigError("this model has no perception head: add one with +head=<name>")
-        return self.head(semantic_map, output_size)
+        output = self.head(semantic_map, output_size)
+        logits = getattr(output, "logits", None)
+        expected = [int(semantic_map.shape[0]), int(self.head.num_outputs), int(output_size[0]), int(output_size[1])]
+        if not isinstance(output, HeadOutput) or not isinstance(logits, Tensor) or list(logits.shape) != expected:
+            found = list(logits.shape) if isinstance(logits, Tensor) else type(output).__name__
+            raise PluginError(
+                f"head {type(self.head).__name__} returned {found}; the PerceptionHead contract is "
+                f"HeadOutput(logits=[N, num_outputs, *output_size]) = {expected}"
+            )
+        return output

@@ -1,4 +1,10 @@
-"""Component registry: collects specs from plugins, refuses duplicates, builds components from configs."""
+"""Component registry: collects specs from plugins, isolates broken plugins, builds components from configs.
+
+A plugin that cannot be imported, implements a hook that does not exist, returns a bad spec, registers a name another
+plugin already has, or offers a factory the pipeline cannot call is recorded as a ``PluginProblem`` and left out;
+every other plugin keeps working, and a taken name is never replaced. ``python -m gpnerf_core plugins`` lists the
+problems (and exits 1 when there are any).
+"""
 
 from __future__ import annotations
 
@@ -6,18 +12,21 @@ import dataclasses
 import functools
 import importlib
 import importlib.metadata
+import inspect
 import os
+import re
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping
 
 import pluggy
 
 from gpnerf_core import hookspecs
-from gpnerf_core.errors import ConfigError, PluginError
+from gpnerf_core.errors import ConfigError, GpnerfError, PluginError
 
 ENTRY_POINT_GROUP = "gpnerf"
 DISABLE_AUTOLOAD_ENV = "GPNERF_DISABLE_PLUGIN_AUTOLOAD"
 DISABLE_PLUGINS_ENV = "GPNERF_DISABLE_PLUGINS"
+CORE_DISTRIBUTION = "gpnerf-core"
 
 BUILTIN_PLUGINS: tuple[str, ...] = (
     "gpnerf_plugins.extractors.plugin",
@@ -38,6 +47,20 @@ KINDS: dict[str, str] = {
     "dataset": "gpnerf_register_datasets",
     "view_selector": "gpnerf_register_view_selectors",
 }
+
+RUNTIME_ARGUMENTS: dict[str, tuple[str, ...]] = {
+    "feature_extractor": (),
+    "field_aggregator": ("in_dim",),
+    "ray_aggregator": ("in_dim", "num_blocks"),
+    "head": ("in_dim", "in_levels", "num_outputs"),
+    "loss": (),
+    "dataset": (),
+    "view_selector": (),
+}
+"""Keyword arguments the pipeline passes to each kind's factory besides the config fields."""
+
+NAME_PATTERN = re.compile(r"^[a-z][a-z0-9_]*$")
+"""Component names: snake_case, starting with a letter (they are Hydra option names)."""
 
 
 @dataclass(frozen=True)
@@ -74,6 +97,36 @@ class DataTool:
 
 
 @dataclass(frozen=True)
+class PluginInfo:
+    """Where a plugin comes from: its registered name, distribution and version."""
+
+    name: str
+    distribution: str = "unknown"
+    version: str = "unknown"
+
+    def __str__(self) -> str:
+        return f"{self.name} ({self.distribution} {self.version})"
+
+
+@dataclass(frozen=True)
+class PluginProblem:
+    """Something a plugin got wrong; its component (or the whole plugin) was left out.
+
+    Attributes:
+        plugin: where it happened; reason: one line.
+        component: ``kind/name`` when one component was rejected, None when the whole plugin was left out.
+    """
+
+    plugin: PluginInfo
+    reason: str
+    component: str | None = None
+
+    def __str__(self) -> str:
+        what = f"{self.component} rejected" if self.component else "not loaded"
+        return f"{self.plugin}: {what}: {self.reason}"
+
+
+@dataclass(frozen=True)
 class RegisteredComponent:
     kind: str
     spec: ComponentSpec
@@ -81,67 +134,145 @@ class RegisteredComponent:
     version: str
 
 
+def _interfaces() -> dict[str, type]:
+    from gpnerf_core import interfaces as I  # noqa: N812 - the interfaces package, imported late (cycle)
+
+    return {
+        "feature_extractor": I.FeatureExtractor,
+        "field_aggregator": I.FieldAggregator,
+        "ray_aggregator": I.RayAggregator,
+        "head": I.PerceptionHead,
+        "loss": I.LossSet,
+        "dataset": I.SceneDataset,
+        "view_selector": I.ViewSelector,
+    }
+
+
 @dataclass
 class Registry:
-    """All registered components by kind and name, plus the plugins that failed to load."""
+    """All registered components by kind and name, the plugins behind them and the problems found."""
 
     components: dict[str, dict[str, RegisteredComponent]] = field(default_factory=lambda: {k: {} for k in KINDS})
-    problems: list[tuple[str, str]] = field(default_factory=list)
-    plugin_versions: dict[str, str] = field(default_factory=dict)
+    problems: list[PluginProblem] = field(default_factory=list)
+    plugins: dict[str, PluginInfo] = field(default_factory=dict)
+    disabled: list[str] = field(default_factory=list)
     data_tools: dict[str, tuple[DataTool, str]] = field(default_factory=dict)
 
     def names(self, kind: str) -> list[str]:
         return sorted(self.components[kind])
 
     def get(self, kind: str, name: str) -> RegisteredComponent:
+        """The component ``name`` of ``kind``; an unknown name lists the known ones and what failed to load."""
         if kind not in self.components:
             raise ConfigError(f"unknown component kind {kind!r}; known kinds: {', '.join(KINDS)}")
-        try:
+        if name in self.components[kind]:
             return self.components[kind][name]
-        except KeyError:
-            known = ", ".join(self.names(kind)) or "(none registered)"
-            raise ConfigError(f"unknown {kind} {name!r}; known {kind} names: {known}") from None
+        rejected = [p for p in self.problems if p.component == f"{kind}/{name}"]
+        if rejected:
+            raise PluginError(f"{kind} {name!r} was rejected: {rejected[0]}")
+        known = ", ".join(self.names(kind)) or "(none registered)"
+        message = f"unknown {kind} {name!r}; known {kind} names: {known}"
+        failed = [p for p in self.problems if p.component is None]
+        if failed:
+            message += "; plugins that failed to load: " + "; ".join(str(p) for p in failed)
+        raise ConfigError(message)
 
     def build(self, kind: str, node: Mapping[str, Any], **runtime: Any) -> Any:
-        """Build the component a config node names (``node['name']``) with its fields as kwargs."""
+        """Build the component a config node names (``node['name']``) with its fields as kwargs.
+
+        Fields the node leaves out take their config dataclass defaults.
+
+        A plugin's factory that raises anything but a gpnerf-core error, or returns something that does not
+        implement the kind's interface, is reported in one line naming the component and its plugin.
+        """
         if "name" not in node:
             raise ConfigError(f"config group {kind!r} has no 'name' key; known names: {', '.join(self.names(kind))}")
         entry = self.get(kind, str(node["name"]))
-        kwargs = {k: _plain(v) for k, v in node.items() if k != "name"}
+        given = {k: _plain(v) for k, v in node.items() if k != "name"}
         expected = {f.name for f in dataclasses.fields(entry.spec.config)} - {"name"}
-        unknown = set(kwargs) - expected
+        unknown = set(given) - expected
         if unknown:
             raise ConfigError(
                 f"{kind}.{sorted(unknown)[0]} is not an option of {kind} {entry.spec.name!r}; "
                 f"expected one of: {', '.join(sorted(expected))}"
             )
-        return entry.spec.factory(**kwargs, **runtime)
+        defaults = entry.spec.config()
+        kwargs = {name: given.get(name, getattr(defaults, name)) for name in sorted(expected)}
+        where = f"{kind} {entry.spec.name!r} (plugin {entry.provider} {entry.version})"
+        try:
+            component = entry.spec.factory(**kwargs, **runtime)
+        except GpnerfError:
+            raise
+        except Exception as exc:
+            if os.environ.get("GPNERF_DEBUG"):
+                raise
+            raise PluginError(f"{where} failed to build: {type(exc).__name__}: {_one_line(exc)}") from None
+        interface = _interfaces()[kind]
+        if not isinstance(component, interface):
+            raise PluginError(f"{where} built a {type(component).__name__}, which does not implement {interface.__name__}")
+        return component
 
-    def add(self, kind: str, spec: ComponentSpec, provider: str, version: str) -> None:
+    def add(self, kind: str, spec: Any, plugin: PluginInfo) -> None:
+        """Register ``spec`` from ``plugin``, or record why it was rejected (the registry is left unchanged)."""
+        try:
+            self._check(kind, spec, plugin)
+        except PluginError as exc:
+            name = getattr(spec, "name", None)
+            self.problems.append(PluginProblem(plugin, str(exc), f"{kind}/{name}" if isinstance(name, str) else kind))
+            return
+        self.components[kind][spec.name] = RegisteredComponent(kind, spec, plugin.name, plugin.version)
+
+    def _check(self, kind: str, spec: Any, plugin: PluginInfo) -> None:
         if not isinstance(spec, ComponentSpec):
-            raise PluginError(f"plugin {provider!r} returned {type(spec).__name__} from {KINDS[kind]}, expected ComponentSpec")
-        if not dataclasses.is_dataclass(spec.config):
-            raise PluginError(f"plugin {provider!r}: config of {kind} {spec.name!r} is not a dataclass")
-        default_name = {f.name: f.default for f in dataclasses.fields(spec.config)}.get("name")
-        if default_name != spec.name:
-            raise PluginError(
-                f"plugin {provider!r}: {kind} {spec.name!r} has config {spec.config.__name__} whose 'name' "
-                f"defaults to {default_name!r}; expected {spec.name!r}"
-            )
+            raise PluginError(f"{KINDS[kind]} returned {type(spec).__name__}, expected ComponentSpec")
+        if not isinstance(spec.name, str) or not NAME_PATTERN.match(spec.name):
+            raise PluginError(f"name {spec.name!r} is not snake_case (lower-case letters, digits, underscores)")
         existing = self.components[kind].get(spec.name)
         if existing is not None:
+            raise PluginError(f"the name is taken by {existing.provider!r}; a plugin never replaces another's component")
+        if not dataclasses.is_dataclass(spec.config) or not isinstance(spec.config, type):
+            raise PluginError(f"config {spec.config!r} is not a dataclass type")
+        fields = {f.name: f for f in dataclasses.fields(spec.config)}
+        default_name = fields["name"].default if "name" in fields else None
+        if default_name != spec.name:
+            raise PluginError(f"config {spec.config.__name__}.name defaults to {default_name!r}; expected {spec.name!r}")
+        missing_default = [n for n, f in fields.items() if f.default is dataclasses.MISSING
+                           and f.default_factory is dataclasses.MISSING]
+        if missing_default:
+            raise PluginError(f"config {spec.config.__name__}.{missing_default[0]} has no default (Hydra needs one)")
+        factory = spec.factory
+        if inspect.isclass(factory):
+            interface = _interfaces()[kind]
+            if not issubclass(factory, interface):
+                raise PluginError(f"{factory.__name__} does not subclass {interface.__module__}.{interface.__name__}")
+            if inspect.isabstract(factory):
+                members = ", ".join(sorted(factory.__abstractmethods__))
+                raise PluginError(f"{factory.__name__} leaves abstract members unimplemented: {members}")
+        elif not callable(factory):
+            raise PluginError(f"factory {factory!r} is not callable")
+        arguments = [n for n in fields if n != "name"] + list(RUNTIME_ARGUMENTS[kind])
+        try:
+            signature = inspect.signature(factory)
+        except (TypeError, ValueError):
+            return  # builtins without a signature: checked when built
+        try:
+            signature.bind(**dict.fromkeys(arguments))
+        except TypeError as exc:
             raise PluginError(
-                f"duplicate {kind} {spec.name!r}: provided by both {existing.provider!r} and {provider!r}"
-            )
-        self.components[kind][spec.name] = RegisteredComponent(kind, spec, provider, version)
+                f"factory {getattr(factory, '__name__', factory)!r} cannot be called with the config fields and the "
+                f"pipeline's arguments ({', '.join(arguments) or 'none'}): {exc}"
+            ) from None
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else "(no message)"
 
 
 def _plain(value: Any) -> Any:
     """OmegaConf containers to plain Python, so components never see the config tree."""
-    try:
-        from omegaconf import DictConfig, ListConfig, OmegaConf
-    except ImportError:  # pragma: no cover - omegaconf is a dependency
-        return value
+    from omegaconf import DictConfig, ListConfig, OmegaConf
+
     if isinstance(value, (DictConfig, ListConfig)):
         return OmegaConf.to_container(value, resolve=True)
     return value
@@ -151,47 +282,91 @@ def _env_list(name: str) -> list[str]:
     return [item.strip() for item in os.environ.get(name, "").split(",") if item.strip()]
 
 
+def _normalize(name: str) -> str:
+    """Distribution names compare as PEP 503 normalises them (``GpNeRF_Head.Fancy`` == ``gpnerf-head-fancy``)."""
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+@dataclass
+class LoadedPlugins:
+    """A plugin manager with the plugins that registered, and what went wrong with the others."""
+
+    manager: pluggy.PluginManager
+    plugins: dict[str, PluginInfo] = field(default_factory=dict)
+    problems: list[PluginProblem] = field(default_factory=list)
+    disabled: list[str] = field(default_factory=list)
+
+    def register(self, plugin: object, info: PluginInfo) -> bool:
+        """Register one plugin object; a plugin whose hooks fail validation is recorded and left out."""
+        try:
+            self.manager.register(plugin, name=info.name)
+        except (pluggy.PluginValidationError, ValueError) as exc:
+            self.problems.append(PluginProblem(info, f"{type(exc).__name__}: {_one_line(exc)}"))
+            return False
+        self.plugins[info.name] = info
+        return True
+
+    def check_hooks(self) -> None:
+        """Leave out every plugin that implements a hook gpnerf-core does not define (a misspelled hook name)."""
+        while True:
+            try:
+                self.manager.check_pending()
+                return
+            except pluggy.PluginValidationError as exc:
+                name = self.manager.get_name(exc.plugin) or str(exc.plugin)
+                self.manager.unregister(exc.plugin)
+                info = self.plugins.pop(name, PluginInfo(name))
+                known = ", ".join(sorted(KINDS.values()) + ["gpnerf_register_data_tools"])
+                self.problems.append(
+                    PluginProblem(info, f"implements a hook gpnerf-core does not define ({_one_line(exc)}); "
+                                        f"known hooks: {known}")
+                )
+
+
 def make_plugin_manager(
     *, builtins: tuple[str, ...] = BUILTIN_PLUGINS, autoload: bool = True, blocked: tuple[str, ...] = ()
-) -> tuple[pluggy.PluginManager, list[tuple[str, str]], dict[str, str]]:
-    """Create the plugin manager with the built-in plugins and the ``gpnerf`` entry points.
+) -> LoadedPlugins:
+    """Load the built-in plugins and the ``gpnerf`` entry points, each in isolation.
 
-    A plugin that fails to import is recorded in the returned problems (name, one-line reason) and the others
-    still load. Returns ``(manager, problems, versions)`` where versions maps plugin name to its distribution
-    version.
+    ``GPNERF_DISABLE_PLUGINS`` (and ``blocked``) name plugins to skip: built-in module names, entry-point names or
+    distribution names. ``GPNERF_DISABLE_PLUGIN_AUTOLOAD`` skips every entry point.
     """
     pm = pluggy.PluginManager(hookspecs.PROJECT_NAME)
     pm.add_hookspecs(hookspecs)
-    problems: list[tuple[str, str]] = []
-    versions: dict[str, str] = {}
-    for name in (*blocked, *_env_list(DISABLE_PLUGINS_ENV)):
-        pm.set_blocked(name)
-    core_version = _distribution_version("gpnerf-core")
+    loaded = LoadedPlugins(pm)
+    blocked_names = {*blocked, *_env_list(DISABLE_PLUGINS_ENV)}
+    blocked_distributions = {_normalize(name) for name in blocked_names}
+    core_version = _distribution_version(CORE_DISTRIBUTION)
     for module_name in builtins:
-        if pm.is_blocked(module_name):
+        info = PluginInfo(module_name, CORE_DISTRIBUTION, core_version)
+        if module_name in blocked_names:
+            loaded.disabled.append(module_name)
             continue
         try:
-            pm.register(importlib.import_module(module_name), name=module_name)
-            versions[module_name] = core_version
+            module = importlib.import_module(module_name)
         except Exception as exc:  # a broken plugin must not take the others down
-            problems.append((module_name, f"{type(exc).__name__}: {exc}"))
-    if autoload and not os.environ.get(DISABLE_AUTOLOAD_ENV):
+            loaded.problems.append(PluginProblem(info, f"import failed: {type(exc).__name__}: {_one_line(exc)}"))
+            continue
+        loaded.register(module, info)
+    if autoload and os.environ.get(DISABLE_AUTOLOAD_ENV):
+        loaded.disabled.append(f"every entry point ({DISABLE_AUTOLOAD_ENV} is set)")
+    elif autoload:
         for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
-            if pm.is_blocked(ep.name):
+            distribution = ep.dist.name if ep.dist is not None else "unknown"
+            info = PluginInfo(ep.name, distribution, ep.dist.version if ep.dist is not None else "unknown")
+            if ep.name in blocked_names or _normalize(distribution) in blocked_distributions:
+                loaded.disabled.append(str(info))
                 continue
-            if pm.get_plugin(ep.name) is not None or pm.is_registered(ep.name):
-                problems.append((ep.name, f"entry point name {ep.name!r} is already registered by another plugin"))
+            if ep.name in loaded.plugins or pm.has_plugin(ep.name):
+                loaded.problems.append(PluginProblem(info, f"entry point name {ep.name!r} is taken by another plugin"))
                 continue
             try:
-                pm.register(ep.load(), name=ep.name)
-                versions[ep.name] = ep.dist.version if ep.dist is not None else "unknown"
+                plugin = ep.load()
             except Exception as exc:
-                problems.append((ep.name, f"{type(exc).__name__}: {exc}"))
-    try:
-        pm.check_pending()
-    except pluggy.PluginValidationError as exc:
-        raise PluginError(f"plugin {exc.plugin_name!r} implements an unknown hook: {exc}") from None
-    return pm, problems, versions
+                loaded.problems.append(PluginProblem(info, f"import failed: {type(exc).__name__}: {_one_line(exc)}"))
+                continue
+            loaded.register(plugin, info)
+    return loaded
 
 
 def _distribution_version(dist: str) -> str:
@@ -201,49 +376,65 @@ def _distribution_version(dist: str) -> str:
         return "unknown"
 
 
-def collect(pm: pluggy.PluginManager, problems: list[tuple[str, str]], versions: dict[str, str]) -> Registry:
-    """Call every registration hook implementation and build the registry (duplicates raise)."""
-    registry = Registry(problems=list(problems), plugin_versions=dict(versions))
+def collect(loaded: LoadedPlugins) -> Registry:
+    """Call every registration hook implementation and build the registry; problems are recorded, never raised."""
+    loaded.check_hooks()
+    registry = Registry(problems=list(loaded.problems), plugins=dict(loaded.plugins), disabled=list(loaded.disabled))
     for kind, hook_name in KINDS.items():
-        hook = getattr(pm.hook, hook_name)
-        for impl in hook.get_hookimpls():  # registration order, for stable listings
+        for impl in getattr(loaded.manager.hook, hook_name).get_hookimpls():  # registration order: stable listings
+            info = loaded.plugins.get(impl.plugin_name, PluginInfo(impl.plugin_name))
             try:
                 specs = impl.function()
             except Exception as exc:
-                registry.problems.append((impl.plugin_name, f"{hook_name} raised {type(exc).__name__}: {exc}"))
+                registry.problems.append(PluginProblem(info, f"{hook_name} raised {type(exc).__name__}: {_one_line(exc)}"))
+                continue
+            if specs is not None and not isinstance(specs, (list, tuple)):
+                registry.problems.append(PluginProblem(info, f"{hook_name} returned {type(specs).__name__}, expected a list"))
                 continue
             for spec in specs or ():
-                registry.add(kind, spec, impl.plugin_name, versions.get(impl.plugin_name, "unknown"))
-    for impl in pm.hook.gpnerf_register_data_tools.get_hookimpls():
+                registry.add(kind, spec, info)
+    for impl in loaded.manager.hook.gpnerf_register_data_tools.get_hookimpls():
+        info = loaded.plugins.get(impl.plugin_name, PluginInfo(impl.plugin_name))
         try:
             tools = impl.function()
         except Exception as exc:
-            registry.problems.append((impl.plugin_name, f"gpnerf_register_data_tools raised {type(exc).__name__}: {exc}"))
+            registry.problems.append(
+                PluginProblem(info, f"gpnerf_register_data_tools raised {type(exc).__name__}: {_one_line(exc)}")
+            )
             continue
         for tool in tools or ():
-            if tool.name in registry.data_tools:
-                raise PluginError(
-                    f"duplicate data tool {tool.name!r}: provided by both "
-                    f"{registry.data_tools[tool.name][1]!r} and {impl.plugin_name!r}"
-                )
-            registry.data_tools[tool.name] = (tool, impl.plugin_name)
+            if not isinstance(tool, DataTool):
+                registry.problems.append(PluginProblem(info, f"data tool {tool!r} is not a DataTool", "data"))
+            elif tool.name in registry.data_tools:
+                owner = registry.data_tools[tool.name][1]
+                registry.problems.append(PluginProblem(info, f"the name is taken by {owner!r}", f"data/{tool.name}"))
+            else:
+                registry.data_tools[tool.name] = (tool, impl.plugin_name)
     return registry
 
 
 def register_config_options(registry: Registry) -> None:
-    """Make every registered component an option of its Hydra config group (``+head=<name>``)."""
+    """Make every registered component an option of its Hydra config group (``+head=<name>``).
+
+    A config dataclass OmegaConf cannot represent (a field of an unsupported type) rejects its component.
+    """
     from hydra.core.config_store import ConfigStore
 
     cs = ConfigStore.instance()
     for kind, entries in registry.components.items():
-        for name, entry in entries.items():
-            cs.store(group=kind, name=name, node=entry.spec.config, provider=entry.provider)
+        for name, entry in list(entries.items()):
+            try:
+                cs.store(group=kind, name=name, node=entry.spec.config, provider=entry.provider)
+            except Exception as exc:
+                del entries[name]
+                info = registry.plugins.get(entry.provider, PluginInfo(entry.provider))
+                reason = f"config {entry.spec.config.__name__} is not a valid Hydra schema: {_one_line(exc)}"
+                registry.problems.append(PluginProblem(info, reason, f"{kind}/{name}"))
 
 
 @functools.cache
 def get_registry() -> Registry:
     """The process-wide registry (built once; Hydra launcher workers rebuild it lazily)."""
-    pm, problems, versions = make_plugin_manager()
-    registry = collect(pm, problems, versions)
+    registry = collect(make_plugin_manager())
     register_config_options(registry)
     return registry

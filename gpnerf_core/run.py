@@ -106,7 +106,12 @@ def _write_run_files(run_dir: Path, record: RunRecord) -> None:
                 for entries in registry.components.values()
                 for e in entries.values()
             ],
-            "problems": [{"plugin": p, "reason": r} for p, r in registry.problems],
+            "disabled": registry.disabled,
+            "problems": [
+                {"plugin": p.plugin.name, "distribution": p.plugin.distribution, "version": p.plugin.version,
+                 "component": p.component, "reason": p.reason}
+                for p in registry.problems
+            ],
         },
     )
 

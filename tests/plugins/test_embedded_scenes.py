@@ -283,8 +283,7 @@ def test_bad_config_values_raise_config_errors():
 
 def test_registered_spec_matches_the_constructor_and_does_not_render(tmp_path, monkeypatch):
     monkeypatch.setenv("GPNERF_CACHE", str(tmp_path))
-    pm, problems, versions = make_plugin_manager(builtins=("gpnerf_plugins.datasets.plugin",), autoload=False)
-    registry = collect(pm, problems, versions)
+    registry = collect(make_plugin_manager(builtins=("gpnerf_plugins.datasets.plugin",), autoload=False))
     assert not registry.problems and "embedded" in registry.names("dataset")
     fields = {f.name: f.default for f in dataclasses.fields(EmbeddedScenesConfig)}
     assert fields.pop("name") == "embedded"

@@ -142,8 +142,7 @@ def test_deterministic_given_seed():
 
 
 def test_registered_and_buildable_from_structured_config():
-    pm, problems, versions = make_plugin_manager(builtins=("gpnerf_plugins.extractors.plugin",), autoload=False)
-    registry = collect(pm, problems, versions)
+    registry = collect(make_plugin_manager(builtins=("gpnerf_plugins.extractors.plugin",), autoload=False))
     assert not registry.problems
     entry = registry.get("feature_extractor", "resunet_fpn")
     assert entry.spec.config is ResUNetFPNConfig

@@ -140,8 +140,7 @@ def test_wrong_input_is_a_config_error(kind):
 
 
 def test_registered_and_buildable_from_structured_config():
-    pm, problems, versions = make_plugin_manager(builtins=("gpnerf_plugins.heads.plugin",), autoload=False)
-    registry = collect(pm, problems, versions)
+    registry = collect(make_plugin_manager(builtins=("gpnerf_plugins.heads.plugin",), autoload=False))
     assert not registry.problems and registry.names("head") == ["per_pixel", "unet"]
     node = OmegaConf.structured(UNetHeadConfig)
     node.channels, node.norm_groups, node.decoder = 8, 2, "semantic_fpn"

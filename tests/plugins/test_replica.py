@@ -208,14 +208,15 @@ def test_configs_are_structured_and_match_the_constructors():
 
 
 def test_a_registry_builds_both_datasets_from_config_nodes(replica_root):
-    from gpnerf_core.registry import ComponentSpec, Registry
+    from gpnerf_core.registry import ComponentSpec, PluginInfo, Registry
 
     registry = Registry()
     for name, cls, config in (
         ("replica", ReplicaScenes, ReplicaScenesConfig),
         ("replica_instance", ReplicaInstanceScenes, ReplicaInstanceScenesConfig),
     ):
-        registry.add("dataset", ComponentSpec(name, cls, config), "test", "0")
+        registry.add("dataset", ComponentSpec(name, cls, config), PluginInfo("test", "test", "0"))
+        assert not registry.problems
         assert isinstance(registry.build("dataset", OmegaConf.structured(config)), cls)
     overrides = {"root": str(replica_root), "height": 12, "width": 16}
     node = OmegaConf.merge(OmegaConf.structured(ReplicaScenesConfig), overrides)

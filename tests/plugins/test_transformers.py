@@ -340,8 +340,7 @@ def test_wrong_input_width_is_a_data_error():
 
 
 def test_registered_and_built_from_config():
-    pm, problems, versions = make_plugin_manager(builtins=("gpnerf_plugins.transformers.plugin",), autoload=False)
-    registry = collect(pm, problems, versions)
+    registry = collect(make_plugin_manager(builtins=("gpnerf_plugins.transformers.plugin",), autoload=False))
     assert not registry.problems
     field = registry.build("field_aggregator", {"name": "gnt_view", "width": 16, "num_blocks": 2}, in_dim=IN_DIM)
     ray = registry.build("ray_aggregator", {"name": "gnt_ray", "num_heads": 2}, in_dim=field.width,

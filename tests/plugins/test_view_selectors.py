@@ -100,8 +100,7 @@ def test_bad_arguments_raise_one_line_errors():
 
 
 def test_registered_and_built_from_config():
-    pm, problems, versions = make_plugin_manager(builtins=("gpnerf_plugins.view_selectors.plugin",), autoload=False)
-    registry = collect(pm, problems, versions)
+    registry = collect(make_plugin_manager(builtins=("gpnerf_plugins.view_selectors.plugin",), autoload=False))
     assert not registry.problems
     selector = registry.build("view_selector", {"name": "nearest", "pool_factor": 3, "angle_weight": 1.0})
     assert isinstance(selector, NearestViews)
