@@ -1,0 +1,177 @@
+"""Small synthetic inputs for the contract checks, each drawn from its own seeded generator (CPU, float32).
+
+The sizes are deliberately small and odd (7 x 9 maps, 5 rays, 3 views) so that a component which hard-codes a
+size, or mixes up two axes of equal length, fails.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from gpnerf_core.geometry import points_along_rays, rays_through_pixels, stratified_inverse_depths
+from gpnerf_core.types import LossInputs, ProjectedFeatures, RayBatch, RaySamples, RenderedRays
+
+HEAD_IN_DIM = 32
+"""``in_dim`` the kit passes to heads: 4 levels of 8 channels."""
+HEAD_LEVELS = 4
+HEAD_CLASSES = (1, 3, 51)
+"""``num_outputs`` values every head must honour (51: Replica's classes)."""
+HEAD_CASES = (
+    # (N, K, map size, output size): same size, a non-multiple upsampling, an exact multiple, a downsizing.
+    (1, 3, (8, 12), (8, 12)),
+    (2, 51, (7, 9), (37, 45)),
+    (1, 1, (5, 11), (10, 22)),
+    (1, 3, (16, 24), (7, 9)),
+)
+EXTRACTOR_SIZES = ((1, 32, 48), (2, 64, 32))
+"""``(N, H, W)`` images every extractor must encode (multiples of 16)."""
+EXTRACTOR_OTHER_SIZES = ((1, 40, 36), (1, 33, 47))
+"""Sizes an extractor may refuse with a ``GpnerfError``; when it accepts them its maps must still be right."""
+FIELD_IN_DIM = 11
+"""``in_dim`` of field aggregators: 3 RGB + an 8-channel radiance map."""
+RAY_IN_DIM = 24
+"""``in_dim`` of ray aggregators (divisible by 1, 2, 3, 4, 6, 8, 12 and 24 heads)."""
+RAY_BLOCKS = 2
+"""``num_blocks`` of ray aggregators (the field aggregator's, in the pipeline)."""
+AGGREGATOR_CASES = ((5, 7, 3), (2, 3, 1))
+"""``(R, S, V)``: rays, samples per ray, source views."""
+LOSS_RAYS, LOSS_SAMPLES, LOSS_CHANNELS = 6, 5, 8
+
+
+def generator(seed: int = 0) -> torch.Generator:
+    return torch.Generator().manual_seed(seed)
+
+
+def head_features(n: int, size: tuple[int, int], *, dim: int = HEAD_IN_DIM, seed: int = 0) -> Tensor:
+    """``[N, dim, h, w]`` standard-normal features."""
+    return torch.randn(n, dim, *size, generator=generator(seed))
+
+
+def images(n: int, height: int, width: int, *, seed: int = 0) -> Tensor:
+    """``[N, 3, H, W]`` uniform images in [0, 1]."""
+    return torch.rand(n, 3, height, width, generator=generator(seed))
+
+
+def ray_batch(rays: int, *, seed: int = 0) -> RayBatch:
+    """Rays of a 16 x 12 pinhole camera at the origin, 0.5 m to 4 m."""
+    g = generator(seed)
+    pixels = torch.rand(rays, 2, generator=g) * torch.tensor([15.0, 11.0])
+    intrinsics = torch.tensor([[12.0, 0.0, 7.5], [0.0, 12.0, 5.5], [0.0, 0.0, 1.0]])
+    return rays_through_pixels(pixels, intrinsics, torch.eye(4), 0.5, 4.0)
+
+
+def ray_samples(rays: RayBatch, samples: int) -> RaySamples:
+    return points_along_rays(rays, stratified_inverse_depths(rays, samples, perturb=False))
+
+
+def projected(
+    rays: int, samples: int, views: int, *, in_dim: int = FIELD_IN_DIM, zeros: bool = False, seed: int = 0
+) -> tuple[ProjectedFeatures, RaySamples, RayBatch]:
+    """Projected source features for ``FieldAggregator.begin``.
+
+    Sample 0 of ray 0 is seen by no view, and so is every sample of the last ray when there are two rays or
+    more (a ray that leaves every source frustum). With ``zeros`` every feature is 0.
+    """
+    g = generator(seed)
+    batch = ray_batch(rays, seed=seed)
+    visible = torch.rand(rays, samples, views, generator=g) > 0.2
+    visible[0, 0] = False
+    if rays > 1:
+        visible[-1] = False
+    features = torch.randn(rays, samples, views, in_dim, generator=g)
+    ray_diff = torch.nn.functional.normalize(torch.randn(rays, samples, views, 4, generator=g), dim=-1)
+    if zeros:
+        features, ray_diff = torch.zeros_like(features), torch.zeros_like(ray_diff)
+    projected_features = ProjectedFeatures(rgb_features=features, semantic=None, ray_diff=ray_diff, visible=visible)
+    return projected_features, ray_samples(batch, samples), batch
+
+
+def tokens(rays: int, samples: int, *, dim: int = RAY_IN_DIM, seed: int = 0) -> Tensor:
+    """``[R, S, D]`` standard-normal tokens, as a field aggregator's block returns them."""
+    return torch.randn(rays, samples, dim, generator=generator(seed))
+
+
+def rendered(*, rays: int = LOSS_RAYS, samples: int = LOSS_SAMPLES, channels: int = LOSS_CHANNELS,
+             semantic: bool = True, sample_semantic: bool = True, zeros: bool = False, seed: int = 0) -> RenderedRays:
+    """One rendering pass whose float tensors require gradients (the semantic ones only when asked for)."""
+    g = generator(seed)
+
+    def leaf(*shape: int) -> Tensor:
+        value = torch.zeros(*shape) if zeros else torch.randn(*shape, generator=g)
+        return value.requires_grad_()
+
+    batch = ray_batch(rays, seed=seed)
+    samples_ = ray_samples(batch, samples)
+    weights = torch.softmax(torch.randn(rays, samples, generator=g), dim=-1).requires_grad_()
+    return RenderedRays(
+        rgb=leaf(rays, 3),
+        weights=weights,
+        depth=(weights * samples_.depths).sum(-1),
+        samples=samples_,
+        semantic=leaf(rays, channels) if semantic else None,
+        sample_semantic=leaf(rays, samples, channels) if sample_semantic else None,
+    )
+
+
+def loss_inputs(
+    *,
+    semantics: bool,
+    sample_semantics: bool,
+    classes: int = 4,
+    fine: bool = True,
+    zeros: bool = False,
+    ignore_all: bool = False,
+    seed: int = 0,
+) -> LossInputs:
+    """What the trainer passes a loss set for one target view, shaped by the loss set's ``needs_*`` flags.
+
+    Without ``semantics`` the logits, labels and teacher are None and the passes carry no semantic features, as
+    in the pipeline. ``zeros`` zeroes every feature and the target depth (unknown); ``ignore_all`` labels every
+    pixel with the ignore index.
+    """
+    g = generator(seed + 1)
+    passes = dict(semantic=semantics, sample_semantic=sample_semantics, zeros=zeros)
+    height, width = 6, 7
+    labels = torch.randint(0, classes, (1, height, width), generator=g)
+    if ignore_all:
+        labels.fill_(255)
+    teacher = torch.zeros(LOSS_RAYS, LOSS_CHANNELS) if zeros else torch.randn(LOSS_RAYS, LOSS_CHANNELS, generator=g)
+    logits = torch.zeros(1, classes, height, width) if zeros else torch.randn(1, classes, height, width, generator=g)
+    return LossInputs(
+        coarse=rendered(seed=seed, **passes),
+        fine=rendered(seed=seed + 2, **passes) if fine else None,
+        target_rgb=torch.rand(LOSS_RAYS, 3, generator=g),
+        target_depth=torch.zeros(LOSS_RAYS) if zeros else torch.rand(LOSS_RAYS, generator=g) + 0.5,
+        logits=logits.requires_grad_() if semantics else None,
+        labels=labels if semantics else None,
+        teacher_at_rays=teacher.requires_grad_() if semantics else None,
+        ignore_index=255,
+    )
+
+
+def loss_leaves(inputs: LossInputs) -> dict[str, Tensor]:
+    """The tensors of ``inputs`` that require gradients, by a readable name (``fine.semantic``, ``logits``)."""
+    leaves = {"logits": inputs.logits, "teacher_at_rays": inputs.teacher_at_rays}
+    for name, rays in (("coarse", inputs.coarse), ("fine", inputs.fine)):
+        if rays is not None:
+            for field in ("rgb", "weights", "semantic", "sample_semantic"):
+                leaves[f"{name}.{field}"] = getattr(rays, field)
+    return {name: t for name, t in leaves.items() if t is not None and t.requires_grad}
+
+
+def cameras(count: int, *, radius: float = 2.0, seed: int = 0) -> Tensor:
+    """``[count, 4, 4]`` OpenCV camera-to-world poses on a jittered circle, each looking at the origin."""
+    g = generator(seed)
+    angles = torch.arange(count) * (2 * math.pi / max(count, 1)) + 0.1 * torch.rand(count, generator=g)
+    poses = torch.eye(4).repeat(count, 1, 1)
+    for i, angle in enumerate(angles.tolist()):
+        centre = torch.tensor([radius * math.cos(angle), 0.3 * math.sin(3 * angle), radius * math.sin(angle)])
+        forward = torch.nn.functional.normalize(-centre, dim=0)
+        right = torch.nn.functional.normalize(torch.linalg.cross(torch.tensor([0.0, -1.0, 0.0]), forward), dim=0)
+        down = torch.linalg.cross(forward, right)
+        poses[i, :3, :3] = torch.stack([right, down, forward], dim=1)
+        poses[i, :3, 3] = centre
+    return poses
