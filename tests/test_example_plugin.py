@@ -43,7 +43,8 @@ def workspace(tmp_path_factory):
 def installed(workspace):
     """The example, copied (its build files stay out of the repository) and pip-installed without the network."""
     env = child_env(workspace / "cache")
-    assert pip("show", DISTRIBUTION, env=env).returncode == 1, f"{DISTRIBUTION} is already installed"
+    assert pip("show", DISTRIBUTION, env=env).returncode == 1, (
+        f"{DISTRIBUTION} is already installed (left by a killed run?): python -m pip uninstall -y {DISTRIBUTION}")
     source = workspace / EXAMPLE.name
     shutil.copytree(EXAMPLE, source, ignore=shutil.ignore_patterns("build", "*.egg-info", "__pycache__"))
     try:

@@ -20,5 +20,5 @@ def gpnerf_register_heads() -> list[ComponentSpec]:
 @hookimpl
 def gpnerf_register_losses() -> list[ComponentSpec]:
     return [
-        ComponentSpec("dice", DiceLossSet, DiceLossConfig, "a registered loss set (default dgs) + soft Dice on the logits")
+        ComponentSpec("dice", DiceLossSet, DiceLossConfig, "a loss set (default dgs) + soft Dice on the logits")
     ]
