@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 from typing import Any, Callable
 
-from gpnerf_core.errors import GpnerfError
+from gpnerf_core.errors import ConfigError, GpnerfError
 
 USAGE = """usage: python -m gpnerf_core <command> [options]
 
@@ -39,6 +39,7 @@ def _hydra_entry(task: Callable, argv: list[str], prog: str) -> int:
 
     check_component_choices(argv, get_registry())
     register_schema()
+    precheck(argv)
     sys.argv = [prog, *argv]
     hydra.main(version_base="1.3", config_path=config_dir(), config_name="config")(task)()
     return 0
@@ -58,6 +59,51 @@ def check_component_choices(argv: list[str], registry: Any) -> None:
             name = name.strip()
             if name and name != "null" and not any(c in name for c in "*?[("):
                 registry.get(group, name)
+
+
+def precheck(argv: list[str]) -> None:
+    """Compose and validate the config before Hydra starts (and creates the run folder), so a bad override or value
+    is one line and exit code 2. Sweeps (``-m``) and Hydra's own flags are left to Hydra; every job validates too."""
+    from gpnerf_core.config import compose
+    from gpnerf_core.validation import validate_config
+
+    if any(argument.startswith("-") for argument in argv):
+        return
+    overrides = [a for a in argv if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
+    try:
+        cfg = compose(overrides)
+    except GpnerfError:
+        raise
+    except Exception as exc:
+        raise ConfigError(_hydra_message(exc)) from None
+    validate_config(cfg)
+    if cfg.out_dir:
+        check_writable_folder(Path(cfg.out_dir))
+
+
+def check_writable_folder(path: Path) -> None:
+    """Create ``path`` (Hydra would, with a traceback on failure): one line naming it when that is impossible."""
+    from gpnerf_core.run_folder import RunFolderError
+
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise RunFolderError(
+            f"out_dir={path} cannot be created ({exc.strerror or exc}); choose a writable out_dir"
+        ) from None
+
+
+def _hydra_message(exc: BaseException) -> str:
+    """A Hydra/OmegaConf error and its causes on one line, without OmegaConf's ``full_key``/``object_type`` tail."""
+    parts: list[str] = []
+    while exc is not None:
+        lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+        lines = [line for line in lines if not line.startswith(("full_key:", "object_type=", "reference_type="))]
+        text = " ".join(lines)
+        if text and text not in parts:
+            parts.append(text)
+        exc = exc.__cause__
+    return "; ".join(parts) or "invalid overrides"
 
 
 def _run(argv: list[str]) -> int:

@@ -17,11 +17,10 @@ import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from gpnerf_core.build import build_components
-from gpnerf_core.device import check_precision
 from gpnerf_core.distributed import Distributed, init_distributed
 from gpnerf_core.errors import ConfigError, GpnerfError
 from gpnerf_core.io import atomic_write_json, atomic_write_text
-from gpnerf_core.run_folder import RunFolder, RunFolderError
+from gpnerf_core.run_folder import RunFolder, RunFolderError, remove_untrained_run
 from gpnerf_core.training.checkpoint import (
     MODEL_SECTIONS,
     NOT_MODEL_KEYS,
@@ -32,6 +31,7 @@ from gpnerf_core.training.checkpoint import (
     read_checkpoint,
 )
 from gpnerf_core.training.interrupt import TrainingInterrupted
+from gpnerf_core.validation import check_data, validate_config
 
 RUN_SPECIFIC_KEYS = ("checkpoint", "out_dir", "overwrite", "train.resume")
 """Overrides that name this run's files, not its model: never carried from a checkpoint into another run."""
@@ -116,12 +116,17 @@ def _write_run_files(run_dir: Path, record: RunRecord) -> None:
     )
 
 
-def _prepare(cfg: DictConfig, dist: Distributed, *, resuming: bool) -> tuple[RunFolder, RunRecord]:
-    """Threads and seed, then rank 0 claims the run folder and writes what the run is made from."""
+def _start(cfg: DictConfig) -> None:
+    """Refuse bad values before any work, then set threads and the seed (which fixes the model's initialisation)."""
+    validate_config(cfg)
+    _refuse_shared_out_dir(cfg)
     if cfg.threads:
         torch.set_num_threads(int(cfg.threads))
     torch.manual_seed(int(cfg.seed))
-    _refuse_shared_out_dir(cfg)
+
+
+def _prepare(cfg: DictConfig, dist: Distributed, *, resuming: bool) -> tuple[RunFolder, RunRecord]:
+    """Rank 0 claims the run folder and writes what the run is made from."""
     run_dir = Path(dist.broadcast_object(str(_run_dir(cfg)) if dist.is_main else None))
     folder = RunFolder(run_dir)
     outcome: tuple[str, Any] = ("ok", [])
@@ -179,7 +184,12 @@ def _guarded(job: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
     def wrapper(cfg: DictConfig) -> Any:
         try:
             return job(cfg)
-        except GpnerfError as exc:
+        except (GpnerfError, OSError) as exc:
+            if os.environ.get("GPNERF_DEBUG"):
+                raise
+            if isinstance(exc, OSError):  # an environment fault: a full disk, a vanished or read-only folder
+                where = f"{exc.filename}: " if exc.filename else ""
+                exc = f"{where}{exc.strerror or exc}; the run stopped (free space, fix permissions or choose another folder)"
             print(f"error: {exc}", file=sys.stderr)
             _remove_if_empty(cfg)
             sys.exit(2)
@@ -200,11 +210,12 @@ def _guarded(job: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
 
 
 def _remove_if_empty(cfg: DictConfig) -> None:
-    """Hydra creates the run folder before the job starts; a job refused before writing anything leaves none."""
+    """Hydra creates the run folder before the job starts: a job refused before training leaves none behind."""
     try:
-        _run_dir(cfg).rmdir()
-    except (OSError, GpnerfError):
-        pass
+        run_dir = _run_dir(cfg)
+    except GpnerfError:
+        return
+    remove_untrained_run(run_dir)
 
 
 def _distributed(job: Callable[[DictConfig, Distributed], Any]) -> Callable[[DictConfig], Any]:
@@ -227,22 +238,22 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.evaluation.evaluator import evaluate, print_summary
     from gpnerf_core.evaluation.visualize import plot_training_curves
     from gpnerf_core.training.init_weights import init_weights
-    from gpnerf_core.training.loggers import check_loggers, make_loggers
+    from gpnerf_core.training.loggers import make_loggers
     from gpnerf_core.training.sampler import check_global_batch
     from gpnerf_core.training.trainer import Trainer
 
-    check_loggers(list(cfg.train.loggers))
-    check_precision(cfg.train.precision)
+    _start(cfg)
     check_global_batch(int(cfg.train.targets_per_step), dist.world_size)
     resuming = bool(cfg.train.resume)
+    components = build_components(cfg)
+    check_data(cfg, components, training=True)
+    if cfg.model.init and not resuming:
+        report = init_weights(components.model, Path(cfg.model.init), strict=bool(cfg.model.init_strict))
+        if dist.is_main:
+            print(report, file=sys.stderr)
     folder, record = _prepare(cfg, dist, resuming=resuming)
     run_dir = folder.path
     with folder:
-        components = build_components(cfg)
-        if cfg.model.init and not resuming:
-            report = init_weights(components.model, Path(cfg.model.init), strict=bool(cfg.model.init_strict))
-            if dist.is_main:
-                print(report, file=sys.stderr)
         trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record)
         if dist.is_main:
             for note in trainer.notes:
@@ -317,6 +328,11 @@ def eval_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     checkpoint = Path(cfg.checkpoint)
     state = read_checkpoint(checkpoint)
     notes = restore_model_config(cfg, state["config"], state.get("overrides", []))
+    _start(cfg)
+    components = build_components(cfg)
+    check_data(cfg, components, training=False)
+    load_weights(components.model, state["model"], f"checkpoint {checkpoint}")
+    components.model.to(dist.device)
     folder, record = _prepare(cfg, dist, resuming=False)
     with folder:
         if dist.is_main:
@@ -327,9 +343,6 @@ def eval_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
                       file=sys.stderr)
             for note in notes:
                 print(f"note: {note}", file=sys.stderr)
-        components = build_components(cfg)
-        load_weights(components.model, state["model"], f"checkpoint {checkpoint}")
-        components.model.to(dist.device)
         evaluation = evaluate(cfg, components, FrameCache(components.dataset, dist.device), folder.path, dist)
         metrics = {
             "checkpoint": str(checkpoint),

@@ -160,3 +160,20 @@ class RunFolder:
             (self.path / name).unlink(missing_ok=True)
         for name in RUN_FOLDERS:
             shutil.rmtree(self.path / name, ignore_errors=True)
+
+
+def remove_untrained_run(path: Path) -> None:
+    """Delete a run folder that holds only what is written before training (a refused run) and its lock-free
+    remains; a folder holding anything else is left untouched."""
+    try:
+        entries = list(Path(path).iterdir())
+    except OSError:
+        return
+    if any(entry.name not in SETUP_FILES for entry in entries):
+        return
+    for entry in entries:
+        entry.unlink(missing_ok=True)
+    try:
+        Path(path).rmdir()
+    except OSError:
+        pass

@@ -171,22 +171,19 @@ def test_unknown_command_is_one_line_error(workspace):
     assert result.stderr.strip().count("\n") == 0 and "known commands: run" in result.stderr
 
 
-def test_damaged_scene_folder_names_the_file(first_run, workspace):
-    cache = workspace / "cache"
-    depth_files = sorted(cache.rglob("depth_3.png"))
-    assert depth_files, "expected generated depth files in the cache"
-    damaged = depth_files[0]
-    backup = damaged.read_bytes()
-    damaged.unlink()
-    try:
-        result = gpnerf("run", "+head=unet", "+loss=dgs", *TINY, f"out_dir={workspace / 'bad'}", cwd=workspace,
-                        cache=cache)
-    finally:
-        damaged.write_bytes(backup)
+def test_damaged_scene_folder_names_the_file_before_training(first_run, workspace):
+    import shutil
+
+    [cached] = (workspace / "cache" / "embedded_scenes").iterdir()
+    root = workspace / "scenes_copy"
+    shutil.copytree(cached, root)
+    (root / "layout_00" / "Sequence_1" / "depth" / "depth_3.png").unlink()
+    result = gpnerf("run", "+head=unet", "+loss=dgs", *TINY, f"dataset.root={root}", f"out_dir={workspace / 'bad'}",
+                    cwd=workspace, cache=workspace / "cache")
     assert result.returncode == 2
-    assert "depth_3.png" in result.stderr
+    assert "depth_3.png: missing" in result.stderr and f"regenerate: delete {root}" in result.stderr
     assert "Traceback" not in result.stderr
-    assert not (workspace / "bad" / "metrics.json").exists()
+    assert not (workspace / "bad").exists()
 
 
 def test_plugins_command_lists_kinds(workspace):

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from typing import Sequence
 
+from gpnerf_core.data_checks import check_scene_files
 from gpnerf_core.types import Scene
 
 SPLITS = ("train", "unseen")
@@ -15,6 +17,10 @@ class SceneDataset(ABC):
     ``train`` scenes are trained on (their ``Scene.train_frames``) and evaluated on their held-out
     ``Scene.eval_frames``; ``unseen`` scenes never reach training and test generalization.
     """
+
+    validation: str = "quick"
+    """How thoroughly ``check_files`` looks before training: ``quick``, ``full`` or ``off`` (the built-in datasets
+    set it from ``dataset.validate``)."""
 
     @property
     @abstractmethod
@@ -37,3 +43,13 @@ class SceneDataset(ABC):
     @abstractmethod
     def load_scene(self, name: str) -> Scene:
         """Load a scene's cameras and frame lists; frames load lazily through ``Scene.load_frame``."""
+
+
+    def check_files(self, scenes: Sequence[str], level: str) -> list[str]:
+        """Problems in the files of ``scenes``, one line each naming the file (or the scene and frame).
+
+        Called before training with ``level = self.validation``. The default loads every scene and checks its poses
+        (``quick``), and with ``full`` decodes every frame and checks its values (``gpnerf_core.data_checks``);
+        a dataset may check more (checksums) or faster.
+        """
+        return check_scene_files(self, scenes, level)

@@ -346,6 +346,9 @@ DAMAGES = {
     "non-numeric frame": (lambda f: png(f / "rgb" / "rgb_x.png", np.zeros((H, W, 3), np.uint8)), "rgb_x.png"),
     "nan pose": (lambda f: _set_traj_line(f, 2, " ".join(["nan"] * 16)), "traj_w_c.txt:3"),
     "inf pose": (lambda f: _set_traj_line(f, 4, " ".join(["1"] * 15 + ["inf"])), "traj_w_c.txt:5"),
+    "sheared pose": (lambda f: _set_traj_line(f, 3, "1 0.3 0 0 0 1 0 0 0 0 1 0 0 0 0 1"), "traj_w_c.txt:4"),
+    "mirrored pose": (lambda f: _set_traj_line(f, 1, "1 0 0 0 0 1 0 0 0 0 -1 0 0 0 0 1"), "traj_w_c.txt:2"),
+    "scaled pose": (lambda f: _set_traj_line(f, 0, "2 0 0 0 0 2 0 0 0 0 2 0 0 0 0 1"), "traj_w_c.txt:1"),
     "unknown label id": (
         lambda f: png(f / "semantic_class" / "semantic_class_5.png", np.full((H, W), 200, np.uint8)),
         "semantic_class_5.png",

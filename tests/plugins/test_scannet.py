@@ -301,7 +301,15 @@ def _break(scene: Path, what: str) -> tuple[str, str]:
         return "pose/1.txt (frame 1)", "the non-number 'one'"
     if what == "pose last row":
         write_matrix(scene / "pose" / "2.txt", np.ones((4, 4)))
-        return "pose/2.txt (frame 2)", "expected last row 0 0 0 1"
+        return "pose/2.txt (frame 2)", "found last row 1 1 1 1"
+    if what == "pose not rigid":
+        sheared = np.eye(4)
+        sheared[0, 1] = 0.3
+        write_matrix(scene / "pose" / "2.txt", sheared)
+        return "pose/2.txt (frame 2)", "found rotation not orthonormal (max |R^T R - I| = 0.3)"
+    if what == "pose mirrored":
+        write_matrix(scene / "pose" / "2.txt", np.diag([1.0, 1.0, -1.0, 1.0]))
+        return "pose/2.txt (frame 2)", "found rotation determinant -1 (a mirror)"
     if what == "missing intrinsic":
         (scene / "intrinsic" / "intrinsic_color.txt").unlink()
         return "intrinsic/intrinsic_color.txt", "found nothing"
@@ -326,7 +334,8 @@ def _break(scene: Path, what: str) -> tuple[str, str]:
 
 
 BREAKAGES = [
-    "missing depth", "non-numeric name", "pose not 4x4", "pose not numbers", "pose last row", "missing intrinsic",
+    "missing depth", "non-numeric name", "pose not 4x4", "pose not numbers", "pose last row", "pose not rigid", "pose mirrored",
+    "missing intrinsic",
     "truncated colour", "truncated label", "colour size", "depth aspect", "rgb label",
 ]  # fmt: skip
 

@@ -37,7 +37,7 @@ EXTRINSIC_DEPTH[:3, 3] = (0.025, 0.0, 0.0)
 def pose_of(index: int) -> np.ndarray:
     c2w = np.eye(4, dtype=np.float32)
     c2w[:3, 3] = (0.1 + 0.3 * index, -0.2 * index, 1.5)
-    c2w[0, 1], c2w[1, 0] = 0.6, -0.6  # not orthonormal, but distinctive values to compare
+    c2w[0, 0], c2w[0, 1], c2w[1, 0], c2w[1, 1] = 0.8, 0.6, -0.6, 0.8  # a rotation about z with distinctive values
     return c2w
 
 

@@ -27,3 +27,6 @@ class DatasetConfig:
     """Ray-sampling near bound, metres (training and evaluation alike)."""
     far: float = 6.0
     """Ray-sampling far bound, metres (training and evaluation alike)."""
+    validate: str = "quick"
+    """Check the chosen scenes' files before training: quick (every file indexed, image sizes, poses finite and rigid),
+    full (also decode every frame and check its labels) or off."""

@@ -3,18 +3,22 @@
 from __future__ import annotations
 
 import functools
+import shutil
+import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
+from gpnerf_core.data_checks import check_scene_files, check_validation_level
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.interfaces import SPLITS, SceneDataset
 from gpnerf_core.types import Scene
 from gpnerf_plugins.datasets.base import DatasetConfig
 from gpnerf_plugins.datasets.common.paths import from_launch_dir
 from gpnerf_plugins.datasets.embedded import CLASS_NAMES, IGNORE_INDEX, SEQUENCE, SceneSetParams, ensure_generated
-from gpnerf_plugins.datasets.embedded.generation import check_params
+from gpnerf_plugins.datasets.embedded.generation import check_params, damaged_files
 from gpnerf_plugins.datasets.replica.layout import ReplicaSequence, every_nth_split
 
 
@@ -68,12 +72,14 @@ class EmbeddedScenes(SceneDataset):
         eval_every: int = EmbeddedScenesConfig.eval_every,
         near: float = EmbeddedScenesConfig.near,
         far: float = EmbeddedScenesConfig.far,
+        validate: str = EmbeddedScenesConfig.validate,
     ) -> None:
         self.params = SceneSetParams(num_train_scenes, num_unseen_scenes, frames_per_scene, height, width, seed)
         every_nth_split(frames_per_scene, eval_every)  # raises ConfigError for a bad eval_every
         if not 0.0 < near < far:
             raise ConfigError(f"dataset.near={near}, dataset.far={far}; expected 0 < near < far (metres)")
         self.eval_every = eval_every
+        self.validation = check_validation_level(validate)
         self.near, self.far = float(near), float(far)
         self._root_arg = from_launch_dir(root) if root else None  # None: the cache
         self._root: Path | None = None
@@ -106,6 +112,27 @@ class EmbeddedScenes(SceneDataset):
             self._hfov = float(info["hfov_deg"])
             self._root = root
         return self._root
+
+    def check_files(self, scenes: Sequence[str], level: str) -> list[str]:
+        """The generic check, after comparing the files with the generator's checksum list.
+
+        A damaged set in the cache is regenerated (with a note on stderr); a damaged set in ``dataset.root`` is reported
+        with how to regenerate it.
+        """
+        if level == "off":
+            return []
+        root = self.prepare()
+        damaged = damaged_files(root, list(scenes), full=level == "full")
+        if damaged and self._root_arg is None:
+            print(f"note: the cached embedded scenes in {root} are damaged ({damaged[0]}); regenerating", file=sys.stderr)
+            shutil.rmtree(root)
+            self._root, self._scenes = None, {}
+            root = self.prepare()
+            damaged = damaged_files(root, list(scenes), full=level == "full")
+        if damaged:
+            fix = f"regenerate: delete {root} and run again (it is rendered into an empty folder)"
+            return [f"{problem}; {fix}" for problem in damaged]
+        return check_scene_files(self, scenes, level)
 
     def load_scene(self, name: str) -> Scene:
         known = self.params.scene_names("train") + self.params.scene_names("unseen")

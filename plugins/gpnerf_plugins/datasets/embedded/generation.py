@@ -37,6 +37,7 @@ GENERATOR_VERSION = "1"
 HFOV_DEG = 90.0
 SEQUENCE = "Sequence_1"
 CACHE_ENV = "GPNERF_CACHE"
+CHECKSUMS_FILE = "checksums.json"
 SPLIT_PREFIX = {"train": "layout", "unseen": "unseen"}
 _SPLIT_CODE = {"train": 0, "unseen": 1}
 
@@ -141,12 +142,17 @@ def _info(params: SceneSetParams, max_depth: float) -> dict[str, Any]:
 def generate(params: SceneSetParams, target: Path) -> Path:
     """Render the whole set into a temporary sibling of ``target`` and rename it into place.
 
-    A concurrent generator that finishes first wins; this one's copy is discarded. Returns ``target``.
+    A concurrent generator that finishes first wins; this one's copy is discarded. An interrupted generation leaves
+    no partial set (only a hidden temporary folder, never read). Returns ``target``.
+
+    Raises:
+        DataError: the folder cannot be written (read-only, full disk), naming it and what to do.
     """
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
-    tmp.chmod(0o755)  # mkdtemp's 0700 would follow the folder through the rename
+    tmp: Path | None = None
     try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
+        tmp.chmod(0o755)  # mkdtemp's 0700 would follow the folder through the rename
         log.info("rendering embedded scenes into %s (one-time)", target)
         max_depth = 0.0
         for split in ("train", "unseen"):
@@ -155,6 +161,7 @@ def generate(params: SceneSetParams, target: Path) -> Path:
         info = _info(params, max_depth)
         write_classes_json(tmp, info)
         write_readme(tmp, info)
+        write_checksums(tmp)
         if target.is_dir() and not any(target.iterdir()):
             target.rmdir()
         try:
@@ -162,10 +169,53 @@ def generate(params: SceneSetParams, target: Path) -> Path:
         except OSError:
             if not (target / CLASSES_FILE).is_file():
                 raise
+    except OSError as exc:
+        where = exc.filename or target.parent
+        raise DataError(
+            f"{where}: cannot write the embedded scenes ({exc.strerror or exc}); point {CACHE_ENV} (or dataset.root) "
+            "at a writable folder with a few hundred MB free"
+        ) from None
     finally:
-        if tmp.exists():
+        if tmp is not None and tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
     return target
+
+
+def write_checksums(root: Path) -> None:
+    """``checksums.json``: ``{relative path: [bytes, sha256]}`` of every file of a generated set."""
+    entries = {}
+    for path in sorted(p for p in root.rglob("*") if p.is_file() and p.name != CHECKSUMS_FILE):
+        data = path.read_bytes()
+        entries[path.relative_to(root).as_posix()] = [len(data), hashlib.sha256(data).hexdigest()]
+    (root / CHECKSUMS_FILE).write_text(json.dumps(entries, indent=1, sort_keys=True) + "\n")
+
+
+def damaged_files(root: Path, scenes: list[str], full: bool) -> list[str]:
+    """Files of ``scenes`` that differ from ``checksums.json`` (size; and content with ``full``), one line each.
+
+    A set generated before checksums were recorded has none: nothing is reported for it.
+    """
+    try:
+        entries = json.loads((root / CHECKSUMS_FILE).read_text())
+    except FileNotFoundError:
+        return []
+    except (OSError, ValueError) as exc:
+        return [f"{root / CHECKSUMS_FILE}: unreadable ({exc}); expected the generator's checksum list"]
+    problems = []
+    for relative, (size, digest) in sorted(entries.items()):
+        if relative.split("/", 1)[0] not in scenes:
+            continue
+        path = root / relative
+        try:
+            found = path.stat().st_size
+        except OSError:
+            problems.append(f"{path}: missing; expected {size} bytes (checksums.json)")
+            continue
+        if found != size:
+            problems.append(f"{path}: {found} bytes; expected {size} (checksums.json)")
+        elif full and hashlib.sha256(path.read_bytes()).hexdigest() != digest:
+            problems.append(f"{path}: content differs from checksums.json (sha256)")
+    return problems
 
 
 def check_params(root: Path, params: SceneSetParams) -> dict[str, Any]:

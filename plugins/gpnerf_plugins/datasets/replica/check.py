@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gpnerf_core.geometry import EXPECTED_RIGID, rigid_transform_problem
 from gpnerf_plugins.datasets.common.image_io import ImageError, describe, is_integer_map, is_rgb8, one_line_error, read_png
 from gpnerf_plugins.datasets.common.layout_check import LayoutReport, Problem
 from gpnerf_plugins.datasets.replica.classes import CLASS_NAMES, MAX_RAW_ID, raw_to_class_table
@@ -87,10 +88,8 @@ class _Walk:
                 continue
             if values.size != 16:
                 self.problem(where, frame, POSE_ROW, f"{values.size} numbers")
-            elif not np.isfinite(values).all():
-                self.problem(where, frame, "finite numbers", "NaN or Inf in the pose")
-            elif np.abs(values[12:] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-4:
-                self.problem(where, frame, "last row 0 0 0 1", " ".join(f"{v:g}" for v in values[12:]))
+            elif (problem := rigid_transform_problem(values.reshape(4, 4))) is not None:
+                self.problem(where, frame, EXPECTED_RIGID, problem)
         self.counts["poses"] += rows
         return rows
 

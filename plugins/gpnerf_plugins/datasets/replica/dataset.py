@@ -25,6 +25,7 @@ from abc import abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
 
+from gpnerf_core.data_checks import check_validation_level
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.interfaces import SPLITS, SceneDataset
 from gpnerf_core.types import Frame, Scene
@@ -150,8 +151,10 @@ class _ReplicaDataset(SceneDataset):
         far: float,
         hfov_deg: float,
         strict_labels: bool,
+        validate: str,
     ) -> None:
         self.size = _check_common(height, width, near, far, hfov_deg)
+        self.validation = check_validation_level(validate)
         self.protocol = protocol
         self.near, self.far, self.hfov_deg = float(near), float(far), float(hfov_deg)
         self.strict_labels = strict_labels
@@ -218,6 +221,7 @@ class ReplicaScenes(_ReplicaDataset):
         width: int = ReplicaScenesConfig.width,
         near: float = ReplicaScenesConfig.near,
         far: float = ReplicaScenesConfig.far,
+        validate: str = ReplicaScenesConfig.validate,
         hfov_deg: float = ReplicaScenesConfig.hfov_deg,
         eval_start: int = ReplicaScenesConfig.eval_start,
         eval_stop: int = ReplicaScenesConfig.eval_stop,
@@ -226,7 +230,7 @@ class ReplicaScenes(_ReplicaDataset):
         strict_labels: bool = ReplicaScenesConfig.strict_labels,
     ) -> None:
         train_file, test_file = protocol_files(protocol)
-        super().__init__(root, protocol, height, width, near, far, hfov_deg, strict_labels)
+        super().__init__(root, protocol, height, width, near, far, hfov_deg, strict_labels, validate)
         check_frame_rule("eval_start/eval_stop/eval_step/eval_count", eval_start, eval_stop, eval_step, eval_count)
         self.eval_rule = (eval_start, eval_stop, eval_step, eval_count)
         self.train_scene_names = read_split_file(train_file)
@@ -282,6 +286,7 @@ class ReplicaInstanceScenes(_ReplicaDataset):
         width: int = ReplicaInstanceScenesConfig.width,
         near: float = ReplicaInstanceScenesConfig.near,
         far: float = ReplicaInstanceScenesConfig.far,
+        validate: str = ReplicaInstanceScenesConfig.validate,
         hfov_deg: float = ReplicaInstanceScenesConfig.hfov_deg,
         eval_start: int = ReplicaInstanceScenesConfig.eval_start,
         eval_stop: int = ReplicaInstanceScenesConfig.eval_stop,
@@ -291,7 +296,7 @@ class ReplicaInstanceScenes(_ReplicaDataset):
         strict_labels: bool = ReplicaInstanceScenesConfig.strict_labels,
     ) -> None:
         protocol_files(protocol)  # same protocol names as ``replica``
-        super().__init__(root, protocol, height, width, near, far, hfov_deg, strict_labels)
+        super().__init__(root, protocol, height, width, near, far, hfov_deg, strict_labels, validate)
         check_frame_rule("eval_start/eval_stop/eval_step", eval_start, eval_stop, eval_step)
         check_frame_rule("train_stop/train_step", 0, train_stop, train_step)
         self.eval_rule = (eval_start, eval_stop, eval_step)

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.geometry import EXPECTED_RIGID, rigid_transform_problem
 from gpnerf_core.types import Frame, Scene
 from gpnerf_plugins.datasets.common.image_io import (
     image_size,
@@ -112,12 +113,9 @@ def read_trajectory(path: Path) -> np.ndarray:
         if len(values) != 16:
             raise DataError(f"{path}:{line_no}: {len(values)} numbers; expected 16 (row-major 4x4 camera-to-world)")
         pose = np.asarray(values, dtype=np.float64).reshape(4, 4)
-        if not np.isfinite(pose).all():
-            raise DataError(f"{path}:{line_no}: pose contains NaN or Inf; expected finite numbers")
-        if np.abs(pose[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-4:
-            raise DataError(
-                f"{path}:{line_no}: last row is {pose[3].tolist()}; expected 0 0 0 1 (a row-major camera-to-world matrix)"
-            )
+        problem = rigid_transform_problem(pose)
+        if problem is not None:
+            raise DataError(f"{path}:{line_no}: camera-to-world pose has {problem}; expected {EXPECTED_RIGID}")
         poses.append(pose)
     if not poses:
         raise DataError(f"{path}: no poses; expected one row of 16 numbers per frame")

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
+from gpnerf_core.data_checks import check_validation_level
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.interfaces import SPLITS, SceneDataset
 from gpnerf_core.types import Scene
@@ -69,6 +70,7 @@ class ScanNetScenes(SceneDataset):
         width: int = ScanNetScenesConfig.width,
         near: float = ScanNetScenesConfig.near,
         far: float = ScanNetScenesConfig.far,
+        validate: str = ScanNetScenesConfig.validate,
         protocol: str = ScanNetScenesConfig.protocol,
         allow_missing_scenes: bool = ScanNetScenesConfig.allow_missing_scenes,
         train_scenes: Sequence[str] = (),
@@ -84,6 +86,7 @@ class ScanNetScenes(SceneDataset):
             bad = [n for n in names if not SCENE_NAME.match(str(n))]
             if bad:
                 raise ConfigError(f"dataset.{key} has {bad[0]!r}; expected scene names sceneXXXX_YY")
+        self.validation = check_validation_level(validate)
         self.root = Path(root).expanduser() if root else None
         self.label_map_path = Path(label_map_file).expanduser() if label_map_file else None
         self.height, self.width = int(height), int(width)

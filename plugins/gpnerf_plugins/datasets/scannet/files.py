@@ -23,6 +23,7 @@ import numpy as np
 from PIL import Image
 
 from gpnerf_core.errors import DataError
+from gpnerf_core.geometry import EXPECTED_RIGID, rigid_transform_problem
 from gpnerf_plugins.datasets.common import image_io
 from gpnerf_plugins.datasets.common.image_io import ImageError
 from gpnerf_plugins.datasets.common.layout_check import Problem
@@ -127,11 +128,12 @@ def read_pose(path: Path, frame: str | None = None) -> np.ndarray:
     """``pose/<f>.txt`` -> ``[4, 4]`` float64 camera-to-world; non-finite entries mean an invalid pose (returned as is).
 
     Raises:
-        LayoutError: not 4 x 4 numbers, or a finite pose whose last row is not ``0 0 0 1``.
+        LayoutError: not 4 x 4 numbers, or a finite pose that is not a rigid transform.
     """
     pose = _read_matrix(path, "camera-to-world pose", frame)
-    if np.isfinite(pose).all() and np.abs(pose[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-4:
-        raise LayoutError(path, "last row 0 0 0 1 (a camera-to-world matrix)", f"{pose[3].tolist()}", frame)
+    problem = rigid_transform_problem(pose) if np.isfinite(pose).all() else None
+    if problem is not None:
+        raise LayoutError(path, EXPECTED_RIGID, problem, frame)
     return pose
 
 

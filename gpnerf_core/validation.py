@@ -1,0 +1,125 @@
+"""Refuse bad config values, and data a run cannot train on, before any work is done.
+
+Each refusal is one line naming the key (or the scene, or the file), the value and what is expected. Component
+options are checked by the components themselves when they are built, which also happens before any work.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import typing
+from typing import Any, Callable
+
+from omegaconf import DictConfig, OmegaConf
+
+from gpnerf_core.build import Components
+from gpnerf_core.config import RootConfig
+from gpnerf_core.device import PRECISIONS
+from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.registry import KINDS
+from gpnerf_core.training.loggers import check_loggers
+
+
+def _count(minimum: int) -> Callable[[Any], bool]:
+    return lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= minimum
+
+
+def _positive(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+
+
+def _non_negative(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0
+
+
+def _fraction(v: Any) -> bool:
+    return _positive(v) and v <= 1
+
+
+COUNT = "an integer >= 1"
+COUNT0 = "an integer >= 0"
+RULES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
+    ("seed", _count(0), COUNT0),
+    ("threads", _count(0), f"{COUNT0} (0 = torch's default)"),
+    ("train.steps", _count(1), COUNT),
+    ("train.rays", _count(1), COUNT),
+    ("train.targets_per_step", _count(1), COUNT),
+    ("train.lr.feature_extractor", _positive, "a finite learning rate > 0"),
+    ("train.lr.transformer", _positive, "a finite learning rate > 0"),
+    ("train.lr.head", _positive, "a finite learning rate > 0"),
+    ("train.lr_decay_rate", _fraction, "a factor in (0, 1]"),
+    ("train.lr_decay_steps", _count(1), COUNT),
+    ("train.grad_clip", _non_negative, "a finite norm >= 0 (0 = off)"),
+    ("train.log_every", _count(1), COUNT),
+    ("train.checkpoint_every", _count(0), f"{COUNT0} (0 = only the final checkpoint)"),
+    ("model.coarse_samples", _count(2), "an integer >= 2"),
+    ("model.fine_samples", _count(0), f"{COUNT0} (0 = one pass)"),
+    ("model.num_source_views", _count(1), COUNT),
+    ("eval.render_stride", _count(0), f"{COUNT0} (0 = the semantic map's stride)"),
+    ("eval.chunk_rays", _count(1), COUNT),
+    ("eval.max_views_per_scene", _count(0), f"{COUNT0} (0 = all)"),
+    ("eval.save_images", _count(0), COUNT0),
+)
+"""(key, check, what is expected) for every numeric key of the schema (``gpnerf_core/config.py``)."""
+
+SPLITS = ("train", "unseen")
+
+
+def validate_config(cfg: DictConfig) -> None:
+    """Refuse unknown keys (also those added with ``+``) and out-of-range values of the schema's keys."""
+    _refuse_unknown_keys(cfg, RootConfig, "")
+    for key, check, expected in RULES:
+        value = OmegaConf.select(cfg, key)
+        if not check(value):
+            raise ConfigError(f"{key}={value!r}: expected {expected}")
+    if cfg.train.precision not in PRECISIONS:
+        raise ConfigError(f"train.precision={cfg.train.precision!r}: expected one of {', '.join(PRECISIONS)}")
+    bad_splits = [s for s in cfg.eval.splits if s not in SPLITS]
+    if bad_splits:
+        raise ConfigError(f"eval.splits contains {bad_splits[0]!r}; expected some of {', '.join(SPLITS)}")
+    check_loggers(list(cfg.train.loggers))
+
+
+def _refuse_unknown_keys(node: DictConfig, schema: type, prefix: str) -> None:
+    hints = typing.get_type_hints(schema)
+    fields = {f.name for f in dataclasses.fields(schema)}
+    for key in node.keys():
+        path = f"{prefix}{key}"
+        if key not in fields:
+            raise ConfigError(
+                f"unknown config key {path!r}; {schema.__name__} has: {', '.join(sorted(fields))} "
+                "(a key added with '+' must still be one the schema knows)"
+            )
+        if key in KINDS or key == "hydra":
+            continue  # component options: checked against the component's config when it is built
+        hint = hints.get(key)
+        child = node.get(key)
+        if dataclasses.is_dataclass(hint) and isinstance(child, DictConfig):
+            _refuse_unknown_keys(child, hint, f"{path}.")
+
+
+def check_data(cfg: DictConfig, components: Components, *, training: bool = True) -> None:
+    """Check the dataset's files (at ``dataset.validate``) and that every scene offers enough source views."""
+    dataset = components.dataset
+    splits = ["train"] if training else []
+    splits += [s for s in cfg.eval.splits if s not in splits]
+    scenes = list(dict.fromkeys(name for split in splits for name in dataset.scenes(split)))
+    level = dataset.validation
+    problems = dataset.check_files(scenes, level)
+    if problems:
+        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+        raise DataError(
+            f"dataset.validate={level} found {len(problems)} problem(s) before training; first: {problems[0]}{more}"
+        )
+    views = int(cfg.model.num_source_views)
+    training_scenes = set(dataset.scenes("train")) if training else set()
+    for name in scenes:
+        scene = dataset.load_scene(name)
+        train = set(scene.train_frames)
+        offered = len(train) - 1 if name in training_scenes or train & set(scene.eval_frames) else len(train)
+        if offered < views:
+            raise ConfigError(
+                f"model.num_source_views={views} but scene {name!r} offers {offered} source views per target "
+                f"({len(train)} training frames, never the target itself); expected model.num_source_views <= {offered}"
+            )

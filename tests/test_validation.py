@@ -1,0 +1,158 @@
+"""Every invalid value is refused before any work, in one line naming the key, the value and what is expected; data a
+run cannot train on is refused before training."""
+
+import shutil
+
+import pytest
+import torch
+
+from gpnerf_core.build import build_components
+from gpnerf_core.config import compose
+from gpnerf_core.data_checks import check_scene_files
+from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.interfaces import SceneDataset
+from gpnerf_core.types import Frame, Scene
+from gpnerf_core.validation import check_data, validate_config
+from pipeline_check import TINY_MODEL, TINY_SCENES
+
+BAD_VALUES = [
+    ("train.steps=0", "train.steps=0: expected an integer >= 1"),
+    ("train.steps=-5", "train.steps=-5: expected an integer >= 1"),
+    ("train.rays=0", "train.rays=0: expected an integer >= 1"),
+    ("train.rays=-256", "train.rays=-256: expected an integer >= 1"),
+    ("train.targets_per_step=0", "train.targets_per_step=0: expected an integer >= 1"),
+    ("train.lr.feature_extractor=-0.001", "train.lr.feature_extractor=-0.001: expected a finite learning rate > 0"),
+    ("train.lr.transformer=0", "train.lr.transformer=0.0: expected a finite learning rate > 0"),
+    ("train.lr.head=inf", "train.lr.head=inf: expected a finite learning rate > 0"),
+    ("train.lr.head=nan", "train.lr.head=nan: expected a finite learning rate > 0"),
+    ("train.lr_decay_rate=0", "train.lr_decay_rate=0.0: expected a factor in (0, 1]"),
+    ("train.lr_decay_rate=1.5", "train.lr_decay_rate=1.5: expected a factor in (0, 1]"),
+    ("train.lr_decay_steps=0", "train.lr_decay_steps=0: expected an integer >= 1"),
+    ("train.grad_clip=-1", "train.grad_clip=-1.0: expected a finite norm >= 0"),
+    ("train.log_every=0", "train.log_every=0: expected an integer >= 1"),
+    ("train.checkpoint_every=-10", "train.checkpoint_every=-10: expected an integer >= 0"),
+    ("model.coarse_samples=1", "model.coarse_samples=1: expected an integer >= 2"),
+    ("model.fine_samples=-1", "model.fine_samples=-1: expected an integer >= 0"),
+    ("model.num_source_views=0", "model.num_source_views=0: expected an integer >= 1"),
+    ("eval.chunk_rays=0", "eval.chunk_rays=0: expected an integer >= 1"),
+    ("eval.render_stride=-2", "eval.render_stride=-2: expected an integer >= 0"),
+    ("eval.max_views_per_scene=-1", "eval.max_views_per_scene=-1: expected an integer >= 0"),
+    ("eval.save_images=-1", "eval.save_images=-1: expected an integer >= 0"),
+    ("eval.splits=[train,test]", "eval.splits contains 'test'; expected some of train, unseen"),
+    ("seed=-1", "seed=-1: expected an integer >= 0"),
+    ("threads=-2", "threads=-2: expected an integer >= 0"),
+    ("train.precision=fp16", "train.precision='fp16': expected one of fp32, bf16"),
+    ("train.loggers=[csv,wandb]", "train.loggers contains 'wandb'; known loggers: csv, tensorboard"),
+    ("+train.stpes=10", "unknown config key 'train.stpes'; TrainConfig has:"),
+    ("+foo=1", "unknown config key 'foo'; RootConfig has:"),
+    ("+model.semantic_field.frozen=true", "unknown config key 'model.semantic_field.frozen'; SemanticFieldConfig has:"),
+    ("+eval.every=5", "unknown config key 'eval.every'; EvalConfig has:"),
+]
+
+
+@pytest.mark.parametrize("override, message", BAD_VALUES, ids=[o for o, _ in BAD_VALUES])
+def test_bad_value_is_refused_in_one_line(override, message):
+    with pytest.raises(ConfigError) as error:
+        validate_config(compose(["+head=unet", "+loss=dgs", override]))
+    assert str(error.value).startswith(message) and "\n" not in str(error.value)
+
+
+def test_defaults_and_presets_are_valid():
+    for overrides in ([], ["+head=unet", "+loss=dgs"], ["+experiment=table4/id5"], ["+experiment=paper/gpnerf"]):
+        validate_config(compose(overrides))
+
+
+def test_more_source_views_than_a_scene_offers_is_refused_naming_the_scene(tmp_path):
+    cfg = compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES, f"dataset.root={tmp_path}",
+                   "model.num_source_views=4"])
+    with pytest.raises(ConfigError, match=r"model.num_source_views=4 but scene 'layout_00' offers 3 source views"):
+        check_data(cfg, build_components(cfg))
+
+
+def _tiny(tmp_path, *extra):
+    cfg = compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES, f"dataset.root={tmp_path / 'set'}", *extra])
+    components = build_components(cfg)
+    check_data(cfg, components)  # generates the set; clean
+    return cfg, components
+
+
+def _fresh(cfg):
+    return build_components(cfg)
+
+
+def test_a_pose_that_is_not_rigid_is_refused_before_training_naming_the_line(tmp_path):
+    cfg, _ = _tiny(tmp_path)
+    trajectory = tmp_path / "set" / "layout_00" / "Sequence_1" / "traj_w_c.txt"
+    lines = trajectory.read_text().splitlines()
+    values = lines[2].split()
+    values[1] = str(float(values[1]) + 0.5)  # shear the rotation
+    lines[2] = " ".join(values)
+    trajectory.write_text("\n".join(lines) + "\n")
+    (tmp_path / "set" / "checksums.json").unlink()  # as a real dataset, which has no checksum list
+    with pytest.raises(DataError, match=r"traj_w_c.txt:3: camera-to-world pose has rotation not orthonormal"):
+        check_data(cfg, _fresh(cfg))
+
+
+def test_a_truncated_image_is_found_by_full_validation_only(tmp_path):
+    cfg, _ = _tiny(tmp_path)
+    label = tmp_path / "set" / "layout_00" / "Sequence_1" / "semantic_class" / "semantic_class_1.png"
+    label.write_bytes(label.read_bytes()[: label.stat().st_size * 2 // 3])  # the header still reads
+    (tmp_path / "set" / "checksums.json").unlink()  # as a real dataset, which has no checksum list
+    check_data(cfg, _fresh(cfg))  # quick: file index, sizes from the headers, poses
+    full = compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES, f"dataset.root={tmp_path / 'set'}",
+                    "dataset.validate=full"])
+    with pytest.raises(DataError, match=r"semantic_class_1.png: unreadable image"):
+        check_data(full, _fresh(full))
+
+
+class LabelsOutOfRange(SceneDataset):
+    """A dataset whose reader lets a label id past the class count through."""
+
+    class_names = ("a", "b", "c")
+    ignore_index = 255
+
+    def scenes(self, split):
+        return ("only",)
+
+    def load_scene(self, name):
+        frame = Frame(rgb=torch.zeros(4, 4, 3), depth=torch.ones(4, 4), semantic=torch.full((4, 4), 7),
+                      intrinsics=torch.eye(3), c2w=torch.eye(4))
+        return Scene(name, torch.eye(4)[None], torch.eye(3)[None], 4, 4, 0.1, 5.0, (0,), (), lambda i: frame)
+
+
+def test_full_validation_checks_label_ids_against_the_class_count():
+    assert check_scene_files(LabelsOutOfRange(), ["only"], "quick") == []
+    [problem] = check_scene_files(LabelsOutOfRange(), ["only"], "full")
+    assert problem == "scene 'only' frame 0: label 7 is neither a class id in [0, 3) nor the ignore index 255"
+
+
+def test_a_damaged_file_in_a_dataset_root_says_how_to_regenerate(tmp_path):
+    cfg, _ = _tiny(tmp_path)
+    rgb = tmp_path / "set" / "layout_00" / "Sequence_1" / "rgb" / "rgb_2.png"
+    rgb.write_bytes(rgb.read_bytes()[:100])
+    with pytest.raises(DataError) as error:
+        check_data(cfg, _fresh(cfg))
+    message = str(error.value)
+    assert "rgb_2.png: 100 bytes; expected" in message and f"regenerate: delete {tmp_path / 'set'}" in message
+
+
+def test_a_damaged_cache_is_regenerated(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("GPNERF_CACHE", str(tmp_path / "cache"))
+    cfg = compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES])
+    check_data(cfg, build_components(cfg))
+    [cached] = (tmp_path / "cache" / "embedded_scenes").iterdir()
+    rgb = cached / "layout_00" / "Sequence_1" / "rgb" / "rgb_2.png"
+    original = rgb.read_bytes()
+    rgb.write_bytes(original[:100])
+    check_data(cfg, build_components(cfg))
+    assert "cached embedded scenes" in capsys.readouterr().err and rgb.read_bytes() == original
+
+
+def test_validation_off_skips_the_file_check(tmp_path):
+    cfg, _ = _tiny(tmp_path)
+    shutil.rmtree(tmp_path / "set" / "unseen_00" / "Sequence_1" / "depth")
+    with pytest.raises(DataError, match="depth"):
+        check_data(cfg, _fresh(cfg))
+    off = compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES, f"dataset.root={tmp_path / 'set'}",
+                   "dataset.validate=off", "eval.splits=[train]"])
+    check_data(off, _fresh(off))
