@@ -23,11 +23,13 @@ from gpnerf_core.testing.checks.common import (
 from gpnerf_core.testing.inputs import AGGREGATOR_CASES, RAY_IN_DIM, projected, tokens
 from gpnerf_core.types import FieldBlockOutput, ProjectedFeatures, RayBlockOutput, RayReadout
 
+
 def sizes(component: nn.Module, names: tuple[str, ...]) -> dict[str, int]:
     values = call(f"reading {', '.join(names)}", lambda: {name: getattr(component, name) for name in names})
     for name, value in values.items():
         expect(isinstance(value, int) and value > 0, f"{name} is {value!r}, expected a positive int")
     return values
+
 
 def run_field(field: nn.Module, features: ProjectedFeatures, samples, rays) -> Outputs:
     """``begin`` then every block; returns the tokens and each block's view attention, shapes checked."""
@@ -50,6 +52,7 @@ def run_field(field: nn.Module, features: ProjectedFeatures, samples, rays) -> O
     outputs["tokens"] = x
     return outputs
 
+
 def run_ray(ray: nn.Module, x: Tensor) -> Outputs:
     """Every block then ``readout``; returns tokens, each block's ray attention, rgb and weights, shapes checked."""
     r, s, d = x.shape
@@ -71,13 +74,16 @@ def run_ray(ray: nn.Module, x: Tensor) -> Outputs:
     outputs["weights"] = expect_tensor(readout.weights, f"{what}.weights", [r, s], torch.float32)
     return outputs
 
+
 def check_field_properties(subject: Subject) -> None:
     sizes(subject.build(), ("width", "attention_channels", "num_blocks"))
+
 
 def check_ray_properties(subject: Subject) -> None:
     """Positive sizes, and as many blocks as the pipeline asked for (the field aggregator's count)."""
     size = sizes(subject.build(num_blocks=3), ("num_heads", "num_blocks"))
     expect(size["num_blocks"] == 3, f"num_blocks is {size['num_blocks']} for a ray aggregator built with num_blocks=3")
+
 
 def check_field_shapes(subject: Subject) -> None:
     """Tokens ``[R, S, width]`` and view attention ``[R, S, V, attention_channels]`` for several R, S, V."""
@@ -86,12 +92,14 @@ def check_field_shapes(subject: Subject) -> None:
         with torch.no_grad():
             run_field(field, *projected(*case))
 
+
 def check_ray_shapes(subject: Subject) -> None:
     """Tokens ``[R, S, D]``, ray attention ``[R, H, S, S]``, rgb ``[R, 3]`` and weights ``[R, S]``."""
     ray = subject.build().eval()
     for r, s, _ in AGGREGATOR_CASES:
         with torch.no_grad():
             run_ray(ray, tokens(r, s))
+
 
 def check_view_attention(subject: Subject) -> None:
     """In eval mode the view attention is a softmax over the V views: >= 0, summing to 1 for every seen sample."""
@@ -106,6 +114,7 @@ def check_view_attention(subject: Subject) -> None:
                 channels = attention.shape[-1]
                 expect_sums_to_one(attention, 2, f"{name} (softmax over views V)", seen.expand(-1, -1, channels))
 
+
 def check_ray_attention(subject: Subject) -> None:
     """In eval mode every row of the ray attention is a softmax over the S samples."""
     ray = subject.build().eval()
@@ -115,6 +124,7 @@ def check_ray_attention(subject: Subject) -> None:
         for name, attention in outputs.items():
             if name.endswith("ray_attention"):
                 expect_sums_to_one(attention, -1, f"{name} rows (softmax over samples S)")
+
 
 def check_readout(subject: Subject) -> None:
     """Readout weights are >= 0 and sum to 1 along each ray, in train and eval mode."""
@@ -126,24 +136,29 @@ def check_readout(subject: Subject) -> None:
                 weights = run_ray(ray, tokens(r, s))["weights"]
             expect_sums_to_one(weights, -1, "readout weights", when=f"in {mode} mode")
 
+
 def check_field_gradients(subject: Subject) -> None:
     field = subject.build().train()
     features, samples, rays = projected(*AGGREGATOR_CASES[0])
     features.rgb_features.requires_grad_()
     expect_gradients(field, run_field(field, features, samples, rays), {"rgb_features": features.rgb_features})
 
+
 def check_ray_gradients(subject: Subject) -> None:
     ray = subject.build().train()
     x = tokens(*AGGREGATOR_CASES[0][:2]).requires_grad_()
     expect_gradients(ray, run_ray(ray, x), {"tokens": x})
 
+
 def check_field_modes(subject: Subject) -> None:
     inputs = projected(*AGGREGATOR_CASES[0])
     expect_modes(subject, lambda field: run_field(field, *inputs))
 
+
 def check_ray_modes(subject: Subject) -> None:
     x = tokens(*AGGREGATOR_CASES[0][:2])
     expect_modes(subject, lambda ray: run_ray(ray, x))
+
 
 def check_field_degenerate(subject: Subject) -> None:
     """All-zero features and pose features, a sample no view sees and a ray no view sees: finite outputs."""
@@ -155,6 +170,7 @@ def check_field_degenerate(subject: Subject) -> None:
     expect_finite({f"gradient of {n}": p.grad for n, p in field.named_parameters() if p.grad is not None},
                   "for all-zero features")
 
+
 def check_ray_degenerate(subject: Subject) -> None:
     """All-zero tokens, and rays of a single sample: finite outputs, weights still summing to 1."""
     ray = subject.build().eval()
@@ -164,6 +180,7 @@ def check_ray_degenerate(subject: Subject) -> None:
         when = f"for all-zero tokens [{r}, {s}, {RAY_IN_DIM}]"
         expect_finite(outputs, when)
         expect_sums_to_one(outputs["weights"], -1, "readout weights", when=when)
+
 
 FIELD_CHECKS = {
     "build": check_build,
@@ -175,6 +192,7 @@ FIELD_CHECKS = {
     "degenerate inputs": check_field_degenerate,
     "config round trip": check_round_trip,
 }
+
 
 RAY_CHECKS = {
     "build": check_build,

@@ -24,16 +24,19 @@ from gpnerf_core.types import LossInputs
 
 SEMANTIC_LEAVES = ("logits", "semantic", "sample_semantic")
 
+
 def flags(loss: Any) -> tuple[bool, bool]:
     semantics, samples = call("reading the needs_* flags", lambda: (loss.needs_semantics, loss.needs_sample_semantics))
     for name, value in (("needs_semantics", semantics), ("needs_sample_semantics", samples)):
         expect(isinstance(value, bool), f"{name} is {value!r}, expected a bool")
     return semantics, samples
 
+
 def inputs_for(loss: Any, **options: Any) -> LossInputs:
     """The inputs the pipeline would give this loss set: semantic ones only where its flags ask for them."""
     semantics, samples = flags(loss)
     return loss_inputs(semantics=semantics, sample_semantics=samples, **options)
+
 
 def terms(loss: Any, inputs: LossInputs, when: str = "") -> Outputs:
     """The loss set's terms, each a finite float scalar."""
@@ -52,6 +55,7 @@ def terms(loss: Any, inputs: LossInputs, when: str = "") -> Outputs:
     expect_finite(result, f"from {what}")
     return result
 
+
 def check_flags(subject: Subject) -> None:
     """The loss set runs on exactly what its flags ask for, and every flag it sets is used.
 
@@ -65,8 +69,11 @@ def check_flags(subject: Subject) -> None:
     try:
         result = terms(loss, inputs, f"needs_semantics={semantics}, needs_sample_semantics={samples}")
     except CheckFailed as failure:
-        hint = "set needs_semantics = True" if not semantics else "set needs_sample_semantics = True"
-        raise CheckFailed(f"{failure}; a loss set that reads what its flags leave out (None) must {hint}") from None
+        if semantics and samples:
+            raise  # it got everything: not a flag problem
+        hint = "needs_semantics" if not semantics else "needs_sample_semantics"
+        message = f"{failure}; a loss set that reads what its flags leave out (None) must set {hint} = True"
+        raise CheckFailed(message) from None
     reached = reached_leaves(result, inputs)
     if semantics and not any(leaf.split(".")[-1] in SEMANTIC_LEAVES for leaf in reached):
         raise CheckFailed(f"needs_semantics is True but no term's gradient reaches the logits or the semantic "
@@ -74,6 +81,7 @@ def check_flags(subject: Subject) -> None:
     if samples and not any(leaf.endswith("sample_semantic") for leaf in reached):
         raise CheckFailed(f"needs_sample_semantics is True but no term's gradient reaches sample_semantic "
                           f"(terms reach: {', '.join(reached) or 'nothing'})")
+
 
 def reached_leaves(result: Outputs, inputs: LossInputs) -> list[str]:
     """The input tensors some term's gradient reaches."""
@@ -84,11 +92,13 @@ def reached_leaves(result: Outputs, inputs: LossInputs) -> list[str]:
     grads = torch.autograd.grad(total, list(leaves.values()), allow_unused=True, retain_graph=True)
     return [name for name, grad in zip(leaves, grads) if grad is not None]
 
+
 def check_terms(subject: Subject) -> None:
     """Non-empty dict of finite float scalars; with and without a fine pass."""
     loss = subject.build()
     for fine in (True, False):
         terms(loss, inputs_for(loss, fine=fine), "with a fine pass" if fine else "without a fine pass (fine=None)")
+
 
 def check_gradients(subject: Subject) -> None:
     """Every term's gradient reaches some input it reads, and every parameter of the loss set."""
@@ -108,10 +118,12 @@ def check_gradients(subject: Subject) -> None:
         missing = [n for n, p in parameters.items() if p.requires_grad and p.grad is None]
         expect(not missing, f"no gradient reached the loss set's parameters {', '.join(missing)}")
 
+
 def check_modes(subject: Subject) -> None:
     probe = subject.build()
     inputs = inputs_for(probe)
     expect_modes(subject, lambda loss: terms(loss, inputs))
+
 
 def check_degenerate(subject: Subject) -> None:
     """One class, every label ignored, all-zero features and unknown depth: finite terms and gradients."""
@@ -130,6 +142,7 @@ def check_degenerate(subject: Subject) -> None:
             grads = call("gradient of the terms' sum", torch.autograd.grad, total, list(leaves.values()),
                          allow_unused=True)
             expect_finite({f"gradient of {n}": g for n, g in zip(leaves, grads) if g is not None}, f"for {when}")
+
 
 CHECKS = {
     "build": check_build,
