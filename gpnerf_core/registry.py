@@ -15,6 +15,8 @@ import importlib.metadata
 import inspect
 import os
 import re
+import sys
+import traceback
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping
 
@@ -206,7 +208,7 @@ class Registry:
         except Exception as exc:
             if os.environ.get("GPNERF_DEBUG"):
                 raise
-            raise PluginError(f"{where} failed to build: {type(exc).__name__}: {_one_line(exc)}") from None
+            raise PluginError(f"{where} failed to build: {type(exc).__name__}: {one_line(exc)}") from None
         interface = _interfaces()[kind]
         if not isinstance(component, interface):
             raise PluginError(f"{where} built a {type(component).__name__}, which does not implement {interface.__name__}")
@@ -264,7 +266,8 @@ class Registry:
             ) from None
 
 
-def _one_line(exc: BaseException) -> str:
+def one_line(exc: BaseException) -> str:
+    """The first line of an exception's message (decoders and validators raise multi-line ones)."""
     text = str(exc).strip()
     return text.splitlines()[0] if text else "(no message)"
 
@@ -282,7 +285,7 @@ def _env_list(name: str) -> list[str]:
     return [item.strip() for item in os.environ.get(name, "").split(",") if item.strip()]
 
 
-def _normalize(name: str) -> str:
+def normalize_distribution(name: str) -> str:
     """Distribution names compare as PEP 503 normalises them (``GpNeRF_Head.Fancy`` == ``gpnerf-head-fancy``)."""
     return re.sub(r"[-_.]+", "-", name).lower()
 
@@ -301,7 +304,7 @@ class LoadedPlugins:
         try:
             self.manager.register(plugin, name=info.name)
         except (pluggy.PluginValidationError, ValueError) as exc:
-            self.problems.append(PluginProblem(info, f"{type(exc).__name__}: {_one_line(exc)}"))
+            self.problems.append(PluginProblem(info, f"{type(exc).__name__}: {one_line(exc)}"))
             return False
         self.plugins[info.name] = info
         return True
@@ -318,7 +321,7 @@ class LoadedPlugins:
                 info = self.plugins.pop(name, PluginInfo(name))
                 known = ", ".join(sorted(KINDS.values()) + ["gpnerf_register_data_tools"])
                 self.problems.append(
-                    PluginProblem(info, f"implements a hook gpnerf-core does not define ({_one_line(exc)}); "
+                    PluginProblem(info, f"implements a hook gpnerf-core does not define ({one_line(exc)}); "
                                         f"known hooks: {known}")
                 )
 
@@ -335,7 +338,7 @@ def make_plugin_manager(
     pm.add_hookspecs(hookspecs)
     loaded = LoadedPlugins(pm)
     blocked_names = {*blocked, *_env_list(DISABLE_PLUGINS_ENV)}
-    blocked_distributions = {_normalize(name) for name in blocked_names}
+    blocked_distributions = {normalize_distribution(name) for name in blocked_names}
     core_version = _distribution_version(CORE_DISTRIBUTION)
     for module_name in builtins:
         info = PluginInfo(module_name, CORE_DISTRIBUTION, core_version)
@@ -345,7 +348,7 @@ def make_plugin_manager(
         try:
             module = importlib.import_module(module_name)
         except Exception as exc:  # a broken plugin must not take the others down
-            loaded.problems.append(PluginProblem(info, f"import failed: {type(exc).__name__}: {_one_line(exc)}"))
+            loaded.problems.append(import_problem(info, exc))
             continue
         loaded.register(module, info)
     if autoload and os.environ.get(DISABLE_AUTOLOAD_ENV):
@@ -354,7 +357,7 @@ def make_plugin_manager(
         for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
             distribution = ep.dist.name if ep.dist is not None else "unknown"
             info = PluginInfo(ep.name, distribution, ep.dist.version if ep.dist is not None else "unknown")
-            if ep.name in blocked_names or _normalize(distribution) in blocked_distributions:
+            if ep.name in blocked_names or normalize_distribution(distribution) in blocked_distributions:
                 loaded.disabled.append(str(info))
                 continue
             if ep.name in loaded.plugins or pm.has_plugin(ep.name):
@@ -363,10 +366,17 @@ def make_plugin_manager(
             try:
                 plugin = ep.load()
             except Exception as exc:
-                loaded.problems.append(PluginProblem(info, f"import failed: {type(exc).__name__}: {_one_line(exc)}"))
+                loaded.problems.append(import_problem(info, exc))
                 continue
             loaded.register(plugin, info)
     return loaded
+
+
+def import_problem(info: PluginInfo, exc: Exception) -> PluginProblem:
+    """The one-line problem of a plugin that failed to import; with ``GPNERF_DEBUG`` set, its traceback on stderr."""
+    if os.environ.get("GPNERF_DEBUG"):
+        traceback.print_exception(exc, file=sys.stderr)
+    return PluginProblem(info, f"import failed: {type(exc).__name__}: {one_line(exc)}")
 
 
 def _distribution_version(dist: str) -> str:
@@ -386,7 +396,7 @@ def collect(loaded: LoadedPlugins) -> Registry:
             try:
                 specs = impl.function()
             except Exception as exc:
-                registry.problems.append(PluginProblem(info, f"{hook_name} raised {type(exc).__name__}: {_one_line(exc)}"))
+                registry.problems.append(PluginProblem(info, f"{hook_name} raised {type(exc).__name__}: {one_line(exc)}"))
                 continue
             if specs is not None and not isinstance(specs, (list, tuple)):
                 registry.problems.append(PluginProblem(info, f"{hook_name} returned {type(specs).__name__}, expected a list"))
@@ -399,7 +409,7 @@ def collect(loaded: LoadedPlugins) -> Registry:
             tools = impl.function()
         except Exception as exc:
             registry.problems.append(
-                PluginProblem(info, f"gpnerf_register_data_tools raised {type(exc).__name__}: {_one_line(exc)}")
+                PluginProblem(info, f"gpnerf_register_data_tools raised {type(exc).__name__}: {one_line(exc)}")
             )
             continue
         for tool in tools or ():
@@ -428,7 +438,7 @@ def register_config_options(registry: Registry) -> None:
             except Exception as exc:
                 del entries[name]
                 info = registry.plugins.get(entry.provider, PluginInfo(entry.provider))
-                reason = f"config {entry.spec.config.__name__} is not a valid Hydra schema: {_one_line(exc)}"
+                reason = f"config {entry.spec.config.__name__} is not a valid Hydra schema: {one_line(exc)}"
                 registry.problems.append(PluginProblem(info, reason, f"{kind}/{name}"))
 
 

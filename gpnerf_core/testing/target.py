@@ -20,10 +20,10 @@ from gpnerf_core.registry import (
     PluginProblem,
     RegisteredComponent,
     Registry,
-    _normalize,
-    _one_line,
     collect,
+    import_problem,
     make_plugin_manager,
+    normalize_distribution,
 )
 
 Target = Union[str, ModuleType]
@@ -79,7 +79,7 @@ def _resolve(target: Target) -> list[tuple[PluginInfo, Any]]:
     entry_points = list(importlib.metadata.entry_points(group=ENTRY_POINT_GROUP))
     chosen = [ep for ep in entry_points if ep.name == target]
     if not chosen:
-        chosen = [ep for ep in entry_points if ep.dist is not None and _normalize(ep.dist.name) == _normalize(target)]
+        chosen = [ep for ep in entry_points if ep.dist is not None and normalize_distribution(ep.dist.name) == normalize_distribution(target)]
     if chosen:
         return [_load_entry_point(ep) for ep in chosen]
     if target in BUILTIN_PLUGINS:
@@ -102,7 +102,7 @@ def _load_entry_point(ep: importlib.metadata.EntryPoint) -> tuple[PluginInfo, An
     try:
         return info, ep.load()
     except Exception as exc:
-        return info, PluginProblem(info, f"import failed: {type(exc).__name__}: {_one_line(exc)}")
+        return info, import_problem(info, exc)
 
 
 def _module_info(module: ModuleType) -> PluginInfo:

@@ -12,7 +12,7 @@ from omegaconf import OmegaConf
 from torch import Tensor, nn
 
 from gpnerf_core.registry import RegisteredComponent, Registry
-from gpnerf_core.registry import _one_line as one_line
+from gpnerf_core.registry import one_line
 
 Outputs = dict[str, Tensor]
 """Named output tensors of one call of a component (``logits``, ``block 0 view_attention``, ...)."""
