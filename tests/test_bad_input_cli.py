@@ -44,8 +44,8 @@ CASES = {
     "out_dir under a file": (["out_dir={ws}/a_file/run"], "cannot be created (Not a directory)"),
     "cache under a file": (["GPNERF_CACHE={ws}/a_file"], "cannot write the embedded scenes (Not a directory)"),
     "bad validation level": (["dataset.validate=fast"], "dataset.validate='fast': expected one of quick, full, off"),
-    "missing init file": (["model.init={ws}/nope.pth"], "nope.pth does not exist"),
-    "resume missing": (["train.resume={ws}/nope.pt"], "nope.pt does not exist"),
+    "missing init file": (["model.init={ws}/nope.pth"], "model.init={ws}/nope.pth: no such file"),
+    "resume missing": (["train.resume={ws}/nope.pt"], "train.resume={ws}/nope.pt: no such file"),
 }
 
 
@@ -62,6 +62,7 @@ def test_bad_input_is_one_line_and_exit_2(workspace, case):
     result = gpnerf("run", *TINY, *overrides, cwd=workspace, env=env)
     assert result.returncode == 2, result.stderr[-2000:]
     lines = [line for line in result.stderr.splitlines() if line.strip() and "pybullet build time" not in line]
+    expected = expected.format(ws=workspace)
     assert len(lines) == 1 and lines[0].startswith("error: ") and expected in lines[0], result.stderr[-2000:]
     assert "Traceback" not in result.stderr
     assert not out.exists()  # nothing half-written

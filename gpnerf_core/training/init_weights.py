@@ -88,6 +88,8 @@ def init_weights(model: GeneralizableNeRF, path: Path, *, strict: bool = True) -
         DataError: unreadable file, unknown format, a key no stage takes (``strict``), or a tensor whose shape
             differs from the model's (always), each in one line naming the file and the key.
     """
+    if not path.is_file():
+        raise DataError(f"model.init={path}: no such file; expected an official GNT checkpoint or a gpnerf-core one")
     checkpoint = read_torch_file(path)
     fmt = detect_format(checkpoint, path)
     report = InitReport(path=path, fmt=fmt)

@@ -22,7 +22,7 @@ from torch.nn.parallel import DistributedDataParallel
 from gpnerf_core.build import Components
 from gpnerf_core.device import autocast, check_precision, peak_memory_mb
 from gpnerf_core.distributed import Distributed
-from gpnerf_core.errors import ConfigError, NonFiniteError
+from gpnerf_core.errors import ConfigError, DataError, NonFiniteError
 from gpnerf_core.frames import FrameCache
 from gpnerf_core.training.checkpoint import (
     RunRecord,
@@ -351,6 +351,8 @@ class Trainer:
         )
 
     def _resume(self, path: Path) -> None:
+        if not path.is_file():
+            raise DataError(f"train.resume={path}: no such file; expected a checkpoint written by run (checkpoints/)")
         state = read_checkpoint(path)
         self.notes += check_resume_config(path, state["config"], self.record.config_yaml, self.cfg.train.resume_strict)
         load_weights(self.model, state["model"], f"checkpoint {path}")
