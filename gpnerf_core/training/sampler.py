@@ -87,7 +87,7 @@ class StepSampler:
         self.generator.set_state(state["generator"])
 
     def _randint(self, generator: torch.Generator, high: int) -> int:
-        return int(torch.randint(high, (1,), generator=generator))
+        return int(torch.randint(high, (1,), generator=generator, device="cpu"))
 
     def _draw_slot(self) -> tuple[str, int, int]:
         """(scene, target frame, view seed) of one slot of the global batch."""
@@ -102,7 +102,8 @@ class StepSampler:
         source_indices = choose_sources(self.selector, scene, frame_index, self.num_source_views, view_generator)
         frame = frames.frame(scene, frame_index)
         height, width = frame.height, frame.width
-        flat = torch.randperm(height * width, generator=view_generator)[: min(self.rays_per_view, height * width)]
+        flat = torch.randperm(height * width, generator=view_generator, device="cpu")
+        flat = flat[: min(self.rays_per_view, height * width)]
         pixels = torch.stack([flat % width, flat // width], dim=-1).to(torch.float32)
         device = frames.device
         return TargetView(
