@@ -20,6 +20,7 @@ commands:
             (Hydra overrides follow, e.g. `run +head=unet +loss=dgs train.steps=200`; `-m` sweeps)
   eval      evaluate a checkpoint with the config it was trained with: `eval checkpoint=<path> [overrides]`
   report    tabulate run folders (a sweep, the Table 4 ablation) beside the paper's numbers
+  bench     time and size the training step and rendering: `bench size=demo|small|paper [overrides]`
   data      dataset tools: `data` lists them (check a layout, prepare ScanNet, make the embedded scenes)
   plugins   list registered components with provider and version, and plugins that failed to load
 """
@@ -181,6 +182,12 @@ def _data(argv: list[str]) -> int:
     return int(tools[argv[0]][0].run(argv[1:]) or 0)
 
 
+def _bench(argv: list[str]) -> int:
+    from gpnerf_core.bench.command import main as bench_main
+
+    return bench_main(argv)
+
+
 def _report(argv: list[str]) -> int:
     from gpnerf_core.report import main as report_main
 
@@ -191,6 +198,7 @@ COMMANDS: dict[str, Callable[[list[str]], int]] = {
     "run": _run,
     "eval": _eval,
     "report": _report,
+    "bench": _bench,
     "data": _data,
     "plugins": _plugins,
 }

@@ -29,6 +29,7 @@ RUN_FILES = (
     "training_curves.json",
     "training_curves.png",
     "scalars.csv",
+    "bench.json",
 )
 RUN_FOLDERS = ("checkpoints", "images", "tensorboard")
 """What a run writes; ``overwrite=true`` deletes exactly these."""

@@ -1,6 +1,6 @@
 """fp32 vs bf16 vs activation checkpointing: step time and peak memory of one config, each in a fresh process.
 
-    python -m gpnerf_core.benchmarks.precision +experiment=paper/gpnerf train.rays=128 [out=precision.json]
+    python -m gpnerf_core.bench.precision +experiment=paper/gpnerf train.rays=128 [out=precision.json]
 
 Every variant runs in its own subprocess so its peak memory is its own; the table goes to stdout, the figures to
 ``out`` (JSON) when given. The overrides are ``run``'s.
@@ -26,7 +26,7 @@ VARIANTS = {
 
 def _measure_one(overrides: list[str], warmup: int, repeats: int) -> None:
     """Child process: compose, time, print one JSON line."""
-    from gpnerf_core.benchmarks.train_step import time_train_step
+    from gpnerf_core.bench.train_step import time_train_step
     from gpnerf_core.config import compose
 
     cfg = compose(overrides)
@@ -43,7 +43,7 @@ def main(argv: list[str]) -> int:
         overrides = ["+head=unet", "+loss=dgs", *overrides]
     results = {}
     for name, extra in VARIANTS.items():
-        command = [sys.executable, "-m", "gpnerf_core.benchmarks.precision", "--child", str(warmup), str(repeats),
+        command = [sys.executable, "-m", "gpnerf_core.bench.precision", "--child", str(warmup), str(repeats),
                    *overrides, *extra]
         done = subprocess.run(command, capture_output=True, text=True)
         if done.returncode != 0:

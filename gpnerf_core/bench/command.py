@@ -1,0 +1,176 @@
+"""``python -m gpnerf_core bench [size=demo|small|paper[,...]] [repeats=3] [warmup=1] [out_dir=...] [overrides]``.
+
+For each size, the GP-NeRF model and its GNT-only anchor (same backbone, rays and samples; no FPN, semantic field or
+head) are measured in fresh processes: a training step (median and minimum over ``repeats`` after ``warmup``, peak
+memory, matmul/convolution flops) and the rendering of a whole held-out view. The machine's matmul peak is measured in
+the same run. A table goes to stdout, everything to ``<out_dir>/bench.json``. A measurement that runs out of memory is
+reported with the peak it reached and the others still run.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from gpnerf_core.bench.machine import matmul_peak_gflops
+from gpnerf_core.bench.sizes import GNT_ONLY, SIZES, Size, get_size
+from gpnerf_core.config import compose
+from gpnerf_core.device import resolve_device
+from gpnerf_core.errors import ConfigError
+from gpnerf_core.io import atomic_write_json
+from gpnerf_core.run_folder import RunFolder
+from gpnerf_core.validation import validate_config
+
+OWN_KEYS = ("size", "repeats", "warmup", "out_dir")
+VARIANTS = ("gpnerf", "gnt_only")
+PHASES = ("train", "render")
+OUT_OF_MEMORY = ("OutOfMemoryError", "MemoryError", "out of memory", "can't allocate memory")
+
+
+def _parse(argv: list[str]) -> tuple[dict[str, str], list[str]]:
+    own, overrides = {}, []
+    for argument in argv:
+        key, sep, value = argument.partition("=")
+        if sep and key in OWN_KEYS:
+            own[key] = value
+        else:
+            overrides.append(argument)
+    return own, overrides
+
+
+def _count(own: dict[str, str], key: str, default: int, minimum: int) -> int:
+    try:
+        value = int(own.get(key, default))
+    except ValueError:
+        raise ConfigError(f"bench {key}={own[key]!r}: expected an integer >= {minimum}") from None
+    if value < minimum:
+        raise ConfigError(f"bench {key}={value}: expected an integer >= {minimum}")
+    return value
+
+
+def variant_overrides(size: Size, variant: str, overrides: list[str]) -> list[str]:
+    extra = size.semantic if variant == "gpnerf" else GNT_ONLY
+    return [*size.common, *extra, *overrides]
+
+
+def run_measurement(overrides: list[str], phase: str, warmup: int, repeats: int) -> dict[str, Any]:
+    """One measurement in a child process; an error (out of memory included) comes back as ``{"error": ...}``."""
+    with tempfile.TemporaryDirectory() as folder:
+        progress = Path(folder) / "progress.json"
+        spec = {"overrides": overrides, "phase": phase, "warmup": warmup, "repeats": repeats, "progress": str(progress)}
+        done = subprocess.run(
+            [sys.executable, "-m", "gpnerf_core.bench.measure", json.dumps(spec)], capture_output=True, text=True
+        )
+        reached = json.loads(progress.read_text()) if progress.exists() else {}
+    if done.returncode == 0:
+        return json.loads(done.stdout.strip().splitlines()[-1])
+    lines = [line for line in done.stderr.strip().splitlines() if line.strip()]
+    last = lines[-1] if lines else f"exit code {done.returncode}"
+    killed = done.returncode in (-9, 137)
+    if killed or any(marker in done.stderr for marker in OUT_OF_MEMORY):
+        peak = reached.get("peak_memory_mb")
+        where = f"peak {peak:.0f} MiB after {reached.get('done', 0)} timed repetitions" if peak else "while building"
+        return {"error": f"out of memory ({where})", "out_of_memory": True}
+    return {"error": last}
+
+
+def main(argv: list[str]) -> int:
+    own, overrides = _parse(argv)
+    names = [n.strip() for n in own.get("size", "demo").split(",") if n.strip()]
+    sizes = [get_size(name) for name in names]
+    warmup, repeats = _count(own, "warmup", 1, 0), _count(own, "repeats", 3, 1)
+    for size in sizes:  # refuse bad overrides before measuring anything
+        for variant in VARIANTS:
+            validate_config(compose(variant_overrides(size, variant, overrides)))
+    device = resolve_device(compose(variant_overrides(sizes[0], "gpnerf", overrides)).device)
+    out_dir = Path(own.get("out_dir") or Path("outputs") / "bench" / time.strftime("%Y-%m-%d_%H-%M-%S"))
+    with RunFolder(out_dir) as folder:
+        folder.claim(resuming=False, overwrite=False)
+        peak = matmul_peak_gflops(device)
+        print(f"{device}: float32 matmul peak {peak:.1f} GFLOP/s", flush=True)
+        report: dict[str, Any] = {"device": str(device), "matmul_peak_gflops": peak, "overrides": overrides,
+                                  "warmup": warmup, "repeats": repeats, "sizes": {}}
+        for size in sizes:
+            entry: dict[str, Any] = {"description": size.description}
+            for variant in VARIANTS:
+                variant_args = variant_overrides(size, variant, overrides)
+                entry[variant] = {"overrides": variant_args}
+                for phase in PHASES:
+                    print(f"measuring {size.name} {variant} {phase} ...", flush=True)
+                    entry[variant][phase] = run_measurement(variant_args, phase, warmup, repeats)
+            entry["ratios"] = _ratios(entry)
+            report["sizes"][size.name] = entry
+            atomic_write_json(out_dir / "bench.json", report)
+        print(format_table(report))
+        print(f"bench.json: {(out_dir / 'bench.json').resolve()}")
+    failed = [s for s, e in report["sizes"].items() for v in VARIANTS for p in PHASES if "error" in e[v][p]]
+    return 1 if failed else 0
+
+
+def _ratios(entry: dict[str, Any]) -> dict[str, float | None]:
+    """GP-NeRF over GNT-only: training step time and memory; rendering rays/s per sample evaluated.
+
+    Times use each variant's fastest repetition: on a shared machine the minimum is the figure least disturbed by
+    other work (both median and minimum are in ``bench.json``).
+    """
+    def value(variant: str, phase: str, key: str) -> float | None:
+        return entry[variant][phase].get(key)
+
+    def ratio(a: float | None, b: float | None) -> float | None:
+        return a / b if a and b else None
+
+    def rays_per_sample_second(variant: str) -> float | None:
+        rays, seconds = value(variant, "render", "rays"), value(variant, "render", "seconds_min")
+        samples = value(variant, "render", "samples_per_ray")
+        return rays * samples / seconds if rays and seconds and samples else None
+
+    return {
+        "train_step_time": ratio(value("gpnerf", "train", "seconds_min"), value("gnt_only", "train", "seconds_min")),
+        "train_peak_memory": ratio(value("gpnerf", "train", "peak_memory_mb"), value("gnt_only", "train", "peak_memory_mb")),
+        "render_samples_per_second": ratio(rays_per_sample_second("gpnerf"), rays_per_sample_second("gnt_only")),
+    }
+
+
+def format_table(report: dict[str, Any]) -> str:
+    peak = report["matmul_peak_gflops"]
+    header = ("size", "variant", "params M", "train s (med/min)", "train MiB", "GFLOP/ray", "GFLOP/s (% peak)",
+              "render rays/s", "s/frame", "render MiB")
+    rows = [header]
+    for name, entry in report["sizes"].items():
+        for variant in VARIANTS:
+            train, render = entry[variant]["train"], entry[variant]["render"]
+            rows.append((name, variant, *_train_cells(train, peak), *_render_cells(render)))
+        ratios = entry["ratios"]
+        rows.append((name, "GP-NeRF / GNT-only (min)", "", _x(ratios["train_step_time"]),
+                     _x(ratios["train_peak_memory"]), "", "", _x(ratios["render_samples_per_second"]), "", ""))
+    widths = [max(len(str(row[i])) for row in rows) for i in range(len(header))]
+    return "\n".join("  ".join(str(cell).rjust(widths[i]) for i, cell in enumerate(row)) for row in rows)
+
+
+def _x(value: float | None) -> str:
+    return "" if value is None else f"x{value:.2f}"
+
+
+def _train_cells(train: dict[str, Any], peak: float) -> tuple[str, ...]:
+    if "error" in train:
+        return ("", train["error"], "", "", "")
+    params = sum(train["parameters"].values()) / 1e6
+    flops = train["flops"] / train["seconds_median"] / 1e9
+    return (f"{params:.2f}", f"{train['seconds_median']:.3f}/{train['seconds_min']:.3f}",
+            f"{train['peak_memory_mb']:.0f}", f"{train['flops'] / train['rays'] / 1e9:.3f}",
+            f"{flops:.1f} ({100 * flops / peak:.0f}%)")
+
+
+def _render_cells(render: dict[str, Any]) -> tuple[str, ...]:
+    if "error" in render:
+        return (render["error"], "", "")
+    return (f"{render['rays'] / render['seconds_median']:.0f}", f"{render['seconds_median']:.3f}",
+            f"{render['peak_memory_mb']:.0f}")
+
+
+__all__ = ["SIZES", "main"]

@@ -1,0 +1,124 @@
+"""One benchmark measurement, in its own process so its peak memory is its own.
+
+    python -m gpnerf_core.bench.measure '<spec as JSON>'
+
+The spec names the overrides (``run``'s), the phase (``train``: sample, forward, loss, backward, Adam step;
+``render``: ``GeneralizableNeRF.predict`` on a whole held-out view), warm-up and repetitions, and a progress file.
+The last line on stdout is the result as JSON; the progress file holds the peak memory after every repetition, so a
+measurement killed for memory still says how far it got.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+from gpnerf_core.build import build_components
+from gpnerf_core.config import compose
+from gpnerf_core.device import peak_memory_mb, resolve_device
+from gpnerf_core.distributed import Distributed
+from gpnerf_core.frames import choose_sources
+from gpnerf_core.training.checkpoint import RunRecord
+from gpnerf_core.training.trainer import Trainer
+from gpnerf_core.validation import check_data, validate_config
+
+COMPONENTS = ("extractor", "field", "ray", "semantic", "head")
+
+
+def _synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _timed(run: Callable[[], Any], device: torch.device, warmup: int, repeats: int, progress: Path) -> list[float]:
+    """Seconds of each of ``repeats`` runs after ``warmup`` runs; the peak memory goes to ``progress`` after each."""
+    progress.write_text(json.dumps({"done": 0, "peak_memory_mb": peak_memory_mb(device)}))
+    for _ in range(warmup):
+        run()
+    _synchronize(device)
+    seconds = []
+    for index in range(repeats):
+        started = time.perf_counter()
+        run()
+        _synchronize(device)
+        seconds.append(time.perf_counter() - started)
+        progress.write_text(json.dumps({"done": index + 1, "peak_memory_mb": peak_memory_mb(device)}))
+    return seconds
+
+
+def _flops(run: Callable[[], Any]) -> int:
+    """Matmul and convolution flops of one run, forward and backward (torch's FLOP counter)."""
+    with FlopCounterMode(display=False) as counter:
+        run()
+    return int(counter.get_total_flops())
+
+
+def measure(spec: dict[str, Any]) -> dict[str, Any]:
+    cfg = compose(spec["overrides"])
+    validate_config(cfg)
+    if cfg.threads:
+        torch.set_num_threads(int(cfg.threads))
+    torch.manual_seed(int(cfg.seed))
+    device = resolve_device(cfg.device)
+    components = build_components(cfg)
+    check_data(cfg, components)
+    progress = Path(spec["progress"])
+    with tempfile.TemporaryDirectory() as folder:
+        record = RunRecord(config_yaml="", overrides=(), components={})
+        trainer = Trainer(cfg, components, dist=Distributed.single(device), run_dir=Path(folder), record=record)
+        model = trainer.model
+        result: dict[str, Any] = {
+            "device": str(device),
+            "torch_threads": torch.get_num_threads(),
+            "parameters": {
+                name: sum(p.numel() for p in getattr(model, name).parameters())
+                for name in COMPONENTS
+                if getattr(model, name) is not None
+            },
+            "samples_per_ray": int(cfg.model.coarse_samples) + int(cfg.model.fine_samples),
+        }
+        if device.type == "cuda":
+            torch.cuda.reset_peak_memory_stats(device)
+        if spec["phase"] == "train":
+            model.train()
+            seconds = _timed(trainer.train_step, device, spec["warmup"], spec["repeats"], progress)
+            rays = int(cfg.train.rays) * int(cfg.train.targets_per_step)
+            result.update(rays=rays, flops=_flops(trainer.train_step))
+        else:
+            model.eval()
+            render = _renderer(cfg, trainer)
+            seconds = _timed(render, device, spec["warmup"], spec["repeats"], progress)
+            prediction = render()
+            result.update(rays=int(prediction.rgb.shape[0] * prediction.rgb.shape[1]), flops=_flops(render))
+    result.update(
+        seconds=seconds,
+        seconds_median=statistics.median(seconds),
+        seconds_min=min(seconds),
+        peak_memory_mb=peak_memory_mb(device),
+    )
+    return result
+
+
+def _renderer(cfg: Any, trainer: Trainer) -> Callable[[], Any]:
+    """``predict`` on the first held-out view of the first training scene, at the configured stride."""
+    frames = trainer.frames
+    scene = frames.scene(trainer.sampler.scene_names[0])
+    index = scene.eval_frames[0]
+    sources = frames.source_views(
+        scene, choose_sources(trainer.sampler.selector, scene, index, int(cfg.model.num_source_views), None)
+    )
+    camera = frames.camera(scene, frames.frame(scene, index))
+    stride, chunk = int(cfg.eval.render_stride), int(cfg.eval.chunk_rays)
+    return lambda: trainer.model.predict(camera, sources, stride=stride, chunk_rays=chunk)
+
+
+if __name__ == "__main__":
+    print(json.dumps(measure(json.loads(sys.argv[1]))))

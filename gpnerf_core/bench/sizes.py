@@ -1,0 +1,71 @@
+"""Benchmark presets: the model and data sizes ``bench size=<name>`` measures, and the GNT-only anchor of each.
+
+Every preset trains on one generated embedded scene at the preset's image size (16 frames: enough training frames for
+10 source views); rendering is timed on one of its held-out views.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from gpnerf_core.errors import ConfigError
+
+DATA = [
+    "dataset.num_train_scenes=1",
+    "dataset.num_unseen_scenes=1",
+    "dataset.frames_per_scene=16",
+    "eval.render_stride=2",  # both variants render the same rays: the semantic map's grid
+]
+
+
+@dataclass(frozen=True)
+class Size:
+    """A benchmark size.
+
+    Attributes:
+        name: ``demo``, ``small``, ``paper``.
+        description: one line.
+        common: overrides shared by both variants (model sizes, image size, rays, samples).
+        semantic: what makes the GP-NeRF variant (head, loss set and its weights).
+    """
+
+    name: str
+    description: str
+    common: tuple[str, ...]
+    semantic: tuple[str, ...]
+
+
+GNT_ONLY = ("+loss=rgb", "model.semantic_field.enabled=false", "feature_extractor.semantic=false")
+"""The anchor: the same backbone, rays and samples with no FPN, no semantic field, no head, colour loss only."""
+
+PAPER_LOSS = ("+loss=dgs", "loss.rgb_weight=0.75", "loss.ce_weight=1.5", "loss.sd_weight=0.25", "loss.dgs_weight=0.25")
+
+SIZES: dict[str, Size] = {
+    size.name: size
+    for size in (
+        Size(
+            "demo",
+            "the main job's model (scale=cpu): 96x128 images, 4 views, 24+8 samples, 256 rays, 4 blocks of width 32",
+            ("scale=cpu", "dataset.height=96", "dataset.width=128", *DATA),
+            ("+head=unet", "+loss=dgs"),
+        ),
+        Size(
+            "small",
+            "the paper's model at 96x128 images: 10 views, 48+16 samples, 128 rays, 8 blocks of width 64",
+            ("scale=paper", "dataset.height=96", "dataset.width=128", "train.rays=128", *DATA),
+            ("+head=unet", "head.decoder=semantic_fpn", *PAPER_LOSS),
+        ),
+        Size(
+            "paper",
+            "the paper's setting: 240x320 images, 10 views, 48+16 samples, 512 rays, 8 blocks of width 64, Semantic-FPN",
+            ("scale=paper", "dataset.height=240", "dataset.width=320", "train.rays=512", *DATA),
+            ("+head=unet", "head.decoder=semantic_fpn", *PAPER_LOSS),
+        ),
+    )
+}
+
+
+def get_size(name: str) -> Size:
+    if name not in SIZES:
+        raise ConfigError(f"bench size={name!r} is unknown; known sizes: {', '.join(SIZES)}")
+    return SIZES[name]

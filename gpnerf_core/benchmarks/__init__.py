@@ -1,2 +1,0 @@
-"""Measurements that print figures (never timed unit tests): run them as modules, e.g.
-``python -m gpnerf_core.benchmarks.precision +experiment=paper/gpnerf``."""

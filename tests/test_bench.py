@@ -1,0 +1,48 @@
+"""The bench command measures, prints and writes figures (never asserts speed); its bad input is one line."""
+
+import json
+import os
+import subprocess
+import sys
+
+TINY = [
+    "dataset.height=32", "dataset.width=48", "dataset.frames_per_scene=6", "dataset.eval_every=3",
+    "feature_extractor.widths=[8,8,8,16]", "feature_extractor.fpn_channels=4", "field_aggregator.width=16",
+    "field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2", "model.num_source_views=2",
+    "train.rays=16", "threads=1",
+]
+
+
+def bench(*args, cwd):
+    env = dict(os.environ, GPNERF_DISABLE_PLUGIN_AUTOLOAD="1", GPNERF_CACHE=str(cwd / "cache"))
+    return subprocess.run([sys.executable, "-m", "gpnerf_core", "bench", *args], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=600)
+
+
+def test_bench_measures_both_variants_and_writes_bench_json(tmp_path):
+    result = bench("size=demo", "repeats=2", "warmup=0", *TINY, f"out_dir={tmp_path / 'b'}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    report = json.loads((tmp_path / "b" / "bench.json").read_text())
+    assert report["matmul_peak_gflops"] > 0
+    demo = report["sizes"]["demo"]
+    for variant in ("gpnerf", "gnt_only"):
+        train, render = demo[variant]["train"], demo[variant]["render"]
+        assert len(train["seconds"]) == 2 and train["rays"] == 16 and train["flops"] > 0
+        assert render["rays"] == 16 * 24 and render["peak_memory_mb"] > 0  # the 32x48 view at stride 2
+    # The GP-NeRF model has the semantic parts the anchor lacks, and does more work per ray.
+    assert {"head", "semantic"} <= set(demo["gpnerf"]["train"]["parameters"])
+    assert not {"head", "semantic"} & set(demo["gnt_only"]["train"]["parameters"])
+    assert demo["gpnerf"]["train"]["flops"] > demo["gnt_only"]["train"]["flops"]
+    assert set(demo["ratios"]) == {"train_step_time", "train_peak_memory", "render_samples_per_second"}
+    assert "GP-NeRF / GNT-only (min)" in result.stdout
+
+
+def test_bench_bad_input_is_one_line(tmp_path):
+    unknown = bench("size=huge", cwd=tmp_path)
+    assert unknown.returncode == 2
+    assert unknown.stderr.strip() == "error: bench size='huge' is unknown; known sizes: demo, small, paper"
+    bad = bench("repeats=0", cwd=tmp_path)
+    assert bad.returncode == 2 and bad.stderr.strip() == "error: bench repeats=0: expected an integer >= 1"
+    cuda = bench("device=cuda", cwd=tmp_path)
+    if not __import__("torch").cuda.is_available():
+        assert cuda.returncode == 2 and "CUDA is not available" in cuda.stderr and cuda.stderr.count("\n") == 1
