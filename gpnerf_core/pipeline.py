@@ -148,14 +148,13 @@ class GeneralizableNeRF(nn.Module):
     def forward_view(self, view: TargetView, semantics: bool, sample_semantics: bool) -> ViewOutput:
         """The training pass of one target view (see ``forward``)."""
         sources = view.sources
-        num_sources = sources.num_views
         # 1. Multi-scale features of the source views; the target's own semantic map is the teacher.
-        images = torch.cat([sources.rgb, view.image[None]]) if semantics else sources.rgb
-        maps = self.encode(images)
-        source_maps = FeatureMaps(
-            radiance=maps.radiance[:num_sources],
-            semantic=maps.semantic[:num_sources] if maps.semantic is not None else None,
-        )
+        source_maps = self.encode(sources.rgb)
+        if self.detach_source_semantics and source_maps.semantic is not None:
+            # No loss trains the extractor through the sources' semantic maps: drop their graph now, so backward
+            # never runs the FPN over the sources and its activations are freed before the transformers run.
+            source_maps = FeatureMaps(radiance=source_maps.radiance, semantic=source_maps.semantic.detach())
+        teacher = self.encode(view.image[None]).semantic if semantics else None
         # 2. Rays through the chosen pixels: radiance and semantic fields, coarse then fine.
         camera = view.camera
         rays = rays_through_pixels(view.pixels, camera.intrinsics, camera.c2w, camera.near, camera.far)
@@ -174,7 +173,6 @@ class GeneralizableNeRF(nn.Module):
         if not semantics:
             return ViewOutput(coarse=coarse, fine=fine)
         # 3. The fused map: rendered features replace the teacher's features in the cells the rays hit.
-        teacher = maps.semantic[num_sources:]
         cells = cells_of_pixels(view.pixels, camera.image_size, tuple(teacher.shape[-2:]))
         last = fine if fine is not None else coarse
         head_input = fuse_rendered(teacher, last.semantic, cells) if self.fuse_rendered else teacher

@@ -1,4 +1,5 @@
-"""``python -m gpnerf_core bench [size=demo|small|paper[,...]] [repeats=3] [warmup=1] [out_dir=...] [overrides]``.
+"""``python -m gpnerf_core bench [size=demo|small|paper[,...]] [repeats=3] [warmup=1] [phases=train,render]
+[out_dir=...] [overrides]``.
 
 For each size, the GP-NeRF model and its GNT-only anchor (same backbone, rays and samples; no FPN, semantic field or
 head) are measured in fresh processes: a training step (median and minimum over ``repeats`` after ``warmup``, peak
@@ -26,7 +27,7 @@ from gpnerf_core.io import atomic_write_json
 from gpnerf_core.run_folder import RunFolder
 from gpnerf_core.validation import validate_config
 
-OWN_KEYS = ("size", "repeats", "warmup", "out_dir")
+OWN_KEYS = ("size", "repeats", "warmup", "out_dir", "phases")
 VARIANTS = ("gpnerf", "gnt_only")
 PHASES = ("train", "render")
 OUT_OF_MEMORY = ("OutOfMemoryError", "MemoryError", "out of memory", "can't allocate memory")
@@ -84,6 +85,9 @@ def main(argv: list[str]) -> int:
     names = [n.strip() for n in own.get("size", "demo").split(",") if n.strip()]
     sizes = [get_size(name) for name in names]
     warmup, repeats = _count(own, "warmup", 1, 0), _count(own, "repeats", 3, 1)
+    phases = [p.strip() for p in own.get("phases", ",".join(PHASES)).split(",") if p.strip()]
+    if not phases or any(p not in PHASES for p in phases):
+        raise ConfigError(f"bench phases={own['phases']!r}: expected some of {', '.join(PHASES)}")
     for size in sizes:  # refuse bad overrides before measuring anything
         for variant in VARIANTS:
             validate_config(compose(variant_overrides(size, variant, overrides)))
@@ -101,6 +105,9 @@ def main(argv: list[str]) -> int:
                 variant_args = variant_overrides(size, variant, overrides)
                 entry[variant] = {"overrides": variant_args}
                 for phase in PHASES:
+                    if phase not in phases:
+                        entry[variant][phase] = {"skipped": True}
+                        continue
                     print(f"measuring {size.name} {variant} {phase} ...", flush=True)
                     entry[variant][phase] = run_measurement(variant_args, phase, warmup, repeats)
             entry["ratios"] = _ratios(entry)
@@ -108,7 +115,7 @@ def main(argv: list[str]) -> int:
             atomic_write_json(out_dir / "bench.json", report)
         print(format_table(report))
         print(f"bench.json: {(out_dir / 'bench.json').resolve()}")
-    failed = [s for s, e in report["sizes"].items() for v in VARIANTS for p in PHASES if "error" in e[v][p]]
+    failed = [s for s, e in report["sizes"].items() for v in VARIANTS for p in phases if "error" in e[v][p]]
     return 1 if failed else 0
 
 
@@ -157,6 +164,8 @@ def _x(value: float | None) -> str:
 
 
 def _train_cells(train: dict[str, Any], peak: float) -> tuple[str, ...]:
+    if "skipped" in train:
+        return ("", "", "", "", "")
     if "error" in train:
         return ("", train["error"], "", "", "")
     params = sum(train["parameters"].values()) / 1e6
@@ -167,6 +176,8 @@ def _train_cells(train: dict[str, Any], peak: float) -> tuple[str, ...]:
 
 
 def _render_cells(render: dict[str, Any]) -> tuple[str, ...]:
+    if "skipped" in render:
+        return ("", "", "")
     if "error" in render:
         return (render["error"], "", "")
     return (f"{render['rays'] / render['seconds_median']:.0f}", f"{render['seconds_median']:.3f}",

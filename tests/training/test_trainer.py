@@ -198,3 +198,67 @@ def test_activation_checkpointing_gives_the_same_loss_and_gradients(tmp_path):
     assert grads_a.keys() == grads_b.keys()
     for name in grads_a:
         torch.testing.assert_close(grads_a[name], grads_b[name], rtol=1e-5, atol=1e-7, msg=name)
+
+
+def _straightforward_terms(trainer, view):
+    """The step computed the plain way: one extractor pass over sources and target together, nothing skipped."""
+    from gpnerf_core.fusion import cells_of_pixels, fuse_rendered, gather_cells
+    from gpnerf_core.geometry import rays_through_pixels
+    from gpnerf_core.types import FeatureMaps, ViewOutput
+
+    model, sources, camera = trainer.model, view.sources, view.camera
+    maps = model.encode(torch.cat([sources.rgb, view.image[None]]))
+    count = sources.num_views
+    source_maps = FeatureMaps(radiance=maps.radiance[:count], semantic=maps.semantic[:count])
+    rays = rays_through_pixels(view.pixels, camera.intrinsics, camera.c2w, camera.near, camera.far)
+    generator = torch.Generator().manual_seed(view.render_seed)
+    coarse, fine = model.render_rays(rays, sources, source_maps, randomized=True, with_semantic=True,
+                                     with_sample_semantic=trainer.loss.needs_sample_semantics, generator=generator)
+    teacher = maps.semantic[count:]
+    cells = cells_of_pixels(view.pixels, camera.image_size, tuple(teacher.shape[-2:]))
+    head_input = fuse_rendered(teacher, fine.semantic, cells)
+    output = ViewOutput(coarse, fine, teacher, gather_cells(teacher, cells), head_input,
+                        model.decode(head_input, camera.image_size).logits)
+    return trainer.loss(loss_inputs(view, output, trainer.ignore_index))
+
+
+def test_the_forward_equals_the_straightforward_computation_with_its_gradients(tmp_path):
+    """forward encodes the target apart and drops the sources' FPN graph early; loss and gradients are unchanged.
+
+    The loss set is ``sd`` (smooth in every input): the D.G window's argmax would turn the 1e-5 differences of two
+    convolution batchings into different windows, and so into different gradients.
+    """
+    cfg = compose(["+head=unet", "+loss=sd", *TINY_MODEL, *TINY_SCENES, f"dataset.root={tmp_path / 'scenes'}"])
+    trainer = make_trainer(cfg, tmp_path / "run")
+    trainer.model.double()  # float64, so the two convolution batchings agree far below the tolerance
+    batch = StepBatch(tuple(_in_float64(view) for view in trainer.sampler.next_batch().views))
+    results = []
+    needs_samples = trainer.loss.needs_sample_semantics
+    view = batch.views[0]
+
+    def through_forward():
+        output = trainer.model(batch, semantics=True, sample_semantics=needs_samples).views[0]
+        return trainer.loss(loss_inputs(view, output, trainer.ignore_index))
+
+    for compute in (through_forward, lambda: _straightforward_terms(trainer, view)):
+        trainer.model.zero_grad(set_to_none=True)
+        terms = compute()
+        sum(terms.values()).backward()
+        grads = {n: p.grad.clone() for n, p in trainer.model.named_parameters() if p.grad is not None}
+        results.append(({k: v.detach() for k, v in terms.items()}, grads))
+    (terms, grads), (reference_terms, reference_grads) = results
+    for name in reference_terms:
+        torch.testing.assert_close(terms[name], reference_terms[name], rtol=1e-10, atol=1e-12)
+    assert grads.keys() == reference_grads.keys()
+    for name, reference in reference_grads.items():
+        torch.testing.assert_close(grads[name], reference, rtol=1e-7, atol=1e-9, msg=lambda m: f"{name}: {m}")
+
+
+def _in_float64(view):
+    import dataclasses
+
+    camera = dataclasses.replace(view.camera, intrinsics=view.camera.intrinsics.double(), c2w=view.camera.c2w.double())
+    sources = dataclasses.replace(view.sources, rgb=view.sources.rgb.double(),
+                                  intrinsics=view.sources.intrinsics.double(), c2w=view.sources.c2w.double())
+    return dataclasses.replace(view, camera=camera, sources=sources, image=view.image.double(),
+                               depth=view.depth.double(), pixels=view.pixels.double())
