@@ -25,7 +25,7 @@ from gpnerf_core.geometry import (
     stratified_inverse_depths,
 )
 from gpnerf_core.interfaces import FeatureExtractor, FieldAggregator, PerceptionHead, RayAggregator
-from gpnerf_core.semantic_field import SemanticFieldRenderer
+from gpnerf_core.semantic_field import AttentionSums, SemanticFieldRenderer
 from gpnerf_core.types import (
     FeatureMaps,
     FieldBlockOutput,
@@ -75,7 +75,8 @@ class GeneralizableNeRF(nn.Module):
         fuse_rendered: the head decodes the fused map in training (paper); False decodes the teacher map
             alone (released code).
         checkpoint_blocks: recompute each transformer block pair in the backward pass instead of keeping its
-            activations (activation checkpointing; less memory, more compute).
+            activations (activation checkpointing; less memory, more compute), and sample the source semantic
+            maps again in backward instead of keeping them.
     """
 
     def __init__(
@@ -311,7 +312,7 @@ class GeneralizableNeRF(nn.Module):
         projected = self.projector(samples, rays.origins, sources, features, with_semantic=with_semantic)
         tokens, context = self.field.begin(projected, samples, rays)
         recompute = self.checkpoint_blocks and torch.is_grad_enabled()
-        view_attention, ray_attention = [], []
+        attention = AttentionSums(with_samples=with_sample_semantic) if with_semantic else None
         last = None
         for index in range(self.field.num_blocks):
             if recompute:
@@ -321,15 +322,14 @@ class GeneralizableNeRF(nn.Module):
             else:
                 field_out, last = self._block_pair(index, tokens, context)
             tokens = last.tokens
-            if with_semantic:
-                view_attention.append(field_out.view_attention)
-                ray_attention.append(last.ray_attention)
+            if attention is not None:
+                self.semantic.add_block(attention, field_out.view_attention, last.ray_attention)
         readout = self.ray.readout(tokens, last)
         depth = (readout.weights * samples.depths).sum(dim=-1)
         semantic = sample_semantic = None
-        if with_semantic:
-            semantic, sample_semantic = self.semantic(
-                projected.semantic, view_attention, ray_attention, with_samples=with_sample_semantic
+        if attention is not None:
+            semantic, sample_semantic = self.semantic.render(
+                projected.semantic, attention, recompute_samples=self.checkpoint_blocks
             )
         return RenderedRays(
             rgb=readout.rgb,

@@ -14,9 +14,12 @@ Conventions used by every record below:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 from torch import Tensor
+
+if TYPE_CHECKING:
+    from gpnerf_core.geometry.projection import SampledMaps
 
 
 @dataclass(frozen=True)
@@ -234,14 +237,15 @@ class ProjectedFeatures:
 
     Attributes:
         rgb_features: ``[R, S, V, 3 + C_rad]`` source RGB then radiance features.
-        semantic: ``[R, S, V, C_sem]`` source semantic features, or None when not requested.
+        semantic: the source semantic maps at the samples (``SampledMaps``: ``.view(v)`` ``[C_sem, R, S]``,
+            ``.dense()`` ``[R, S, V, C_sem]``), or None when not requested.
         ray_diff: ``[R, S, V, 4]`` unit difference between the point-to-target-camera and
             point-to-source-camera directions, and their dot product (GNT's pose feature).
         visible: ``[R, S, V]`` bool, the point lies in front of the source camera and inside its image.
     """
 
     rgb_features: Tensor
-    semantic: Tensor | None
+    semantic: SampledMaps | None
     ray_diff: Tensor
     visible: Tensor
 

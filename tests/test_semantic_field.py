@@ -52,3 +52,87 @@ def test_incompatible_widths_are_config_errors():
         SemanticFieldRenderer(semantic_dim=60, attention_channels=32, ray_heads=4, num_blocks=2)
     with pytest.raises(ConfigError, match="heads"):
         SemanticFieldRenderer(semantic_dim=64, attention_channels=32, ray_heads=5, num_blocks=2)
+
+
+def sampled_maps(rays, samples, views, channels, seed=0, dtype=torch.float64):
+    """Random maps and grid coordinates, some outside the maps (zeros there)."""
+    from gpnerf_core.geometry.projection import SampledMaps
+
+    g = torch.Generator().manual_seed(seed)
+    maps = torch.randn(views, channels, 6, 8, generator=g, dtype=dtype)
+    grid = (torch.rand(views, rays * samples, 1, 2, generator=g, dtype=dtype) * 2.4 - 1.2)
+    return SampledMaps(maps, grid, rays, samples)
+
+
+@pytest.mark.parametrize("with_samples", [False, True])
+@pytest.mark.parametrize("recompute", [False, True])
+@pytest.mark.parametrize("joint", [True, False])
+def test_streamed_rendering_equals_dense_forward_and_gradients(with_samples, recompute, joint):
+    """Streaming F view by view computes what the dense einsum computes: outputs and every attention gradient."""
+    rays, samples, views, channels, attention, heads, blocks = 5, 7, 3, 32, 8, 2, 3
+    renderer = SemanticFieldRenderer(
+        semantic_dim=channels, attention_channels=attention, ray_heads=heads, num_blocks=blocks, joint_attention=joint
+    ).double()
+    sampled = sampled_maps(rays, samples, views, channels)
+    results = []
+    for streamed in (True, False):
+        view, ray = attentions(rays, samples, views, attention, heads, blocks, seed=1)
+        view = [v.double().requires_grad_() for v in view]
+        ray = [r.double().requires_grad_() for r in ray]
+        semantic = sampled if streamed else sampled.dense()
+        rendered, per_sample = renderer(semantic, view, ray, with_samples=with_samples, recompute_samples=recompute)
+        g = torch.Generator().manual_seed(2)
+        loss = (rendered * torch.randn(rendered.shape, generator=g, dtype=torch.float64)).sum()
+        if with_samples:
+            loss = loss + (per_sample * torch.randn(per_sample.shape, generator=g, dtype=torch.float64)).sum()
+        loss.backward()
+        grads = [t.grad for t in view + ray]
+        results.append((rendered.detach(), per_sample, grads))
+    (fast, fast_samples, fast_grads), (slow, slow_samples, slow_grads) = results
+    assert torch.allclose(fast, slow, atol=1e-12)
+    if with_samples:
+        assert torch.allclose(fast_samples.detach(), slow_samples.detach(), atol=1e-12)
+    else:
+        assert fast_samples is None and slow_samples is None
+    for a, b in zip(fast_grads, slow_grads, strict=True):
+        assert (a is None) == (b is None) == (not joint)
+        if a is not None:
+            assert torch.allclose(a, b, atol=1e-12)
+
+
+def test_streamed_rendering_passes_gradcheck():
+    from gpnerf_core.semantic_field import StreamedRendering
+
+    sampled = sampled_maps(3, 4, 2, 8)
+    weights = torch.rand(3, 4, 2, 4, dtype=torch.float64, requires_grad=True)
+    sample_weights = torch.rand(3, 4, 2, 4, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(
+        lambda w, s: StreamedRendering.apply(w, s, sampled, 2, True), (weights, sample_weights)
+    )
+
+
+def test_source_maps_with_gradients_take_the_dense_path_and_receive_gradients():
+    from gpnerf_core.geometry.projection import SampledMaps
+
+    renderer = SemanticFieldRenderer(semantic_dim=16, attention_channels=8, ray_heads=4, num_blocks=2).double()
+    base = sampled_maps(2, 4, 3, 16)
+    maps = base.maps.clone().requires_grad_()
+    view, ray = attentions(2, 4, 3, 8, 4, 2)
+    rendered, _ = renderer(SampledMaps(maps, base.grid, 2, 4), [v.double() for v in view], [r.double() for r in ray])
+    rendered.sum().backward()
+    assert maps.grad is not None and maps.grad.abs().sum() > 0
+
+
+def test_streamed_rendering_mixes_bf16_attention_with_fp32_maps():
+    """Under autocast the attention may be bf16 and the maps fp32: outputs promote, gradients keep their dtype."""
+    renderer = SemanticFieldRenderer(semantic_dim=16, attention_channels=8, ray_heads=4, num_blocks=2)
+    sampled = sampled_maps(2, 4, 3, 16, dtype=torch.float32)
+    view, ray = attentions(2, 4, 3, 8, 4, 2)
+    view = [v.bfloat16().requires_grad_() for v in view]
+    ray = [r.bfloat16().requires_grad_() for r in ray]
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        rendered, per_sample = renderer(sampled, view, ray, with_samples=True)
+        dense, _ = renderer(sampled.dense(), view, ray, with_samples=True)
+    assert torch.allclose(rendered.float(), dense.float(), atol=5e-2)
+    (rendered.float().sum() + per_sample.float().sum()).backward()
+    assert view[0].grad.dtype == torch.bfloat16 and ray[0].grad.dtype == torch.bfloat16

@@ -68,7 +68,7 @@ def test_semantic_off_is_radiance_only():
     assert model.fpn is None
 
 
-@pytest.mark.parametrize("size", [(33, 48), (32, 40), (16, 32)])
+@pytest.mark.parametrize("size", [(33, 48), (32, 42), (16, 32)])
 def test_bad_image_size_is_a_config_error(size):
     with pytest.raises(ConfigError, match=f"{size[0]}x{size[1]}"):
         _tiny()(torch.rand(1, 3, *size))
@@ -156,3 +156,14 @@ def test_registered_and_buildable_from_structured_config():
     assert defaults == {
         "name", "widths", "blocks", "radiance_dim", "detach_deep_for_radiance", "semantic", "fpn_channels"
     }
+
+
+def test_sides_that_are_not_multiples_of_16_are_padded_and_the_maps_cropped_to_tile_the_image():
+    """120x160 (half-resolution ScanNet) and the like: maps of exactly H/4 x W/4 and H/2 x W/2 cells."""
+    model = _tiny().eval()
+    image = torch.rand(1, 3, 40, 56)
+    maps = model(image)
+    assert maps.radiance.shape == (1, 6, 10, 14) and maps.semantic.shape == (1, 16, 20, 28)
+    padded = model(torch.nn.functional.pad(image, (0, 8, 0, 8), mode="replicate"))
+    assert torch.equal(maps.radiance, padded.radiance[..., :10, :14])
+    assert torch.equal(maps.semantic, padded.semantic[..., :20, :28])

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
+import torch.nn.functional as F
 from torch import Tensor
 
 from gpnerf_core.errors import ConfigError
@@ -13,7 +14,8 @@ from gpnerf_core.types import FeatureMaps
 from gpnerf_plugins.extractors.fpn import FPN, concat_levels
 from gpnerf_plugins.extractors.resunet import ResUNet
 
-_STRIDE = 16  # coarsest encoder tap (x3)
+_STRIDE = 16  # coarsest encoder tap (x3): images are padded to a multiple of it
+_MAP_STRIDE = 4  # the radiance map's stride: image sides must be multiples of it for the maps to tile the image
 _LEVELS = 4  # x0..x3
 
 
@@ -49,7 +51,9 @@ class ResUNetFPN(FeatureExtractor):
 
     ``forward`` returns ``FeatureMaps(radiance=[N, radiance_dim, H/4, W/4],
     semantic=[N, 4 * fpn_channels, H/2, W/2] or None)``; semantic channel block k holds FPN level k
-    (stride 2^(k+1)), finest first. Input images are raw RGB in [0, 1] with H and W multiples of 16, at least 32.
+    (stride 2^(k+1)), finest first. Input images are raw RGB in [0, 1] with H and W multiples of 4; the encoder
+    needs multiples of 16, so images are padded (edge values) at the bottom and right and the maps cropped back to
+    exactly H/4 x W/4 and H/2 x W/2 cells (120x160, the paper's half-resolution ScanNet, works).
     """
 
     def __init__(
@@ -96,18 +100,26 @@ class ResUNetFPN(FeatureExtractor):
         )
 
     def forward(self, images: Tensor) -> FeatureMaps:
-        """Encode ``[N, 3, H, W]`` images in [0, 1] (H, W multiples of 16, at least 32)."""
+        """Encode ``[N, 3, H, W]`` images in [0, 1] (H, W multiples of 4, at least 32)."""
         if images.dim() != 4 or images.shape[1] != 3:
             raise ConfigError(f"feature extractor input has shape {tuple(images.shape)}; expected [N, 3, H, W]")
-        height, width = images.shape[-2:]
+        height, width = (int(side) for side in images.shape[-2:])
         # Reflect padding needs at least 2 cells at the coarsest tap, hence the 32-pixel minimum.
-        if height % _STRIDE or width % _STRIDE or min(height, width) < 2 * _STRIDE:
+        if height % _MAP_STRIDE or width % _MAP_STRIDE or min(height, width) < 2 * _STRIDE:
             raise ConfigError(
-                f"image size {height}x{width} (HxW) is not a multiple of {_STRIDE} of at least {2 * _STRIDE}, "
-                f"which the resunet_fpn extractor needs; resize or crop the images"
+                f"image size {height}x{width} (HxW) is not a multiple of {_MAP_STRIDE} of at least {2 * _STRIDE}, "
+                f"which the resunet_fpn extractor needs (its maps have 1/{_MAP_STRIDE} and 1/2 of the image's cells); "
+                "resize or crop the images"
             )
+        pad_bottom, pad_right = -height % _STRIDE, -width % _STRIDE
+        if pad_bottom or pad_right:
+            images = F.pad(images, (0, pad_right, 0, pad_bottom), mode="replicate")
         x0, x1, x2, x3 = self.backbone.encode(images)
         deep = x3.detach() if self.detach_deep_for_radiance else x3
         radiance = self.backbone.decode(x1, x2, deep)
         semantic = concat_levels(self.fpn([x0, x1, x2, x3])) if self.fpn is not None else None
+        if pad_bottom or pad_right:
+            radiance = radiance[..., : height // _MAP_STRIDE, : width // _MAP_STRIDE]
+            if semantic is not None:
+                semantic = semantic[..., : height // 2, : width // 2]
         return FeatureMaps(radiance=radiance, semantic=semantic)

@@ -39,7 +39,7 @@ class EmbeddedScenesConfig(DatasetConfig):
     frames_per_scene: int = 36
     """Frames along each layout's camera orbit."""
     height: int = 96
-    """Rendered image height, pixels (a multiple of 16: the ResNet encoder halves it four times)."""
+    """Rendered image height, pixels (a multiple of 4 for `resunet_fpn`, whose maps have 1/4 and 1/2 of its cells)."""
     width: int = 128
     """Rendered image width, pixels."""
     seed: int = 0
