@@ -46,3 +46,19 @@ def test_bench_bad_input_is_one_line(tmp_path):
     cuda = bench("device=cuda", cwd=tmp_path)
     if not __import__("torch").cuda.is_available():
         assert cuda.returncode == 2 and "CUDA is not available" in cuda.stderr and cuda.stderr.count("\n") == 1
+
+
+def profile(*args, cwd):
+    env = dict(os.environ, GPNERF_DISABLE_PLUGIN_AUTOLOAD="1", GPNERF_CACHE=str(cwd / "cache"))
+    return subprocess.run([sys.executable, "-m", "gpnerf_core.bench.profile", *args], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=600)
+
+
+def test_profile_prints_the_step_and_its_operators(tmp_path):
+    result = profile("size=demo", "variant=gpnerf", "rows=5", *TINY, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith("one profiled training step: ")
+    assert result.stdout.count("aten::") >= 5  # five operator rows
+    unknown = profile("variant=rgb", cwd=tmp_path)
+    assert unknown.returncode == 2
+    assert unknown.stderr.strip() == "error: variant='rgb' is unknown; known variants: gpnerf, gnt_only"

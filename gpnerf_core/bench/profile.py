@@ -1,0 +1,80 @@
+"""Where one training step's time goes: torch.profiler's operators, grouped by input shape.
+
+    python -m gpnerf_core.bench.profile [size=paper] [variant=gpnerf|gnt_only] [rows=30] [overrides like run's]
+
+Builds the ``bench`` size's model (the GP-NeRF variant or its GNT-only anchor), runs one warm-up step, profiles the
+next one and prints the step time and the operators with the most self time. The profiler adds overhead: read the
+shares, not the absolute step time (``bench`` measures that).
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from torch.profiler import ProfilerActivity, profile
+
+from gpnerf_core.bench.command import VARIANTS, variant_overrides
+from gpnerf_core.bench.sizes import get_size
+from gpnerf_core.build import build_components
+from gpnerf_core.config import compose
+from gpnerf_core.device import resolve_device
+from gpnerf_core.distributed import Distributed
+from gpnerf_core.errors import ConfigError
+from gpnerf_core.training.checkpoint import RunRecord
+from gpnerf_core.training.trainer import Trainer
+from gpnerf_core.validation import validate_config
+
+OWN_KEYS = ("size", "variant", "rows")
+
+
+def profile_step(overrides: list[str], rows: int) -> str:
+    """The step time and the profiler's table of one training step after one warm-up step."""
+    cfg = compose(overrides)
+    validate_config(cfg)
+    if cfg.threads:
+        torch.set_num_threads(int(cfg.threads))
+    torch.manual_seed(int(cfg.seed))
+    device = resolve_device(cfg.device)
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    with tempfile.TemporaryDirectory() as folder:
+        record = RunRecord(config_yaml="", overrides=(), components={})
+        trainer = Trainer(cfg, build_components(cfg), dist=Distributed.single(device), run_dir=Path(folder), record=record)
+        trainer.model.train()
+        trainer.train_step()
+        with profile(activities=activities, record_shapes=True) as profiler:
+            started = time.perf_counter()
+            trainer.train_step()
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            seconds = time.perf_counter() - started
+    sort = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
+    table = profiler.key_averages(group_by_input_shape=True).table(
+        sort_by=sort, row_limit=rows, max_name_column_width=32, max_shapes_column_width=80
+    )
+    return f"one profiled training step: {seconds:.2f} s on {device} ({torch.get_num_threads()} threads)\n{table}"
+
+
+def main(argv: list[str]) -> int:
+    own, overrides = {}, []
+    for argument in argv:
+        key, sep, value = argument.partition("=")
+        (own.__setitem__(key, value) if sep and key in OWN_KEYS else overrides.append(argument))
+    try:
+        size = get_size(own.get("size", "paper"))
+        variant = own.get("variant", "gpnerf")
+        if variant not in VARIANTS:
+            raise ConfigError(f"variant={variant!r} is unknown; known variants: {', '.join(VARIANTS)}")
+        rows = int(own.get("rows", 30))
+        print(profile_step(variant_overrides(size, variant, overrides), rows))
+    except (ConfigError, ValueError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
