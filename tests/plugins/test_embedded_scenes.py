@@ -285,10 +285,21 @@ def test_registered_spec_matches_the_constructor_and_does_not_render(tmp_path, m
     monkeypatch.setenv("GPNERF_CACHE", str(tmp_path))
     registry = collect(make_plugin_manager(builtins=("gpnerf_plugins.datasets.plugin",), autoload=False))
     assert not registry.problems and "embedded" in registry.names("dataset")
-    fields = {f.name: f.default for f in dataclasses.fields(EmbeddedScenesConfig)}
+    fields = {
+        f.name: f.default if f.default is not dataclasses.MISSING else tuple(f.default_factory())
+        for f in dataclasses.fields(EmbeddedScenesConfig)
+    }
     assert fields.pop("name") == "embedded"
     signature = inspect.signature(EmbeddedScenes.__init__).parameters
     assert {k: signature[k].default for k in fields} == fields
     dataset = registry.build("dataset", {"name": "embedded", **TINY})
     assert isinstance(dataset, EmbeddedScenes)
     assert not any(tmp_path.iterdir())
+
+
+def test_scene_lists_choose_among_the_generated_layouts():
+    dataset = EmbeddedScenes(num_train_scenes=3, num_unseen_scenes=1, scenes=["layout_02"], unseen_scenes=["layout_00"])
+    assert dataset.scenes("train") == ("layout_02",) and dataset.scenes("unseen") == ("layout_00",)
+    with pytest.raises(ConfigError, match=r"dataset.scenes has 'kitchen'; the embedded set generates layout_00, "
+                                          r"layout_01, unseen_00"):
+        EmbeddedScenes(num_train_scenes=2, scenes=["kitchen"])

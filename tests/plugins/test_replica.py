@@ -141,8 +141,19 @@ def test_split_files_ship_in_the_package():
     assert read_split_file("replica_instance.txt") == tuple(sorted(all_eight - {"office_1"}))
 
 
-def test_heldout_scenes_are_disjoint_and_use_both_sequences():
-    dataset = ReplicaScenes()
+def sequence_folders(root: Path, scenes, sequences=("Sequence_1", "Sequence_2")) -> Path:
+    """Empty ``<scene>/Sequence_<n>/`` folders: enough for ``scenes()``, which only lists them."""
+    for scene in scenes:
+        for sequence in sequences:
+            (root / scene / sequence).mkdir(parents=True)
+    return root
+
+
+ALL_EIGHT = [f"office_{i}" for i in range(5)] + [f"room_{i}" for i in range(3)]
+
+
+def test_heldout_scenes_are_disjoint_and_use_both_sequences(tmp_path):
+    dataset = ReplicaScenes(root=str(sequence_folders(tmp_path, ALL_EIGHT)))
     train, unseen = dataset.scenes("train"), dataset.scenes("unseen")
     assert unseen == ("office_0/Sequence_1", "room_0/Sequence_1")
     assert len(train) == 12 and {n.split("/")[1] for n in train} == {"Sequence_1", "Sequence_2"}
@@ -152,9 +163,9 @@ def test_heldout_scenes_are_disjoint_and_use_both_sequences():
         dataset.scenes("val")
 
 
-def test_paper_parity_reproduces_the_scene_leak():
+def test_paper_parity_reproduces_the_scene_leak(tmp_path):
     with pytest.warns(UserWarning, match="office_0, room_0"):
-        dataset = ReplicaScenes(protocol="paper_parity")
+        dataset = ReplicaScenes(root=str(sequence_folders(tmp_path, ALL_EIGHT)), protocol="paper_parity")
     train = dataset.scenes("train")
     assert len(train) == 16
     assert set(dataset.scenes("unseen")) <= set(train)  # the leak: unseen sequences are trained on
@@ -202,7 +213,11 @@ def test_configs_are_structured_and_match_the_constructors():
     ):
         node = OmegaConf.structured(config)
         assert node.name == name
-        fields = {f.name: f.default for f in dataclasses.fields(config) if f.name != "name"}
+        fields = {
+            f.name: f.default if f.default is not dataclasses.MISSING else tuple(f.default_factory())
+            for f in dataclasses.fields(config)
+            if f.name != "name"
+        }
         params = {k: p.default for k, p in inspect.signature(cls).parameters.items()}
         assert fields == params
 
@@ -308,7 +323,7 @@ def test_missing_folders_are_named(replica_root, tmp_path):
         replica(replica_root).load_scene("office_2/Sequence_1")
     with pytest.warns(UserWarning):
         parity = replica(replica_root, protocol="paper_parity")
-    with pytest.raises(DataError, match=r"office_0[/\\]Sequence_2: sequence folder missing"):
+    with pytest.raises(ConfigError, match=r"'office_0/Sequence_2'; expected one of: office_0/Sequence_1$"):
         parity.load_scene("office_0/Sequence_2")
     with pytest.raises(ConfigError, match="dataset.root is empty"):
         ReplicaScenes().load_scene("office_1/Sequence_1")
@@ -544,3 +559,31 @@ def test_replica_trains_and_evaluates_through_the_unchanged_pipeline(replica_roo
         tmp_path / "run",
     )
     assert_both_splits_scored(metrics, 51)
+
+
+def test_own_scenes_replace_the_shipped_lists_with_whatever_sequences_they_have(tmp_path):
+    root = tmp_path / "mine"
+    write_frames(root / "kitchen" / "Sequence_1", range(4), scene=1)
+    write_frames(root / "kitchen" / "Sequence_3", range(4), scene=2)
+    write_frames(root / "hall" / "Sequence_2", range(4), scene=0)
+    dataset = ReplicaScenes(root=str(root), height=H, width=W, scenes=["kitchen"], unseen_scenes=["hall"])
+    assert dataset.scenes("train") == ("kitchen/Sequence_1", "kitchen/Sequence_3")
+    assert dataset.scenes("unseen") == ("hall/Sequence_2",)  # no Sequence_1: its lowest-numbered sequence
+    assert dataset.load_scene("hall/Sequence_2").num_frames == 4
+    with pytest.raises(DataError, match=r"attic: scene folder missing; .* holds: hall, kitchen$"):
+        ReplicaScenes(root=str(root), scenes=["attic"]).scenes("train")
+
+
+def test_own_scene_lists_are_checked():
+    with pytest.raises(ConfigError, match="'hall' is in both the training scenes and the unseen scenes"):
+        ReplicaScenes(scenes=["hall", "kitchen"], unseen_scenes=["hall"])
+    with pytest.raises(ConfigError, match="dataset.scenes names 'hall' twice"):
+        ReplicaScenes(scenes=["hall", "hall"])
+    with pytest.raises(ConfigError, match="dataset.unseen_scenes has 'a/b'; expected folder names"):
+        ReplicaInstanceScenes(unseen_scenes=["a/b"])
+
+
+def test_own_instance_scenes(instance_root):
+    dataset = ReplicaInstanceScenes(root=str(instance_root), height=H, width=W, scenes=["room_0"], unseen_scenes=["office_0"])
+    assert dataset.scenes("train") == ("room_0",) and dataset.scenes("unseen") == ("office_0",)
+    assert dataset.load_scene("office_0").num_frames == 6

@@ -96,7 +96,7 @@ def root(tmp_path: Path) -> Path:
 
 
 def dataset(root: Path, **kwargs) -> ScanNetScenes:
-    options = dict(root=str(root), height=COLOR_HW[0], width=COLOR_HW[1], train_scenes=["scene0000_00"])
+    options = dict(root=str(root), height=COLOR_HW[0], width=COLOR_HW[1], scenes=["scene0000_00"])
     options.update(kwargs)
     return ScanNetScenes(**options)
 
@@ -424,7 +424,7 @@ def test_scannet_trains_and_evaluates_through_the_unchanged_pipeline(root, tmp_p
 
     metrics = train_and_evaluate(
         ["dataset=scannet", f"dataset.root={root}", "dataset.height=32", "dataset.width=48",
-         "dataset.train_scenes=[scene0000_00]", "dataset.unseen_scenes=[scene0160_00]"],
+         "dataset.scenes=[scene0000_00]", "dataset.unseen_scenes=[scene0160_00]"],
         tmp_path / "run",
     )
     assert_both_splits_scored(metrics, 20)

@@ -194,7 +194,7 @@ def test_prepare_writes_the_layout_and_the_dataset_reads_it_value_by_value(tmp_p
     assert np.array_equal(read_matrix(folder / "intrinsic" / "intrinsic_depth.txt").astype(np.float32), K_DEPTH)
 
     write_tsv(out)
-    data = ScanNetScenes(root=str(out), height=24, width=32, train_scenes=[SCENE])
+    data = ScanNetScenes(root=str(out), height=24, width=32, scenes=[SCENE])
     assert data.scenes("train") == (SCENE,)
     with pytest.warns(UserWarning, match="dropped 1 of 3 frames"):
         scene = data.load_scene(SCENE)

@@ -8,7 +8,7 @@ class docstring.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 
 @dataclass
@@ -27,6 +27,10 @@ class DatasetConfig:
     """Ray-sampling near bound, metres (training and evaluation alike)."""
     far: float = 6.0
     """Ray-sampling far bound, metres (training and evaluation alike)."""
+    scenes: list[str] = field(default_factory=list)
+    """Scenes to train on, by folder name under ``root``; empty = the dataset's shipped list (its protocol's)."""
+    unseen_scenes: list[str] = field(default_factory=list)
+    """Scenes never trained on, evaluated for generalization; empty = the dataset's shipped list."""
     validate: str = "quick"
     """Check the chosen scenes' files before training: quick (every file indexed, image sizes, poses finite and rigid),
     full (also decode every frame and check its labels) or off."""

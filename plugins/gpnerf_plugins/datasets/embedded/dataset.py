@@ -17,6 +17,7 @@ from gpnerf_core.interfaces import SPLITS, SceneDataset
 from gpnerf_core.types import Scene
 from gpnerf_plugins.datasets.base import DatasetConfig
 from gpnerf_plugins.datasets.common.paths import from_launch_dir
+from gpnerf_plugins.datasets.common.scene_lists import check_disjoint, chosen_scenes
 from gpnerf_plugins.datasets.embedded import CLASS_NAMES, IGNORE_INDEX, SEQUENCE, SceneSetParams, ensure_generated
 from gpnerf_plugins.datasets.embedded.generation import check_params, damaged_files
 from gpnerf_plugins.datasets.replica.layout import ReplicaSequence, every_nth_split
@@ -73,8 +74,23 @@ class EmbeddedScenes(SceneDataset):
         near: float = EmbeddedScenesConfig.near,
         far: float = EmbeddedScenesConfig.far,
         validate: str = EmbeddedScenesConfig.validate,
+        scenes: Sequence[str] = (),
+        unseen_scenes: Sequence[str] = (),
     ) -> None:
         self.params = SceneSetParams(num_train_scenes, num_unseen_scenes, frames_per_scene, height, width, seed)
+        generated = self.params.scene_names("train") + self.params.scene_names("unseen")
+        self._lists = {
+            "train": chosen_scenes("scenes", scenes, self.params.scene_names("train")),
+            "unseen": chosen_scenes("unseen_scenes", unseen_scenes, self.params.scene_names("unseen")),
+        }
+        for key, names in (("scenes", self._lists["train"]), ("unseen_scenes", self._lists["unseen"])):
+            unknown = [name for name in names if name not in generated]
+            if unknown:
+                raise ConfigError(
+                    f"dataset.{key} has {unknown[0]!r}; the embedded set generates {', '.join(generated)} "
+                    "(dataset.num_train_scenes / dataset.num_unseen_scenes)"
+                )
+        check_disjoint(self._lists["train"], self._lists["unseen"], True)
         every_nth_split(frames_per_scene, eval_every)  # raises ConfigError for a bad eval_every
         if not 0.0 < near < far:
             raise ConfigError(f"dataset.near={near}, dataset.far={far}; expected 0 < near < far (metres)")
@@ -97,7 +113,7 @@ class EmbeddedScenes(SceneDataset):
     def scenes(self, split: str) -> tuple[str, ...]:
         if split not in SPLITS:
             raise ConfigError(f"unknown split {split!r}; expected one of: {', '.join(SPLITS)}")
-        return self.params.scene_names(split)
+        return self._lists[split]
 
     def prepare(self) -> Path:
         """Generate the set if needed (once) and return its folder."""

@@ -20,10 +20,12 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import re
 import warnings
 from abc import abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 from gpnerf_core.data_checks import check_validation_level
 from gpnerf_core.errors import ConfigError, DataError
@@ -31,6 +33,7 @@ from gpnerf_core.interfaces import SPLITS, SceneDataset
 from gpnerf_core.types import Frame, Scene
 from gpnerf_plugins.datasets.base import DatasetConfig
 from gpnerf_plugins.datasets.common.paths import from_launch_dir
+from gpnerf_plugins.datasets.common.scene_lists import check_disjoint, chosen_scenes, missing_scene
 from gpnerf_plugins.datasets.replica.check import check_replica_instance_layout, check_replica_layout
 from gpnerf_plugins.datasets.replica.classes import CLASS_NAMES, IGNORE_INDEX, map_raw_labels
 from gpnerf_plugins.datasets.replica.dm_layout import InstanceSequence
@@ -52,8 +55,9 @@ __all__ = [
     "check_replica_layout",
 ]
 
-SEQUENCES = ("Sequence_1", "Sequence_2")
+SEQUENCE = re.compile(r"Sequence_(\d+)")
 UNSEEN_SEQUENCE = "Sequence_1"
+"""The unseen split's sequence of each unseen scene (the reference's); a scene without one uses its lowest-numbered."""
 
 
 @dataclass
@@ -183,7 +187,7 @@ class _ReplicaDataset(SceneDataset):
             self._root = _resolve_root(self._root_arg)
         folder = self._root / scene
         if not folder.is_dir():
-            raise DataError(f"{folder}: scene folder missing; expected {expected}")
+            raise missing_scene(self._root, scene, expected)
         return folder
 
     def load_scene(self, name: str) -> Scene:
@@ -207,10 +211,13 @@ class _ReplicaDataset(SceneDataset):
 class ReplicaScenes(_ReplicaDataset):
     """Semantic-NeRF's Replica renders ``<root>/<scene>/Sequence_<n>/``: 51 classes, scenes ``office_0/Sequence_1``, ...
 
-    ``train`` = both sequences of every training scene; ``unseen`` = ``Sequence_1`` of every test scene. Each sequence
-    holds out the positions ``[eval_start:eval_stop:eval_step][:eval_count]`` (2, 22, ..., 182 by default) as
-    ``eval_frames`` and trains on all others. Construction reads only the shipped split files; scenes are indexed on
-    first ``load_scene`` and frames decoded on each ``Scene.load_frame`` call.
+    ``train`` = every ``Sequence_<n>`` folder of every training scene (Semantic-NeRF ships ``Sequence_1`` and
+    ``Sequence_2``); ``unseen`` = ``Sequence_1`` of every unseen scene (its lowest-numbered sequence if it has no
+    ``Sequence_1``). The scenes are the protocol's shipped lists unless ``scenes`` / ``unseen_scenes`` name folders
+    under ``root``. Each sequence holds out the positions ``[eval_start:eval_stop:eval_step][:eval_count]`` (2, 22,
+    ..., 182 by default) as ``eval_frames`` and trains on all others. Construction reads only the split files;
+    ``scenes`` lists the sequence folders, scenes are indexed on first ``load_scene`` and frames decoded on each
+    ``Scene.load_frame`` call.
     """
 
     def __init__(
@@ -228,13 +235,17 @@ class ReplicaScenes(_ReplicaDataset):
         eval_step: int = ReplicaScenesConfig.eval_step,
         eval_count: int = ReplicaScenesConfig.eval_count,
         strict_labels: bool = ReplicaScenesConfig.strict_labels,
+        scenes: Sequence[str] = (),
+        unseen_scenes: Sequence[str] = (),
     ) -> None:
         train_file, test_file = protocol_files(protocol)
         super().__init__(root, protocol, height, width, near, far, hfov_deg, strict_labels, validate)
         check_frame_rule("eval_start/eval_stop/eval_step/eval_count", eval_start, eval_stop, eval_step, eval_count)
         self.eval_rule = (eval_start, eval_stop, eval_step, eval_count)
-        self.train_scene_names = read_split_file(train_file)
-        self.test_scene_names = read_split_file(test_file)
+        self.train_scene_names = chosen_scenes("scenes", scenes, read_split_file(train_file))
+        self.test_scene_names = chosen_scenes("unseen_scenes", unseen_scenes, read_split_file(test_file))
+        check_disjoint(self.train_scene_names, self.test_scene_names, bool(scenes) or bool(unseen_scenes))
+        self._sequences: dict[str, tuple[str, ...]] = {}
         leaked = sorted(set(self.train_scene_names) & set(self.test_scene_names))
         if leaked:
             warnings.warn(
@@ -245,11 +256,30 @@ class ReplicaScenes(_ReplicaDataset):
             )
 
     def scenes(self, split: str) -> tuple[str, ...]:
+        """``<scene>/Sequence_<n>`` names of ``split`` (reads the scene folders' listings)."""
         if split == "train":
-            return tuple(f"{scene}/{sequence}" for scene in self.train_scene_names for sequence in SEQUENCES)
+            return tuple(f"{scene}/{sequence}" for scene in self.train_scene_names for sequence in self.sequences(scene))
         if split == "unseen":
-            return tuple(f"{scene}/{UNSEEN_SEQUENCE}" for scene in self.test_scene_names)
+            return tuple(name for scene in self.test_scene_names for name in self._unseen_names(scene))
         raise ConfigError(f"unknown split {split!r}; expected one of: {', '.join(SPLITS)}")
+
+    def sequences(self, scene: str) -> tuple[str, ...]:
+        """The ``Sequence_<n>`` folders of ``scene``, by number; DataError when the scene has none."""
+        if scene not in self._sequences:
+            folder = self._scene_folder(scene, f"Semantic-NeRF's Replica render of {scene} (Sequence_<n>/ folders)")
+            found = sorted(
+                (int(match.group(1)), entry.name)
+                for entry in folder.iterdir()
+                if entry.is_dir() and (match := SEQUENCE.fullmatch(entry.name))
+            )
+            if not found:
+                raise DataError(f"{folder}: no Sequence_<n>/ folders; expected Semantic-NeRF's Replica render layout")
+            self._sequences[scene] = tuple(name for _, name in found)
+        return self._sequences[scene]
+
+    def _unseen_names(self, scene: str) -> tuple[str]:
+        sequences = self.sequences(scene)
+        return (f"{scene}/{UNSEEN_SEQUENCE if UNSEEN_SEQUENCE in sequences else sequences[0]}",)
 
     def frame_split(self, num_frames: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
         """``(train_frames, eval_frames)`` positions of a sequence of ``num_frames`` frames; disjoint."""
@@ -258,13 +288,20 @@ class ReplicaScenes(_ReplicaDataset):
         return tuple(i for i in range(num_frames) if i not in held_set), held
 
     def _reader(self, name: str) -> ReplicaSequence:
-        known = self.scenes("train") + self.scenes("unseen")
-        if name not in known:
-            choices = ", ".join(dict.fromkeys(known))
-            raise ConfigError(f"unknown scene {name!r} for protocol {self.protocol!r}; expected one of: {choices}")
-        scene, sequence = name.split("/")
-        expected = f"Semantic-NeRF's Replica render of {scene} ({', '.join(SEQUENCES)})"
-        folder = self._scene_folder(scene, expected)
+        scene, _, sequence = name.partition("/")
+        if scene in self.train_scene_names:
+            allowed = self.sequences(scene)
+        elif scene in self.test_scene_names:
+            allowed = tuple(known.split("/")[1] for known in self._unseen_names(scene))
+        else:
+            choices = ", ".join(dict.fromkeys(self.train_scene_names + self.test_scene_names))
+            raise ConfigError(
+                f"unknown scene {name!r} for protocol {self.protocol!r}; expected <scene>/Sequence_<n> with a scene "
+                f"of: {choices}"
+            )
+        if sequence not in allowed:
+            raise ConfigError(f"unknown scene {name!r}; expected one of: {', '.join(f'{scene}/{a}' for a in allowed)}")
+        folder = self._scene_folder(scene, f"Semantic-NeRF's Replica render of {scene}")
         return ReplicaSequence(folder / sequence, hfov_deg=self.hfov_deg, size=self.size, ignore_index=IGNORE_INDEX)
 
 
@@ -272,7 +309,7 @@ class ReplicaInstanceScenes(_ReplicaDataset):
     """DM-NeRF's Replica renders ``<root>/<scene>/``: raw instance ids per frame, scenes named ``office_0``.
 
     The per-scene setting of GP-NeRF's instance experiments: the ``train`` split is the scene list
-    ``replica_instance.txt`` and ``unseen`` is empty. Evaluation frames are the positions
+    ``replica_instance.txt`` (or ``scenes``) and ``unseen`` is empty (or ``unseen_scenes``). Evaluation frames are the positions
     ``[eval_start:eval_stop:eval_step]`` (600, 620, ..., 880), training frames ``[0:train_stop:train_step]`` (the even
     positions) minus the evaluation frames; ``paper_parity`` keeps them in training, as the reference does.
     ``Frame.semantic`` is all ignore unless the scene has a ``semantic_class`` folder, mapped to the 51 classes.
@@ -294,6 +331,8 @@ class ReplicaInstanceScenes(_ReplicaDataset):
         train_stop: int = ReplicaInstanceScenesConfig.train_stop,
         train_step: int = ReplicaInstanceScenesConfig.train_step,
         strict_labels: bool = ReplicaInstanceScenesConfig.strict_labels,
+        scenes: Sequence[str] = (),
+        unseen_scenes: Sequence[str] = (),
     ) -> None:
         protocol_files(protocol)  # same protocol names as ``replica``
         super().__init__(root, protocol, height, width, near, far, hfov_deg, strict_labels, validate)
@@ -301,7 +340,9 @@ class ReplicaInstanceScenes(_ReplicaDataset):
         check_frame_rule("train_stop/train_step", 0, train_stop, train_step)
         self.eval_rule = (eval_start, eval_stop, eval_step)
         self.train_rule = (0, train_stop, train_step)
-        self.scene_names = read_split_file(INSTANCE_SCENES_FILE)
+        self.scene_names = chosen_scenes("scenes", scenes, read_split_file(INSTANCE_SCENES_FILE))
+        self.unseen_scene_names = chosen_scenes("unseen_scenes", unseen_scenes, ())
+        check_disjoint(self.scene_names, self.unseen_scene_names, True)
         if protocol == "paper_parity":
             warnings.warn(
                 "replica_instance protocol 'paper_parity' trains on its evaluation frames (the reference's overlap); "
@@ -314,7 +355,7 @@ class ReplicaInstanceScenes(_ReplicaDataset):
         if split == "train":
             return self.scene_names
         if split == "unseen":
-            return ()
+            return self.unseen_scene_names
         raise ConfigError(f"unknown split {split!r}; expected one of: {', '.join(SPLITS)}")
 
     def frame_split(self, num_frames: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
@@ -327,7 +368,8 @@ class ReplicaInstanceScenes(_ReplicaDataset):
         return tuple(i for i in pool if i not in held_set), held
 
     def _reader(self, name: str) -> ReplicaSequence:
-        if name not in self.scene_names:
-            raise ConfigError(f"unknown scene {name!r}; expected one of: {', '.join(self.scene_names)}")
+        known = self.scene_names + self.unseen_scene_names
+        if name not in known:
+            raise ConfigError(f"unknown scene {name!r}; expected one of: {', '.join(known)}")
         folder = self._scene_folder(name, "DM-NeRF's Replica render (rgb/, depth/, semantic_instance/, traj_w_c.txt)")
         return InstanceSequence(folder, hfov_deg=self.hfov_deg, size=self.size, ignore_index=IGNORE_INDEX)

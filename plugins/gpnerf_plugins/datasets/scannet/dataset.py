@@ -26,6 +26,7 @@ from gpnerf_plugins.datasets.scannet.labels import (
     read_label_map,
 )
 from gpnerf_plugins.datasets.scannet.scene import PROTOCOLS, ScanNetScene
+from gpnerf_plugins.datasets.common.scene_lists import check_disjoint, chosen_scenes, present_folders
 from gpnerf_plugins.datasets.scannet.splits import read_split
 
 __all__ = ["ScanNetScenes", "ScanNetScenesConfig", "check_scannet_layout", "read_split"]
@@ -48,7 +49,7 @@ class ScanNetScenesConfig(DatasetConfig):
     lexicographic positions, fine-tuning frames overlapping the eval frames)."""
     allow_missing_scenes: bool = False
     """Skip split scenes absent from root with a warning instead of failing."""
-    train_scenes: list[str] = field(default_factory=list)
+    scenes: list[str] = field(default_factory=list)
     """Scenes of the train split; empty = the shipped splits/scannet_train.txt (198 scenes)."""
     unseen_scenes: list[str] = field(default_factory=list)
     """Scenes of the unseen split; empty = the shipped splits/scannet_test.txt (10 scenes)."""
@@ -73,7 +74,7 @@ class ScanNetScenes(SceneDataset):
         validate: str = ScanNetScenesConfig.validate,
         protocol: str = ScanNetScenesConfig.protocol,
         allow_missing_scenes: bool = ScanNetScenesConfig.allow_missing_scenes,
-        train_scenes: Sequence[str] = (),
+        scenes: Sequence[str] = (),
         unseen_scenes: Sequence[str] = (),
     ) -> None:
         if protocol not in PROTOCOLS:
@@ -82,7 +83,7 @@ class ScanNetScenes(SceneDataset):
             raise ConfigError(f"dataset.near={near}, dataset.far={far}; expected 0 < near < far (metres)")
         if height < 1 or width < 1:
             raise ConfigError(f"dataset.height={height}, dataset.width={width}; expected positive sizes in pixels")
-        for key, names in (("train_scenes", train_scenes), ("unseen_scenes", unseen_scenes)):
+        for key, names in (("scenes", scenes), ("unseen_scenes", unseen_scenes)):
             bad = [n for n in names if not SCENE_NAME.match(str(n))]
             if bad:
                 raise ConfigError(f"dataset.{key} has {bad[0]!r}; expected scene names sceneXXXX_YY")
@@ -94,9 +95,10 @@ class ScanNetScenes(SceneDataset):
         self.protocol = protocol
         self.allow_missing_scenes = bool(allow_missing_scenes)
         self._lists = {
-            "train": tuple(train_scenes) or read_split("train"),
-            "unseen": tuple(unseen_scenes) or read_split("test"),
+            "train": chosen_scenes("scenes", scenes, read_split("train")),
+            "unseen": chosen_scenes("unseen_scenes", unseen_scenes, read_split("test")),
         }
+        check_disjoint(self._lists["train"], self._lists["unseen"], bool(scenes) or bool(unseen_scenes))
         self._label_map: LabelMap | None = None
         self._scenes: dict[str, Scene] = {}
 
@@ -131,7 +133,7 @@ class ScanNetScenes(SceneDataset):
         if missing:
             message = (
                 f"{root / missing[0]}: missing ({len(missing)} of the {len(listed)} scenes of the {split} split are "
-                "missing); expected one folder per listed scene"
+                f"missing; {root} holds: {present_folders(root)}); expected one folder per listed scene"
             )
             if not present:
                 raise DataError(f"{message}; none is present")
