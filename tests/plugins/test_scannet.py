@@ -432,3 +432,33 @@ def test_scannet_trains_and_evaluates_through_the_unchanged_pipeline(root, tmp_p
         tmp_path / "run",
     )
     assert_both_splits_scored(metrics, 20)
+
+
+
+# ------------------------------------------------------------------------------------------- depth registration
+def depth_intrinsics(root: Path, scene: str, shift_rows: float = 0.0) -> np.ndarray:
+    """``intrinsic_depth.txt``: the colour intrinsics at the depth size, principal point moved down by ``shift_rows``."""
+    sx, sy = DEPTH_HW[1] / COLOR_HW[1], DEPTH_HW[0] / COLOR_HW[0]
+    k = K_COLOR.copy()
+    k[0, 0], k[0, 2] = K_COLOR[0, 0] * sx, (K_COLOR[0, 2] + 0.5) * sx - 0.5
+    k[1, 1], k[1, 2] = K_COLOR[1, 1] * sy, (K_COLOR[1, 2] + 0.5) * sy - 0.5 + shift_rows
+    write_matrix(root / scene / "intrinsic" / "intrinsic_depth.txt", k)
+    return k
+
+
+def test_depth_is_registered_with_its_own_intrinsics(root):
+    with pytest.warns(UserWarning, match="intrinsic_depth.txt: missing; depth is resized"):
+        reference = dataset(root).load_scene("scene0000_00").load_frame(1).depth
+    resized = dataset(root, depth_alignment="resize").load_scene("scene0000_00").load_frame(1).depth
+    assert torch.equal(reference, resized)
+    depth_intrinsics(root, "scene0000_00")  # depth K = colour K at the depth size: registration = resize
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        consistent = dataset(root).load_scene("scene0000_00").load_frame(1).depth
+    assert torch.equal(consistent, resized)
+    depth_intrinsics(root, "scene0000_00", shift_rows=1.0)  # the depth camera's centre one depth row lower
+    shifted = dataset(root).load_scene("scene0000_00").load_frame(1).depth
+    assert torch.equal(shifted[:-2], resized[2:])  # one depth row = two output rows
+    assert torch.all(shifted[-2:] == 0)  # outside the depth image: unknown
+    with pytest.raises(ConfigError, match="dataset.depth_alignment='nearest'; expected one of: intrinsics, resize"):
+        dataset(root, depth_alignment="nearest")

@@ -183,6 +183,9 @@ def test_prepare_writes_the_layout_and_the_dataset_reads_it_value_by_value(tmp_p
     assert "scannetv2-labels.combined.tsv" in printed  # the hint: the label map is still missing
     folder = out / SCENE
     assert sorted(p.name for p in out.iterdir()) == [SCENE]  # no temporary folder left behind
+    umask = os.umask(0)
+    os.umask(umask)
+    assert folder.stat().st_mode & 0o777 == 0o777 & ~umask  # readable by others as a plain mkdir, not mkdtemp's 0700
     for i in range(3):
         assert (folder / "color" / f"{i}.jpg").read_bytes() == jpeg_of(i)  # as stored
         depth = np.asarray(Image.open(folder / "depth" / f"{i}.png"))

@@ -25,7 +25,7 @@ from gpnerf_plugins.datasets.scannet.labels import (
     LabelMap,
     read_label_map,
 )
-from gpnerf_plugins.datasets.scannet.scene import PROTOCOLS, ScanNetScene
+from gpnerf_plugins.datasets.scannet.scene import DEPTH_ALIGNMENTS, PROTOCOLS, ScanNetScene
 from gpnerf_plugins.datasets.common.scene_lists import check_disjoint, chosen_scenes, present_folders
 from gpnerf_plugins.datasets.scannet.splits import read_split
 
@@ -47,6 +47,9 @@ class ScanNetScenesConfig(DatasetConfig):
     protocol: str = "heldout"
     """Per-scene frames: "heldout" (numeric order, eval frames never trained on) or "paper_parity" (the reference's
     lexicographic positions, fine-tuning frames overlapping the eval frames)."""
+    depth_alignment: str = "intrinsics"
+    """intrinsics: register depth to the colour camera with intrinsic/intrinsic_depth.txt; resize: the reference's
+    resize as if depth had the colour intrinsics (docs/datasets/scannet.md)."""
     allow_missing_scenes: bool = False
     """Skip split scenes absent from root with a warning instead of failing."""
     scenes: list[str] = field(default_factory=list)
@@ -74,9 +77,15 @@ class ScanNetScenes(SceneDataset):
         validate: str = ScanNetScenesConfig.validate,
         protocol: str = ScanNetScenesConfig.protocol,
         allow_missing_scenes: bool = ScanNetScenesConfig.allow_missing_scenes,
+        depth_alignment: str = ScanNetScenesConfig.depth_alignment,
         scenes: Sequence[str] = (),
         unseen_scenes: Sequence[str] = (),
     ) -> None:
+        if depth_alignment not in DEPTH_ALIGNMENTS:
+            raise ConfigError(
+                f"dataset.depth_alignment={depth_alignment!r}; expected one of: {', '.join(DEPTH_ALIGNMENTS)}"
+            )
+        self.depth_alignment = depth_alignment
         if protocol not in PROTOCOLS:
             raise ConfigError(f"dataset.protocol={protocol!r}; expected one of: {', '.join(PROTOCOLS)}")
         if not 0.0 < near < far:
@@ -153,6 +162,12 @@ class ScanNetScenes(SceneDataset):
         if not SCENE_NAME.match(name):
             raise ConfigError(f"unknown scene {name!r}; expected a ScanNet scene name sceneXXXX_YY")
         if name not in self._scenes:
-            reader = ScanNetScene(self._root() / name, label_map=self.label_map(), height=self.height, width=self.width)
+            reader = ScanNetScene(
+                self._root() / name,
+                label_map=self.label_map(),
+                height=self.height,
+                width=self.width,
+                depth_alignment=self.depth_alignment,
+            )
             self._scenes[name] = reader.scene(protocol=self.protocol, near=self.near, far=self.far)
         return self._scenes[name]

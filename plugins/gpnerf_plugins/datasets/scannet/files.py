@@ -30,6 +30,7 @@ from gpnerf_plugins.datasets.common.layout_check import Problem
 
 COLOR_DIR, DEPTH_DIR, LABEL_DIR, POSE_DIR = "color", "depth", "label-filt", "pose"
 INTRINSIC_COLOR = Path("intrinsic") / "intrinsic_color.txt"
+INTRINSIC_DEPTH = Path("intrinsic") / "intrinsic_depth.txt"
 DEPTH_SCALE = 1000.0  # depth PNG units per metre
 SCENE_NAME = re.compile(r"^scene\d{4}_\d{2}$")
 INTEGER_MODES = ("L", "I", "I;16", "I;16B", "I;16L")

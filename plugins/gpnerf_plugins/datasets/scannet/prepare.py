@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import io
 import re
+import os
 import shutil
 import tempfile
 import zipfile
@@ -192,6 +193,7 @@ def prepare_scan(
             except OSError as exc:
                 raise DataError(f"{temporary}: writing failed ({exc})") from None
             total = reader.header.num_frames
+        _make_shareable(temporary)
         if destination.exists():
             retired = Path(tempfile.mkdtemp(prefix=f".{scene}.old-", dir=out_root))
             destination.rename(retired / scene)
@@ -203,6 +205,14 @@ def prepare_scan(
         shutil.rmtree(temporary, ignore_errors=True)
         raise
     return PrepareResult(scene, destination, written, total, invalid)
+
+
+def _make_shareable(folder: Path) -> None:
+    """Give the scene folder the mode a plain ``mkdir`` would (``mkdtemp`` makes it 0700, unreadable to other users of
+    a shared dataset root)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    folder.chmod(0o777 & ~umask)
 
 
 class _Parser(argparse.ArgumentParser):

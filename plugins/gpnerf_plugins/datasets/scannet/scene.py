@@ -1,8 +1,16 @@
 """One ScanNet scene folder (Semantic-Ray export layout) as a ``Scene``, and the per-scene frame protocols.
 
 Frames are indexed in NUMERIC order of their names after dropping frames with an invalid pose. Colour is resized
-with antialiasing (PIL bilinear, area-aligned), depth and labels with nearest neighbour, and the colour intrinsics
-are scaled by the true ratios ``width / W_color`` and ``height / H_color``.
+with antialiasing (PIL bilinear, area-aligned), labels with nearest neighbour, and the colour intrinsics are scaled by
+the true ratios ``width / W_color`` and ``height / H_color``.
+
+Depth comes from its own camera: ScanNet's depth images (640x480) have their own intrinsics
+(``intrinsic/intrinsic_depth.txt``), not the colour camera's scaled down. ``depth_alignment="intrinsics"`` (default)
+registers depth to the colour camera: every output pixel's ray ``K_color^-1 [u, v, 1]`` is projected with ``K_depth``
+and the nearest depth pixel taken (0 = unknown where it falls outside the depth image). The two cameras share their
+centre and orientation (ScanNet's colour-to-depth extrinsics are the identity), so the depth value, a z, carries over
+unchanged. ``"resize"`` is the reference's behaviour: the depth image resized to the output size as if it had the
+colour intrinsics (about 1.5 px vertical offset at 320x240 on real scans).
 """
 
 from __future__ import annotations
@@ -21,6 +29,7 @@ from gpnerf_plugins.datasets.common.image_io import resize_nearest
 from gpnerf_plugins.datasets.scannet.files import (
     DEPTH_SCALE,
     INTRINSIC_COLOR,
+    INTRINSIC_DEPTH,
     FrameFiles,
     LayoutError,
     aspect_mismatch,
@@ -36,6 +45,22 @@ from gpnerf_plugins.datasets.scannet.files import (
 from gpnerf_plugins.datasets.scannet.labels import IGNORE_INDEX, LabelMap
 
 PROTOCOLS = ("heldout", "paper_parity")
+DEPTH_ALIGNMENTS = ("intrinsics", "resize")
+
+
+def depth_lookup(k_color: np.ndarray, k_depth: np.ndarray, height: int, width: int, depth_hw: tuple[int, int]):
+    """Nearest depth pixel of every output pixel: ``(rows, cols, inside)`` arrays ``[height, width]``.
+
+    ``k_color``: colour intrinsics at the output size; ``k_depth``: depth intrinsics at the depth image's size.
+    Pixel centres are at integer coordinates in both.
+    """
+    v, u = np.meshgrid(np.arange(height, dtype=np.float64), np.arange(width, dtype=np.float64), indexing="ij")
+    rays = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(k_color).T  # [H, W, 3], z = 1
+    projected = rays @ k_depth.T
+    cols = np.rint(projected[..., 0] / projected[..., 2]).astype(np.int64)
+    rows = np.rint(projected[..., 1] / projected[..., 2]).astype(np.int64)
+    inside = (rows >= 0) & (rows < depth_hw[0]) & (cols >= 0) & (cols < depth_hw[1])
+    return np.clip(rows, 0, depth_hw[0] - 1), np.clip(cols, 0, depth_hw[1] - 1), inside
 EVAL_POSITIONS = slice(2, 700, 20)
 """Positions (in the scene's frame list) of the evaluation targets, capped at ``NUM_EVAL_FRAMES``: 2, 22, ..., 182."""
 NUM_EVAL_FRAMES = 10
@@ -75,12 +100,20 @@ class ScanNetScene:
         path: the ``sceneXXXX_YY`` folder.
         label_map: raw id -> ScanNet-20 class.
         height, width: size frames are loaded at, pixels.
+        depth_alignment: ``intrinsics`` (register depth with ``intrinsic_depth.txt``) or ``resize`` (the reference's);
+            see the module docstring. Without ``intrinsic_depth.txt``, ``intrinsics`` warns once and resizes.
 
     Raises:
         DataError: a missing or malformed file (the first one found), or no frame with a valid pose.
     """
 
-    def __init__(self, path: str | Path, *, label_map: LabelMap, height: int, width: int) -> None:
+    def __init__(
+        self, path: str | Path, *, label_map: LabelMap, height: int, width: int, depth_alignment: str = "intrinsics"
+    ) -> None:
+        if depth_alignment not in DEPTH_ALIGNMENTS:
+            raise ConfigError(
+                f"dataset.depth_alignment={depth_alignment!r}; expected one of: {', '.join(DEPTH_ALIGNMENTS)}"
+            )
         self.path = Path(path)
         if not self.path.is_dir():
             expected = "a scene folder with color/, depth/, label-filt/, pose/ and intrinsic/"
@@ -112,6 +145,18 @@ class ScanNetScene:
         k_color = read_intrinsic(self.path / INTRINSIC_COLOR)
         sx, sy = self.width / self.color_size[1], self.height / self.color_size[0]
         self.intrinsics = torch.from_numpy(scale_intrinsics(k_color, sx, sy)).float()
+        self.k_depth = None
+        if depth_alignment == "intrinsics":
+            if (self.path / INTRINSIC_DEPTH).is_file():
+                self.k_depth = read_intrinsic(self.path / INTRINSIC_DEPTH)
+            else:
+                warnings.warn(
+                    f"{self.path / INTRINSIC_DEPTH}: missing; depth is resized to the colour camera instead of "
+                    "registered with its own intrinsics (dataset.depth_alignment=resize does this silently)",
+                    stacklevel=2,
+                )
+        self._k_color_out = scale_intrinsics(k_color, sx, sy)
+        self._lookup: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.dropped_invalid_poses = dropped
         self._warned_unknown = False
 
@@ -150,6 +195,22 @@ class ScanNetScene:
             )
         return resize_nearest(values, self.height, self.width)
 
+    def _depth(self, files: FrameFiles) -> np.ndarray:
+        """Depth in metres at the output size, 0 = unknown (registered or resized, see ``depth_alignment``)."""
+        if self.k_depth is None:
+            return self._aligned(files.depth, files, "depth").astype(np.float32) / DEPTH_SCALE
+        values = read_integer_image(files.depth, files.token, "depth")
+        if self._lookup is None or self._lookup[0].shape != (self.height, self.width):
+            self._lookup = depth_lookup(self._k_color_out, self.k_depth, self.height, self.width, values.shape[:2])
+            self._lookup_hw = values.shape[:2]
+        if values.shape[:2] != self._lookup_hw:
+            raise LayoutError(
+                files.depth, f"{self._lookup_hw[1]}x{self._lookup_hw[0]} (WxH) like the scene's other depth images",
+                f"{values.shape[1]}x{values.shape[0]}", files.token,
+            )
+        rows, cols, inside = self._lookup
+        return np.where(inside, values[rows, cols], 0).astype(np.float32) / DEPTH_SCALE
+
     def _labels(self, files: FrameFiles) -> np.ndarray:
         raw = self._aligned(files.label, files, "label")
         if raw.min(initial=0) < 0:
@@ -172,7 +233,7 @@ class ScanNetScene:
             raise LayoutError(self.path, f"a frame index in 0..{self.num_frames - 1}", str(index))
         files = self.files[index]
         rgb = self._color(files)
-        depth = self._aligned(files.depth, files, "depth").astype(np.float32) / DEPTH_SCALE
+        depth = self._depth(files)
         semantic = self._labels(files)
         return Frame(
             rgb=torch.from_numpy(np.ascontiguousarray(rgb)),
