@@ -1,14 +1,19 @@
-"""``python -m gpnerf_core report <folders>``: one table from many run folders (a sweep, an ablation).
+"""``python -m gpnerf_core report <folders>``: one table from many run folders (a sweep, an ablation, seeds).
 
-Rows are the run folders found below the given paths (any folder holding ``metrics.json`` and ``config.yaml``).
-Runs whose settings match a row of the paper's Table 4 get that row's ID and the paper's numbers beside them;
-the paper's numbers are ScanNet at full size, so they are context, not a target for CPU-sized runs.
+Rows are the run folders found below the given paths (any folder holding ``metrics.json`` and ``config.yaml``). Runs
+whose configs differ only by ``seed`` (and by where or how they ran: ``out_dir``, ``threads``, ``device``, ...) form
+one row: each cell is the mean +- sample standard deviation over its runs, with n. Metric columns are keyed on the
+evaluator's protocol ids (``miou/image_mean_present``, ``psnr/clamped``). A row gets the paper's Table 4 ID and
+numbers only when it is the paper's method (the built-in ``unet`` head with a built-in loss set ``ce``, ``sd`` or
+``dgs``) with that row's switches; a third-party head or loss set never sits beside the paper's number. The paper's
+numbers are ScanNet at full size: context, not a target for CPU-sized runs.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import statistics
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,6 +30,18 @@ PAPER_TABLE4 = {
     (True, True, True, False): ("4", 59.55, 29.26),
     (True, True, True, True): ("5", 59.92, 29.37),
 }
+PAPER_HEADS = ("unet",)
+PAPER_LOSS_SETS = ("ce", "sd", "dgs")
+NOT_METHOD_KEYS = ("seed", "out_dir", "overwrite", "threads", "device")
+"""Top-level config keys that say where or how a run ran, not what it computes: runs differing only there group."""
+NOT_METHOD_TRAIN_KEYS = ("resume", "resume_strict", "loggers", "log_every")
+
+# (column title, split, protocol id, scale, digits)
+METRIC_COLUMNS = (
+    ("mIoU held-out", "train_heldout", "miou/image_mean_present", 100.0, 2),
+    ("mIoU unseen", "unseen", "miou/image_mean_present", 100.0, 2),
+    ("PSNR held-out", "train_heldout", "psnr/clamped", 1.0, 2),
+)
 
 
 @dataclass(frozen=True)
@@ -34,14 +51,39 @@ class RunRow:
     metrics: dict[str, Any]
 
     def switches(self) -> tuple[bool, bool, bool, bool] | None:
+        """Table 4's switches, for the paper's method only (``PAPER_HEADS`` x ``PAPER_LOSS_SETS``), else None."""
         loss = self.config.get("loss") or {}
-        if not loss:
+        head = self.config.get("head") or {}
+        if loss.get("name") not in PAPER_LOSS_SETS or head.get("name") not in PAPER_HEADS:
             return None
         joint = bool(self.config["model"]["semantic_field"]["joint_attention"])
         sd = float(loss.get("sd_weight", 0)) > 0
         dgs = float(loss.get("dgs_weight", 0)) > 0
         block = bool(loss.get("teacher_stop_grad", False)) and (sd or dgs)
         return joint, sd, block, dgs
+
+    def method_key(self) -> str:
+        """The config without the keys that do not change what the run computes (the seed among them)."""
+        config = {k: v for k, v in self.config.items() if k not in NOT_METHOD_KEYS}
+        if isinstance(config.get("train"), dict):
+            config["train"] = {k: v for k, v in config["train"].items() if k not in NOT_METHOD_TRAIN_KEYS}
+        return json.dumps(config, sort_keys=True, default=str)
+
+
+@dataclass(frozen=True)
+class RowGroup:
+    """Runs of one method that differ only by seed."""
+
+    runs: tuple[RunRow, ...]
+
+    @property
+    def label(self) -> str:
+        names = [run.folder.name for run in self.runs]
+        return names[0] if len(names) == 1 else f"{names[0]} (+{len(names) - 1})"
+
+    @property
+    def seeds(self) -> list[Any]:
+        return [run.config.get("seed", "?") for run in self.runs]
 
 
 def find_runs(paths: list[Path]) -> list[RunRow]:
@@ -63,44 +105,65 @@ def find_runs(paths: list[Path]) -> list[RunRow]:
     return rows
 
 
-def _value(metrics: dict[str, Any], split: str, key: str, scale: float = 1.0, digits: int = 2) -> str:
-    value = metrics.get("eval", {}).get(split, {}).get(key)
-    return "n/a" if value is None else f"{value * scale:.{digits}f}"
+def group_runs(rows: list[RunRow]) -> list[RowGroup]:
+    """Runs grouped by ``method_key``, in the order their first run was found."""
+    groups: dict[str, list[RunRow]] = {}
+    for row in rows:
+        groups.setdefault(row.method_key(), []).append(row)
+    return [RowGroup(tuple(runs)) for runs in groups.values()]
+
+
+def summarize(values: list[float], scale: float = 1.0, digits: int = 2) -> str:
+    """``mean`` for one value, ``mean +- std (n=k)`` (sample standard deviation) for several, ``n/a`` for none."""
+    if not values:
+        return "n/a"
+    scaled = [v * scale for v in values]
+    mean = statistics.fmean(scaled)
+    if len(scaled) == 1:
+        return f"{mean:.{digits}f}"
+    return f"{mean:.{digits}f} +- {statistics.stdev(scaled):.{digits}f} (n={len(scaled)})"
+
+
+def _metric(run: RunRow, split: str, key: str) -> float | None:
+    value = run.metrics.get("eval", {}).get(split, {}).get(key)
+    return None if value is None else float(value)
 
 
 def format_table(rows: list[RunRow]) -> str:
     header = (
-        "| run | head | loss | joint attn | S.D | grad block | D.G | steps | mIoU held-out | mIoU unseen "
-        "| PSNR held-out | train s | Table 4 ID | paper mIoU | paper PSNR |"
+        "| run | seeds | head | loss | joint attn | S.D | grad block | D.G | steps | "
+        + " | ".join(title for title, *_ in METRIC_COLUMNS)
+        + " | train s | Table 4 ID | paper mIoU | paper PSNR |"
     )
-    lines = [header, "|" + "|".join(["---"] * 15) + "|"]
-    for row in rows:
-        switches = row.switches()
+    width = header.count("|") - 1
+    lines = [header, "|" + "|".join(["---"] * width) + "|"]
+    for group in group_runs(rows):
+        first = group.runs[0]
+        switches = first.switches()
         paper = PAPER_TABLE4.get(switches) if switches else None
         flags = ["yes" if s else "no" for s in switches] if switches else ["-"] * 4
-        head = (row.config.get("head") or {}).get("name", "-")
-        loss = (row.config.get("loss") or {}).get("name", "-")
-        train = row.metrics.get("train", {})
-        lines.append(
-            "| "
-            + " | ".join(
-                [
-                    row.folder.name,
-                    head,
-                    loss,
-                    *flags,
-                    str(train.get("steps", "-")),
-                    _value(row.metrics, "train_heldout", "miou/image_mean_present", 100),
-                    _value(row.metrics, "unseen", "miou/image_mean_present", 100),
-                    _value(row.metrics, "train_heldout", "psnr/clamped"),
-                    str(train.get("seconds", "-")),
-                    paper[0] if paper else "-",
-                    f"{paper[1]:.2f}" if paper else "-",
-                    f"{paper[2]:.2f}" if paper else "-",
-                ]
-            )
-            + " |"
-        )
+        head = (first.config.get("head") or {}).get("name", "-")
+        loss = (first.config.get("loss") or {}).get("name", "-")
+        steps = sorted({str(run.metrics.get("train", {}).get("steps", "-")) for run in group.runs})
+        metric_cells = []
+        for _, split, key, scale, digits in METRIC_COLUMNS:
+            values = [v for run in group.runs if (v := _metric(run, split, key)) is not None]
+            metric_cells.append(summarize(values, scale, digits))
+        seconds = [float(s) for run in group.runs if (s := run.metrics.get("train", {}).get("seconds")) is not None]
+        cells = [
+            group.label,
+            ",".join(str(seed) for seed in group.seeds),
+            head,
+            loss,
+            *flags,
+            "/".join(steps),
+            *metric_cells,
+            summarize(seconds, digits=1),
+            paper[0] if paper else "-",
+            f"{paper[1]:.2f}" if paper else "-",
+            f"{paper[2]:.2f}" if paper else "-",
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 

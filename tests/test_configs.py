@@ -63,11 +63,11 @@ def test_every_experiment_composes(registry, experiment):
 
 def test_table4_switches(registry):
     expected = {
-        "table4/id1": ("ce", False, None),
-        "table4/id2": ("ce", True, None),
-        "table4/id3": ("sd", True, False),
-        "table4/id4": ("sd", True, True),
-        "table4/id5": ("dgs", True, True),
+        "table4_id1": ("ce", False, None),
+        "table4_id2": ("ce", True, None),
+        "table4_id3": ("sd", True, False),
+        "table4_id4": ("sd", True, True),
+        "table4_id5": ("dgs", True, True),
     }
     for experiment, (loss, joint, block) in expected.items():
         cfg = compose_with([f"+experiment={experiment}"])
@@ -89,5 +89,16 @@ def test_unknown_head_lists_known_options(registry):
 
 @pytest.mark.parametrize("dataset", ["scannet", "replica", "replica_instance"])
 def test_real_datasets_compose_with_experiments(registry, dataset):
-    cfg = compose_with([f"dataset={dataset}", "dataset.root=/data", "+experiment=table4/id5"])
+    cfg = compose_with([f"dataset={dataset}", "dataset.root=/data", "+experiment=table4_id5"])
     assert cfg.dataset.name == dataset and cfg.loss.name == "dgs"
+
+
+def test_a_hydra_glob_sweep_finds_the_five_table4_rows():
+    """``run -m '+experiment=glob(table4_*)'``: Hydra's glob lists one config group level, so the rows live there."""
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.override_parser.types import Glob
+
+    register_schema()
+    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
+        options = GlobalHydra.instance().config_loader().get_group_options("experiment")
+    assert Glob(include=["table4_*"]).filter(options) == [f"table4_id{i}" for i in range(1, 6)]

@@ -197,7 +197,7 @@ def test_multirun_sweep_runs_every_job_and_report_tabulates_them(workspace):
     sweep = workspace / "sweep"
     tiny = [o for o in TINY if not o.startswith(("train.steps", "eval.save_images"))]
     result = gpnerf(
-        "run", "-m", "+experiment=table4/id2,table4/id4", *tiny, "train.steps=1", "eval.save_images=0",
+        "run", "-m", "+experiment=table4_id2,table4_id4", *tiny, "train.steps=1", "eval.save_images=0",
         f"hydra.sweep.dir={sweep}", cwd=workspace, cache=workspace / "cache",
     )
     assert result.returncode == 0, result.stderr[-3000:]
@@ -205,4 +205,4 @@ def test_multirun_sweep_runs_every_job_and_report_tabulates_them(workspace):
     report = gpnerf("report", str(sweep), cwd=workspace, cache=workspace / "cache")
     assert report.returncode == 0, report.stderr
     rows = [line for line in report.stdout.splitlines() if line.startswith("| ") and "run" not in line]
-    assert [row.split("|")[13].strip() for row in rows] == ["2", "4"]
+    assert [row.split("|")[14].strip() for row in rows] == ["2", "4"]

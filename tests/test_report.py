@@ -7,9 +7,10 @@ from gpnerf_core.errors import DataError
 from gpnerf_core.report import find_runs, format_table
 
 
-def write_run(folder, loss, joint, miou):
+def write_run(folder, loss, joint, miou, seed=0, head="unet"):
     folder.mkdir(parents=True)
-    config = {"head": {"name": "unet"}, "loss": loss, "model": {"semantic_field": {"joint_attention": joint}}}
+    config = {"head": {"name": head}, "loss": loss, "model": {"semantic_field": {"joint_attention": joint}},
+              "seed": seed, "out_dir": str(folder)}
     (folder / "config.yaml").write_text(yaml.safe_dump(config))
     metrics = {"train": {"steps": 10, "seconds": 1.5},
                "eval": {"train_heldout": {"miou/image_mean_present": miou, "psnr/clamped": 20.0},
@@ -23,11 +24,32 @@ def test_rows_are_matched_to_table4_ids(tmp_path):
     write_run(tmp_path / "2", {"name": "dgs", "sd_weight": 0.25, "dgs_weight": 0.25, "teacher_stop_grad": True}, True, 0.6)
     table = format_table(find_runs([tmp_path])).splitlines()
     assert len(table) == 5
-    assert table[2].split("|")[13].strip() == "1" and "56.45" in table[2]
-    assert table[3].split("|")[13].strip() == "3" and "| 40.00 | 20.00 |" in table[3]
-    assert table[4].split("|")[13].strip() == "5" and "59.92" in table[4]
+    assert table[2].split("|")[14].strip() == "1" and "56.45" in table[2]
+    assert table[3].split("|")[14].strip() == "3" and "| 40.00 | 20.00 | 20.00 |" in table[3]
+    assert table[4].split("|")[14].strip() == "5" and "59.92" in table[4]
 
 
 def test_missing_path_is_an_error(tmp_path):
     with pytest.raises(DataError, match="found nothing"):
         find_runs([tmp_path / "nope"])
+
+
+def test_runs_differing_only_by_seed_form_one_row_with_mean_and_std(tmp_path):
+    dgs = {"name": "dgs", "sd_weight": 0.25, "dgs_weight": 0.25, "teacher_stop_grad": True}
+    for seed, miou in ((0, 0.5), (1, 0.6), (2, 0.7)):
+        write_run(tmp_path / f"s{seed}", dgs, True, miou, seed=seed)
+    write_run(tmp_path / "other", {**dgs, "dgs_weight": 0.5}, True, 0.3)  # another method: its own row
+    table = format_table(find_runs([tmp_path])).splitlines()
+    assert len(table) == 4
+    row = table[3]
+    assert row.startswith("| s0 (+2) | 0,1,2 |")
+    assert "| 60.00 +- 10.00 (n=3) | 30.00 +- 5.00 (n=3) | 20.00 +- 0.00 (n=3) |" in row
+
+
+def test_a_third_party_loss_or_head_never_gets_the_papers_number(tmp_path):
+    look_alike = {"name": "my_loss", "sd_weight": 0.25, "dgs_weight": 0.25, "teacher_stop_grad": True}
+    write_run(tmp_path / "a", look_alike, True, 0.5)
+    write_run(tmp_path / "b", {"name": "dgs", "sd_weight": 0.25, "dgs_weight": 0.25, "teacher_stop_grad": True},
+              True, 0.5, head="my_head")
+    for row in format_table(find_runs([tmp_path])).splitlines()[2:]:
+        assert row.endswith("| - | - | - |") and "59.92" not in row

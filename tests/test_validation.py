@@ -58,7 +58,7 @@ def test_bad_value_is_refused_in_one_line(override, message):
 
 
 def test_defaults_and_presets_are_valid():
-    for overrides in ([], ["+head=unet", "+loss=dgs"], ["+experiment=table4/id5"], ["+experiment=paper/gpnerf"]):
+    for overrides in ([], ["+head=unet", "+loss=dgs"], ["+experiment=table4_id5"], ["+experiment=paper/gpnerf"]):
         validate_config(compose(overrides))
 
 
