@@ -58,7 +58,23 @@ def test_every_registered_option_composes(registry, kind):
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
 def test_every_experiment_composes(registry, experiment):
     cfg = compose_with([f"+experiment={experiment}"])
-    assert cfg.head is not None and cfg.loss is not None
+    assert cfg.loss is not None
+    assert (cfg.get("head") is None) == (experiment == "baselines/gnt")
+
+
+def test_baselines_share_the_backbone_and_differ_in_the_semantic_path(registry):
+    from gpnerf_core.build import build_model
+
+    models = {}
+    for name in ("gnt", "label_rendering", "gpnerf_unet"):
+        cfg = compose_with([f"+experiment=baselines/{name}"])
+        models[name] = (cfg, build_model(cfg, num_classes=5))
+    gnt_cfg, gnt = models["gnt"]
+    assert gnt_cfg.loss.name == "rgb" and gnt.head is None and gnt.semantic is None and not gnt.has_semantics
+    assert models["label_rendering"][0].head.name == "per_pixel" and models["label_rendering"][0].loss.name == "ce"
+    assert models["gpnerf_unet"][0].head.name == "unet" and models["gpnerf_unet"][0].loss.name == "dgs"
+    trunk = [sum(p.numel() for p in model.field.parameters()) for _, model in models.values()]
+    assert len(set(trunk)) == 1  # the same field aggregator in all three
 
 
 def test_table4_switches(registry):
