@@ -19,6 +19,8 @@ commands:
   run       train on the dataset's training scenes, then evaluate held-out views and unseen scenes
             (Hydra overrides follow, e.g. `run +head=unet +loss=dgs train.steps=200`; `-m` sweeps)
   eval      evaluate a checkpoint with the config it was trained with: `eval checkpoint=<path> [overrides]`
+  finetune  fine-tune a checkpoint on some scenes, evaluating their held-out frames along the way:
+            `finetune checkpoint=<path> dataset.scenes=[<scene>] train.steps=N [finetune.points=4]`
   report    tabulate run folders (a sweep, the Table 4 ablation) beside the paper's numbers
   bench     time and size the training step and rendering: `bench size=demo|small|paper [overrides]`
   data      dataset tools: `data` lists them (check a layout, prepare ScanNet, make the embedded scenes)
@@ -124,6 +126,17 @@ def _eval(argv: list[str]) -> int:
     return _hydra_entry(eval_task, merge_overrides(stored, argv), "gpnerf_core eval")
 
 
+def _finetune(argv: list[str]) -> int:
+    from gpnerf_core.run import finetune_task
+    from gpnerf_core.training.checkpoint import read_checkpoint
+
+    given = [a for a in argv if a.startswith("checkpoint=")]
+    if not given:
+        raise GpnerfError("finetune needs checkpoint=<path to a .pt file written by run>")
+    stored = read_checkpoint(given[-1].split("=", 1)[1]).get("overrides", [])
+    return _hydra_entry(finetune_task, merge_overrides(stored, argv), "gpnerf_core finetune")
+
+
 def merge_overrides(stored: list[str], given: list[str]) -> list[str]:
     """The checkpoint's overrides (minus run-specific ones) followed by the command's; the command's win.
 
@@ -197,6 +210,7 @@ def _report(argv: list[str]) -> int:
 COMMANDS: dict[str, Callable[[list[str]], int]] = {
     "run": _run,
     "eval": _eval,
+    "finetune": _finetune,
     "report": _report,
     "bench": _bench,
     "data": _data,

@@ -101,6 +101,13 @@ class EvalConfig:
 
 
 @dataclass
+class FinetuneConfig:
+    points: int = 4
+    """``finetune``: evaluate the held-out frames at this many step counts from 0 to ``train.steps`` (0, N/3, 2N/3, N
+    for 4)."""
+
+
+@dataclass
 class RootConfig:
     feature_extractor: Any = MISSING
     field_aggregator: Any = MISSING
@@ -119,12 +126,13 @@ class RootConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
     out_dir: str = ""
     """Run folder; empty = Hydra's output directory. Nothing is written under ``outputs/`` when it is set."""
     overwrite: bool = False
     """Replace the run a non-empty ``out_dir`` holds (its checkpoints, metrics and pictures are deleted)."""
     checkpoint: Optional[str] = None
-    """Checkpoint the ``eval`` command evaluates."""
+    """Checkpoint the ``eval`` command evaluates and ``finetune`` starts from."""
 
 
 def run_dir_resolver(out_dir: str, default: str) -> str:

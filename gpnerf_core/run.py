@@ -306,6 +306,14 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     return metrics
 
 
+@_guarded
+@_distributed
+def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
+    from gpnerf_core.finetune import finetune_task_body
+
+    return finetune_task_body(cfg, dist)
+
+
 def eval_scalars(evaluation: dict[str, Any]) -> dict[str, float]:
     """The numeric top-level metrics of every split as ``eval/<split>/<protocol id>`` tags."""
     scalars = {}

@@ -300,6 +300,8 @@ def test_registered_spec_matches_the_constructor_and_does_not_render(tmp_path, m
 def test_scene_lists_choose_among_the_generated_layouts():
     dataset = EmbeddedScenes(num_train_scenes=3, num_unseen_scenes=1, scenes=["layout_02"], unseen_scenes=["layout_00"])
     assert dataset.scenes("train") == ("layout_02",) and dataset.scenes("unseen") == ("layout_00",)
+    tuned = EmbeddedScenes(num_train_scenes=3, num_unseen_scenes=1, scenes=["unseen_00"])  # fine-tuning on it
+    assert tuned.scenes("train") == ("unseen_00",) and tuned.scenes("unseen") == ()
     with pytest.raises(ConfigError, match=r"dataset.scenes has 'kitchen'; the embedded set generates layout_00, "
                                           r"layout_01, unseen_00"):
         EmbeddedScenes(num_train_scenes=2, scenes=["kitchen"])

@@ -575,8 +575,9 @@ def test_own_scenes_replace_the_shipped_lists_with_whatever_sequences_they_have(
 
 
 def test_own_scene_lists_are_checked():
-    with pytest.raises(ConfigError, match="'hall' is in both the training scenes and the unseen scenes"):
+    with pytest.raises(ConfigError, match="'hall' is in both dataset.scenes and dataset.unseen_scenes"):
         ReplicaScenes(scenes=["hall", "kitchen"], unseen_scenes=["hall"])
+    assert ReplicaScenes(scenes=["office_0"]).test_scene_names == ("room_0",)  # trained on: no longer unseen
     with pytest.raises(ConfigError, match="dataset.scenes names 'hall' twice"):
         ReplicaScenes(scenes=["hall", "hall"])
     with pytest.raises(ConfigError, match="dataset.unseen_scenes has 'a/b'; expected folder names"):

@@ -130,7 +130,7 @@ def test_default_splits_are_the_shipped_files_and_missing_scenes_fail_by_name(ro
         ScanNetScenes(root=str(root), allow_missing_scenes=True, unseen_scenes=["scene0999_00"]).scenes("unseen")
     with pytest.raises(DataError, match=r"scene0999_00: missing \(1 of the 1 scenes .* holds: [^)]*scene0000_00"):
         ScanNetScenes(root=str(root), scenes=["scene0999_00"]).scenes("train")
-    with pytest.raises(ConfigError, match="'scene0000_00' is in both"):
+    with pytest.raises(ConfigError, match="'scene0000_00' is in both dataset.scenes and dataset.unseen_scenes"):
         ScanNetScenes(root=str(root), scenes=["scene0000_00"], unseen_scenes=["scene0000_00"])
     with pytest.raises(ConfigError, match="dataset.root is empty"):
         ScanNetScenes().scenes("train")

@@ -22,14 +22,25 @@ def chosen_scenes(key: str, names: Sequence[str], shipped: tuple[str, ...]) -> t
     return names or shipped
 
 
-def check_disjoint(train: tuple[str, ...], unseen: tuple[str, ...], user_given: bool) -> None:
-    """A scene the user lists cannot be both trained on and unseen."""
+def disjoint_unseen(
+    train: tuple[str, ...], unseen: tuple[str, ...], *, train_given: bool, unseen_given: bool
+) -> tuple[str, ...]:
+    """The unseen scenes, given the training scenes.
+
+    Both lists given and sharing a scene: ConfigError. Only ``dataset.scenes`` given: the scenes chosen for training
+    leave the shipped unseen list (fine-tuning on an unseen scene). Neither given: the shipped lists as they are.
+    """
     shared = [name for name in train if name in unseen]
-    if shared and user_given:
+    if not shared:
+        return unseen
+    if unseen_given:
         raise ConfigError(
-            f"scene {shared[0]!r} is in both the training scenes and the unseen scenes; set dataset.scenes and "
-            "dataset.unseen_scenes so that no scene is in both"
+            f"scene {shared[0]!r} is in both dataset.scenes and dataset.unseen_scenes; a scene is either trained on "
+            "or unseen"
         )
+    if train_given:
+        return tuple(name for name in unseen if name not in train)
+    return unseen
 
 
 def present_folders(root: Path) -> str:

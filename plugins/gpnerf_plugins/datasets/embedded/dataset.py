@@ -17,7 +17,7 @@ from gpnerf_core.interfaces import SPLITS, SceneDataset
 from gpnerf_core.types import Scene
 from gpnerf_plugins.datasets.base import DatasetConfig
 from gpnerf_plugins.datasets.common.paths import from_launch_dir
-from gpnerf_plugins.datasets.common.scene_lists import check_disjoint, chosen_scenes
+from gpnerf_plugins.datasets.common.scene_lists import chosen_scenes, disjoint_unseen
 from gpnerf_plugins.datasets.embedded import CLASS_NAMES, IGNORE_INDEX, SEQUENCE, SceneSetParams, ensure_generated
 from gpnerf_plugins.datasets.embedded.generation import check_params, damaged_files
 from gpnerf_plugins.datasets.replica.layout import ReplicaSequence, every_nth_split
@@ -90,7 +90,9 @@ class EmbeddedScenes(SceneDataset):
                     f"dataset.{key} has {unknown[0]!r}; the embedded set generates {', '.join(generated)} "
                     "(dataset.num_train_scenes / dataset.num_unseen_scenes)"
                 )
-        check_disjoint(self._lists["train"], self._lists["unseen"], True)
+        self._lists["unseen"] = disjoint_unseen(
+            self._lists["train"], self._lists["unseen"], train_given=bool(scenes), unseen_given=bool(unseen_scenes)
+        )
         every_nth_split(frames_per_scene, eval_every)  # raises ConfigError for a bad eval_every
         if not 0.0 < near < far:
             raise ConfigError(f"dataset.near={near}, dataset.far={far}; expected 0 < near < far (metres)")

@@ -33,7 +33,7 @@ from gpnerf_core.interfaces import SPLITS, SceneDataset
 from gpnerf_core.types import Frame, Scene
 from gpnerf_plugins.datasets.base import DatasetConfig
 from gpnerf_plugins.datasets.common.paths import from_launch_dir
-from gpnerf_plugins.datasets.common.scene_lists import check_disjoint, chosen_scenes, missing_scene
+from gpnerf_plugins.datasets.common.scene_lists import chosen_scenes, disjoint_unseen, missing_scene
 from gpnerf_plugins.datasets.replica.check import check_replica_instance_layout, check_replica_layout
 from gpnerf_plugins.datasets.replica.classes import CLASS_NAMES, IGNORE_INDEX, map_raw_labels
 from gpnerf_plugins.datasets.replica.dm_layout import InstanceSequence
@@ -244,7 +244,9 @@ class ReplicaScenes(_ReplicaDataset):
         self.eval_rule = (eval_start, eval_stop, eval_step, eval_count)
         self.train_scene_names = chosen_scenes("scenes", scenes, read_split_file(train_file))
         self.test_scene_names = chosen_scenes("unseen_scenes", unseen_scenes, read_split_file(test_file))
-        check_disjoint(self.train_scene_names, self.test_scene_names, bool(scenes) or bool(unseen_scenes))
+        self.test_scene_names = disjoint_unseen(
+            self.train_scene_names, self.test_scene_names, train_given=bool(scenes), unseen_given=bool(unseen_scenes)
+        )
         self._sequences: dict[str, tuple[str, ...]] = {}
         leaked = sorted(set(self.train_scene_names) & set(self.test_scene_names))
         if leaked:
@@ -342,7 +344,7 @@ class ReplicaInstanceScenes(_ReplicaDataset):
         self.train_rule = (0, train_stop, train_step)
         self.scene_names = chosen_scenes("scenes", scenes, read_split_file(INSTANCE_SCENES_FILE))
         self.unseen_scene_names = chosen_scenes("unseen_scenes", unseen_scenes, ())
-        check_disjoint(self.scene_names, self.unseen_scene_names, True)
+        disjoint_unseen(self.scene_names, self.unseen_scene_names, train_given=True, unseen_given=True)
         if protocol == "paper_parity":
             warnings.warn(
                 "replica_instance protocol 'paper_parity' trains on its evaluation frames (the reference's overlap); "

@@ -26,7 +26,7 @@ from gpnerf_plugins.datasets.scannet.labels import (
     read_label_map,
 )
 from gpnerf_plugins.datasets.scannet.scene import DEPTH_ALIGNMENTS, PROTOCOLS, ScanNetScene
-from gpnerf_plugins.datasets.common.scene_lists import check_disjoint, chosen_scenes, present_folders
+from gpnerf_plugins.datasets.common.scene_lists import chosen_scenes, disjoint_unseen, present_folders
 from gpnerf_plugins.datasets.scannet.splits import read_split
 
 __all__ = ["ScanNetScenes", "ScanNetScenesConfig", "check_scannet_layout", "read_split"]
@@ -107,7 +107,9 @@ class ScanNetScenes(SceneDataset):
             "train": chosen_scenes("scenes", scenes, read_split("train")),
             "unseen": chosen_scenes("unseen_scenes", unseen_scenes, read_split("test")),
         }
-        check_disjoint(self._lists["train"], self._lists["unseen"], bool(scenes) or bool(unseen_scenes))
+        self._lists["unseen"] = disjoint_unseen(
+            self._lists["train"], self._lists["unseen"], train_given=bool(scenes), unseen_given=bool(unseen_scenes)
+        )
         self._label_map: LabelMap | None = None
         self._scenes: dict[str, Scene] = {}
 

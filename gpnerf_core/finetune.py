@@ -1,0 +1,162 @@
+"""``python -m gpnerf_core finetune checkpoint=<run's .pt> dataset.scenes=[...] train.steps=N``: per-scene fine-tuning.
+
+Starts from a generalized checkpoint (its config, recomposed from its overrides plus the command's, and its weights),
+trains on the chosen scenes' training frames only and evaluates their held-out frames, which are never trained on
+(the paper's Table 1 "fine-tuning" and Table 2's per-scene setting). The held-out frames are evaluated at several
+step counts (``finetune.points``, default 0, N/4, N/2, N), so ``metrics.json`` holds the curve of accuracy against
+fine-tuning steps and seconds. A dataset with another class count re-initialises only the head's tensors that carry
+the class dimension (its last layer) and says so; any other mismatch names the config keys that differ.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+import torch
+from omegaconf import DictConfig, open_dict
+
+from gpnerf_core.distributed import Distributed
+from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.io import atomic_write_json
+from gpnerf_core.training.checkpoint import (
+    MODEL_SECTIONS,
+    NOT_MODEL_KEYS,
+    config_differences,
+    format_differences,
+    load_weights,
+    read_checkpoint,
+)
+
+CURVE_KEYS = ("miou/image_mean_present", "miou/dataset", "acc/total", "psnr/clamped", "ssim/gaussian11")
+
+
+def curve_points(steps: int, points: int) -> list[int]:
+    """``points`` step counts from 0 to ``steps`` evenly (0, N/4, N/2, 3N/4, N for 5), distinct and ascending."""
+    if points < 2:
+        raise ConfigError(f"finetune.points={points}: expected at least 2 (before fine-tuning and after it)")
+    return sorted({round(steps * k / (points - 1)) for k in range(points)})
+
+
+def finetune_weights(
+    model: torch.nn.Module, state: Mapping[str, torch.Tensor], path: Path, old_config: str, new_config: str
+) -> list[str]:
+    """Load a checkpoint's weights for fine-tuning; returns the head tensors re-initialised for a new class count.
+
+    A head tensor whose shape differs only because the class count changed keeps the fresh initialisation; any
+    other difference is a ConfigError naming the config keys that differ from the checkpoint's.
+    """
+    own = model.state_dict()
+    reinitialised = []
+    for key, value in state.items():
+        if key in own and tuple(own[key].shape) != tuple(value.shape):
+            if key.startswith("head.") and tuple(own[key].shape[1:]) == tuple(value.shape[1:]):
+                reinitialised.append(key)
+                continue
+            differences = config_differences(old_config, new_config, MODEL_SECTIONS, NOT_MODEL_KEYS)
+            raise ConfigError(
+                f"finetune checkpoint={path}: tensor {key!r} has shape {list(value.shape)}, this model "
+                f"{list(own[key].shape)}; the model config differs from the checkpoint's: "
+                f"{format_differences(differences) or 'no key (a different plugin version?)'}"
+            )
+    kept = {key: value for key, value in state.items() if key not in reinitialised}
+    kept.update({key: own[key] for key in reinitialised})
+    load_weights(model, kept, f"checkpoint {path}")
+    return reinitialised
+
+
+def finetune_task_body(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
+    from gpnerf_core.build import build_components
+    from gpnerf_core.evaluation.evaluator import evaluate, print_summary
+    from gpnerf_core.run import _machine, _prepare, _start, restore_model_config
+    from gpnerf_core.training.trainer import Trainer
+    from gpnerf_core.validation import check_data
+
+    if not cfg.checkpoint:
+        raise ConfigError("finetune needs checkpoint=<path to a .pt file written by run>")
+    checkpoint = Path(str(cfg.checkpoint))
+    state = read_checkpoint(checkpoint)
+    notes = restore_model_config(cfg, state["config"], state.get("overrides", []))
+    scenes = list(cfg.dataset.get("scenes") or [])
+    if not scenes:
+        raise ConfigError(
+            "finetune needs dataset.scenes=[<scene>, ...]: the scenes to fine-tune on (their held-out frames are "
+            "evaluated, never trained on)"
+        )
+    if cfg.train.resume:
+        raise ConfigError("finetune starts from checkpoint=...; train.resume is for continuing a run (use run)")
+    total = int(cfg.train.steps)
+    points = curve_points(total, int(cfg.finetune.points))
+    with open_dict(cfg):
+        cfg.eval.splits = ["train"]  # the chosen scenes' held-out frames
+    _start(cfg)
+    components = build_components(cfg)
+    check_data(cfg, components, training=True)
+    from omegaconf import OmegaConf
+
+    reinitialised = finetune_weights(
+        components.model, state["model"], checkpoint, state["config"], OmegaConf.to_yaml(cfg, resolve=True)
+    )
+    folder, record = _prepare(cfg, dist, resuming=False)
+    run_dir = folder.path
+    with folder:
+        if dist.is_main:
+            for note in notes:
+                print(f"note: {note}", file=sys.stderr)
+            if reinitialised:
+                old_classes = int(state["model"][reinitialised[0]].shape[0])
+                print(
+                    f"note: {components.dataset.num_classes} classes instead of the checkpoint's {old_classes}: "
+                    f"re-initialised {', '.join(reinitialised)} (the head's last layer); every other tensor loaded",
+                    file=sys.stderr,
+                )
+            print(f"finetune: {', '.join(scenes)} from {checkpoint} (step {state['step']}); "
+                  f"evaluating at steps {', '.join(map(str, points))}", file=sys.stderr)
+        trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record)
+        started = time.perf_counter()
+        curve = []
+        evaluation: dict[str, Any] = {}
+        for point in points:
+            if point > trainer.step:
+                with open_dict(cfg):
+                    cfg.train.steps = point
+                trainer.fit(progress=True)
+            evaluation = evaluate(cfg, components, trainer.frames, run_dir, dist)
+            held_out = evaluation["eval"].get("train_heldout", {})
+            entry = {"step": trainer.step, "train_seconds": round(trainer.elapsed, 2)}
+            entry.update({key: held_out[key] for key in CURVE_KEYS if key in held_out})
+            curve.append(entry)
+            if dist.is_main:
+                shown = ", ".join(f"{k} {v:.3f}" for k, v in entry.items() if k in CURVE_KEYS)
+                print(f"finetune step {trainer.step}: {shown}", file=sys.stderr)
+        with open_dict(cfg):
+            cfg.train.steps = total
+        rays_per_step = int(cfg.train.rays) * int(cfg.train.targets_per_step)
+        metrics = {
+            "config_sha256": record.config_sha256,
+            "seed": int(cfg.seed),
+            "machine": _machine(),
+            "finetune": {
+                "checkpoint": str(checkpoint),
+                "checkpoint_step": state["step"],
+                "checkpoint_config_sha256": state["config_sha256"],
+                "scenes": scenes,
+                "reinitialised": reinitialised,
+                "curve": curve,
+            },
+            "train": {
+                "steps": trainer.step,
+                "seconds": round(trainer.elapsed, 2),
+                "rays_per_second": round(rays_per_step * trainer.step / trainer.elapsed, 1) if trainer.elapsed else 0.0,
+                "final_loss": trainer.history[-1]["loss"] if trainer.history else None,
+            },
+            **evaluation,
+            "wall_seconds": round(time.perf_counter() - started, 2),
+        }
+        if dist.is_main:
+            atomic_write_json(run_dir / "metrics.json", metrics)
+            print_summary(metrics, run_dir)
+    return metrics
+
