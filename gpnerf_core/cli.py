@@ -44,7 +44,13 @@ def _hydra_entry(task: Callable, argv: list[str], prog: str) -> int:
     register_schema()
     precheck(argv)
     sys.argv = [prog, *argv]
+    from gpnerf_core.run import FAILED_SWEEP_JOBS
+
     hydra.main(version_base="1.3", config_path=config_dir(), config_name="config")(task)()
+    if FAILED_SWEEP_JOBS:
+        print(f"error: {len(FAILED_SWEEP_JOBS)} job(s) of the sweep failed (error.json in each): "
+              f"{', '.join(FAILED_SWEEP_JOBS)}", file=sys.stderr)
+        return 2
     return 0
 
 

@@ -49,6 +49,8 @@ class RunRow:
     folder: Path
     config: dict[str, Any]
     metrics: dict[str, Any]
+    error: str | None = None
+    """A sweep job that failed: its ``error.json`` message (no metrics)."""
 
     def switches(self) -> tuple[bool, bool, bool, bool] | None:
         """Table 4's switches, for the paper's method only (``PAPER_HEADS`` x ``PAPER_LOSS_SETS``), else None."""
@@ -91,6 +93,16 @@ def find_runs(paths: list[Path]) -> list[RunRow]:
     for path in paths:
         if not path.exists():
             raise DataError(f"{path}: expected a run folder or a folder of runs, found nothing")
+        for error_file in sorted(path.rglob("error.json")):
+            folder = error_file.parent
+            if (folder / "metrics.json").exists() or not (folder / "config.yaml").is_file():
+                continue
+            try:
+                message = str(json.loads(error_file.read_text()).get("error", "unknown error"))
+                config = yaml.safe_load((folder / "config.yaml").read_text()) or {}
+            except (json.JSONDecodeError, yaml.YAMLError, AttributeError):
+                message, config = f"{error_file} could not be parsed", {}
+            rows.append(RunRow(folder, config if isinstance(config, dict) else {}, {}, error=message))
         for metrics_file in sorted(path.rglob("metrics.json")):
             folder = metrics_file.parent
             config_file = folder / "config.yaml"
@@ -102,14 +114,15 @@ def find_runs(paths: list[Path]) -> list[RunRow]:
             except (json.JSONDecodeError, yaml.YAMLError) as exc:
                 raise DataError(f"{metrics_file}: could not be parsed ({type(exc).__name__})") from None
             rows.append(RunRow(folder, config, metrics))
-    return rows
+    return sorted(rows, key=lambda row: str(row.folder))
 
 
 def group_runs(rows: list[RunRow]) -> list[RowGroup]:
     """Runs grouped by ``method_key``, in the order their first run was found."""
     groups: dict[str, list[RunRow]] = {}
     for row in rows:
-        groups.setdefault(row.method_key(), []).append(row)
+        key = f"failed:{row.folder}" if row.error is not None else row.method_key()
+        groups.setdefault(key, []).append(row)
     return [RowGroup(tuple(runs)) for runs in groups.values()]
 
 
@@ -139,6 +152,9 @@ def format_table(rows: list[RunRow]) -> str:
     lines = [header, "|" + "|".join(["---"] * width) + "|"]
     for group in group_runs(rows):
         first = group.runs[0]
+        if first.error is not None:
+            lines.append(f"| {group.label} | " + f"failed: {first.error}".replace("|", "/") + " |" + " |" * (width - 2))
+            continue
         switches = first.switches()
         paper = PAPER_TABLE4.get(switches) if switches else None
         flags = ["yes" if s else "no" for s in switches] if switches else ["-"] * 4

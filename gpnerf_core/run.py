@@ -178,8 +178,17 @@ def resume_command(run_dir: Path, checkpoint: Path | None) -> str:
     return f"python -m gpnerf_core run {' '.join(shlex.quote(a) for a in args)}"
 
 
+FAILED_SWEEP_JOBS: list[str] = []
+"""Run folders of the jobs of this process's ``-m`` sweep that failed (the command exits 2 after the sweep)."""
+ERROR_FILE = "error.json"
+
+
 def _guarded(job: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
-    """Errors caused by input, and interruptions, become one line on stderr and an exit code, never a traceback."""
+    """Errors caused by input, and interruptions, become one line on stderr and an exit code, never a traceback.
+
+    In a ``-m`` sweep a failing job does not stop the others: its error goes to ``error.json`` in its folder (which
+    ``report`` shows as the row's error) and the command exits 2 once the sweep is done.
+    """
 
     def wrapper(cfg: DictConfig) -> Any:
         try:
@@ -191,6 +200,8 @@ def _guarded(job: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
                 where = f"{exc.filename}: " if exc.filename else ""
                 exc = f"{where}{exc.strerror or exc}; the run stopped (free space, fix permissions or choose another folder)"
             print(f"error: {exc}", file=sys.stderr)
+            if _in_sweep() and _record_sweep_failure(cfg, str(exc)):
+                return None
             _remove_if_empty(cfg)
             sys.exit(2)
         except TrainingInterrupted as stop:
@@ -207,6 +218,27 @@ def _guarded(job: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
 
     wrapper.__name__ = job.__name__
     return wrapper
+
+
+def _in_sweep() -> bool:
+    from hydra.types import RunMode
+
+    hydra = _hydra_config()
+    return hydra is not None and hydra.mode == RunMode.MULTIRUN
+
+
+def _record_sweep_failure(cfg: DictConfig, message: str) -> bool:
+    """Write ``error.json`` (the error and the job's overrides) into the job's folder; False if that is impossible."""
+    try:
+        run_dir = _run_dir(cfg)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_json(run_dir / ERROR_FILE, {"error": message, "overrides": list(task_overrides())})
+        if not (run_dir / "config.yaml").exists():
+            atomic_write_text(run_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=False))
+    except (GpnerfError, OSError, ValueError):
+        return False
+    FAILED_SWEEP_JOBS.append(str(run_dir))
+    return True
 
 
 def _remove_if_empty(cfg: DictConfig) -> None:

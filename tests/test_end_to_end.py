@@ -206,3 +206,21 @@ def test_multirun_sweep_runs_every_job_and_report_tabulates_them(workspace):
     assert report.returncode == 0, report.stderr
     rows = [line for line in report.stdout.splitlines() if line.startswith("| ") and "run" not in line]
     assert [row.split("|")[14].strip() for row in rows] == ["2", "4"]
+
+
+def test_a_failing_sweep_job_leaves_its_error_and_the_others_finish(workspace):
+    sweep = workspace / "failing_sweep"
+    tiny = [o for o in TINY if not o.startswith(("train.steps", "eval.save_images", "model.num_source_views"))]
+    result = gpnerf(
+        "run", "-m", "+head=unet", "+loss=dgs", "model.num_source_views=2,40", *tiny, "train.steps=1",
+        "eval.save_images=0", f"hydra.sweep.dir={sweep}", cwd=workspace, cache=workspace / "cache",
+    )
+    assert result.returncode == 2
+    assert "error: 1 job(s) of the sweep failed (error.json in each)" in result.stderr
+    assert (sweep / "0" / "metrics.json").is_file() and not (sweep / "1" / "metrics.json").exists()
+    error = json.loads((sweep / "1" / "error.json").read_text())
+    assert "model.num_source_views=40" in error["error"] and "model.num_source_views=40" in error["overrides"]
+    report = gpnerf("report", str(sweep), cwd=workspace, cache=workspace / "cache")
+    assert report.returncode == 0, report.stderr
+    rows = [line for line in report.stdout.splitlines() if line.startswith(("| 0 ", "| 1 "))]
+    assert rows[0].startswith("| 0 | 0 | unet | dgs |") and rows[1].startswith("| 1 | failed: model.num_source_views=40")
