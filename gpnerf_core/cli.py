@@ -123,24 +123,25 @@ def _run(argv: list[str]) -> int:
 
 def _eval(argv: list[str]) -> int:
     from gpnerf_core.run import eval_task
-    from gpnerf_core.training.checkpoint import read_checkpoint
 
-    given = [a for a in argv if a.startswith("checkpoint=")]
-    if not given:
-        raise GpnerfError("eval needs checkpoint=<path to a .pt file written by run>")
-    stored = read_checkpoint(given[-1].split("=", 1)[1]).get("overrides", [])
-    return _hydra_entry(eval_task, merge_overrides(stored, argv), "gpnerf_core eval")
+    return _from_checkpoint(eval_task, argv, "eval")
 
 
 def _finetune(argv: list[str]) -> int:
     from gpnerf_core.run import finetune_task
+
+    return _from_checkpoint(finetune_task, argv, "finetune")
+
+
+def _from_checkpoint(task: Callable, argv: list[str], command: str) -> int:
+    """Run ``task`` with the config of ``checkpoint=<path>``: its overrides, then the command's."""
     from gpnerf_core.training.checkpoint import read_checkpoint
 
     given = [a for a in argv if a.startswith("checkpoint=")]
     if not given:
-        raise GpnerfError("finetune needs checkpoint=<path to a .pt file written by run>")
+        raise GpnerfError(f"{command} needs checkpoint=<path to a .pt file written by run>")
     stored = read_checkpoint(given[-1].split("=", 1)[1]).get("overrides", [])
-    return _hydra_entry(finetune_task, merge_overrides(stored, argv), "gpnerf_core finetune")
+    return _hydra_entry(task, merge_overrides(stored, argv), f"gpnerf_core {command}")
 
 
 def merge_overrides(stored: list[str], given: list[str]) -> list[str]:
