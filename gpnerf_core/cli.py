@@ -21,6 +21,8 @@ commands:
   eval      evaluate a checkpoint with the config it was trained with: `eval checkpoint=<path> [overrides]`
   finetune  fine-tune a checkpoint on some scenes, evaluating their held-out frames along the way:
             `finetune checkpoint=<path> dataset.scenes=[<scene>] train.steps=N [finetune.points=4]`
+  render    render a novel-view trajectory to MP4, GIF and PNG frames (RGB, depth, semantics side by side):
+            `render checkpoint=<path> [render.scene=<name>] [render.path=interpolate|spiral] [render.frames=N]`
   report    tabulate run folders (a sweep, the Table 4 ablation) beside the paper's numbers
   bench     time and size the training step and rendering: `bench size=demo|small|paper [overrides]`
   data      dataset tools: `data` lists them (check a layout, prepare ScanNet, make the embedded scenes)
@@ -133,6 +135,12 @@ def _finetune(argv: list[str]) -> int:
     return _from_checkpoint(finetune_task, argv, "finetune")
 
 
+def _render(argv: list[str]) -> int:
+    from gpnerf_core.run import render_task
+
+    return _from_checkpoint(render_task, argv, "render")
+
+
 def _from_checkpoint(task: Callable, argv: list[str], command: str) -> int:
     """Run ``task`` with the config of ``checkpoint=<path>``: its overrides, then the command's."""
     from gpnerf_core.training.checkpoint import read_checkpoint
@@ -218,6 +226,7 @@ COMMANDS: dict[str, Callable[[list[str]], int]] = {
     "run": _run,
     "eval": _eval,
     "finetune": _finetune,
+    "render": _render,
     "report": _report,
     "bench": _bench,
     "data": _data,

@@ -108,6 +108,24 @@ class FinetuneConfig:
 
 
 @dataclass
+class RenderConfig:
+    scene: str = ""
+    """``render``: the scene to render ("" = the first unseen scene, else the first training scene)."""
+    path: str = "interpolate"
+    """``interpolate`` (through the held-out frames' poses) or ``spiral`` (around frame ``frame``)."""
+    frames: int = 30
+    """Poses on the trajectory."""
+    frame: int = 0
+    """``spiral``: the frame whose pose is the centre."""
+    radius: float = 0.1
+    """``spiral``: radius of the circle, metres."""
+    focus: float = 2.0
+    """``spiral``: distance to the point looked at, metres."""
+    fps: int = 10
+    """Frames per second of the MP4 and GIF."""
+
+
+@dataclass
 class RootConfig:
     feature_extractor: Any = MISSING
     field_aggregator: Any = MISSING
@@ -127,12 +145,13 @@ class RootConfig:
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
     out_dir: str = ""
     """Run folder; empty = Hydra's output directory. Nothing is written under ``outputs/`` when it is set."""
     overwrite: bool = False
     """Replace the run a non-empty ``out_dir`` holds (its checkpoints, metrics and pictures are deleted)."""
     checkpoint: Optional[str] = None
-    """Checkpoint the ``eval`` command evaluates and ``finetune`` starts from."""
+    """Checkpoint the ``eval`` command evaluates, ``finetune`` starts from and ``render`` renders."""
 
 
 def run_dir_resolver(out_dir: str, default: str) -> str:

@@ -346,6 +346,14 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     return finetune_task_body(cfg, dist)
 
 
+@_guarded
+@_distributed
+def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
+    from gpnerf_core.render_video import render_task_body
+
+    return render_task_body(cfg, dist)
+
+
 def eval_scalars(evaluation: dict[str, Any]) -> dict[str, float]:
     """The numeric top-level metrics of every split as ``eval/<split>/<protocol id>`` tags."""
     scalars = {}
