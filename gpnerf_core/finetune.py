@@ -16,10 +16,10 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import torch
-from omegaconf import DictConfig, open_dict
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from gpnerf_core.distributed import Distributed
-from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.errors import ConfigError
 from gpnerf_core.io import atomic_write_json
 from gpnerf_core.training.checkpoint import (
     MODEL_SECTIONS,
@@ -27,7 +27,6 @@ from gpnerf_core.training.checkpoint import (
     config_differences,
     format_differences,
     load_weights,
-    read_checkpoint,
 )
 
 CURVE_KEYS = ("miou/image_mean_present", "miou/dataset", "acc/total", "psnr/clamped", "ssim/gaussian11")
@@ -70,15 +69,11 @@ def finetune_weights(
 def finetune_task_body(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.build import build_components
     from gpnerf_core.evaluation.evaluator import evaluate, print_summary
-    from gpnerf_core.run import _machine, _prepare, _start, restore_model_config
+    from gpnerf_core.run import _machine, _prepare, _start, checkpoint_config
     from gpnerf_core.training.trainer import Trainer
     from gpnerf_core.validation import check_data
 
-    if not cfg.checkpoint:
-        raise ConfigError("finetune needs checkpoint=<path to a .pt file written by run>")
-    checkpoint = Path(str(cfg.checkpoint))
-    state = read_checkpoint(checkpoint)
-    notes = restore_model_config(cfg, state["config"], state.get("overrides", []))
+    checkpoint, state, notes = checkpoint_config(cfg, "finetune")
     scenes = list(cfg.dataset.get("scenes") or [])
     if not scenes:
         raise ConfigError(
@@ -94,8 +89,6 @@ def finetune_task_body(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     _start(cfg)
     components = build_components(cfg)
     check_data(cfg, components, training=True)
-    from omegaconf import OmegaConf
-
     reinitialised = finetune_weights(
         components.model, state["model"], checkpoint, state["config"], OmegaConf.to_yaml(cfg, resolve=True)
     )

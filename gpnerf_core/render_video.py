@@ -133,15 +133,11 @@ def render_task_body(cfg: DictConfig, dist: Any) -> dict[str, Any]:
     from gpnerf_core.evaluation import visualize as vis
     from gpnerf_core.frames import FrameCache
     from gpnerf_core.io import atomic_write_json
-    from gpnerf_core.run import _prepare, _start, restore_model_config
-    from gpnerf_core.training.checkpoint import load_weights, read_checkpoint
+    from gpnerf_core.run import _prepare, _start, checkpoint_config
+    from gpnerf_core.training.checkpoint import load_weights
     from gpnerf_core.types import TargetCamera
 
-    if not cfg.checkpoint:
-        raise ConfigError("render needs checkpoint=<path to a .pt file written by run>")
-    checkpoint = Path(str(cfg.checkpoint))
-    state = read_checkpoint(checkpoint)
-    notes = restore_model_config(cfg, state["config"], state.get("overrides", []))
+    checkpoint, state, notes = checkpoint_config(cfg, "render")
     _start(cfg)
     components = build_components(cfg)
     model = components.model

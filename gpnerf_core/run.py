@@ -373,9 +373,7 @@ def eval_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.evaluation.evaluator import evaluate, print_summary
     from gpnerf_core.frames import FrameCache
 
-    checkpoint = Path(cfg.checkpoint)
-    state = read_checkpoint(checkpoint)
-    notes = restore_model_config(cfg, state["config"], state.get("overrides", []))
+    checkpoint, state, notes = checkpoint_config(cfg, "eval")
     _start(cfg)
     components = build_components(cfg)
     check_data(cfg, components, training=False)
@@ -404,6 +402,19 @@ def eval_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             atomic_write_json(folder.path / "metrics.json", metrics)
             print_summary(metrics, folder.path)
     return metrics
+
+
+def checkpoint_config(cfg: DictConfig, command: str) -> tuple[Path, dict[str, Any], list[str]]:
+    """Read ``cfg.checkpoint`` and give ``cfg`` its model settings (``restore_model_config``).
+
+    Returns:
+        the checkpoint's path, its contents and the notes on restored keys.
+    """
+    if not cfg.checkpoint:
+        raise ConfigError(f"{command} needs checkpoint=<path to a .pt file written by run>")
+    checkpoint = Path(str(cfg.checkpoint))
+    state = read_checkpoint(checkpoint)
+    return checkpoint, state, restore_model_config(cfg, state["config"], state.get("overrides", []))
 
 
 def restore_model_config(cfg: DictConfig, checkpoint_yaml: str, checkpoint_overrides: list[str]) -> list[str]:
