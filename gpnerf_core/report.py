@@ -32,8 +32,9 @@ PAPER_TABLE4 = {
 }
 PAPER_HEADS = ("unet",)
 PAPER_LOSS_SETS = ("ce", "sd", "dgs")
-NOT_METHOD_KEYS = ("seed", "out_dir", "overwrite", "threads", "device")
-"""Top-level config keys that say where or how a run ran, not what it computes: runs differing only there group."""
+NOT_METHOD_KEYS = ("seed", "out_dir", "overwrite", "threads", "device", "checkpoint", "finetune", "render")
+"""Top-level config keys that say where or how a run ran (or belong to other commands), not what it computes: runs
+differing only there group."""
 NOT_METHOD_TRAIN_KEYS = ("resume", "resume_strict", "loggers", "log_every")
 
 # (column title, split, protocol id, scale, digits)
@@ -65,11 +66,22 @@ class RunRow:
         return joint, sd, block, dgs
 
     def method_key(self) -> str:
-        """The config without the keys that do not change what the run computes (the seed among them)."""
+        """The config without the keys that do not change what the run computes (the seed among them); empty values
+        (``[]``, ``""``, None) count as absent, so runs written before an option with an empty default existed
+        group with runs written after."""
         config = {k: v for k, v in self.config.items() if k not in NOT_METHOD_KEYS}
         if isinstance(config.get("train"), dict):
             config["train"] = {k: v for k, v in config["train"].items() if k not in NOT_METHOD_TRAIN_KEYS}
-        return json.dumps(config, sort_keys=True, default=str)
+        return json.dumps(_without_empty(config), sort_keys=True, default=str)
+
+
+def _without_empty(value: Any) -> Any:
+    if isinstance(value, dict):
+        kept = {k: _without_empty(v) for k, v in value.items()}
+        return {k: v for k, v in kept.items() if v not in (None, "", [], {})}
+    if isinstance(value, list):
+        return [_without_empty(v) for v in value]
+    return value
 
 
 @dataclass(frozen=True)

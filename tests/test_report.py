@@ -53,3 +53,14 @@ def test_a_third_party_loss_or_head_never_gets_the_papers_number(tmp_path):
               True, 0.5, head="my_head")
     for row in format_table(find_runs([tmp_path])).splitlines()[2:]:
         assert row.endswith("| - | - | - |") and "59.92" not in row
+
+
+def test_runs_written_by_other_versions_group_when_only_empty_defaults_and_other_commands_differ(tmp_path):
+    dgs = {"name": "dgs", "sd_weight": 0.25, "dgs_weight": 0.25, "teacher_stop_grad": True}
+    write_run(tmp_path / "old", dgs, True, 0.5, seed=0)
+    write_run(tmp_path / "new", dgs, True, 0.7, seed=1)
+    config = yaml.safe_load((tmp_path / "new" / "config.yaml").read_text())
+    config.update(dataset={"scenes": [], "unseen_scenes": []}, render={"frames": 30}, finetune={"points": 4})
+    (tmp_path / "new" / "config.yaml").write_text(yaml.safe_dump(config))
+    rows = format_table(find_runs([tmp_path])).splitlines()[2:]
+    assert len(rows) == 1 and "60.00 +- 14.14 (n=2)" in rows[0]
