@@ -57,9 +57,14 @@ def test_bad_value_is_refused_in_one_line(override, message):
     assert str(error.value).startswith(message) and "\n" not in str(error.value)
 
 
-def test_defaults_and_presets_are_valid():
-    for overrides in ([], ["+head=unet", "+loss=dgs"], ["+experiment=table4_id5"], ["+experiment=paper/gpnerf"]):
-        validate_config(compose(overrides))
+@pytest.mark.parametrize("overrides", [[], ["+head=unet", "+loss=dgs"], ["+experiment=table4_id5"],
+                                       ["+experiment=paper/gpnerf"], ["+experiment=baselines/gnt"]])
+def test_defaults_and_presets_are_valid_and_still_checked(overrides):
+    cfg = compose(overrides)
+    assert validate_config(cfg) is None
+    cfg.train.steps = 0  # the same composed config with one bad value is refused: the check ran on it
+    with pytest.raises(ConfigError, match="train.steps=0: expected an integer >= 1"):
+        validate_config(cfg)
 
 
 def test_more_source_views_than_a_scene_offers_is_refused_naming_the_scene(tmp_path):

@@ -84,6 +84,7 @@ def write_scene(root: Path, name: str, numbers=(0, 1, 2, 9, 10), invalid=(), unk
         write_png(scene / "label-filt" / f"{n}.png", raw_labels(n, unknown=n in unknown))
         write_matrix(scene / "pose" / f"{n}.txt", np.full((4, 4), -np.inf) if n in invalid else pose_of(n))
     write_matrix(scene / "intrinsic" / "intrinsic_color.txt", K_COLOR)
+    depth_intrinsics(root, name)  # the colour camera at the depth size: registration gives the plain resize
     return scene
 
 
@@ -330,7 +331,7 @@ def _break(scene: Path, what: str) -> tuple[str, str]:
         return "color/1.jpg (frame 1)", "expected 64x48 (WxH)"
     if what == "depth aspect":
         write_png(scene / "depth" / "2.png", depth_mm(2)[:, :12])
-        return "depth/2.png (frame 2)", "expected the aspect ratio of the colour images"
+        return "depth/2.png (frame 2)", "expected 32x24 (WxH) like 0.png, the size intrinsic/intrinsic_depth.txt describes"
     if what == "rgb label":
         write_png(scene / "label-filt" / "1.png", color_of(1))
         return "label-filt/1.png (frame 1)", "expected a single-channel integer label PNG, found mode RGB"
@@ -447,6 +448,7 @@ def depth_intrinsics(root: Path, scene: str, shift_rows: float = 0.0) -> np.ndar
 
 
 def test_depth_is_registered_with_its_own_intrinsics(root):
+    (root / "scene0000_00" / "intrinsic" / "intrinsic_depth.txt").unlink()
     with pytest.warns(UserWarning, match="intrinsic_depth.txt: missing; depth is resized"):
         reference = dataset(root).load_scene("scene0000_00").load_frame(1).depth
     resized = dataset(root, depth_alignment="resize").load_scene("scene0000_00").load_frame(1).depth

@@ -157,6 +157,8 @@ class ScanNetScene:
                 )
         self._k_color_out = scale_intrinsics(k_color, sx, sy)
         self._lookup: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        # The depth intrinsics describe one depth image size: the first frame's, which every depth image must have.
+        self.depth_size = image_size(self.files[0].depth, self.files[0].token) if self.k_depth is not None else None
         self.dropped_invalid_poses = dropped
         self._warned_unknown = False
 
@@ -200,14 +202,16 @@ class ScanNetScene:
         if self.k_depth is None:
             return self._aligned(files.depth, files, "depth").astype(np.float32) / DEPTH_SCALE
         values = read_integer_image(files.depth, files.token, "depth")
-        if self._lookup is None or self._lookup[0].shape != (self.height, self.width):
-            self._lookup = depth_lookup(self._k_color_out, self.k_depth, self.height, self.width, values.shape[:2])
-            self._lookup_hw = values.shape[:2]
-        if values.shape[:2] != self._lookup_hw:
+        if values.shape[:2] != self.depth_size:
             raise LayoutError(
-                files.depth, f"{self._lookup_hw[1]}x{self._lookup_hw[0]} (WxH) like the scene's other depth images",
-                f"{values.shape[1]}x{values.shape[0]}", files.token,
+                files.depth,
+                f"{self.depth_size[1]}x{self.depth_size[0]} (WxH) like {self.files[0].depth.name}, the size "
+                f"{INTRINSIC_DEPTH} describes",
+                f"{values.shape[1]}x{values.shape[0]}",
+                files.token,
             )
+        if self._lookup is None:
+            self._lookup = depth_lookup(self._k_color_out, self.k_depth, self.height, self.width, self.depth_size)
         rows, cols, inside = self._lookup
         return np.where(inside, values[rows, cols], 0).astype(np.float32) / DEPTH_SCALE
 
