@@ -20,6 +20,23 @@ class Components:
     loss: LossSet | None
 
 
+def head_predicts(head_cfg: Any, registry: Registry) -> str:
+    """What the head ``head_cfg`` names predicts (``PerceptionHead.predicts``): ``"classes"`` or ``"instances"``."""
+    return str(getattr(registry.get("head", str(head_cfg["name"])).spec.factory, "predicts", "classes"))
+
+
+def head_outputs(head_cfg: Any, num_classes: int, registry: Registry) -> int:
+    """``num_outputs`` of a head: the dataset's classes, or ``slots + 1`` for an instance head."""
+    if head_predicts(head_cfg, registry) != "instances":
+        return num_classes
+    slots = head_cfg.get("slots")
+    if not isinstance(slots, int) or isinstance(slots, bool):
+        raise ConfigError(
+            f"head {head_cfg['name']!r} predicts instances, so its config needs head.slots, an integer; got {slots!r}"
+        )
+    return slots + 1  # the head itself checks the value
+
+
 def build_model(cfg: Any, num_classes: int, registry: Registry | None = None) -> GeneralizableNeRF:
     """Assemble the model; each stage's width comes from the stage before it."""
     registry = registry or get_registry()
@@ -39,7 +56,7 @@ def build_model(cfg: Any, num_classes: int, registry: Registry | None = None) ->
             cfg.head,
             in_dim=extractor.semantic_dim,
             in_levels=extractor.semantic_levels,
-            num_outputs=num_classes,
+            num_outputs=head_outputs(cfg.head, num_classes, registry),
         )
     if wants_semantics:
         semantic = SemanticFieldRenderer(
@@ -73,7 +90,15 @@ def build_components(cfg: Any, registry: Registry | None = None) -> Components:
     if cfg.get("loss") is not None:
         loss = registry.build("loss", cfg.loss)
         if loss.needs_semantics and not model.has_semantics:
+            hint = "+head=instance" if loss.head_predicts == "instances" else "+head=unet"
             raise ConfigError(
-                f"loss {cfg.loss.name!r} needs semantics: add a head (+head=unet) and keep model.semantic_field.enabled=true"
+                f"loss {cfg.loss.name!r} needs semantics: add a head ({hint}) and keep model.semantic_field.enabled=true"
+            )
+        predicts = model.head.predicts if model.head is not None else None
+        if loss.head_predicts is not None and predicts is not None and loss.head_predicts != predicts:
+            wanted = "an instance head (+head=instance)" if loss.head_predicts == "instances" else "a class head"
+            raise ConfigError(
+                f"loss {cfg.loss.name!r} trains {loss.head_predicts} but head {cfg.head.name!r} predicts {predicts}; "
+                f"use {wanted} or a loss set for {predicts} (+loss={'instance' if predicts == 'instances' else 'dgs'})"
             )
     return Components(dataset=dataset, view_selector=selector, model=model, loss=loss)

@@ -59,7 +59,8 @@ def gpnerf_register_heads() -> list[ComponentSpec]:
     """Perception heads, implementing ``PerceptionHead``.
 
     The factory also receives ``in_dim`` and ``in_levels`` (the semantic map's width and number of
-    levels) and ``num_outputs`` (the dataset's class count).
+    levels) and ``num_outputs``: the dataset's class count, or ``slots + 1`` for a head whose class sets
+    ``predicts = "instances"`` (its config must then have a ``slots`` field).
 
     Returns:
         Specs for the Hydra group ``head`` (an add-on group: select with ``+head=<name>``).

@@ -155,6 +155,7 @@ class TargetView:
         depth: ``[H, W]`` target depth in metres, 0 = unknown.
         labels: ``[H, W]`` int64 class ids or the dataset's ignore index.
         sources: the chosen source views.
+        instances: ``[H, W]`` int64 instance ids (``Frame.instance``), or None when the dataset has none.
         pixels: ``[R, 2]`` the chosen target pixels ``(u, v)``; the rays are cast through them (the one copy).
         render_seed: seeds this view's stochastic rendering (sample jitter, importance sampling), so a view
             renders the same on any rank and at any world size.
@@ -169,6 +170,7 @@ class TargetView:
     sources: SourceViews
     pixels: Tensor
     render_seed: int
+    instances: Tensor | None = None
 
     @property
     def num_rays(self) -> int:
@@ -314,7 +316,9 @@ class HeadOutput:
     """Output of a perception head.
 
     Attributes:
-        logits: ``[N, K, H, W]`` per-pixel scores at the requested output size (K = classes or slots).
+        logits: ``[N, K, H, W]`` per-pixel scores at the requested output size: K classes, or for an instance head
+            (``PerceptionHead.predicts == "instances"``) ``slots + 1`` channels whose softmax gives each slot's
+            probability, the last channel being "no instance".
     """
 
     logits: Tensor
@@ -367,6 +371,7 @@ class LossInputs:
         teacher_at_rays: ``[R, C_sem]`` target-view semantic features at the rays' pixels, NOT detached:
             the loss set decides whether the gradient is blocked.
         ignore_index: label value excluded from CE and metrics.
+        instances: ``[1, H, W]`` int64 target instance ids, or None unless the loss set ``needs_instances``.
     """
 
     coarse: RenderedRays
@@ -377,6 +382,7 @@ class LossInputs:
     labels: Tensor | None
     teacher_at_rays: Tensor | None
     ignore_index: int
+    instances: Tensor | None = None
 
     @property
     def last(self) -> RenderedRays:

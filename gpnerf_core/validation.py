@@ -112,6 +112,7 @@ def check_data(cfg: DictConfig, components: Components, *, training: bool = True
         raise DataError(
             f"dataset.validate={level} found {len(problems)} problem(s) before training; first: {problems[0]}{more}"
         )
+    _require_instances(cfg, components, scenes, training)
     views = int(cfg.model.num_source_views)
     training_scenes = set(dataset.scenes("train")) if training else set()
     for name in scenes:
@@ -122,4 +123,24 @@ def check_data(cfg: DictConfig, components: Components, *, training: bool = True
             raise ConfigError(
                 f"model.num_source_views={views} but scene {name!r} offers {offered} source views per target "
                 f"({len(train)} training frames, never the target itself); expected model.num_source_views <= {offered}"
+            )
+
+
+def _require_instances(cfg: DictConfig, components: Components, scenes: list[str], training: bool) -> None:
+    """An instance head (or a loss set that trains one) needs instance ids in every scene it trains or evaluates on;
+    the first frame of each scene is looked at."""
+    head = components.model.head
+    needs = (training and components.loss is not None and components.loss.needs_instances) or (
+        head is not None and head.predicts == "instances"
+    )
+    if not needs:
+        return
+    for name in scenes:
+        scene = components.dataset.load_scene(name)
+        first = (scene.train_frames or scene.eval_frames)[0]
+        if scene.load_frame(first).instance is None:
+            raise ConfigError(
+                f"dataset {cfg.dataset.name!r} has no instance ids (scene {name!r}, frame {first}), but head "
+                f"{cfg.head.name!r} predicts instances; use a dataset with instance ids (embedded, replica_instance, "
+                f"replica with semantic_instance/ folders)"
             )

@@ -20,7 +20,8 @@ import torch.nn.functional as F
 from gpnerf_core.build import Components
 from gpnerf_core.device import peak_memory_mb
 from gpnerf_core.distributed import Distributed
-from gpnerf_core.errors import ConfigError
+from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.evaluation import instances as I
 from gpnerf_core.evaluation import metrics as M
 from gpnerf_core.evaluation import visualize as vis
 from gpnerf_core.frames import FrameCache, choose_sources
@@ -43,6 +44,9 @@ class ViewRecord:
             reference and of the majority class; None without semantics.
         seconds: encode + render + decode time; rays: rays rendered.
         pictures: ``{file suffix: uint8 image}`` for the first ``eval.save_images`` views, else empty.
+        instances, teacher_instances: an instance head's scores on the rendered map and on the 2D reference map.
+        instance_baseline: a class head's connected components scored as instances (the trivial baseline), where
+            the frame has instance ids.
     """
 
     position: int
@@ -55,6 +59,14 @@ class ViewRecord:
     seconds: float
     rays: int
     pictures: dict[str, np.ndarray] = field(default_factory=dict)
+    instances: I.InstanceRecord | None = None
+    teacher_instances: I.InstanceRecord | None = None
+    instance_baseline: I.InstanceRecord | None = None
+
+
+def predicts_instances(components: Components) -> bool:
+    head = components.model.head
+    return head is not None and head.predicts == "instances"
 
 
 def majority_class(components: Components, frames: FrameCache, max_frames_per_scene: int = 8) -> int:
@@ -97,7 +109,7 @@ def evaluate(
             raise ConfigError(f"eval.splits contains {split!r}; expected some of {', '.join(SPLIT_LABELS)}")
     model = components.model.to(dist.device).eval()
     dataset = components.dataset
-    semantics = model.has_semantics
+    semantics = model.has_semantics and not predicts_instances(components)
     baseline_class = majority_class(components, frames) if semantics else None
     results: dict[str, Any] = {}
     for split in cfg.eval.splits:
@@ -159,21 +171,39 @@ def _evaluate_view(
         stride=int(cfg.eval.render_stride),
         chunk_rays=int(cfg.eval.chunk_rays),
     )
-    classes = prediction.logits.argmax(dim=1)[0].cpu() if prediction.logits is not None else None
+    instance_head = predicts_instances(components)
+    classes = None
+    if prediction.logits is not None and not instance_head:
+        classes = prediction.logits.argmax(dim=1)[0].cpu()
     seconds = time.perf_counter() - started
     gt_rgb = _area_downsample(target.rgb, prediction.stride)
     rendered_rgb = prediction.rgb.cpu()
     quality = {M.PSNR_CLAMPED: M.psnr(rendered_rgb, gt_rgb), M.SSIM_GAUSSIAN11: M.ssim(rendered_rgb, gt_rgb)}
     confusion = teacher_confusion = baseline_confusion = None
+    instances = teacher_instances = instance_baseline = None
+    instance_picture = None
     if classes is not None:
         confusion = M.confusion_matrix(classes, target.semantic, num_classes, ignore)
         teacher = model.teacher_logits(target.rgb.permute(2, 0, 1).to(frames.device)).argmax(dim=1)[0].cpu()
         teacher_confusion = M.confusion_matrix(teacher, target.semantic, num_classes, ignore)
         constant = torch.full_like(target.semantic, baseline_class)
         baseline_confusion = M.confusion_matrix(constant, target.semantic, num_classes, ignore)
+        if target.instance is not None:
+            top = torch.softmax(prediction.logits[0].float(), dim=0).max(dim=0).values.cpu()
+            instance_baseline, _ = I.instance_record(*I.connected_component_instances(classes, top), target.instance)
+    if instance_head:
+        if target.instance is None:
+            raise DataError(f"scene {scene.name!r} frame {index}: no instance ids to evaluate the instance head on")
+        slots, confidence = I.slot_predictions(prediction.logits[0].cpu())
+        instances, pairing = I.instance_record(slots, confidence, target.instance)
+        instance_picture = (slots, pairing)
+        teacher = model.teacher_logits(target.rgb.permute(2, 0, 1).to(frames.device))[0].cpu()
+        teacher_instances, _ = I.instance_record(*I.slot_predictions(teacher), target.instance)
     pictures = {}
     if position < int(cfg.eval.save_images):
         pictures = _pictures(target, prediction, classes, gt_rgb, num_classes, ignore, scene.near, scene.far)
+        if instance_picture is not None:
+            pictures["instances"] = _instance_picture(*instance_picture, target.instance)
     return ViewRecord(
         position=position,
         scene=scene.name,
@@ -185,6 +215,9 @@ def _evaluate_view(
         seconds=seconds,
         rays=int(prediction.rgb.shape[0] * prediction.rgb.shape[1]),
         pictures=pictures,
+        instances=instances,
+        teacher_instances=teacher_instances,
+        instance_baseline=instance_baseline,
     )
 
 
@@ -196,8 +229,16 @@ def summarize(
     rendered = M.SegmentationAccumulator(num_classes, ignore_index)
     teacher = M.SegmentationAccumulator(num_classes, ignore_index)
     baseline = M.SegmentationAccumulator(num_classes, ignore_index)
+    instances, teacher_instances, instance_baseline = (I.InstanceAccumulator() for _ in range(3))
     for record in records:
         quality.add_scores(record.quality, group=record.scene)
+        for accumulator, value in (
+            (instances, record.instances),
+            (teacher_instances, record.teacher_instances),
+            (instance_baseline, record.instance_baseline),
+        ):
+            if value is not None:
+                accumulator.add(value, group=record.scene)
         if record.confusion is not None:
             rendered.add_confusion(record.confusion, group=record.scene)
             teacher.add_confusion(record.teacher_confusion, group=record.scene)
@@ -208,6 +249,11 @@ def summarize(
         result["per_scene"] = rendered.compute_per_group()
         result["baseline_majority"] = baseline.compute()
         result["teacher_2d"] = teacher.compute()
+    if any(r.instances is not None for r in records):
+        result.update(instances.compute())
+        result["teacher_2d"] = teacher_instances.compute()
+    if any(r.instance_baseline is not None for r in records):
+        result["baseline_connected_components"] = instance_baseline.compute()
     seconds = sum(r.seconds for r in records)
     rays = sum(r.rays for r in records)
     result["timing"] = {
@@ -255,6 +301,18 @@ def _pictures(
     return pictures
 
 
+def _instance_picture(slots: torch.Tensor, pairing: dict[int, int], gt: torch.Tensor) -> np.ndarray:
+    """Predicted instances (each slot in the colour of the GT instance it was matched to), GT, and the pixels whose
+    slot is not matched to their GT instance."""
+    unmatched_base = int(gt.max()) + 1
+    lookup = torch.tensor([pairing.get(k, unmatched_base + k) for k in range(int(slots.max()) + 1)])
+    shown = lookup[slots]
+    return vis.side_by_side(
+        [vis.colorize_instances(shown), vis.colorize_instances(gt), vis.error_map(shown, gt)],
+        ["predicted instances", "ground truth", "errors"],
+    )
+
+
 def _write_pictures(folder: Path, records: list[ViewRecord]) -> None:
     for record in records:
         stem = f"{record.scene.replace('/', '_')}_{record.frame:04d}"
@@ -283,6 +341,12 @@ def print_summary(metrics: dict[str, Any], run_dir: Path) -> None:
             base = values.get("baseline_majority", {})
             parts.append(f"| majority baseline {_fmt(base.get(M.MIOU_IMAGE_MEAN_PRESENT))}")
             parts.append(f"| acc {_fmt(values.get(M.ACC_TOTAL))}")
+        if I.AP_MATCHED_75 in values:
+            parts.append(f"AP@0.75 {_fmt(values.get(I.AP_MATCHED_75))} (matched) | COCO AP {_fmt(values.get(I.COCO_AP))}")
+            parts.append(f"AP75 {_fmt(values.get(I.COCO_AP75))}")
+        cc = values.get("baseline_connected_components")
+        if cc:
+            parts.append(f"| instances from connected components: AP@0.75 {_fmt(cc.get(I.AP_MATCHED_75))}")
         parts.append(f"| PSNR {_fmt(values.get(M.PSNR_CLAMPED), 2)} SSIM {_fmt(values.get(M.SSIM_GAUSSIAN11))}")
         timing = values.get("timing", {})
         parts.append(f"| {timing.get('seconds_per_frame', float('nan')):.2f} s/frame")

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import matplotlib
+import matplotlib.colors
 import numpy as np
 import torch
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -85,6 +86,25 @@ def colorize_labels(
     out = np.zeros((*array.shape, 3), dtype=np.uint8)
     out[valid] = label_palette(num_classes)[array[valid]]
     return out
+
+
+def colorize_instances(ids: Tensor | np.ndarray) -> np.ndarray:
+    """Colour an instance-id map: id ``i`` gets hue ``frac(0.618034 * i)`` (golden-ratio steps keep neighbouring ids
+    apart), the same colour in every picture.
+
+    Args:
+        ids: ``[H, W]`` non-negative integer ids.
+
+    Returns:
+        ``[H, W, 3]`` uint8.
+    """
+    array = _to_numpy(ids)
+    if array.ndim != 2 or not np.issubdtype(array.dtype, np.integer) or (array.size and array.min() < 0):
+        raise ValueError(f"instance ids must be a non-negative integer [H, W] map, got {array.dtype} {list(array.shape)}")
+    unique, inverse = np.unique(array.astype(np.int64), return_inverse=True)
+    hsv = np.stack([(unique * 0.618034) % 1.0, np.full(len(unique), 0.7), np.full(len(unique), 0.95)], axis=-1)
+    colours = (matplotlib.colors.hsv_to_rgb(hsv) * 255.0 + 0.5).astype(np.uint8)
+    return colours[inverse.reshape(array.shape)]
 
 
 def error_map(

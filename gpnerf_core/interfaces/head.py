@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from typing import ClassVar
 
 from torch import Tensor, nn
 
@@ -14,8 +15,14 @@ class PerceptionHead(ImportsWeights, nn.Module, ABC):
     """Turns a ``[N, C_sem, h, w]`` feature map into per-pixel scores.
 
     Constructed with ``in_dim`` (C_sem), ``in_levels`` (equal channel blocks, finest first) and
-    ``num_outputs`` (classes, or instance slots), all supplied by the pipeline.
+    ``num_outputs``, all supplied by the pipeline. ``num_outputs`` is the dataset's class count for a head that
+    predicts classes; an instance head (``predicts = "instances"``) has a ``slots`` option in its config and gets
+    ``num_outputs = slots + 1`` (the last channel is "no instance").
     """
+
+    predicts: ClassVar[str] = "classes"
+    """``"classes"``: logits over the dataset's classes (cross-entropy, mIoU). ``"instances"``: ``slots + 1`` logits
+    whose softmax assigns each pixel to an instance slot (Hungarian-matched losses, instance AP)."""
 
     @property
     @abstractmethod

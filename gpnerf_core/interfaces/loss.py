@@ -19,6 +19,12 @@ class LossSet(nn.Module, ABC):
     """Render semantic features and run the head on the fused map."""
     needs_sample_semantics: bool = False
     """Also return per-sample semantic features (``RenderedRays.sample_semantic``)."""
+    needs_instances: bool = False
+    """Target views carry the frames' instance ids (``LossInputs.instances``); a dataset without them is refused
+    before training."""
+    head_predicts: str | None = None
+    """What the head's logits must be for this loss set: ``"classes"``, ``"instances"``, or None (no head needed, or
+    either)."""
 
     @abstractmethod
     def forward(self, inputs: LossInputs) -> dict[str, Tensor]:

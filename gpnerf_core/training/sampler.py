@@ -116,4 +116,5 @@ class StepSampler:
             sources=frames.source_views(scene, source_indices),
             pixels=pixels.to(device),
             render_seed=self._randint(view_generator, SEED_RANGE),
+            instances=None if frame.instance is None else frame.instance.to(device),
         )

@@ -86,6 +86,7 @@ def loss_inputs(view: TargetView, output: ViewOutput, ignore_index: int) -> Loss
         labels=view.labels[None] if output.logits is not None else None,
         teacher_at_rays=output.teacher_at_rays,
         ignore_index=ignore_index,
+        instances=view.instances[None] if output.logits is not None and view.instances is not None else None,
     )
 
 

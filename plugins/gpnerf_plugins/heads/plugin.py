@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from gpnerf_core import ComponentSpec, hookimpl
+from gpnerf_plugins.heads.instance import InstanceHead, InstanceHeadConfig
 from gpnerf_plugins.heads.per_pixel import PerPixelHead, PerPixelHeadConfig
 from gpnerf_plugins.heads.unet import UNetHead, UNetHeadConfig
 
@@ -21,5 +22,11 @@ def gpnerf_register_heads() -> list[ComponentSpec]:
             factory=PerPixelHead,
             config=PerPixelHeadConfig,
             description="per-pixel MLP, no spatial context (label-rendering baseline)",
+        ),
+        ComponentSpec(
+            name="instance",
+            factory=InstanceHead,
+            config=InstanceHeadConfig,
+            description="context-aware decoder with slots + 1 instance outputs (Hungarian loss: +loss=instance)",
         ),
     ]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from gpnerf_core import ComponentSpec, hookimpl
+from gpnerf_plugins.losses.instance import InstanceLossConfig, InstanceLossSet
 from gpnerf_plugins.losses.sets import CeLossConfig, DgsLossConfig, RgbLossConfig, SdLossConfig, WeightedLossSet
 
 
@@ -13,4 +14,5 @@ def gpnerf_register_losses() -> list[ComponentSpec]:
         ComponentSpec("ce", WeightedLossSet, CeLossConfig, "colour + semantic cross-entropy"),
         ComponentSpec("sd", WeightedLossSet, SdLossConfig, "colour + cross-entropy + 2D semantic distillation"),
         ComponentSpec("dgs", WeightedLossSet, DgsLossConfig, "colour + cross-entropy + 2D and depth-guided distill."),
+        ComponentSpec("instance", InstanceLossSet, InstanceLossConfig, "colour + Hungarian instance loss + 2D distill."),
     ]

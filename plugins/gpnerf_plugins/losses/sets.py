@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Mapping
 
 from torch import Tensor
 
@@ -110,7 +111,8 @@ class DgsLossConfig(LossSetConfig):
 class WeightedLossSet(LossSet):
     """Returns the weighted terms ``rgb``, ``ce``, ``sd``, ``dgs`` whose weight is non-zero.
 
-    Args: the fields of ``LossSetConfig`` except ``name``.
+    Args: the fields of ``LossSetConfig`` except ``name``, and ``extra_weights``: weights of the terms a subclass
+    adds, by term name, each computed by the subclass's method ``_<term>(inputs)``.
     """
 
     def __init__(
@@ -123,16 +125,16 @@ class WeightedLossSet(LossSet):
         dgs_window: int = LossSetConfig.dgs_window,
         dgs_center: str = LossSetConfig.dgs_center,
         dgs_push_away: bool = LossSetConfig.dgs_push_away,
+        extra_weights: Mapping[str, float] | None = None,
     ) -> None:
         super().__init__()
-        weights = {"rgb": rgb_weight, "ce": ce_weight, "sd": sd_weight, "dgs": dgs_weight}
+        weights = {"rgb": rgb_weight, "ce": ce_weight, "sd": sd_weight, "dgs": dgs_weight, **(extra_weights or {})}
         for term, weight in weights.items():
             if not math.isfinite(weight) or weight < 0:
                 raise ConfigError(f"loss.{term}_weight={weight}: expected a finite weight >= 0")
         if not any(weights.values()):
-            raise ConfigError(
-                "every loss weight (loss.rgb_weight, ce_weight, sd_weight, dgs_weight) is 0; nothing to train"
-            )
+            names = ", ".join(f"{term}_weight" for term in weights)
+            raise ConfigError(f"every loss weight ({names}) is 0; nothing to train")
         if dgs_center not in DGS_CENTERS:
             raise ConfigError(f"loss.dgs_center={dgs_center!r}: expected one of {', '.join(DGS_CENTERS)}")
         if dgs_window < 0:
@@ -142,13 +144,13 @@ class WeightedLossSet(LossSet):
         self.dgs_window = int(dgs_window)
         self.dgs_center = dgs_center
         self.dgs_push_away = bool(dgs_push_away)
-        self.needs_semantics = any(term in self.weights for term in ("ce", "sd", "dgs"))
+        self.needs_semantics = any(term != "rgb" for term in self.weights)
         self.needs_sample_semantics = "dgs" in self.weights
+        self.head_predicts = "classes" if "ce" in self.weights else None
 
     def forward(self, inputs: LossInputs) -> dict[str, Tensor]:
         """Weighted scalar terms by name for one step; the total is their sum."""
-        compute = {"rgb": self._rgb, "ce": self._ce, "sd": self._sd, "dgs": self._dgs}
-        return {term: weight * compute[term](inputs) for term, weight in self.weights.items()}
+        return {term: weight * getattr(self, f"_{term}")(inputs) for term, weight in self.weights.items()}
 
     def _teacher(self, inputs: LossInputs, term: str) -> Tensor:
         if inputs.teacher_at_rays is None:

@@ -1,0 +1,116 @@
+"""The ``instance`` loss set: colour, the Hungarian-matched instance loss, optional semantic distillation.
+
+The instance term follows the reference's ``ins_criterion`` (REFERENCE.md §1(c)): the head's ``slots + 1`` logits go
+through a softmax and the last ("no instance") channel is dropped; every id in the target frame is an instance,
+background included; GT masks and slots are matched by Hungarian matching on mean BCE + (1 - soft IoU), and the loss
+is the matched pairs' mean BCE + the unmatched slots' mean probability + the matched pairs' mean (1 - soft IoU).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from gpnerf_core.errors import ConfigError
+from gpnerf_core.evaluation.instances import hungarian, instance_masks
+from gpnerf_core.types import LossInputs
+from gpnerf_plugins.losses.sets import LossSetConfig, WeightedLossSet
+
+PROBABILITY_FLOOR = 1e-6
+"""Probabilities are clamped to [floor, 1 - floor] inside the logarithms of the BCE."""
+
+
+@dataclass
+class InstanceLossConfig(LossSetConfig):
+    """Colour + Hungarian instance loss (GP-NeRF's instance setting), with S.D available."""
+
+    name: str = "instance"
+    """Registry name of the loss set."""
+    instance_weight: float = 1.0
+    """Weight of the Hungarian-matched instance loss."""
+    ce_weight: float = 0.0
+    """Cross-entropy needs class logits; an instance head has none (must stay 0)."""
+    sd_weight: float = 0.25
+    """Weight of the 2D semantic distillation (rendered feature vs teacher), as in the main recipe."""
+    dgs_weight: float = 0.0
+    """Weight of the depth-guided distillation (off)."""
+
+
+def hungarian_instance_loss(logits: Tensor, instance_ids: Tensor) -> dict[str, Tensor]:
+    """The three parts of the instance loss of one image.
+
+    Args:
+        logits: ``[K + 1, H, W]`` head output (K slots + "no instance").
+        instance_ids: ``[H, W]`` integer GT ids; each id present is one instance.
+
+    Returns:
+        ``{"bce", "unmatched", "iou"}`` scalars (their sum is the loss); ``unmatched`` is 0 when every slot is matched.
+
+    Raises:
+        ConfigError: more GT instances than slots.
+    """
+    slots = logits.shape[0] - 1
+    if logits.dim() != 3 or instance_ids.shape != logits.shape[1:]:
+        raise ConfigError(
+            f"instance loss got logits {tuple(logits.shape)} and instance ids {tuple(instance_ids.shape)}; "
+            "expected [K + 1, H, W] and [H, W]"
+        )
+    _, gt = instance_masks(instance_ids)
+    if gt.shape[0] > slots:
+        raise ConfigError(
+            f"a target frame has {gt.shape[0]} instance ids (background included) but the head has {slots} slots; "
+            f"set head.slots >= {gt.shape[0]}"
+        )
+    probabilities = torch.softmax(logits.float(), dim=0)[:-1].reshape(slots, -1)
+    clamped = probabilities.clamp(PROBABILITY_FLOOR, 1.0 - PROBABILITY_FLOOR)
+    target = gt.to(probabilities.dtype)
+    pixels = target.shape[1]
+    # bce[g, k] = mean over pixels of BCE(slot k, mask g), as two matrix products.
+    bce = -(target @ clamped.log().T + (1.0 - target) @ (1.0 - clamped).log().T) / pixels
+    inter = target @ probabilities.T
+    union = target.sum(1, keepdim=True) + probabilities.sum(1)[None] - inter
+    soft_iou = inter / union.clamp(min=PROBABILITY_FLOOR)
+    rows, cols = hungarian((bce + 1.0 - soft_iou).detach().cpu().numpy())
+    rows_t = torch.as_tensor(rows, device=logits.device)
+    cols_t = torch.as_tensor(cols, device=logits.device)
+    unmatched = torch.ones(slots, dtype=torch.bool, device=logits.device)
+    unmatched[cols_t] = False
+    zero = probabilities.sum() * 0.0
+    return {
+        "bce": bce[rows_t, cols_t].mean(),
+        "unmatched": probabilities[unmatched].mean() if unmatched.any() else zero,
+        "iou": (1.0 - soft_iou[rows_t, cols_t]).mean(),
+    }
+
+
+class InstanceLossSet(WeightedLossSet):
+    """Weighted terms ``rgb``, ``instance``, and ``sd`` / ``dgs`` when their weight is non-zero.
+
+    Args: the fields of ``InstanceLossConfig`` except ``name``.
+    """
+
+    needs_instances = True
+
+    def __init__(self, instance_weight: float = InstanceLossConfig.instance_weight, **options: float | bool | str):
+        if float(options.get("ce_weight", 0.0)) != 0.0:
+            raise ConfigError(
+                f"loss.ce_weight={options['ce_weight']}: the instance loss set's head predicts instance slots, not "
+                "classes; expected 0"
+            )
+        options.setdefault("sd_weight", InstanceLossConfig.sd_weight)
+        options.setdefault("dgs_weight", InstanceLossConfig.dgs_weight)
+        options["ce_weight"] = 0.0
+        super().__init__(**options, extra_weights={"instance": instance_weight})
+        self.needs_semantics = True
+        self.head_predicts = "instances"
+
+    @staticmethod
+    def _instance(inputs: LossInputs) -> Tensor:
+        if inputs.logits is None:
+            raise ConfigError("loss term 'instance' needs head logits; select an instance head (+head=instance)")
+        if inputs.instances is None:
+            raise ConfigError("loss term 'instance' needs the target's instance ids; the pipeline gave none")
+        parts = hungarian_instance_loss(inputs.logits[0], inputs.instances[0])
+        return parts["bce"] + parts["unmatched"] + parts["iou"]
