@@ -92,7 +92,8 @@ def build_components(cfg: Any, registry: Registry | None = None) -> Components:
         if loss.needs_semantics and not model.has_semantics:
             hint = "+head=instance" if loss.head_predicts == "instances" else "+head=unet"
             raise ConfigError(
-                f"loss {cfg.loss.name!r} needs semantics: add a head ({hint}) and keep model.semantic_field.enabled=true"
+                f"loss {cfg.loss.name!r} needs semantics: add a head ({hint}) and keep "
+                "model.semantic_field.enabled=true"
             )
         predicts = model.head.predicts if model.head is not None else None
         if loss.head_predicts is not None and predicts is not None and loss.head_predicts != predicts:

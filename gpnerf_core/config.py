@@ -62,9 +62,16 @@ class TrainConfig:
     """Target views per step over all processes (the global batch; the paper: 1 per GPU). Under torchrun the
     world size must divide it; each process takes its share."""
     lr: LearningRates = field(default_factory=LearningRates)
+    lr_schedule: str = "exponential"
+    """After the warm-up: ``exponential`` (multiplied by ``lr_decay_rate`` every ``lr_decay_steps`` steps, per step)
+    or ``cosine`` (half a cosine from the full rate down to 0 at ``train.steps``)."""
     lr_decay_rate: float = 0.6
-    """Learning rates are multiplied by this factor every ``lr_decay_steps`` steps (exponentially, per step)."""
+    """``exponential``: learning rates are multiplied by this factor every ``lr_decay_steps`` steps."""
     lr_decay_steps: int = 100_000
+    """``exponential``: steps per ``lr_decay_rate`` factor."""
+    warmup_steps: int = 0
+    """Learning rates rise linearly from 1/warmup_steps of their value to the full value over these first steps
+    (0 = none)."""
     fuse_rendered: bool = True
     """Head input is the fused map (paper); False runs the head on the teacher map alone (released code)."""
     grad_clip: float = 0.0

@@ -131,6 +131,7 @@ def render_task_body(cfg: DictConfig, dist: Any) -> dict[str, Any]:
 
     from gpnerf_core.build import build_components
     from gpnerf_core.evaluation import visualize as vis
+    from gpnerf_core.evaluation.instances import slot_predictions
     from gpnerf_core.frames import FrameCache
     from gpnerf_core.io import atomic_write_json
     from gpnerf_core.run import _prepare, _start, checkpoint_config
@@ -175,9 +176,14 @@ def render_task_body(cfg: DictConfig, dist: Any) -> dict[str, Any]:
                      np.kron(vis.depth_to_color(prediction.depth.cpu(), scene.near, scene.far),
                              np.ones((s, s, 1), dtype=np.uint8))]
             labels = ["rgb", "depth"]
-            if prediction.logits is not None:
+            if prediction.logits is not None and model.head.predicts == "instances":
+                slots, _ = slot_predictions(prediction.logits[0].cpu())
+                tiles.append(vis.colorize_instances(slots))  # a slot keeps its colour from frame to frame
+                labels.append("instances")
+            elif prediction.logits is not None:
                 classes = prediction.logits[0].argmax(0).cpu()
-                tiles.append(vis.colorize_labels(classes, components.dataset.num_classes, components.dataset.ignore_index))
+                dataset = components.dataset
+                tiles.append(vis.colorize_labels(classes, dataset.num_classes, dataset.ignore_index))
                 labels.append("semantic")
             pictures.append(vis.side_by_side(tiles, labels))
         for index, picture in enumerate(pictures):

@@ -42,6 +42,8 @@ METRIC_COLUMNS = (
     ("mIoU held-out", "train_heldout", "miou/image_mean_present", 100.0, 2),
     ("mIoU unseen", "unseen", "miou/image_mean_present", 100.0, 2),
     ("PSNR held-out", "train_heldout", "psnr/clamped", 1.0, 2),
+    ("AP@0.75 held-out", "train_heldout", "instance/ap_matched@0.75", 100.0, 2),
+    ("COCO AP held-out", "train_heldout", "instance/coco_mask_ap", 100.0, 2),
 )
 
 

@@ -18,6 +18,7 @@ from gpnerf_core.config import RootConfig
 from gpnerf_core.device import PRECISIONS
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.registry import KINDS
+from gpnerf_core.training.schedule import LR_SCHEDULES
 from gpnerf_core.training.loggers import check_loggers
 
 
@@ -50,6 +51,7 @@ RULES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("train.lr.head", _positive, "a finite learning rate > 0"),
     ("train.lr_decay_rate", _fraction, "a factor in (0, 1]"),
     ("train.lr_decay_steps", _count(1), COUNT),
+    ("train.warmup_steps", _count(0), f"{COUNT0} (0 = no warm-up)"),
     ("train.grad_clip", _non_negative, "a finite norm >= 0 (0 = off)"),
     ("train.log_every", _count(1), COUNT),
     ("train.checkpoint_every", _count(0), f"{COUNT0} (0 = only the final checkpoint)"),
@@ -73,6 +75,8 @@ def validate_config(cfg: DictConfig) -> None:
         value = OmegaConf.select(cfg, key)
         if not check(value):
             raise ConfigError(f"{key}={value!r}: expected {expected}")
+    if cfg.train.lr_schedule not in LR_SCHEDULES:
+        raise ConfigError(f"train.lr_schedule={cfg.train.lr_schedule!r}: expected one of {', '.join(LR_SCHEDULES)}")
     if cfg.train.precision not in PRECISIONS:
         raise ConfigError(f"train.precision={cfg.train.precision!r}: expected one of {', '.join(PRECISIONS)}")
     bad_splits = [s for s in cfg.eval.splits if s not in SPLITS]

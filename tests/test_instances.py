@@ -4,7 +4,6 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -206,6 +205,11 @@ def test_an_instance_run_reports_both_aps_and_draws_instances(tmp_path):
     assert I.AP_MATCHED_75 in held_out["teacher_2d"] and "miou/image_mean_present" not in held_out
     pictures = sorted((tmp_path / "inst" / "images" / "train_heldout").glob("*_instances.png"))
     assert pictures and np.asarray(Image.open(pictures[0])).shape[-1] == 3
+    checkpoint = tmp_path / "inst" / "checkpoints" / "step_0000003.pt"
+    video = gpnerf("render", f"checkpoint={checkpoint}", "render.frames=2", "out_dir=video", cwd=tmp_path)
+    assert video.returncode == 0, video.stderr[-2000:]
+    frame = np.asarray(Image.open(tmp_path / "video" / "frames" / "0001.png"))
+    assert frame.shape[1] > 3 * 48  # rgb, depth and instances side by side
 
 
 def test_a_semantic_run_scores_connected_components_as_the_instance_baseline(tmp_path):

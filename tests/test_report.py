@@ -24,9 +24,9 @@ def test_rows_are_matched_to_table4_ids(tmp_path):
     write_run(tmp_path / "2", {"name": "dgs", "sd_weight": 0.25, "dgs_weight": 0.25, "teacher_stop_grad": True}, True, 0.6)
     table = format_table(find_runs([tmp_path])).splitlines()
     assert len(table) == 5
-    assert table[2].split("|")[14].strip() == "1" and "56.45" in table[2]
-    assert table[3].split("|")[14].strip() == "3" and "| 40.00 | 20.00 | 20.00 |" in table[3]
-    assert table[4].split("|")[14].strip() == "5" and "59.92" in table[4]
+    assert table[2].split("|")[16].strip() == "1" and "56.45" in table[2]
+    assert table[3].split("|")[16].strip() == "3" and "| 40.00 | 20.00 | 20.00 |" in table[3]
+    assert table[4].split("|")[16].strip() == "5" and "59.92" in table[4]
 
 
 def test_missing_path_is_an_error(tmp_path):

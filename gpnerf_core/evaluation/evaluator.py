@@ -342,7 +342,8 @@ def print_summary(metrics: dict[str, Any], run_dir: Path) -> None:
             parts.append(f"| majority baseline {_fmt(base.get(M.MIOU_IMAGE_MEAN_PRESENT))}")
             parts.append(f"| acc {_fmt(values.get(M.ACC_TOTAL))}")
         if I.AP_MATCHED_75 in values:
-            parts.append(f"AP@0.75 {_fmt(values.get(I.AP_MATCHED_75))} (matched) | COCO AP {_fmt(values.get(I.COCO_AP))}")
+            parts.append(f"AP@0.75 {_fmt(values.get(I.AP_MATCHED_75))} (matched)")
+            parts.append(f"| COCO AP {_fmt(values.get(I.COCO_AP))}")
             parts.append(f"AP75 {_fmt(values.get(I.COCO_AP75))}")
         cc = values.get("baseline_connected_components")
         if cc:

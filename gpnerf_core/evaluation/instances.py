@@ -167,8 +167,9 @@ def connected_component_instances(classes: Tensor, top_probability: Tensor) -> t
         ids[inside] = components[inside] - 1 + count
         count += found
     ids_t = torch.from_numpy(ids)
-    sums = torch.zeros(count, dtype=torch.float64).index_add_(0, ids_t.reshape(-1), top_probability.double().cpu().reshape(-1))
-    sizes = torch.bincount(ids_t.reshape(-1), minlength=count).clamp(min=1)
+    flat = ids_t.reshape(-1)
+    sums = torch.zeros(count, dtype=torch.float64).index_add_(0, flat, top_probability.double().cpu().reshape(-1))
+    sizes = torch.bincount(flat, minlength=count).clamp(min=1)
     return ids_t, (sums / sizes).float()
 
 
@@ -265,7 +266,8 @@ class InstanceRecord:
 def instance_record(pred_ids: Tensor, confidence: Tensor, gt_ids: Tensor) -> tuple[InstanceRecord, dict[int, int]]:
     """Score one view's instances; also returns ``{predicted id: matched GT id}`` for its picture."""
     aps, pairing = matched_ap(pred_ids, confidence, gt_ids)
-    record = InstanceRecord(ap=aps, coco=coco_image(pred_ids, confidence, gt_ids), gt_instances=len(torch.unique(gt_ids)))
+    coco = coco_image(pred_ids, confidence, gt_ids)
+    record = InstanceRecord(ap=aps, coco=coco, gt_instances=len(torch.unique(gt_ids)))
     return record, pairing
 
 

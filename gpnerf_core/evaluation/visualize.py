@@ -100,7 +100,9 @@ def colorize_instances(ids: Tensor | np.ndarray) -> np.ndarray:
     """
     array = _to_numpy(ids)
     if array.ndim != 2 or not np.issubdtype(array.dtype, np.integer) or (array.size and array.min() < 0):
-        raise ValueError(f"instance ids must be a non-negative integer [H, W] map, got {array.dtype} {list(array.shape)}")
+        raise ValueError(
+            f"instance ids must be a non-negative integer [H, W] map, got {array.dtype} {list(array.shape)}"
+        )
     unique, inverse = np.unique(array.astype(np.int64), return_inverse=True)
     hsv = np.stack([(unique * 0.618034) % 1.0, np.full(len(unique), 0.7), np.full(len(unique), 0.95)], axis=-1)
     colours = (matplotlib.colors.hsv_to_rgb(hsv) * 255.0 + 0.5).astype(np.uint8)

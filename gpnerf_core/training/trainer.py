@@ -13,7 +13,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import torch
 from torch import Tensor
@@ -34,6 +34,7 @@ from gpnerf_core.training.checkpoint import (
 from gpnerf_core.training.interrupt import StopRequest, TrainingInterrupted
 from gpnerf_core.training.loggers import ScalarLogger
 from gpnerf_core.training.sampler import StepSampler
+from gpnerf_core.training.schedule import lr_factor
 from gpnerf_core.types import LossInputs, StepBatch, StepOutput, TargetView, ViewOutput
 
 
@@ -66,12 +67,6 @@ def make_optimizer(model: torch.nn.Module, lrs: Any) -> torch.optim.Optimizer:
         if params:
             groups.append({"params": params, "lr": float(getattr(lrs, name)), "name": name})
     return torch.optim.Adam(groups)
-
-
-def exponential_decay(rate: float, steps: int) -> Callable[[int], float]:
-    if steps <= 0 or not 0 < rate <= 1:
-        raise ConfigError(f"train.lr_decay_rate must be in (0, 1] and lr_decay_steps > 0, got {rate} and {steps}")
-    return lambda step: rate ** (step / steps)
 
 
 def loss_inputs(view: TargetView, output: ViewOutput, ignore_index: int) -> LossInputs:
@@ -140,7 +135,14 @@ class Trainer:
         )
         self.optimizer = make_optimizer(self.model, cfg.train.lr)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(
-            self.optimizer, exponential_decay(cfg.train.lr_decay_rate, cfg.train.lr_decay_steps)
+            self.optimizer,
+            lr_factor(
+                str(cfg.train.lr_schedule),
+                steps=int(cfg.train.steps),
+                warmup_steps=int(cfg.train.warmup_steps),
+                decay_rate=float(cfg.train.lr_decay_rate),
+                decay_steps=int(cfg.train.lr_decay_steps),
+            ),
         )
         self.step = 0
         self.history: list[dict[str, float]] = []

@@ -14,5 +14,5 @@ def gpnerf_register_losses() -> list[ComponentSpec]:
         ComponentSpec("ce", WeightedLossSet, CeLossConfig, "colour + semantic cross-entropy"),
         ComponentSpec("sd", WeightedLossSet, SdLossConfig, "colour + cross-entropy + 2D semantic distillation"),
         ComponentSpec("dgs", WeightedLossSet, DgsLossConfig, "colour + cross-entropy + 2D and depth-guided distill."),
-        ComponentSpec("instance", InstanceLossSet, InstanceLossConfig, "colour + Hungarian instance loss + 2D distill."),
+        ComponentSpec("instance", InstanceLossSet, InstanceLossConfig, "colour + Hungarian instance loss + 2D distill"),
     ]
