@@ -146,5 +146,5 @@ def _require_instances(cfg: DictConfig, components: Components, scenes: list[str
             raise ConfigError(
                 f"dataset {cfg.dataset.name!r} has no instance ids (scene {name!r}, frame {first}), but head "
                 f"{cfg.head.name!r} predicts instances; use a dataset with instance ids (embedded, replica_instance, "
-                f"replica with semantic_instance/ folders)"
+                f"replica with semantic_instance/ folders, scannet with instance-filt/ folders)"
             )

@@ -45,6 +45,12 @@ def raw_labels(number: int, unknown: bool = False) -> np.ndarray:
     return labels
 
 
+def instance_ids(number: int) -> np.ndarray:
+    """8-bit instance ids 0..16 at colour resolution, changing from pixel to pixel (so a resize's picks show)."""
+    h, w = COLOR_HW
+    return ((np.arange(h)[:, None] * 5 + np.arange(w)[None, :] * 3 + number) % 17).astype(np.uint8)
+
+
 def depth_mm(number: int) -> np.ndarray:
     h, w = DEPTH_HW
     return (1000 + 100 * number + np.arange(h * w).reshape(h, w) * 3).astype(np.uint16)
@@ -75,8 +81,16 @@ def write_tsv(root: Path, rows=TSV_ROWS) -> Path:
     return path
 
 
-def write_scene(root: Path, name: str, numbers=(0, 1, 2, 9, 10), invalid=(), unknown=()) -> Path:
+def write_instances(scene: Path, numbers) -> None:
+    """``instance-filt/<n>.png`` (8-bit, colour resolution) for frames ``numbers``."""
+    for n in numbers:
+        write_png(scene / "instance-filt" / f"{n}.png", instance_ids(n))
+
+
+def write_scene(root: Path, name: str, numbers=(0, 1, 2, 9, 10), invalid=(), unknown=(), instances=()) -> Path:
+    """A scene in the real layout; ``instances``: the frames that get an ``instance-filt`` PNG (none: no folder)."""
     scene = root / name
+    write_instances(scene, instances)
     for n in numbers:
         (scene / "color").mkdir(parents=True, exist_ok=True)
         Image.fromarray(color_of(n)).save(scene / "color" / f"{n}.jpg", quality=95)
@@ -335,6 +349,23 @@ def _break(scene: Path, what: str) -> tuple[str, str]:
     if what == "rgb label":
         write_png(scene / "label-filt" / "1.png", color_of(1))
         return "label-filt/1.png (frame 1)", "expected a single-channel integer label PNG, found mode RGB"
+    if what == "missing instance":
+        write_instances(scene, (0, 1, 2))  # instance-filt/ exists but lacks frames 9 and 10: the lower is named
+        return "instance-filt/9.png (frame 9)", (
+            "expected a file beside color/9.jpg (instance-filt/ exists, so every frame needs one), found nothing"
+        )
+    if what.endswith("instance") and not (scene / "instance-filt").exists():
+        write_instances(scene, (0, 1, 2, 9, 10))  # every frame's, then one damaged
+    if what == "rgb instance":
+        write_png(scene / "instance-filt" / "2.png", color_of(2))
+        return "instance-filt/2.png (frame 2)", "expected a single-channel integer instance PNG, found mode RGB"
+    if what == "truncated instance":
+        data = (scene / "instance-filt" / "0.png").read_bytes()
+        (scene / "instance-filt" / "0.png").write_bytes(data[: len(data) // 2])
+        return "instance-filt/0.png (frame 0)", "expected a complete instance PNG"
+    if what == "narrow instance":
+        write_png(scene / "instance-filt" / "1.png", instance_ids(1)[:, :40])
+        return "instance-filt/1.png (frame 1)", "found 40x48"
     raise AssertionError(what)
 
 
@@ -342,6 +373,7 @@ BREAKAGES = [
     "missing depth", "non-numeric name", "pose not 4x4", "pose not numbers", "pose last row", "pose not rigid", "pose mirrored",
     "missing intrinsic",
     "truncated colour", "truncated label", "colour size", "depth aspect", "rgb label",
+    "missing instance", "rgb instance", "truncated instance", "narrow instance",
 ]  # fmt: skip
 
 
@@ -352,6 +384,53 @@ def test_every_bad_file_is_a_one_line_data_error_naming_it(tmp_path, what):
     path_fragment, message_fragment = _break(scene, what)
     message = _first_error(tmp_path)
     assert path_fragment in message and message_fragment in message
+
+
+# ------------------------------------------------------------------------------------------- instance ids
+
+
+def test_instance_ids_are_read_as_stored_and_resized_by_nearest_like_labels(tmp_path):
+    write_tsv(tmp_path)
+    write_scene(tmp_path, "scene0000_00", instances=(0, 1, 2, 9, 10))
+    write_scene(tmp_path, "scene0160_00", numbers=(0, 1))  # no instance-filt/: no instance ids
+    scene = dataset(tmp_path).load_scene("scene0000_00")
+    frame = scene.load_frame(4)  # frame 10
+    assert frame.instance is not None and frame.instance.dtype == torch.int64
+    assert torch.equal(frame.instance, torch.from_numpy(instance_ids(10).astype(np.int64)))  # colour size: as stored
+    assert int(frame.instance.min()) == 0  # 0 (not annotated) is kept as an id, not remapped
+    half = dataset(tmp_path, height=24, width=32).load_scene("scene0000_00").load_frame(3)  # frame 9
+    assert half.instance.shape == (24, 32)
+    assert torch.equal(half.instance, torch.from_numpy(instance_ids(9)[1::2, 1::2].astype(np.int64)))  # cell centres
+    # the same nearest picks as the labels at an uneven size: an instance map holding the raw label ids maps onto
+    # exactly the loaded classes
+    write_png(tmp_path / "scene0000_00" / "instance-filt" / "2.png", raw_labels(2).astype(np.uint8))
+    squashed = dataset(tmp_path, height=24, width=48).load_scene("scene0000_00").load_frame(2)
+    mapped = np.vectorize(EXPECTED_CLASS.get)(squashed.instance.numpy())
+    assert torch.equal(squashed.semantic, torch.from_numpy(mapped))
+    assert len(np.unique(squashed.instance.numpy())) == len(RAW_IDS)
+    plain = dataset(tmp_path, scenes=["scene0160_00"]).load_scene("scene0160_00")
+    assert all(plain.load_frame(i).instance is None for i in range(plain.num_frames))
+
+
+def test_instance_ids_follow_their_frame_when_invalid_poses_are_dropped(tmp_path):
+    write_tsv(tmp_path)
+    write_scene(tmp_path, "scene0000_00", invalid=(1,), instances=(0, 1, 2, 9, 10))
+    with pytest.warns(UserWarning, match="dropped 1 of 5"):
+        scene = dataset(tmp_path).load_scene("scene0000_00")
+    for index, number in enumerate((0, 2, 9, 10)):
+        assert torch.equal(scene.load_frame(index).instance, torch.from_numpy(instance_ids(number).astype(np.int64)))
+
+
+def test_scene_missing_one_instance_file_fails_at_load_naming_it(tmp_path):
+    write_tsv(tmp_path)
+    scene = write_scene(tmp_path, "scene0000_00", instances=(0, 1, 2, 10))
+    with pytest.raises(DataError) as info:
+        dataset(tmp_path).load_scene("scene0000_00")  # at load, not when frame 9 is first decoded
+    expected = (
+        f"{scene / 'instance-filt' / '9.png'} (frame 9): expected a file beside color/9.jpg "
+        "(instance-filt/ exists, so every frame needs one), found nothing"
+    )
+    assert str(info.value) == expected
 
 
 def test_scene_without_valid_poses_is_an_error(tmp_path):
@@ -387,7 +466,8 @@ def test_checker_reports_every_problem_with_frame_expected_and_found(tmp_path):
     scene = write_scene(tmp_path, "scene0000_00")
     (tmp_path / "scannetv2-labels.combined.tsv").write_text("id\tcategory\n1\twall\n")
     expected = [_break(scene, what) for what in ("missing depth", "non-numeric name", "pose not 4x4", "pose last row",
-                                                 "missing intrinsic", "truncated colour", "truncated label")]
+                                                 "missing intrinsic", "truncated colour", "truncated label",
+                                                 "missing instance", "truncated instance", "narrow instance")]
     report = check_scannet_layout(tmp_path)
     lines = [str(p) for p in report.problems]
     assert not report.ok
@@ -395,6 +475,31 @@ def test_checker_reports_every_problem_with_frame_expected_and_found(tmp_path):
         assert any(path_fragment in line and message_fragment in line for line in lines), (path_fragment, lines)
     assert any("scannetv2-labels.combined.tsv:1" in line and "header column 'nyu40id'" in line for line in lines)
     assert report.class_histogram == {}
+
+
+def test_checker_counts_instance_files_and_reports_a_missing_one(tmp_path):
+    write_tsv(tmp_path)
+    write_scene(tmp_path, "scene0000_00", instances=(0, 1, 2, 9, 10))
+    write_scene(tmp_path, "scene0160_00", numbers=(0, 1))
+    report = check_scannet_layout(tmp_path)
+    assert report.ok, report.format()
+    assert report.present["instance-filt"] == 5
+    assert "instance maps (instance-filt/, optional): 1 of 2 scenes" in report.notes
+    (tmp_path / "scene0000_00" / "instance-filt" / "2.png").unlink()
+    (tmp_path / "scene0000_00" / "instance-filt" / "77.png").write_bytes(b"")  # no colour image: a note
+    report = check_scannet_layout(tmp_path)
+    assert [str(p) for p in report.problems] == [
+        f"{tmp_path / 'scene0000_00' / 'instance-filt' / '2.png'} (frame 2): expected a file beside color/2.jpg "
+        "(instance-filt/ exists, so every frame needs one), found nothing"
+    ]
+    assert report.present["instance-filt"] == 5
+    assert "scene0000_00: 1 instance-filt/ files without a colour image (ignored by the loader)" in report.notes
+
+
+def test_checker_without_instance_maps_counts_none_and_reports_nothing(root):
+    report = check_scannet_layout(root)
+    assert report.ok and "instance-filt" not in report.present
+    assert "instance maps (instance-filt/, optional): 0 of 2 scenes" in report.notes
 
 
 def test_checker_without_scenes_reports_it(tmp_path):
@@ -433,6 +538,31 @@ def test_scannet_trains_and_evaluates_through_the_unchanged_pipeline(root, tmp_p
         tmp_path / "run",
     )
     assert_both_splits_scored(metrics, 20)
+
+
+def test_instance_head_trains_and_evaluates_on_scannet_instance_maps(tmp_path):
+    from gpnerf_core.build import build_components
+    from gpnerf_core.config import compose
+    from gpnerf_core.distributed import Distributed
+    from gpnerf_core.evaluation.evaluator import evaluate
+    from pipeline_check import TINY_MODEL, make_trainer
+
+    root = tmp_path / "data"
+    write_tsv(root)
+    write_scene(root, "scene0000_00", instances=(0, 1, 2, 9, 10))
+    write_scene(root, "scene0160_00", numbers=(0, 1, 2, 3), instances=(0, 1, 2, 3))
+    cfg = compose(
+        ["+head=instance", "+loss=instance", "head.slots=20", *TINY_MODEL, "dataset=scannet", f"dataset.root={root}",
+         "dataset.height=32", "dataset.width=48", "dataset.scenes=[scene0000_00]",
+         "dataset.unseen_scenes=[scene0160_00]"]
+    )  # fmt: skip
+    torch.manual_seed(0)
+    components = build_components(cfg)
+    trainer = make_trainer(cfg, tmp_path / "run", components=components)
+    assert trainer.fit(progress=False).steps == 2
+    metrics = evaluate(cfg, components, trainer.frames, tmp_path / "run", Distributed.single())
+    for split in ("train_heldout", "unseen"):
+        assert 0.0 <= metrics["eval"][split]["instance/ap_matched@0.75"] <= 1.0, metrics["eval"][split]
 
 
 

@@ -61,6 +61,14 @@ def labels_of(index: int) -> np.ndarray:
     return labels
 
 
+def instances_of(index: int) -> np.ndarray:
+    """8-bit instance ids at colour resolution: 0 (not annotated) on top, objects 1..4 in columns, shifted per frame."""
+    ids = (np.arange(COLOR_HW[1])[None, :] // 16 + index) % 4 + 1
+    ids = np.repeat(ids, COLOR_HW[0], axis=0).astype(np.uint8)
+    ids[:3] = 0
+    return ids
+
+
 def png_bytes(array: np.ndarray) -> bytes:
     buffer = io.BytesIO()
     Image.fromarray(array).save(buffer, format="PNG")
@@ -106,10 +114,21 @@ def write_label_zip(path: Path, frames, folder: str = "label-filt") -> Path:
     return path
 
 
-def write_scan(tmp_path: Path, num_frames: int = 3, **sens_options) -> Path:
+def write_instance_zip(path: Path, frames, folder: str = "instance-filt", image=instances_of) -> Path:
+    """ScanNet's ``_2d-instance-filt.zip``: ``instance-filt/<i>.png`` holding ``image(i)``."""
+    with zipfile.ZipFile(path, "w") as archive:
+        for i in frames:
+            archive.writestr(f"{folder}/{i}.png", png_bytes(image(i)))
+    return path
+
+
+def write_scan(tmp_path: Path, num_frames: int = 3, *, instances: bool = False, **sens_options) -> Path:
+    """A scan as downloaded: ``.sens`` + label zip, and the instance zip when ``instances``."""
     scan = tmp_path / "scans" / SCENE
     write_sens(scan / f"{SCENE}.sens", num_frames, **sens_options)
     write_label_zip(scan / f"{SCENE}_2d-label-filt.zip", range(num_frames))
+    if instances:
+        write_instance_zip(scan / f"{SCENE}_2d-instance-filt.zip", range(num_frames))
     return scan
 
 
@@ -181,7 +200,9 @@ def test_prepare_writes_the_layout_and_the_dataset_reads_it_value_by_value(tmp_p
     printed = capsys.readouterr().out
     assert f"wrote 3 of 3 frames of {SCENE} to {out / SCENE}" in printed and "1 with an invalid pose" in printed
     assert "scannetv2-labels.combined.tsv" in printed  # the hint: the label map is still missing
+    assert "instance" not in printed  # no instance zip: optional, nothing to say
     folder = out / SCENE
+    assert not (folder / "instance-filt").exists()
     assert sorted(p.name for p in out.iterdir()) == [SCENE]  # no temporary folder left behind
     umask = os.umask(0)
     os.umask(umask)
@@ -210,6 +231,29 @@ def test_prepare_writes_the_layout_and_the_dataset_reads_it_value_by_value(tmp_p
     assert torch.equal(frame.depth, torch.from_numpy(depth_of(2).astype(np.float32) / 1000.0))  # metres
     expected = np.array([255, 0, 19, 255])[np.searchsorted([0, 1, 3, 999], labels_of(2))][1::2, 1::2]
     assert torch.equal(frame.semantic, torch.from_numpy(expected))
+    assert frame.instance is None
+
+
+def test_instance_zip_is_copied_for_the_written_frames_and_the_dataset_reads_it(tmp_path, capsys):
+    scan = write_scan(tmp_path, 5, instances=True)
+    out = tmp_path / "data"
+    assert main([str(scan), "--out", str(out), "--frame-skip", "2"]) == 0
+    assert f"instance ids: instance-filt/ from {SCENE}_2d-instance-filt.zip" in capsys.readouterr().out
+    folder = out / SCENE
+    assert sorted(p.name for p in (folder / "instance-filt").iterdir()) == ["0.png", "2.png", "4.png"]  # frame skip
+    with zipfile.ZipFile(scan / f"{SCENE}_2d-instance-filt.zip") as archive:
+        for i in (0, 2, 4):
+            stored = archive.read(f"instance-filt/{i}.png")
+            assert (folder / "instance-filt" / f"{i}.png").read_bytes() == stored  # byte for byte
+            assert stored == png_bytes(instances_of(i))
+    write_tsv(out)
+    scene = ScanNetScenes(root=str(out), height=24, width=32, scenes=[SCENE]).load_scene(SCENE)
+    with pytest.warns(UserWarning, match="ids 999"):
+        frame = scene.load_frame(2)  # stream frame 4
+    assert frame.instance.dtype == torch.int64
+    expected = instances_of(4)[1::2, 1::2].astype(np.int64)  # nearest: centres of 2x2 cells
+    assert torch.equal(frame.instance, torch.from_numpy(expected))
+    assert set(np.unique(expected)) == {0, 1, 2, 3, 4}
 
 
 def test_frame_skip_keeps_stream_indices_as_names(tmp_path):
@@ -244,6 +288,22 @@ def test_existing_destination_needs_overwrite(tmp_path):
 def _break_scan(scan: Path, what: str) -> str:
     """Damage a written scan; returns the text the error must contain."""
     sens, labels = scan / f"{SCENE}.sens", scan / f"{SCENE}_2d-label-filt.zip"
+    instances = scan / f"{SCENE}_2d-instance-filt.zip"
+    if what == "instances not a zip":
+        instances.write_bytes(b"PK\x03\x04 truncated")
+        return f"{instances}: not a readable zip archive"
+    if what == "zip without instance-filt":
+        write_instance_zip(instances, range(3), folder="instance")
+        return f"{instances}: no instance-filt/<frame>.png inside; expected ScanNet's _2d-instance-filt.zip"
+    if what == "instance count mismatch":
+        write_instance_zip(instances, range(4))
+        return f"{instances}: 4 instance-filt images for 3 frames in {sens}; expected one instance-filt image per frame"
+    if what == "instance names":
+        write_instance_zip(instances, (0, 1, 7))
+        return f"{instances}: no instance-filt/2.png; expected instance-filt images for frames 0..2"
+    if what == "rgb instance entry":
+        write_instance_zip(instances, range(3), image=lambda i: np.zeros((*COLOR_HW, 3), dtype=np.uint8))
+        return f"{instances}: instance-filt/0.png is a PNG of mode RGB; expected a single-channel integer PNG"
     if what == "missing sens":
         sens.unlink()
         return f"{sens}: missing"
@@ -279,10 +339,12 @@ def _break_scan(scan: Path, what: str) -> str:
     [
         "missing sens", "missing zip", "truncated stream", "zip without label-filt", "count mismatch", "label names",
         "not a zip", "bad depth stream", "png colour",
+        "instances not a zip", "zip without instance-filt", "instance count mismatch", "instance names",
+        "rgb instance entry",
     ],
 )  # fmt: skip
 def test_bad_scans_fail_with_one_line_and_write_nothing(tmp_path, what):
-    scan = write_scan(tmp_path, 3)
+    scan = write_scan(tmp_path, 3, instances=True)
     expected = _break_scan(scan, what)
     out = tmp_path / "data"
     with pytest.raises(DataError) as info:

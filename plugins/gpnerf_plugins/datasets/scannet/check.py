@@ -14,6 +14,7 @@ from gpnerf_plugins.datasets.common.layout_check import LayoutReport
 from gpnerf_plugins.datasets.scannet.files import (
     COLOR_DIR,
     DEPTH_DIR,
+    INSTANCE_DIR,
     INTEGER_MODES,
     INTRINSIC_COLOR,
     LABEL_DIR,
@@ -87,12 +88,15 @@ class _SceneCheck:
         frames, problems = scan_frames(self.path)
         for error in problems:
             self.problem(error)
-        for kind, folder, suffix in (
+        kinds = [
             ("color", COLOR_DIR, ".jpg"),
             ("depth", DEPTH_DIR, ".png"),
             ("label-filt", LABEL_DIR, ".png"),
             ("pose", POSE_DIR, ".txt"),
-        ):
+        ]
+        if (self.path / INSTANCE_DIR).is_dir():  # optional: counted only where a scene has it
+            kinds.append(("instance-filt", INSTANCE_DIR, ".png"))
+        for kind, folder, suffix in kinds:
             names = {p.stem for p in (self.path / folder).glob(f"*{suffix}")}
             self.count(kind, len(names))
             if kind != "color":
@@ -125,7 +129,7 @@ class _SceneCheck:
             )
 
     def frame(self, files: FrameFiles, position: int, reference: tuple[int, int] | None) -> tuple[int, int] | None:
-        """Check one frame's four files; returns the colour size the scene's frames must share."""
+        """Check one frame's files (and its instance PNG, if any); returns the colour size the scene's frames share."""
         try:
             if not pose_is_valid(read_pose(files.pose, files.token)):
                 self.invalid_poses += 1
@@ -148,7 +152,10 @@ class _SceneCheck:
         except LayoutError as error:
             self.problem(error)
         label_ok = False
-        for path, kind in ((files.depth, "depth"), (files.label, "label")):
+        images = [(files.depth, "depth"), (files.label, "label")]
+        if files.instance is not None:
+            images.append((files.instance, "instance"))
+        for path, kind in images:
             try:
                 size = _png_complete(path, files.token, kind)
                 if reference is not None and aspect_mismatch(size, reference):
@@ -187,10 +194,11 @@ def check_scannet_layout(
 ) -> LayoutReport:
     """Walk ``root`` (the folder of ``sceneXXXX_YY`` folders) against the ScanNet layout.
 
-    Every frame's four files are checked without decoding pixels (headers, PNG CRCs, the JPEG end marker, pose
-    and intrinsic numbers); labels of every ``histogram_every``-th frame of each scene are decoded for the class
-    histogram (20 classes + ignore). Invalid poses and label ids the tsv lacks are notes, not problems: the loader
-    handles them.
+    Every frame's four files (and its ``instance-filt`` PNG where the scene has that folder) are checked without
+    decoding pixels (headers, PNG CRCs, the JPEG end marker, pose and intrinsic numbers); labels of every
+    ``histogram_every``-th frame of each scene are decoded for the class histogram (20 classes + ignore). A scene
+    whose ``instance-filt/`` lacks a frame's PNG is a problem; a scene without the folder is fine. Invalid poses
+    and label ids the tsv lacks are notes, not problems: the loader handles them.
 
     Args:
         root: the dataset folder.
@@ -222,6 +230,9 @@ def check_scannet_layout(
     names = {p.name for p in scenes}
     for split, listed in (("train", read_split("train")), ("unseen (test)", read_split("test"))):
         report.notes.append(f"{split} split: {len(names & set(listed))} of its {len(listed)} scenes present")
+    if scenes:
+        with_instances = sum((scene / INSTANCE_DIR).is_dir() for scene in scenes)
+        report.notes.append(f"instance maps ({INSTANCE_DIR}/, optional): {with_instances} of {len(scenes)} scenes")
     if label_map is not None:
         report.notes.append(f"class histogram from the labels of one frame in {histogram_every} of each scene")
     return report

@@ -6,6 +6,8 @@ A scene folder ``<root>/sceneXXXX_YY/`` holds, for every frame ``<f>`` (an integ
     color/<f>.jpg                    colour image (1296 x 968 in ScanNet)
     depth/<f>.png                    uint16 depth in millimetres, 0 = unknown (640 x 480 in ScanNet)
     label-filt/<f>.png               raw ScanNet category ids (16-bit, colour resolution)
+    instance-filt/<f>.png            OPTIONAL: object instance ids of the scan (8-bit, colour resolution,
+                                     0 = not annotated); when the folder exists every frame needs one
     pose/<f>.txt                     4 rows of 4 numbers: camera-to-world, OpenCV camera, metres;
                                      all -inf (or any NaN/Inf) marks a frame the tracker lost
     intrinsic/intrinsic_color.txt    4 x 4 pinhole matrix of the colour image (top-left 3 x 3 used)
@@ -29,6 +31,8 @@ from gpnerf_plugins.datasets.common.image_io import ImageError
 from gpnerf_plugins.datasets.common.layout_check import Problem
 
 COLOR_DIR, DEPTH_DIR, LABEL_DIR, POSE_DIR = "color", "depth", "label-filt", "pose"
+INSTANCE_DIR = "instance-filt"
+"""Optional: ScanNet's 2D instance maps (``<scan>_2d-instance-filt.zip``); present for all frames of a scene or none."""
 INTRINSIC_COLOR = Path("intrinsic") / "intrinsic_color.txt"
 INTRINSIC_DEPTH = Path("intrinsic") / "intrinsic_depth.txt"
 DEPTH_SCALE = 1000.0  # depth PNG units per metre
@@ -47,7 +51,11 @@ class LayoutError(DataError):
 
 @dataclass(frozen=True)
 class FrameFiles:
-    """The four files of frame ``token`` (the file stem, e.g. ``"10"``; ``number`` is its integer value)."""
+    """The files of frame ``token`` (the file stem, e.g. ``"10"``; ``number`` is its integer value).
+
+    ``instance`` is ``instance-filt/<token>.png`` when that file exists, else None (the scene has no instance maps,
+    or this frame's is missing, which ``scan_frames`` reports).
+    """
 
     token: str
     number: int
@@ -55,6 +63,7 @@ class FrameFiles:
     depth: Path
     label: Path
     pose: Path
+    instance: Path | None = None
 
 
 def scan_frames(scene_dir: Path) -> tuple[list[FrameFiles], list[LayoutError]]:
@@ -63,19 +72,23 @@ def scan_frames(scene_dir: Path) -> tuple[list[FrameFiles], list[LayoutError]]:
     A frame is a ``color/<f>.jpg``; it needs ``depth/<f>.png``, ``label-filt/<f>.png`` and ``pose/<f>.txt``.
     Frames missing a companion are left out of the list and reported, as are ``.jpg`` names that are not
     integers and two names for one number (``7.jpg``, ``07.jpg``). Other files in ``color/`` are ignored.
+    When ``instance-filt/`` exists, a frame without ``instance-filt/<f>.png`` is reported too but kept (its
+    ``instance`` is None). Problems come in numeric frame order, so the first one names the lowest frame.
     """
     color_dir = scene_dir / COLOR_DIR
     if not color_dir.is_dir():
         return [], [LayoutError(color_dir, "a folder of <frame>.jpg colour images", "nothing")]
+    has_instances = (scene_dir / INSTANCE_DIR).is_dir()
     frames: list[FrameFiles] = []
     problems: list[LayoutError] = []
-    for path in sorted(color_dir.iterdir()):
+    for path in sorted(color_dir.iterdir(), key=_frame_order):
         if path.suffix != ".jpg" or not path.is_file():
             continue  # not a colour frame (e.g. a stray thumbnail); frames are the .jpg files
         token = path.stem
         if not token.isdigit():
             problems.append(LayoutError(path, "a numeric frame name <integer>.jpg", f"{path.name!r}", token))
             continue
+        instance = scene_dir / INSTANCE_DIR / f"{token}.png"
         files = FrameFiles(
             token,
             int(token),
@@ -83,10 +96,14 @@ def scan_frames(scene_dir: Path) -> tuple[list[FrameFiles], list[LayoutError]]:
             scene_dir / DEPTH_DIR / f"{token}.png",
             scene_dir / LABEL_DIR / f"{token}.png",
             scene_dir / POSE_DIR / f"{token}.txt",
+            instance if instance.is_file() else None,
         )
         missing = [p for p in (files.depth, files.label, files.pose) if not p.is_file()]
         for companion in missing:
             problems.append(LayoutError(companion, f"a file beside {COLOR_DIR}/{path.name}", "nothing", token))
+        if has_instances and files.instance is None:
+            expected = f"a file beside {COLOR_DIR}/{path.name} ({INSTANCE_DIR}/ exists, so every frame needs one)"
+            problems.append(LayoutError(instance, expected, "nothing", token))
         if not missing:
             frames.append(files)
     frames.sort(key=lambda f: f.number)
@@ -96,6 +113,11 @@ def scan_frames(scene_dir: Path) -> tuple[list[FrameFiles], list[LayoutError]]:
                 LayoutError(b.color, f"one file per frame number (also named {a.color.name})", b.color.name, b.token)
             )
     return frames, problems
+
+
+def _frame_order(path: Path) -> tuple[int, int, str]:
+    """Sort key of ``color/`` entries: numeric names by value first, then anything else by name."""
+    return (0, int(path.stem), path.name) if path.stem.isdigit() else (1, 0, path.name)
 
 
 def _read_matrix(path: Path, what: str, frame: str | None) -> np.ndarray:
@@ -195,7 +217,7 @@ def decode_image(path: Path, frame: str | None, kind: str) -> Image.Image:
 
 
 def read_integer_image(path: Path, frame: str | None, kind: str) -> np.ndarray:
-    """A single-channel integer ``kind`` PNG (depth, label) as ``[H, W]`` int64."""
+    """A single-channel integer ``kind`` PNG (depth, label, instance) as ``[H, W]`` int64."""
     image = decode_image(path, frame, f"{kind} PNG")
     if image.mode not in INTEGER_MODES:
         raise LayoutError(path, f"a single-channel integer {kind} PNG", f"mode {image.mode}", frame)

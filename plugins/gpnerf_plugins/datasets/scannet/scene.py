@@ -1,8 +1,10 @@
 """One ScanNet scene folder (Semantic-Ray export layout) as a ``Scene``, and the per-scene frame protocols.
 
 Frames are indexed in NUMERIC order of their names after dropping frames with an invalid pose. Colour is resized
-with antialiasing (PIL bilinear, area-aligned), labels with nearest neighbour, and the colour intrinsics are scaled by
-the true ratios ``width / W_color`` and ``height / H_color``.
+with antialiasing (PIL bilinear, area-aligned), labels and instance ids (``instance-filt/``, when the scene has it)
+with nearest neighbour, and the colour intrinsics are scaled by the true ratios ``width / W_color`` and
+``height / H_color``. Instance ids are kept as stored: 0 (not annotated) is one id like any other, the background of
+the instance protocol.
 
 Depth comes from its own camera: ScanNet's depth images (640x480) have their own intrinsics
 (``intrinsic/intrinsic_depth.txt``), not the colour camera's scaled down. ``depth_alignment="intrinsics"`` (default)
@@ -133,7 +135,7 @@ class ScanNetScene:
         if dropped:
             warnings.warn(
                 f"{self.path}: dropped {dropped} of {len(frames)} frames whose pose is not finite "
-                "(ScanNet marks lost tracking with -inf), together with their colour, depth and label files",
+                "(ScanNet marks lost tracking with -inf), together with their colour, depth, label and instance files",
                 stacklevel=2,
             )
         self.files: list[FrameFiles] = [f for f, ok in zip(frames, valid) if ok]
@@ -215,10 +217,21 @@ class ScanNetScene:
         rows, cols, inside = self._lookup
         return np.where(inside, values[rows, cols], 0).astype(np.float32) / DEPTH_SCALE
 
+    def _ids(self, path: Path, files: FrameFiles, kind: str, what: str) -> np.ndarray:
+        """Non-negative integer ids of a ``kind`` PNG, ``[height, width]`` int64, resized by nearest neighbour."""
+        ids = self._aligned(path, files, kind)
+        if ids.min(initial=0) < 0:
+            raise LayoutError(path, f"non-negative {what}", f"{int(ids.min())}", files.token)
+        return ids
+
+    def _instances(self, files: FrameFiles) -> np.ndarray | None:
+        """``instance-filt`` ids at the output size (0 = not annotated), or None when the scene has no instance maps."""
+        if files.instance is None:
+            return None
+        return self._ids(files.instance, files, "instance", "instance ids")
+
     def _labels(self, files: FrameFiles) -> np.ndarray:
-        raw = self._aligned(files.label, files, "label")
-        if raw.min(initial=0) < 0:
-            raise LayoutError(files.label, "non-negative ScanNet category ids", f"{int(raw.min())}", files.token)
+        raw = self._ids(files.label, files, "label", "ScanNet category ids")
         labels, unknown, count = self.label_map.apply(raw)
         if count and not self._warned_unknown:
             self._warned_unknown = True
@@ -239,12 +252,14 @@ class ScanNetScene:
         rgb = self._color(files)
         depth = self._depth(files)
         semantic = self._labels(files)
+        instance = self._instances(files)
         return Frame(
             rgb=torch.from_numpy(np.ascontiguousarray(rgb)),
             depth=torch.from_numpy(np.ascontiguousarray(depth)),
             semantic=torch.from_numpy(np.ascontiguousarray(semantic)),
             intrinsics=self.intrinsics.clone(),
             c2w=self.c2w[index].clone(),
+            instance=None if instance is None else torch.from_numpy(np.ascontiguousarray(instance)),
         )
 
     def scene(self, *, protocol: str = "heldout", near: float = 0.1, far: float = 6.0) -> Scene:
