@@ -18,8 +18,8 @@ from gpnerf_core.evaluation.instances import hungarian, instance_masks
 from gpnerf_core.types import LossInputs
 from gpnerf_plugins.losses.sets import LossSetConfig, WeightedLossSet
 
-PROBABILITY_FLOOR = 1e-6
-"""Probabilities are clamped to [floor, 1 - floor] inside the logarithms of the BCE."""
+LOG_ONE_MINUS_FLOOR = 1e-7
+"""log(1 - p) is taken at p <= 1 - this (the reference clamps p itself into [1e-6, 1 - 1e-6])."""
 
 
 @dataclass
@@ -63,15 +63,18 @@ def hungarian_instance_loss(logits: Tensor, instance_ids: Tensor) -> dict[str, T
             f"a target frame has {gt.shape[0]} instance ids (background included) but the head has {slots} slots; "
             f"set head.slots >= {gt.shape[0]}"
         )
-    probabilities = torch.softmax(logits.float(), dim=0)[:-1].reshape(slots, -1)
-    clamped = probabilities.clamp(PROBABILITY_FLOOR, 1.0 - PROBABILITY_FLOOR)
+    # log p from log_softmax, never from a clamped p: a clamp has no gradient, and a head whose slots saturate (one
+    # slot near 1 everywhere, the others near 0) would then never recover.
+    log_p = torch.log_softmax(logits.float(), dim=0)[:-1].reshape(slots, -1)
+    log_not_p = torch.log(-torch.expm1(log_p.clamp(max=-LOG_ONE_MINUS_FLOOR)))
+    probabilities = log_p.exp()
     target = gt.to(probabilities.dtype)
     pixels = target.shape[1]
     # bce[g, k] = mean over pixels of BCE(slot k, mask g), as two matrix products.
-    bce = -(target @ clamped.log().T + (1.0 - target) @ (1.0 - clamped).log().T) / pixels
+    bce = -(target @ log_p.T + (1.0 - target) @ log_not_p.T) / pixels
     inter = target @ probabilities.T
     union = target.sum(1, keepdim=True) + probabilities.sum(1)[None] - inter
-    soft_iou = inter / union.clamp(min=PROBABILITY_FLOOR)
+    soft_iou = inter / union.clamp(min=LOG_ONE_MINUS_FLOOR)
     rows, cols = hungarian((bce + 1.0 - soft_iou).detach().cpu().numpy())
     rows_t = torch.as_tensor(rows, device=logits.device)
     cols_t = torch.as_tensor(cols, device=logits.device)
