@@ -68,13 +68,35 @@ class RunRow:
         return joint, sd, block, dgs
 
     def method_key(self) -> str:
-        """The config without the keys that do not change what the run computes (the seed among them); empty values
-        (``[]``, ``""``, None) count as absent, so runs written before an option with an empty default existed
-        group with runs written after."""
-        config = {k: v for k, v in self.config.items() if k not in NOT_METHOD_KEYS}
+        """The config without the keys that do not change what the run computes (the seed among them). A key of the
+        schema's sections (``model``, ``train``, ...) that a run's config lacks takes today's default, and empty values
+        (``[]``, ``""``, None) count as absent, so runs written before an option existed group with runs written after
+        that leave it at its default."""
+        config = {k: v for k, v in _with_schema_defaults(self.config).items() if k not in NOT_METHOD_KEYS}
         if isinstance(config.get("train"), dict):
             config["train"] = {k: v for k, v in config["train"].items() if k not in NOT_METHOD_TRAIN_KEYS}
         return json.dumps(_without_empty(config), sort_keys=True, default=str)
+
+
+def _schema_defaults() -> dict[str, Any]:
+    from omegaconf import OmegaConf
+
+    from gpnerf_core.config import RootConfig
+
+    defaults = OmegaConf.to_container(OmegaConf.structured(RootConfig), throw_on_missing=False)
+    return {k: v for k, v in defaults.items() if isinstance(v, dict)}
+
+
+def _with_schema_defaults(config: dict[str, Any]) -> dict[str, Any]:
+    """``config`` with the keys its schema sections lack filled in from today's defaults."""
+
+    def fill(value: Any, default: Any) -> Any:
+        if not isinstance(value, dict) or not isinstance(default, dict):
+            return value
+        return {**default, **{k: fill(v, default.get(k)) for k, v in value.items()}}
+
+    defaults = _schema_defaults()
+    return {k: fill(v, defaults.get(k)) for k, v in config.items()}
 
 
 def _without_empty(value: Any) -> Any:

@@ -64,3 +64,16 @@ def test_runs_written_by_other_versions_group_when_only_empty_defaults_and_other
     (tmp_path / "new" / "config.yaml").write_text(yaml.safe_dump(config))
     rows = format_table(find_runs([tmp_path])).splitlines()[2:]
     assert len(rows) == 1 and "60.00 +- 14.14 (n=2)" in rows[0]
+
+
+def test_a_schema_key_a_run_predates_counts_as_its_default(tmp_path):
+    dgs = {"name": "dgs", "sd_weight": 0.25, "dgs_weight": 0.25, "teacher_stop_grad": True}
+    for name, seed, train in (("old", 0, {"steps": 600}), ("new", 1, {"steps": 600, "warmup_steps": 0}),
+                              ("warm", 2, {"steps": 600, "warmup_steps": 30})):
+        write_run(tmp_path / name, dgs, True, 0.5 + 0.1 * seed, seed=seed)
+        config = yaml.safe_load((tmp_path / name / "config.yaml").read_text())
+        config["train"] = train
+        (tmp_path / name / "config.yaml").write_text(yaml.safe_dump(config))
+    rows = format_table(find_runs([tmp_path])).splitlines()[2:]
+    assert len(rows) == 2
+    assert any(row.startswith("| new (+1) | 1,0 |") or row.startswith("| new (+1) | 0,1 |") for row in rows), rows
