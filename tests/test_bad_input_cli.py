@@ -35,7 +35,7 @@ CASES = {
     "negative rays": (["train.rays=-8"], "train.rays=-8: expected an integer >= 1"),
     "zero chunk": (["eval.chunk_rays=0"], "eval.chunk_rays=0: expected an integer >= 1"),
     "unknown key with +": (["+train.foo=1"], "unknown config key 'train.foo'"),
-    "unknown head": (["+head=nope"], "unknown head 'nope'; known head names: per_pixel, unet"),
+    "unknown head": (["+head=nope"], "unknown head 'nope'; known head names: instance, per_pixel, unet"),
     "unknown dataset": (["dataset=nope"], "unknown dataset 'nope'; known dataset names: embedded"),
     "unknown component option": (["+head.depth=3"], "head.depth is not an option of head 'unet'"),
     "source views": (["model.num_source_views=5"], "model.num_source_views=5 but scene 'layout_00' offers 3"),
@@ -46,6 +46,8 @@ CASES = {
     "bad validation level": (["dataset.validate=fast"], "dataset.validate='fast': expected one of quick, full, off"),
     "missing init file": (["model.init={ws}/nope.pth"], "model.init={ws}/nope.pth: no such file"),
     "resume missing": (["train.resume={ws}/nope.pt"], "train.resume={ws}/nope.pt: no such file"),
+    "bad schedule": (["train.lr_schedule=linear"], "train.lr_schedule='linear': expected one of exponential, cosine"),
+    "instance loss on a class head": (["loss=instance"], "loss 'instance' trains instances but head 'unet' predicts"),
 }
 
 
