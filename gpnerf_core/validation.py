@@ -130,9 +130,14 @@ def check_data(cfg: DictConfig, components: Components, *, training: bool = True
             )
 
 
+INSTANCE_FRAMES_CHECKED = 8
+"""Training frames per scene (spread over the scene) whose instance count is checked against ``head.slots``."""
+
+
 def _require_instances(cfg: DictConfig, components: Components, scenes: list[str], training: bool) -> None:
-    """An instance head (or a loss set that trains one) needs instance ids in every scene it trains or evaluates on;
-    the first frame of each scene is looked at."""
+    """An instance head (or a loss set that trains one) needs instance ids in every scene it trains or evaluates on
+    (the first frame of each scene is looked at), and before training at most ``head.slots`` ids in a frame (checked on
+    ``INSTANCE_FRAMES_CHECKED`` frames per training scene; the loss names any other frame that has more)."""
     head = components.model.head
     needs = (training and components.loss is not None and components.loss.needs_instances) or (
         head is not None and head.predicts == "instances"
@@ -148,3 +153,17 @@ def _require_instances(cfg: DictConfig, components: Components, scenes: list[str
                 f"{cfg.head.name!r} predicts instances; use a dataset with instance ids (embedded, replica_instance, "
                 f"replica with semantic_instance/ folders, scannet with instance-filt/ folders)"
             )
+    slots = getattr(head, "slots", None)
+    if not training or not isinstance(slots, int):
+        return
+    for name in components.dataset.scenes("train"):
+        scene = components.dataset.load_scene(name)
+        frames = scene.train_frames[:: max(1, len(scene.train_frames) // INSTANCE_FRAMES_CHECKED)]
+        for index in frames:
+            instance = scene.load_frame(index).instance
+            count = 0 if instance is None else len(instance.unique())
+            if count > slots:
+                raise ConfigError(
+                    f"scene {name!r} frame {index} has {count} instance ids (background included) but "
+                    f"head.slots={slots}; set head.slots >= {count}"
+                )

@@ -233,6 +233,13 @@ def test_a_semantic_run_scores_connected_components_as_the_instance_baseline(tmp
     assert 0.0 <= baseline[I.AP_MATCHED_75] <= 1.0 and baseline[I.COUNT_INSTANCES] > 0
 
 
+def test_too_few_slots_are_refused_before_anything_is_written(tmp_path):
+    done = gpnerf("run", "+head=instance", "+loss=instance", *TINY, "head.slots=2", "out_dir=few", cwd=tmp_path)
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines()[-1].startswith("error: scene 'layout_00' frame 0 has 5 instance ids")
+    assert "head.slots=2; set head.slots >= 5" in done.stderr and not (tmp_path / "few").exists()
+
+
 def test_a_dataset_without_instance_ids_is_refused_before_training(tmp_path):
     from plugins.test_replica import write_frames
 
