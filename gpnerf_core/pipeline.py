@@ -118,6 +118,16 @@ class GeneralizableNeRF(nn.Module):
     def has_semantics(self) -> bool:
         return self.semantic is not None and self.head is not None
 
+    def parameter_counts(self) -> dict[str, int]:
+        """Parameters per stage (``extractor``, ``field``, ``ray``, ``semantic``, ``head``; absent stages left out)
+        and their ``total``."""
+        counts = {
+            name: sum(p.numel() for p in module.parameters())
+            for name in ("extractor", "field", "ray", "semantic", "head")
+            if (module := getattr(self, name)) is not None
+        }
+        return {**counts, "total": sum(counts.values())}
+
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """Parameters by learning-rate group: ``feature_extractor``, ``transformer``, ``head``."""
         transformer = list(self.field.parameters()) + list(self.ray.parameters())

@@ -227,9 +227,48 @@ class _Parser(argparse.ArgumentParser):
 def main(argv: list[str]) -> int:
     parser = _Parser(prog="gpnerf_core report", description="Tabulate run folders (mIoU is the per-image protocol, x100).")
     parser.add_argument("paths", nargs="+", type=Path)
+    parser.add_argument("--chart", type=Path, metavar="DIR",
+                        help="also draw accuracy against cost (speed_accuracy.png, .csv, pareto.txt in DIR)")
     args = parser.parse_args(argv)
     rows = find_runs(args.paths)
     if not rows:
         raise DataError(f"no run folders (metrics.json + config.yaml) under {', '.join(map(str, args.paths))}")
     print(format_table(rows))
+    if args.chart is not None:
+        from gpnerf_core.speed_accuracy import draw, methods_from_groups
+
+        if args.chart.exists() and not args.chart.is_dir():
+            raise ConfigError(f"--chart {args.chart}: expected a folder, found a file")
+        rows = [_with_parameter_count(row) for row in rows]
+        fronts = draw(methods_from_groups(group_runs(rows), method_label), args.chart)
+        print(f"\nPareto fronts (speed_accuracy.png, speed_accuracy.csv, pareto.txt in {args.chart}):")
+        for panel, names in fronts.items():
+            print(f"  {panel}: {', '.join(names)}")
     return 0
+
+
+def method_label(group: RowGroup) -> str:
+    """A legend entry: the run folder's name, or head + loss (+ Table 4 ID) when folders are numbered (sweeps)."""
+    first = group.runs[0]
+    name = first.folder.name
+    if not name.isdigit():
+        return name.rsplit("_s", 1)[0] if len(group.runs) > 1 and "_s" in name else name
+    head = (first.config.get("head") or {}).get("name", "no head")
+    loss = (first.config.get("loss") or {}).get("name", "no loss")
+    switches = first.switches()
+    paper = PAPER_TABLE4.get(switches) if switches else None
+    return f"{head} + {loss}" + (f" (Table 4 ID {paper[0]})" if paper else f" [{name}]")
+
+
+def _with_parameter_count(row: RunRow) -> RunRow:
+    """Runs written before ``metrics.json`` held ``parameters``: count the model tensors of their final checkpoint."""
+    if row.error is not None or "parameters" in row.metrics:
+        return row
+    checkpoint = (row.metrics.get("train") or {}).get("checkpoint")
+    if not checkpoint or not Path(checkpoint).is_file():
+        return row
+    import torch
+
+    state = torch.load(checkpoint, map_location="cpu", weights_only=False).get("model", {})
+    total = sum(t.numel() for t in state.values() if hasattr(t, "numel"))
+    return RunRow(row.folder, row.config, {**row.metrics, "parameters": {"total": total}}, row.error)

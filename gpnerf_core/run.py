@@ -324,6 +324,7 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
                     "backend": dist.backend,
                     "precision": str(cfg.train.precision),
                 },
+                "parameters": components.model.parameter_counts(),
                 **evaluation,
                 "wall_seconds": round(time.perf_counter() - started, 2),
             }
@@ -396,6 +397,7 @@ def eval_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             "checkpoint_config_sha256": state["config_sha256"],
             "config_sha256": record.config_sha256,
             "machine": _machine(),
+            "parameters": components.model.parameter_counts(),
             **evaluation,
         }
         if dist.is_main:

@@ -77,3 +77,46 @@ def test_a_schema_key_a_run_predates_counts_as_its_default(tmp_path):
     rows = format_table(find_runs([tmp_path])).splitlines()[2:]
     assert len(rows) == 2
     assert any(row.startswith("| new (+1) | 1,0 |") or row.startswith("| new (+1) | 0,1 |") for row in rows), rows
+
+
+def test_the_pareto_front_keeps_the_methods_nothing_beats_on_both_axes():
+    from gpnerf_core.speed_accuracy import ACCURACY, COSTS, Method, Point, pareto_front
+
+    miou, seconds, throughput = ACCURACY[0], COSTS[0], COSTS[1]
+
+    def method(label, acc, cost):
+        return Method(label, [0], {miou.name: Point(acc, 0, 1), seconds.name: Point(cost, 0, 1),
+                                   throughput.name: Point(1000 / cost, 0, 1)})
+
+    methods = [method("fast", 0.5, 100), method("slow_good", 0.7, 400), method("dominated", 0.45, 200),
+               method("tie", 0.5, 100), method("middle", 0.6, 250)]
+    front = [m.label for m in pareto_front(methods, miou, seconds)]
+    assert front == ["fast", "tie", "middle", "slow_good"]  # equal on both axes: neither beats the other
+    assert [m.label for m in pareto_front(methods, miou, throughput)] == ["slow_good", "middle", "fast", "tie"]
+
+
+def test_report_chart_writes_png_csv_and_the_fronts(tmp_path):
+    import subprocess
+    import sys
+
+    dgs = {"name": "dgs", "sd_weight": 0.25, "dgs_weight": 0.25, "teacher_stop_grad": True}
+    ce = {"name": "ce", "sd_weight": 0, "dgs_weight": 0, "teacher_stop_grad": True}
+    for name, loss, seed, miou, seconds in (("full_s0", dgs, 0, 0.6, 300), ("full_s1", dgs, 1, 0.7, 320),
+                                            ("ce", ce, 0, 0.5, 200)):
+        write_run(tmp_path / "runs" / name, loss, True, miou, seed=seed)
+        metrics_file = tmp_path / "runs" / name / "metrics.json"
+        metrics = json.loads(metrics_file.read_text())
+        metrics["train"].update(seconds=seconds, rays_per_second=1000.0)
+        metrics["parameters"] = {"total": 2_000_000}
+        metrics_file.write_text(json.dumps(metrics))
+    done = subprocess.run([sys.executable, "-m", "gpnerf_core", "report", str(tmp_path / "runs"), "--chart",
+                           str(tmp_path / "chart")], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "mIoU held-out vs training time: ce, full" in done.stdout
+    assert (tmp_path / "chart" / "speed_accuracy.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    rows = (tmp_path / "chart" / "speed_accuracy.csv").read_text().splitlines()
+    assert rows[0].startswith("method,seeds,n,mIoU held-out (per-image mIoU) mean,mIoU held-out std")
+    full = next(row for row in rows if row.startswith("full,"))
+    assert full.startswith("full,0 1,2,0.65,0.0707107")
+    assert rows[0].endswith("parameters (millions) mean,parameters std") and full.endswith(",1000,0,2,0")
+    assert "mIoU held-out vs training time: ce, full" in (tmp_path / "chart" / "pareto.txt").read_text()

@@ -30,8 +30,6 @@ from gpnerf_core.training.checkpoint import RunRecord
 from gpnerf_core.training.trainer import Trainer
 from gpnerf_core.validation import check_data, validate_config
 
-COMPONENTS = ("extractor", "field", "ray", "semantic", "head")
-
 
 def _synchronize(device: torch.device) -> None:
     if device.type == "cuda":
@@ -78,11 +76,7 @@ def measure(spec: dict[str, Any]) -> dict[str, Any]:
         result: dict[str, Any] = {
             "device": str(device),
             "torch_threads": torch.get_num_threads(),
-            "parameters": {
-                name: sum(p.numel() for p in getattr(model, name).parameters())
-                for name in COMPONENTS
-                if getattr(model, name) is not None
-            },
+            "parameters": {name: n for name, n in model.parameter_counts().items() if name != "total"},
             "samples_per_ray": int(cfg.model.coarse_samples) + int(cfg.model.fine_samples),
         }
         if device.type == "cuda":

@@ -1,0 +1,193 @@
+"""Speed against accuracy: ``report <runs> --chart DIR`` draws every method's accuracy against its costs.
+
+One point per method (runs differing only by seed are one method: the point is their mean, the error bars their sample
+standard deviations), one panel per (accuracy, cost) pair that some run measured, and in each panel the Pareto front:
+the methods no other method beats on both axes. The CSV behind the chart and the front's members are written beside it.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import statistics
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from gpnerf_core.io import atomic_write_bytes, atomic_write_text
+
+
+@dataclass(frozen=True)
+class Axis:
+    """One quantity read from a run's ``metrics.json``.
+
+    Attributes:
+        name: column and axis label; unit: shown on the axis.
+        read: ``metrics -> value`` (None when the run did not measure it).
+        higher_is_better: accuracy, throughput (True) or cost (False), for the Pareto front.
+    """
+
+    name: str
+    unit: str
+    read: Callable[[dict[str, Any]], Any]
+    higher_is_better: bool
+
+
+def _eval(split: str, key: str) -> Callable[[dict[str, Any]], Any]:
+    return lambda metrics: metrics.get("eval", {}).get(split, {}).get(key)
+
+
+def _first_split_timing(key: str) -> Callable[[dict[str, Any]], Any]:
+    def read(metrics: dict[str, Any]) -> Any:
+        splits = metrics.get("eval", {})
+        for split in ("train_heldout", "unseen"):
+            value = splits.get(split, {}).get("timing", {}).get(key)
+            if value is not None:
+                return value
+        return None
+
+    return read
+
+
+ACCURACY = (
+    Axis("mIoU held-out", "per-image mIoU", _eval("train_heldout", "miou/image_mean_present"), True),
+    Axis("mIoU unseen", "per-image mIoU", _eval("unseen", "miou/image_mean_present"), True),
+    Axis("PSNR held-out", "dB", _eval("train_heldout", "psnr/clamped"), True),
+    Axis("AP@0.75 held-out", "matched AP", _eval("train_heldout", "instance/ap_matched@0.75"), True),
+)
+COSTS = (
+    Axis("training time", "s", lambda m: m.get("train", {}).get("seconds"), False),
+    Axis("training throughput", "rays/s", lambda m: m.get("train", {}).get("rays_per_second"), True),
+    Axis("rendering", "s per frame", _first_split_timing("seconds_per_frame"), False),
+    Axis("parameters", "millions", lambda m: _millions(m.get("parameters", {}).get("total")), False),
+    Axis("peak memory", "MB", _first_split_timing("peak_memory_mb"), False),
+)
+
+
+def _millions(value: Any) -> float | None:
+    return None if value is None else float(value) / 1e6
+
+
+@dataclass(frozen=True)
+class Point:
+    """One method on one axis: mean, sample standard deviation (0 for one run) and number of runs."""
+
+    mean: float
+    std: float
+    n: int
+
+
+def point(values: list[float]) -> Point | None:
+    if not values:
+        return None
+    return Point(statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else 0.0, len(values))
+
+
+@dataclass(frozen=True)
+class Method:
+    """A group of runs (same config up to the seed) and its points on every axis it has."""
+
+    label: str
+    seeds: list[Any]
+    points: dict[str, Point]
+
+
+def methods_from_groups(groups: list[Any], label: Callable[[Any], str]) -> list[Method]:
+    """``report.RowGroup`` s (failed runs left out) -> methods with a point on every axis some run measured."""
+    out = []
+    for group in groups:
+        runs = [run for run in group.runs if run.error is None]
+        if not runs:
+            continue
+        points = {}
+        for axis in ACCURACY + COSTS:
+            values = [float(v) for run in runs if (v := axis.read(run.metrics)) is not None]
+            if (p := point(values)) is not None:
+                points[axis.name] = p
+        out.append(Method(label(group), [run.config.get("seed", "?") for run in runs], points))
+    return out
+
+
+def pareto_front(methods: list[Method], accuracy: Axis, cost: Axis) -> list[Method]:
+    """Methods on both axes that no other method matches or beats on both and beats on one, ordered by cost."""
+    sign = 1.0 if cost.higher_is_better else -1.0
+    placed = [m for m in methods if accuracy.name in m.points and cost.name in m.points]
+
+    def beats(a: Method, b: Method) -> bool:
+        ya, yb = a.points[accuracy.name].mean, b.points[accuracy.name].mean
+        xa, xb = sign * a.points[cost.name].mean, sign * b.points[cost.name].mean
+        return ya >= yb and xa >= xb and (ya > yb or xa > xb)
+
+    front = [m for m in placed if not any(beats(other, m) for other in placed if other is not m)]
+    return sorted(front, key=lambda m: m.points[cost.name].mean)
+
+
+def draw(methods: list[Method], folder: Path) -> dict[str, list[str]]:
+    """Write ``speed_accuracy.png``, ``speed_accuracy.csv`` and ``pareto.txt`` into ``folder``.
+
+    Returns:
+        ``{"<accuracy> vs <cost>": [front members' labels]}`` for every panel drawn.
+    """
+    accuracies = [a for a in ACCURACY if any(a.name in m.points for m in methods)]
+    costs = [c for c in COSTS if any(c.name in m.points for m in methods)]
+    fronts: dict[str, list[str]] = {}
+    figure = Figure(figsize=(3.4 * max(len(costs), 1), 2.9 * max(len(accuracies), 1) + 0.8), dpi=110,
+                    layout="constrained")
+    FigureCanvasAgg(figure)
+    colours = [f"C{i % 10}" for i in range(len(methods))]
+    markers = "os^Dv<>pP*Xh"
+    for row, accuracy in enumerate(accuracies):
+        for column, cost in enumerate(costs):
+            axis = figure.add_subplot(len(accuracies), len(costs), row * len(costs) + column + 1)
+            for index, method in enumerate(methods):
+                y, x = method.points.get(accuracy.name), method.points.get(cost.name)
+                if x is None or y is None:
+                    continue
+                axis.errorbar(x.mean, y.mean, xerr=x.std or None, yerr=y.std or None, fmt=markers[index % len(markers)],
+                              color=colours[index], capsize=2, markersize=5, label=method.label)
+            front = pareto_front(methods, accuracy, cost)
+            if len(front) > 1:
+                axis.plot([m.points[cost.name].mean for m in front], [m.points[accuracy.name].mean for m in front],
+                          color="0.4", linestyle="--", linewidth=0.9, zorder=0)
+            if front:
+                fronts[f"{accuracy.name} vs {cost.name}"] = [m.label for m in front]
+            better = "higher" if cost.higher_is_better else "lower"
+            axis.set_xlabel(f"{cost.name} ({cost.unit}), {better} is better", fontsize=8)
+            axis.set_ylabel(f"{accuracy.name} ({accuracy.unit})", fontsize=8)
+            axis.tick_params(labelsize=7)
+            axis.grid(True, alpha=0.3)
+    handles, labels = [], []
+    for axis in figure.axes:
+        for handle, text in zip(*axis.get_legend_handles_labels()):
+            if text not in labels:
+                handles.append(handle)
+                labels.append(text)
+    if handles:
+        figure.legend(handles, labels, loc="outside lower center", ncol=min(4, len(labels)), fontsize=8,
+                      title="method (mean +- std over seeds; dashed: Pareto front)", title_fontsize=8)
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png")
+    atomic_write_bytes(folder / "speed_accuracy.png", buffer.getvalue())
+    atomic_write_text(folder / "speed_accuracy.csv", _csv(methods, accuracies + costs))
+    lines = [f"{panel}: {', '.join(names)}\n" for panel, names in fronts.items()]
+    atomic_write_text(folder / "pareto.txt", "".join(lines))
+    return fronts
+
+
+def _csv(methods: list[Method], axes: list[Axis]) -> str:
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    header = ["method", "seeds", "n"]
+    for axis in axes:
+        header += [f"{axis.name} ({axis.unit}) mean", f"{axis.name} std"]
+    writer.writerow(header)
+    for method in methods:
+        row: list[Any] = [method.label, " ".join(map(str, method.seeds)), len(method.seeds)]
+        for axis in axes:
+            p = method.points.get(axis.name)
+            row += ["", ""] if p is None else [f"{p.mean:.6g}", f"{p.std:.6g}"]
+        writer.writerow(row)
+    return buffer.getvalue()
