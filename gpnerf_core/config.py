@@ -105,6 +105,9 @@ class EvalConfig:
     """Targets per split whose pictures are written."""
     splits: list[str] = field(default_factory=lambda: ["train", "unseen"])
     """Which scene splits to evaluate: held-out views of ``train`` scenes, and ``unseen`` scenes."""
+    every_steps: int = 0
+    """``run``: also evaluate every this many training steps (0 = only at the end); ``metrics.json`` gets
+    ``eval_curve``, accuracy against steps and training seconds, which ``report --chart`` draws."""
 
 
 @dataclass

@@ -29,7 +29,16 @@ from gpnerf_core.training.checkpoint import (
     load_weights,
 )
 
-CURVE_KEYS = ("miou/image_mean_present", "miou/dataset", "acc/total", "psnr/clamped", "ssim/gaussian11")
+CURVE_KEYS = (
+    "miou/image_mean_present",
+    "miou/dataset",
+    "acc/total",
+    "psnr/clamped",
+    "ssim/gaussian11",
+    "instance/ap_matched@0.75",
+    "instance/coco_mask_ap",
+)
+"""Metrics a curve entry keeps for each evaluated split (``finetune.curve``, ``eval_curve`` of ``run``)."""
 
 
 def curve_points(steps: int, points: int) -> list[int]:

@@ -300,6 +300,7 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
         loggers = make_loggers(list(cfg.train.loggers), run_dir, trainer.resumed_step) if dist.is_main else []
         try:
             started = time.perf_counter()
+            curve = _evaluated_curve(cfg, components, trainer, run_dir, dist, loggers)
             result = trainer.fit(progress=True, loggers=loggers)
             if dist.is_main:
                 atomic_write_json(run_dir / "training_curves.json", result.history)
@@ -328,6 +329,8 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
                 **evaluation,
                 "wall_seconds": round(time.perf_counter() - started, 2),
             }
+            if curve:
+                metrics["eval_curve"] = [*curve, curve_entry(result.steps, result.seconds, evaluation)]
             if dist.is_main:
                 for logger in loggers:
                     logger.log(result.steps, eval_scalars(evaluation))
@@ -337,6 +340,50 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             for logger in loggers:
                 logger.close()
     return metrics
+
+
+def curve_entry(step: int, seconds: float, evaluation: dict[str, Any]) -> dict[str, Any]:
+    """One point of an accuracy curve: the step, the training seconds so far and each split's ``CURVE_KEYS``."""
+    from gpnerf_core.finetune import CURVE_KEYS
+
+    entry: dict[str, Any] = {"step": step, "train_seconds": round(seconds, 2)}
+    for split, values in evaluation.get("eval", {}).items():
+        entry[split] = {key: values[key] for key in CURVE_KEYS if key in values}
+    return entry
+
+
+def _evaluated_curve(cfg: DictConfig, components: Any, trainer: Any, run_dir: Path, dist: Distributed,
+                     loggers: list[Any]) -> list[dict[str, Any]]:
+    """With ``eval.every_steps``: train to every multiple of it below ``train.steps`` and evaluate there (no pictures;
+    a checkpoint at each). Evaluation draws no random numbers, so the training after it is the training without it."""
+    from gpnerf_core.evaluation.evaluator import evaluate
+
+    every, total = int(cfg.eval.every_steps), int(cfg.train.steps)
+    curve: list[dict[str, Any]] = []
+    if not every:
+        return curve
+    for point in range(every, total, every):
+        if point <= trainer.step:
+            continue
+        with open_dict(cfg):
+            cfg.train.steps, saved_images = point, cfg.eval.save_images
+            cfg.eval.save_images = 0
+        try:
+            trainer.fit(progress=True, loggers=loggers)
+            evaluation = evaluate(cfg, components, trainer.frames, run_dir, dist)
+        finally:
+            with open_dict(cfg):
+                cfg.train.steps, cfg.eval.save_images = total, saved_images
+        curve.append(curve_entry(trainer.step, trainer.elapsed, evaluation))
+        if dist.is_main:
+            for logger in loggers:
+                logger.log(trainer.step, eval_scalars(evaluation))
+            shown = ", ".join(
+                f"{split} {values.get('miou/image_mean_present', values.get('psnr/clamped', float('nan'))):.3f}"
+                for split, values in evaluation["eval"].items() if isinstance(values, dict)
+            )
+            print(f"eval at step {trainer.step}: {shown}", file=sys.stderr)
+    return curve
 
 
 @_guarded

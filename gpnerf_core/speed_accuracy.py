@@ -52,6 +52,14 @@ def _first_split_timing(key: str) -> Callable[[dict[str, Any]], Any]:
     return read
 
 
+CURVE_KEYS = {
+    "mIoU held-out": ("train_heldout", "miou/image_mean_present"),
+    "mIoU unseen": ("unseen", "miou/image_mean_present"),
+    "PSNR held-out": ("train_heldout", "psnr/clamped"),
+    "AP@0.75 held-out": ("train_heldout", "instance/ap_matched@0.75"),
+}
+"""Where each accuracy axis is in an ``eval_curve`` entry of ``metrics.json``."""
+
 ACCURACY = (
     Axis("mIoU held-out", "per-image mIoU", _eval("train_heldout", "miou/image_mean_present"), True),
     Axis("mIoU unseen", "per-image mIoU", _eval("unseen", "miou/image_mean_present"), True),
@@ -88,11 +96,36 @@ def point(values: list[float]) -> Point | None:
 
 @dataclass(frozen=True)
 class Method:
-    """A group of runs (same config up to the seed) and its points on every axis it has."""
+    """A group of runs (same config up to the seed) and its points on every axis it has.
+
+    ``curves``: accuracy axis -> ``[(training seconds, Point)]`` over the runs' ``eval_curve`` steps (``eval.every_steps``),
+    taken at the steps every run of the group evaluated.
+    """
 
     label: str
     seeds: list[Any]
     points: dict[str, Point]
+    curves: dict[str, list[tuple[Point, Point]]]
+
+
+def curves_of(runs: list[Any]) -> dict[str, list[tuple[Point, Point]]]:
+    """Mean and spread over runs of (training seconds, accuracy) at each step all runs evaluated."""
+    by_step: list[dict[int, dict[str, Any]]] = [
+        {int(entry["step"]): entry for entry in run.metrics.get("eval_curve") or []} for run in runs
+    ]
+    steps = sorted(set.intersection(*(set(d) for d in by_step))) if by_step else []
+    curves: dict[str, list[tuple[Point, Point]]] = {}
+    for name, (split, key) in CURVE_KEYS.items():
+        line = []
+        for step in steps:
+            entries = [d[step] for d in by_step]
+            values = [e.get(split, {}).get(key) for e in entries]
+            if any(v is None for v in values):
+                continue
+            line.append((point([float(e["train_seconds"]) for e in entries]), point([float(v) for v in values])))
+        if len(line) > 1:
+            curves[name] = line
+    return curves
 
 
 def methods_from_groups(groups: list[Any], label: Callable[[Any], str]) -> list[Method]:
@@ -107,7 +140,7 @@ def methods_from_groups(groups: list[Any], label: Callable[[Any], str]) -> list[
             values = [float(v) for run in runs if (v := axis.read(run.metrics)) is not None]
             if (p := point(values)) is not None:
                 points[axis.name] = p
-        out.append(Method(label(group), [run.config.get("seed", "?") for run in runs], points))
+        out.append(Method(label(group), [run.config.get("seed", "?") for run in runs], points, curves_of(runs)))
     return out
 
 
@@ -129,7 +162,8 @@ def draw(methods: list[Method], folder: Path) -> dict[str, list[str]]:
     """Write ``speed_accuracy.png``, ``speed_accuracy.csv`` and ``pareto.txt`` into ``folder``.
 
     Returns:
-        ``{"<accuracy> vs <cost>": [front members' labels]}`` for every panel drawn.
+        ``{"<accuracy> vs <cost>": [front members' labels]}`` for every panel drawn. With ``eval_curve`` s in the
+        runs, ``accuracy_vs_time.png`` too.
     """
     accuracies = [a for a in ACCURACY if any(a.name in m.points for m in methods)]
     costs = [c for c in COSTS if any(c.name in m.points for m in methods)]
@@ -174,7 +208,37 @@ def draw(methods: list[Method], folder: Path) -> dict[str, list[str]]:
     atomic_write_text(folder / "speed_accuracy.csv", _csv(methods, accuracies + costs))
     lines = [f"{panel}: {', '.join(names)}\n" for panel, names in fronts.items()]
     atomic_write_text(folder / "pareto.txt", "".join(lines))
+    if any(m.curves for m in methods):
+        _draw_curves(methods, folder / "accuracy_vs_time.png")
     return fronts
+
+
+def _draw_curves(methods: list[Method], path: Path) -> None:
+    """Accuracy against training seconds, one line per method (mean over seeds, band: +- one standard deviation)."""
+    names = [name for name in CURVE_KEYS if any(name in m.curves for m in methods)]
+    figure = Figure(figsize=(6.0, 2.8 * len(names) + 0.6), dpi=110, layout="constrained")
+    FigureCanvasAgg(figure)
+    for row, name in enumerate(names):
+        axis = figure.add_subplot(len(names), 1, row + 1)
+        for index, method in enumerate(methods):
+            line = method.curves.get(name)
+            if not line:
+                continue
+            xs = [x.mean for x, _ in line]
+            ys = [y.mean for _, y in line]
+            axis.plot(xs, ys, marker="o", markersize=3, color=f"C{index % 10}", label=method.label)
+            if any(y.std for _, y in line):
+                axis.fill_between(xs, [y.mean - y.std for _, y in line], [y.mean + y.std for _, y in line],
+                                  color=f"C{index % 10}", alpha=0.15, linewidth=0)
+        unit = next(a.unit for a in ACCURACY if a.name == name)
+        axis.set_xlabel("training time (s)", fontsize=8)
+        axis.set_ylabel(f"{name} ({unit})", fontsize=8)
+        axis.tick_params(labelsize=7)
+        axis.grid(True, alpha=0.3)
+        axis.legend(fontsize=7, loc="lower right")
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png")
+    atomic_write_bytes(path, buffer.getvalue())
 
 
 def _csv(methods: list[Method], axes: list[Axis]) -> str:

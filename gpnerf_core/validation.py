@@ -62,6 +62,7 @@ RULES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("eval.chunk_rays", _count(1), COUNT),
     ("eval.max_views_per_scene", _count(0), f"{COUNT0} (0 = all)"),
     ("eval.save_images", _count(0), COUNT0),
+    ("eval.every_steps", _count(0), f"{COUNT0} (0 = only at the end of training)"),
 )
 """(key, check, what is expected) for every numeric key of the schema (``gpnerf_core/config.py``)."""
 

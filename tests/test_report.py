@@ -86,7 +86,7 @@ def test_the_pareto_front_keeps_the_methods_nothing_beats_on_both_axes():
 
     def method(label, acc, cost):
         return Method(label, [0], {miou.name: Point(acc, 0, 1), seconds.name: Point(cost, 0, 1),
-                                   throughput.name: Point(1000 / cost, 0, 1)})
+                                   throughput.name: Point(1000 / cost, 0, 1)}, {})
 
     methods = [method("fast", 0.5, 100), method("slow_good", 0.7, 400), method("dominated", 0.45, 200),
                method("tie", 0.5, 100), method("middle", 0.6, 250)]
