@@ -230,6 +230,8 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--chart", type=Path, metavar="DIR",
                         help="also draw accuracy against cost (speed_accuracy.png, .csv, pareto.txt in DIR)")
     args = parser.parse_args(argv)
+    if args.chart is not None and args.chart.exists() and not args.chart.is_dir():
+        raise ConfigError(f"--chart {args.chart}: expected a folder, found a file")
     rows = find_runs(args.paths)
     if not rows:
         raise DataError(f"no run folders (metrics.json + config.yaml) under {', '.join(map(str, args.paths))}")
@@ -237,14 +239,22 @@ def main(argv: list[str]) -> int:
     if args.chart is not None:
         from gpnerf_core.speed_accuracy import draw, methods_from_groups
 
-        if args.chart.exists() and not args.chart.is_dir():
-            raise ConfigError(f"--chart {args.chart}: expected a folder, found a file")
-        rows = [_with_parameter_count(row) for row in rows]
-        fronts = draw(methods_from_groups(group_runs(rows), method_label), args.chart)
+        methods = methods_from_groups(group_runs([_with_parameter_count(row) for row in rows]), method_label)
+        if not any(fronts_possible(m) for m in methods):
+            raise DataError("--chart: no run has both an accuracy (mIoU, PSNR, AP) and a cost (time, rays/s, "
+                            "s/frame, parameters, memory) in its metrics.json; nothing to draw")
+        fronts = draw(methods, args.chart)
         print(f"\nPareto fronts (speed_accuracy.png, speed_accuracy.csv, pareto.txt in {args.chart}):")
         for panel, names in fronts.items():
             print(f"  {panel}: {', '.join(names)}")
     return 0
+
+
+def fronts_possible(method: Any) -> bool:
+    """The method has a point on at least one (accuracy, cost) panel."""
+    from gpnerf_core.speed_accuracy import ACCURACY, COSTS
+
+    return any(a.name in method.points for a in ACCURACY) and any(c.name in method.points for c in COSTS)
 
 
 def method_label(group: RowGroup) -> str:

@@ -120,3 +120,19 @@ def test_report_chart_writes_png_csv_and_the_fronts(tmp_path):
     assert full.startswith("full,0 1,2,0.65,0.0707107")
     assert rows[0].endswith("parameters (millions) mean,parameters std") and full.endswith(",1000,0,2,0")
     assert "mIoU held-out vs training time: ce, full" in (tmp_path / "chart" / "pareto.txt").read_text()
+
+
+def test_report_chart_refuses_a_file_and_runs_with_nothing_to_draw(tmp_path):
+    import subprocess
+    import sys
+
+    (tmp_path / "runs" / "failed").mkdir(parents=True)
+    (tmp_path / "runs" / "failed" / "config.yaml").write_text("seed: 0\n")
+    (tmp_path / "runs" / "failed" / "error.json").write_text('{"error": "boom"}')
+    (tmp_path / "a_file").write_text("")
+    for chart, message in (("a_file", "--chart {}: expected a folder, found a file"),
+                           ("chart", "--chart: no run has both an accuracy")):
+        done = subprocess.run([sys.executable, "-m", "gpnerf_core", "report", str(tmp_path / "runs"), "--chart",
+                               str(tmp_path / chart)], capture_output=True, text=True, timeout=300)
+        assert done.returncode == 2 and message.format(tmp_path / chart) in done.stderr, done.stderr
+    assert not (tmp_path / "chart").exists()
