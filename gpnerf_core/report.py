@@ -239,7 +239,9 @@ def main(argv: list[str]) -> int:
     if args.chart is not None:
         from gpnerf_core.speed_accuracy import draw, methods_from_groups
 
-        methods = methods_from_groups(group_runs([_with_parameter_count(row) for row in rows]), method_label)
+        groups = group_runs([_with_parameter_count(row) for row in rows])
+        labels = method_labels(groups)
+        methods = methods_from_groups(groups, lambda group: labels[groups.index(group)])
         if not any(fronts_possible(m) for m in methods):
             raise DataError("--chart: no run has both an accuracy (mIoU, PSNR, AP) and a cost (time, rays/s, "
                             "s/frame, parameters, memory) in its metrics.json; nothing to draw")
@@ -257,17 +259,21 @@ def fronts_possible(method: Any) -> bool:
     return any(a.name in method.points for a in ACCURACY) and any(c.name in method.points for c in COSTS)
 
 
-def method_label(group: RowGroup) -> str:
-    """A legend entry: the run folder's name, or head + loss (+ Table 4 ID) when folders are numbered (sweeps)."""
-    first = group.runs[0]
-    name = first.folder.name
-    if not name.isdigit():
-        return name.rsplit("_s", 1)[0] if len(group.runs) > 1 and "_s" in name else name
-    head = (first.config.get("head") or {}).get("name", "no head")
-    loss = (first.config.get("loss") or {}).get("name", "no loss")
-    switches = first.switches()
-    paper = PAPER_TABLE4.get(switches) if switches else None
-    return f"{head} + {loss}" + (f" (Table 4 ID {paper[0]})" if paper else f" [{name}]")
+def method_labels(groups: list[RowGroup]) -> dict[int, str]:
+    """Legend entries by group position: head + loss (+ the Table 4 ID of the paper's methods), and the first run's
+    folder name where two groups would otherwise share an entry."""
+    described = []
+    for group in groups:
+        first = group.runs[0]
+        head = (first.config.get("head") or {}).get("name", "no head")
+        loss = (first.config.get("loss") or {}).get("name", "no loss")
+        switches = first.switches()
+        paper = PAPER_TABLE4.get(switches) if switches else None
+        described.append(f"{head} + {loss}" + (f" (Table 4 ID {paper[0]})" if paper else ""))
+    return {
+        index: text if described.count(text) == 1 else f"{text} [{groups[index].runs[0].folder.name}]"
+        for index, text in enumerate(described)
+    }
 
 
 def _with_parameter_count(row: RunRow) -> RunRow:

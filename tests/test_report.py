@@ -112,14 +112,15 @@ def test_report_chart_writes_png_csv_and_the_fronts(tmp_path):
     done = subprocess.run([sys.executable, "-m", "gpnerf_core", "report", str(tmp_path / "runs"), "--chart",
                            str(tmp_path / "chart")], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
-    assert "mIoU held-out vs training time: ce, full" in done.stdout
+    front = "mIoU held-out vs training time: unet + ce (Table 4 ID 2), unet + dgs (Table 4 ID 5)"
+    assert front in done.stdout
     assert (tmp_path / "chart" / "speed_accuracy.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     rows = (tmp_path / "chart" / "speed_accuracy.csv").read_text().splitlines()
     assert rows[0].startswith("method,seeds,n,mIoU held-out (per-image mIoU) mean,mIoU held-out std")
-    full = next(row for row in rows if row.startswith("full,"))
-    assert full.startswith("full,0 1,2,0.65,0.0707107")
+    full = next(row for row in rows if row.startswith("unet + dgs (Table 4 ID 5),"))
+    assert full.startswith("unet + dgs (Table 4 ID 5),0 1,2,0.65,0.0707107")
     assert rows[0].endswith("parameters (millions) mean,parameters std") and full.endswith(",1000,0,2,0")
-    assert "mIoU held-out vs training time: ce, full" in (tmp_path / "chart" / "pareto.txt").read_text()
+    assert front in (tmp_path / "chart" / "pareto.txt").read_text()
 
 
 def test_report_chart_refuses_a_file_and_runs_with_nothing_to_draw(tmp_path):
@@ -136,3 +137,23 @@ def test_report_chart_refuses_a_file_and_runs_with_nothing_to_draw(tmp_path):
                                str(tmp_path / chart)], capture_output=True, text=True, timeout=300)
         assert done.returncode == 2 and message.format(tmp_path / chart) in done.stderr, done.stderr
     assert not (tmp_path / "chart").exists()
+
+
+def test_chart_labels_name_the_method_and_tell_apart_two_variants_of_one():
+    from gpnerf_core.report import find_runs, group_runs, method_labels
+
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as folder:
+        root = Path(folder)
+        dgs = {"name": "dgs", "sd_weight": 0.25, "dgs_weight": 0.25, "teacher_stop_grad": True}
+        write_run(root / "main", dgs, True, 0.6)
+        write_run(root / "cosine", dgs, True, 0.5)
+        config = yaml.safe_load((root / "cosine" / "config.yaml").read_text())
+        config["train"] = {"lr_schedule": "cosine"}
+        (root / "cosine" / "config.yaml").write_text(yaml.safe_dump(config))
+        write_run(root / "mine", {"name": "focal"}, True, 0.4, head="mine")
+        groups = group_runs(find_runs([root]))
+        labels = sorted(method_labels(groups).values())
+    assert labels == ["mine + focal", "unet + dgs (Table 4 ID 5) [cosine]", "unet + dgs (Table 4 ID 5) [main]"]
