@@ -124,13 +124,16 @@ def loss_inputs(
     fine: bool = True,
     zeros: bool = False,
     ignore_all: bool = False,
+    instances: bool = False,
+    instance_ids: int = 3,
     seed: int = 0,
 ) -> LossInputs:
     """What the trainer passes a loss set for one target view, shaped by the loss set's ``needs_*`` flags.
 
     Without ``semantics`` the logits, labels and teacher are None and the passes carry no semantic features, as
     in the pipeline. ``zeros`` zeroes every feature and the target depth (unknown); ``ignore_all`` labels every
-    pixel with the ignore index.
+    pixel with the ignore index. ``instances`` adds target instance ids (``instance_ids`` of them; ``zeros``: one), for
+    a loss set that ``needs_instances``; its logits then have ``classes`` = slots + 1 channels.
     """
     g = generator(seed + 1)
     passes = dict(semantic=semantics, sample_semantic=sample_semantics, zeros=zeros)
@@ -149,6 +152,8 @@ def loss_inputs(
         labels=labels if semantics else None,
         teacher_at_rays=teacher.requires_grad_() if semantics else None,
         ignore_index=255,
+        instances=(torch.zeros if zeros else lambda *s: torch.randint(0, instance_ids, s, generator=g))(
+            1, height, width).long() if instances and semantics else None,
     )
 
 

@@ -141,7 +141,7 @@ def test_wrong_input_is_a_config_error(kind):
 
 def test_registered_and_buildable_from_structured_config():
     registry = collect(make_plugin_manager(builtins=("gpnerf_plugins.heads.plugin",), autoload=False))
-    assert not registry.problems and registry.names("head") == ["per_pixel", "unet"]
+    assert not registry.problems and registry.names("head") == ["instance", "per_pixel", "unet"]
     node = OmegaConf.structured(UNetHeadConfig)
     node.channels, node.norm_groups, node.decoder = 8, 2, "semantic_fpn"
     head = registry.build("head", node, in_dim=16, in_levels=4, num_outputs=7)

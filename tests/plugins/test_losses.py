@@ -184,7 +184,7 @@ def test_gt_depth_centre_picks_the_nearest_sample_and_falls_back_when_unknown():
 )
 def test_registered_sets_return_their_terms_and_flags(config, keys, semantics, sample_semantics):
     registry = collect(make_plugin_manager(builtins=("gpnerf_plugins.losses.plugin",), autoload=False))
-    assert registry.names("loss") == ["ce", "dgs", "rgb", "sd"]
+    assert registry.names("loss") == ["ce", "dgs", "instance", "rgb", "sd"]
     loss_set = registry.build("loss", OmegaConf.structured(config))
     assert (loss_set.needs_semantics, loss_set.needs_sample_semantics) == (semantics, sample_semantics)
     terms = loss_set(_inputs())

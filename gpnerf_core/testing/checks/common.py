@@ -53,6 +53,11 @@ class Subject:
         """The config node the checks build from: the name and the overridden fields."""
         return {"name": self.name, **self.config}
 
+    @property
+    def predicts_instances(self) -> bool:
+        """A head whose class declares ``predicts = "instances"`` (``num_outputs = slots + 1``, at least 2)."""
+        return self.kind == "head" and getattr(self.entry.spec.factory, "predicts", "classes") == "instances"
+
     def build(self, node: Mapping[str, Any] | None = None, **runtime: Any) -> Any:
         """Build through the registry with ``runtime`` replacing the kit's runtime arguments.
 
@@ -62,8 +67,12 @@ class Subject:
         arguments = {**self.runtime, **runtime}
         where = "building" + (" from the round-tripped config" if node is not None else "")
         where += f" with {describe(arguments)}" if arguments and node is None else ""
+        node = self.node() if node is None else node
+        if self.predicts_instances and "num_outputs" in arguments:
+            # An instance head's num_outputs comes from its config, as in the pipeline: slots + 1.
+            node = {**{str(k): v for k, v in node.items()}, "slots": int(arguments["num_outputs"]) - 1}
         try:
-            return self.registry.build(self.kind, self.node() if node is None else node, **arguments)
+            return self.registry.build(self.kind, node, **arguments)
         except Exception as exc:
             message = one_line(exc).removeprefix(f"{self.label} failed to build: ")
             raise CheckFailed(f"{where} raised {message if message != one_line(exc) else _named(exc)}") from exc

@@ -35,9 +35,14 @@ def logits(head: torch.nn.Module, features: Tensor, output_size: tuple[int, int]
     return expect_tensor(output.logits, f"{what}.logits")
 
 
+def outputs(subject: Subject, classes: int) -> int:
+    """K for a check: the class count, or at least 2 for an instance head (one slot + "no instance")."""
+    return max(classes, 2) if subject.predicts_instances else classes
+
+
 def check_num_outputs(subject: Subject) -> None:
     """``num_outputs`` reports the K the pipeline asked for (the logits' channels are checked against it)."""
-    for classes in HEAD_CLASSES:
+    for classes in sorted({outputs(subject, k) for k in HEAD_CLASSES}):
         head = subject.build(num_outputs=classes)
         reported = call("reading num_outputs", lambda: head.num_outputs)
         expect(reported == classes, f"num_outputs is {reported!r} for a head built with num_outputs={classes}")
@@ -46,6 +51,7 @@ def check_num_outputs(subject: Subject) -> None:
 def check_output_size(subject: Subject) -> None:
     """Logits are ``[N, K, *output_size]`` for odd map sizes, 1 and 51 classes and sizes no multiple of the map."""
     for batch, classes, size, output_size in HEAD_CASES:
+        classes = outputs(subject, classes)
         head = subject.build(num_outputs=classes).eval()
         features = head_features(batch, size)
         with torch.no_grad():
@@ -79,7 +85,7 @@ def check_modes(subject: Subject) -> None:
 
 def check_degenerate(subject: Subject) -> None:
     """All-zero and constant features, and a single class, give finite logits and finite gradients."""
-    for classes in (1, 3):
+    for classes in sorted({outputs(subject, k) for k in (1, 3)}):
         for fill in (0.0, 1.0):
             head = subject.build(num_outputs=classes).train()
             features = torch.full((1, HEAD_IN_DIM, 7, 9), fill, requires_grad=True)

@@ -35,7 +35,12 @@ def flags(loss: Any) -> tuple[bool, bool]:
 def inputs_for(loss: Any, **options: Any) -> LossInputs:
     """The inputs the pipeline would give this loss set: semantic ones only where its flags ask for them."""
     semantics, samples = flags(loss)
-    return loss_inputs(semantics=semantics, sample_semantics=samples, **options)
+    instances = bool(getattr(loss, "needs_instances", False))
+    if instances:
+        # K = slots + 1 logits; "one class" becomes one slot and one instance id.
+        options["classes"] = max(2, int(options.get("classes", 5)))
+        options["instance_ids"] = min(3, options["classes"] - 1)
+    return loss_inputs(semantics=semantics, sample_semantics=samples, instances=instances, **options)
 
 
 def terms(loss: Any, inputs: LossInputs, when: str = "") -> Outputs:
