@@ -240,8 +240,7 @@ def main(argv: list[str]) -> int:
         from gpnerf_core.speed_accuracy import draw, methods_from_groups
 
         groups = group_runs([_with_parameter_count(row) for row in rows])
-        labels = method_labels(groups)
-        methods = methods_from_groups(groups, lambda group: labels[groups.index(group)])
+        methods = methods_from_groups(groups, method_labels(groups))
         if not any(fronts_possible(m) for m in methods):
             raise DataError("--chart: no run has both an accuracy (mIoU, PSNR, AP) and a cost (time, rays/s, "
                             "s/frame, parameters, memory) in its metrics.json; nothing to draw")
@@ -259,8 +258,8 @@ def fronts_possible(method: Any) -> bool:
     return any(a.name in method.points for a in ACCURACY) and any(c.name in method.points for c in COSTS)
 
 
-def method_labels(groups: list[RowGroup]) -> dict[int, str]:
-    """Legend entries by group position: head + loss (+ the Table 4 ID of the paper's methods), and the first run's
+def method_labels(groups: list[RowGroup]) -> list[str]:
+    """Legend entries, one per group: head + loss (+ the Table 4 ID of the paper's methods), and the first run's
     folder name where two groups would otherwise share an entry."""
     described = []
     for group in groups:
@@ -270,10 +269,10 @@ def method_labels(groups: list[RowGroup]) -> dict[int, str]:
         switches = first.switches()
         paper = PAPER_TABLE4.get(switches) if switches else None
         described.append(f"{head} + {loss}" + (f" (Table 4 ID {paper[0]})" if paper else ""))
-    return {
-        index: text if described.count(text) == 1 else f"{text} [{groups[index].runs[0].folder.name}]"
-        for index, text in enumerate(described)
-    }
+    return [
+        text if described.count(text) == 1 else f"{text} [{group.runs[0].folder.name}]"
+        for text, group in zip(described, groups)
+    ]
 
 
 def _with_parameter_count(row: RunRow) -> RunRow:

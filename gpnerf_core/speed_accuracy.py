@@ -128,10 +128,11 @@ def curves_of(runs: list[Any]) -> dict[str, list[tuple[Point, Point]]]:
     return curves
 
 
-def methods_from_groups(groups: list[Any], label: Callable[[Any], str]) -> list[Method]:
-    """``report.RowGroup`` s (failed runs left out) -> methods with a point on every axis some run measured."""
+def methods_from_groups(groups: list[Any], labels: list[str]) -> list[Method]:
+    """``report.RowGroup`` s and their legend entries (failed runs left out) -> methods with a point on every axis
+    some run measured."""
     out = []
-    for group in groups:
+    for group, label in zip(groups, labels):
         runs = [run for run in group.runs if run.error is None]
         if not runs:
             continue
@@ -140,7 +141,7 @@ def methods_from_groups(groups: list[Any], label: Callable[[Any], str]) -> list[
             values = [float(v) for run in runs if (v := axis.read(run.metrics)) is not None]
             if (p := point(values)) is not None:
                 points[axis.name] = p
-        out.append(Method(label(group), [run.config.get("seed", "?") for run in runs], points, curves_of(runs)))
+        out.append(Method(label, [run.config.get("seed", "?") for run in runs], points, curves_of(runs)))
     return out
 
 

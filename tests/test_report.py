@@ -155,5 +155,5 @@ def test_chart_labels_name_the_method_and_tell_apart_two_variants_of_one():
         (root / "cosine" / "config.yaml").write_text(yaml.safe_dump(config))
         write_run(root / "mine", {"name": "focal"}, True, 0.4, head="mine")
         groups = group_runs(find_runs([root]))
-        labels = sorted(method_labels(groups).values())
+        labels = sorted(method_labels(groups))
     assert labels == ["mine + focal", "unet + dgs (Table 4 ID 5) [cosine]", "unet + dgs (Table 4 ID 5) [main]"]
