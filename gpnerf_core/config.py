@@ -37,7 +37,7 @@ class ModelConfig:
     """Activation checkpointing of the transformer blocks: recompute them in the backward pass (less memory)."""
     init: Optional[str] = None
     """Start from these weights: an official GNT checkpoint (``net_coarse`` + ``feature_net``) or a gpnerf-core
-    checkpoint (its model weights only). Ignored when resuming."""
+    checkpoint (its model weights only: the weight average where the run kept one). Ignored when resuming."""
     init_strict: bool = True
     """Refuse an init checkpoint holding keys no component maps (False: load the rest and list them)."""
 
@@ -75,7 +75,10 @@ class TrainConfig:
     fuse_rendered: bool = True
     """Head input is the fused map (paper); False runs the head on the teacher map alone (released code)."""
     grad_clip: float = 0.0
-    """Clip the global gradient norm to this value (0 = off)."""
+    """Clip the global gradient norm to this value (0 = off). The training curves log the unclipped norm."""
+    ema_decay: float = 0.0
+    """Keep an exponential moving average of the weights with this decay (0 = off; e.g. 0.99 averages over about
+    the last 100 steps) and evaluate it instead of the last step's weights; checkpoints hold both."""
     log_every: int = 10
     """Steps between entries of the training curves."""
     checkpoint_every: int = 0
@@ -105,6 +108,9 @@ class EvalConfig:
     """Targets per split whose pictures are written."""
     splits: list[str] = field(default_factory=lambda: ["train", "unseen"])
     """Which scene splits to evaluate: held-out views of ``train`` scenes, and ``unseen`` scenes."""
+    weights: str = "average"
+    """Which weights of a checkpoint ``eval``, ``render`` and ``finetune`` start from: ``average`` (the run's
+    weight average, ``train.ema_decay``, where it kept one; else the trained weights) or ``trained``."""
     every_steps: int = 0
     """``run``: also evaluate every this many training steps (0 = only at the end); ``metrics.json`` gets
     ``eval_curve``, accuracy against steps and training seconds, which ``report --chart`` draws."""

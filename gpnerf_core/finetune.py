@@ -25,6 +25,7 @@ from gpnerf_core.training.checkpoint import (
     MODEL_SECTIONS,
     NOT_MODEL_KEYS,
     config_differences,
+    evaluation_weights,
     format_differences,
     load_weights,
 )
@@ -98,8 +99,9 @@ def finetune_task_body(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     _start(cfg)
     components = build_components(cfg)
     check_data(cfg, components, training=True)
+    start_weights, which = evaluation_weights(state, str(cfg.eval.weights))
     reinitialised = finetune_weights(
-        components.model, state["model"], checkpoint, state["config"], OmegaConf.to_yaml(cfg, resolve=True)
+        components.model, start_weights, checkpoint, state["config"], OmegaConf.to_yaml(cfg, resolve=True)
     )
     folder, record = _prepare(cfg, dist, resuming=False)
     run_dir = folder.path
@@ -108,13 +110,13 @@ def finetune_task_body(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             for note in notes:
                 print(f"note: {note}", file=sys.stderr)
             if reinitialised:
-                old_classes = int(state["model"][reinitialised[0]].shape[0])
+                old_classes = int(start_weights[reinitialised[0]].shape[0])
                 print(
                     f"note: {components.dataset.num_classes} classes instead of the checkpoint's {old_classes}: "
                     f"re-initialised {', '.join(reinitialised)} (the head's last layer); every other tensor loaded",
                     file=sys.stderr,
                 )
-            print(f"finetune: {', '.join(scenes)} from {checkpoint} (step {state['step']}); "
+            print(f"finetune: {', '.join(scenes)} from {checkpoint} (step {state['step']}, {which} weights); "
                   f"evaluating at steps {', '.join(map(str, points))}", file=sys.stderr)
         trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record)
         started = time.perf_counter()

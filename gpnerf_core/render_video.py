@@ -135,14 +135,14 @@ def render_task_body(cfg: DictConfig, dist: Any) -> dict[str, Any]:
     from gpnerf_core.frames import FrameCache
     from gpnerf_core.io import atomic_write_json
     from gpnerf_core.run import _prepare, _start, checkpoint_config
-    from gpnerf_core.training.checkpoint import load_weights
+    from gpnerf_core.training.checkpoint import evaluation_weights, load_weights
     from gpnerf_core.types import TargetCamera
 
     checkpoint, state, notes = checkpoint_config(cfg, "render")
     _start(cfg)
     components = build_components(cfg)
     model = components.model
-    load_weights(model, state["model"], f"checkpoint {checkpoint}")
+    load_weights(model, evaluation_weights(state, str(cfg.eval.weights))[0], f"checkpoint {checkpoint}")
     model.to(dist.device).eval()
     frames = FrameCache(components.dataset, dist.device)
     split_scenes = list(components.dataset.scenes("unseen")) + list(components.dataset.scenes("train"))

@@ -26,6 +26,7 @@ from gpnerf_core.training.checkpoint import (
     NOT_MODEL_KEYS,
     RunRecord,
     config_differences,
+    evaluation_weights,
     format_differences,
     load_weights,
     read_checkpoint,
@@ -307,7 +308,8 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
                 if result.history:
                     loss_keys = [*trainer.loss_names, "loss"]
                     plot_training_curves(result.history, run_dir / "training_curves.png", loss_keys=loss_keys)
-            evaluation = evaluate(cfg, components, trainer.frames, run_dir, dist)
+            with trainer.evaluation_weights() as weights:
+                evaluation = evaluate(cfg, components, trainer.frames, run_dir, dist)
             metrics = {
                 "config_sha256": record.config_sha256,
                 "seed": int(cfg.seed),
@@ -325,6 +327,7 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
                     "backend": dist.backend,
                     "precision": str(cfg.train.precision),
                 },
+                "evaluated_weights": weights,
                 "parameters": components.model.parameter_counts(),
                 **evaluation,
                 "wall_seconds": round(time.perf_counter() - started, 2),
@@ -370,7 +373,8 @@ def _evaluated_curve(cfg: DictConfig, components: Any, trainer: Any, run_dir: Pa
             cfg.eval.save_images = 0
         try:
             trainer.fit(progress=True, loggers=loggers)
-            evaluation = evaluate(cfg, components, trainer.frames, run_dir, dist)
+            with trainer.evaluation_weights():
+                evaluation = evaluate(cfg, components, trainer.frames, run_dir, dist)
         finally:
             with open_dict(cfg):
                 cfg.train.steps, cfg.eval.save_images = total, saved_images
@@ -425,7 +429,8 @@ def eval_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     _start(cfg)
     components = build_components(cfg)
     check_data(cfg, components, training=False)
-    load_weights(components.model, state["model"], f"checkpoint {checkpoint}")
+    weights, which = evaluation_weights(state, str(cfg.eval.weights))
+    load_weights(components.model, weights, f"checkpoint {checkpoint}")
     components.model.to(dist.device)
     folder, record = _prepare(cfg, dist, resuming=False)
     with folder:
@@ -442,6 +447,7 @@ def eval_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             "checkpoint": str(checkpoint),
             "checkpoint_step": state["step"],
             "checkpoint_config_sha256": state["config_sha256"],
+            "evaluated_weights": which,
             "config_sha256": record.config_sha256,
             "machine": _machine(),
             "parameters": components.model.parameter_counts(),

@@ -19,6 +19,7 @@ from gpnerf_core.device import PRECISIONS
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.registry import KINDS
 from gpnerf_core.training.schedule import LR_SCHEDULES
+from gpnerf_core.training.checkpoint import WEIGHT_CHOICES
 from gpnerf_core.training.loggers import check_loggers
 
 
@@ -38,6 +39,10 @@ def _fraction(v: Any) -> bool:
     return _positive(v) and v <= 1
 
 
+def _ema_decay(v: Any) -> bool:
+    return _non_negative(v) and v < 1
+
+
 COUNT = "an integer >= 1"
 COUNT0 = "an integer >= 0"
 RULES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
@@ -53,6 +58,7 @@ RULES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("train.lr_decay_steps", _count(1), COUNT),
     ("train.warmup_steps", _count(0), f"{COUNT0} (0 = no warm-up)"),
     ("train.grad_clip", _non_negative, "a finite norm >= 0 (0 = off)"),
+    ("train.ema_decay", _ema_decay, "a decay in [0, 1) (0 = no weight average)"),
     ("train.log_every", _count(1), COUNT),
     ("train.checkpoint_every", _count(0), f"{COUNT0} (0 = only the final checkpoint)"),
     ("model.coarse_samples", _count(2), "an integer >= 2"),
@@ -78,6 +84,8 @@ def validate_config(cfg: DictConfig) -> None:
             raise ConfigError(f"{key}={value!r}: expected {expected}")
     if cfg.train.lr_schedule not in LR_SCHEDULES:
         raise ConfigError(f"train.lr_schedule={cfg.train.lr_schedule!r}: expected one of {', '.join(LR_SCHEDULES)}")
+    if cfg.eval.weights not in WEIGHT_CHOICES:
+        raise ConfigError(f"eval.weights={cfg.eval.weights!r}: expected one of {', '.join(WEIGHT_CHOICES)}")
     if cfg.train.precision not in PRECISIONS:
         raise ConfigError(f"train.precision={cfg.train.precision!r}: expected one of {', '.join(PRECISIONS)}")
     bad_splits = [s for s in cfg.eval.splits if s not in SPLITS]

@@ -29,6 +29,8 @@ BAD_VALUES = [
     ("train.lr_decay_rate=1.5", "train.lr_decay_rate=1.5: expected a factor in (0, 1]"),
     ("train.lr_decay_steps=0", "train.lr_decay_steps=0: expected an integer >= 1"),
     ("train.grad_clip=-1", "train.grad_clip=-1.0: expected a finite norm >= 0"),
+    ("train.ema_decay=1", "train.ema_decay=1.0: expected a decay in [0, 1)"),
+    ("eval.weights=best", "eval.weights='best': expected one of average, trained"),
     ("train.log_every=0", "train.log_every=0: expected an integer >= 1"),
     ("train.checkpoint_every=-10", "train.checkpoint_every=-10: expected an integer >= 0"),
     ("model.coarse_samples=1", "model.coarse_samples=1: expected an integer >= 2"),

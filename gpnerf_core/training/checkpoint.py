@@ -67,16 +67,19 @@ def save_checkpoint(
     rng_states: list[dict[str, Any]],
     history: list[dict[str, float]],
     elapsed: float,
+    weight_average: Mapping[str, Any] | None = None,
 ) -> Path:
     """Write a checkpoint atomically (a reader never sees half a file).
 
     Args:
         rng_states: one ``{"cpu": ByteTensor, "cuda": ByteTensor | None}`` per process, in rank order.
+        weight_average: ``WeightAverage.state_dict()`` when the run keeps one (``train.ema_decay``).
     """
     state = {
         "format": FORMAT_VERSION,
         "step": step,
         "model": model.state_dict(),
+        "weight_average": dict(weight_average) if weight_average is not None else None,
         "optimizer": optimizer.state_dict(),
         "scheduler": scheduler.state_dict(),
         "sampler": dict(sampler),
@@ -104,6 +107,27 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
             "(it was written by another version: evaluate it with that version, or retrain)"
         )
     return state
+
+
+WEIGHT_CHOICES = ("average", "trained")
+
+
+def evaluation_weights(state: Mapping[str, Any], choice: str = "average") -> tuple[dict[str, torch.Tensor], str]:
+    """The weights a checkpoint is evaluated with, and which they are.
+
+    Args:
+        choice: ``average``: the run's weight average where it kept one (``train.ema_decay``), else the trained
+            weights; ``trained``: the weights of the last optimizer step.
+
+    Returns:
+        ``(state dict, "average" | "trained")``.
+    """
+    if choice not in WEIGHT_CHOICES:
+        raise ConfigError(f"eval.weights={choice!r}: expected one of {', '.join(WEIGHT_CHOICES)}")
+    average = state.get("weight_average")
+    if choice == "average" and average is not None:
+        return dict(average["weights"]), "average"
+    return dict(state["model"]), "trained"
 
 
 def read_torch_file(path: Path) -> Any:

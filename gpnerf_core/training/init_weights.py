@@ -17,7 +17,7 @@ from torch import Tensor
 
 from gpnerf_core.errors import DataError
 from gpnerf_core.pipeline import GeneralizableNeRF
-from gpnerf_core.training.checkpoint import FORMAT_VERSION, read_torch_file
+from gpnerf_core.training.checkpoint import FORMAT_VERSION, evaluation_weights, read_torch_file
 
 GNT_WEIGHTS = ("net_coarse", "feature_net")
 GNT_IGNORED = ("optimizer", "scheduler", "net_fine")
@@ -124,7 +124,9 @@ def _gpnerf_plan(checkpoint: Mapping[str, Any], path: Path) -> tuple[dict[str, t
         raise DataError(
             f"model.init={path}: gpnerf-core checkpoint format {checkpoint['format']!r}; expected {FORMAT_VERSION}"
         )
-    plan = {key: (f"model.{key}", value) for key, value in checkpoint["model"].items()}
+    weights, which = evaluation_weights(checkpoint)
+    prefix = "weight_average.weights" if which == "average" else "model"
+    plan = {key: (f"{prefix}.{key}", value) for key, value in weights.items()}
     return plan, [source for source, _ in plan.values()]
 
 

@@ -11,9 +11,10 @@ import hashlib
 import math
 import sys
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterator, Sequence
 
 import torch
 from torch import Tensor
@@ -35,6 +36,7 @@ from gpnerf_core.training.interrupt import StopRequest, TrainingInterrupted
 from gpnerf_core.training.loggers import ScalarLogger
 from gpnerf_core.training.sampler import StepSampler
 from gpnerf_core.training.schedule import lr_factor
+from gpnerf_core.training.weight_average import WeightAverage
 from gpnerf_core.types import LossInputs, StepBatch, StepOutput, TargetView, ViewOutput
 
 
@@ -144,6 +146,9 @@ class Trainer:
                 decay_steps=int(cfg.train.lr_decay_steps),
             ),
         )
+        decay = float(cfg.train.ema_decay)
+        self.average = WeightAverage(self.model, decay) if decay > 0 else None
+        self.last_grad_norm = 0.0
         self.step = 0
         self.history: list[dict[str, float]] = []
         self.elapsed = 0.0
@@ -210,6 +215,9 @@ class Trainer:
             raise NonFiniteError(f"step {self.step}: gradient norm is {grad_norm.item()}; training stopped")
         self.optimizer.step()
         self.scheduler.step()
+        if self.average is not None:
+            self.average.update(self.model)
+        self.last_grad_norm = grad_norm.detach()
         detached = {name: value.detach() for name, value in terms.items()} | {"loss": total.detach()}
         return detached, batch.num_rays, stop_signal
 
@@ -313,6 +321,7 @@ class Trainer:
         memory = self.dist.all_reduce(torch.tensor(peak_memory_mb(self.device), device=self.device), op="max")
         values = {name: float(summed[i]) / self.dist.world_size for i, name in enumerate(names)}
         entry = {"step": float(self.step), "seconds": total_seconds} | values
+        entry["grad_norm"] = float(self.last_grad_norm)
         for group in self.optimizer.param_groups:
             entry[f"lr/{group['name']}"] = group["lr"]
         entry["rays_per_second"] = float(summed[-1]) / run_seconds if run_seconds > 0 else 0.0
@@ -320,9 +329,19 @@ class Trainer:
         self.history.append(entry)
         scalars = {f"train/{name}": values[name] for name in names}
         scalars |= {f"train/lr/{g['name']}": g["lr"] for g in self.optimizer.param_groups}
-        scalars |= {"train/rays_per_second": entry["rays_per_second"], "train/peak_memory_mb": entry["peak_memory_mb"]}
+        scalars |= {key: entry[key.removeprefix("train/")] for key in (
+            "train/rays_per_second", "train/peak_memory_mb", "train/grad_norm")}
         for logger in loggers:
             logger.log(self.step, scalars)
+
+    @contextmanager
+    def evaluation_weights(self) -> Iterator[str]:
+        """Within the block the model holds the weights evaluated (the average where kept); yields which."""
+        if self.average is None:
+            yield "trained"
+            return
+        with self.average.swapped_in(self.model):
+            yield "average"
 
     # ---- checkpoints -------------------------------------------------------------------------------------------
 
@@ -351,6 +370,7 @@ class Trainer:
             rng_states=rng_states,
             history=self.history,
             elapsed=elapsed,
+            weight_average=self.average.state_dict() if self.average is not None else None,
         )
 
     def _resume(self, path: Path) -> None:
@@ -364,6 +384,13 @@ class Trainer:
             self.scheduler.load_state_dict(state["scheduler"])
         except (ValueError, KeyError) as exc:
             raise ConfigError(f"train.resume={path}: its optimizer state does not fit this model ({exc})") from None
+        if self.average is not None:
+            if state.get("weight_average") is None:
+                raise ConfigError(
+                    f"train.resume={path}: train.ema_decay={self.average.decay} but the checkpoint kept no weight "
+                    "average (resume with train.ema_decay=0, or start a new run)"
+                )
+            self.average.load_state_dict(state["weight_average"], f"checkpoint {path}")
         self.sampler.load_state_dict(state["sampler"])
         self.step = int(state["step"])
         self.history = list(state["history"])
