@@ -24,6 +24,8 @@ commands:
   render    render a novel-view trajectory to MP4, GIF and PNG frames (RGB, depth, semantics side by side):
             `render checkpoint=<path> [render.scene=<name>] [render.path=interpolate|spiral] [render.frames=N]`
   report    tabulate run folders (a sweep, the Table 4 ablation) beside the paper's numbers
+  stress    evaluate trained runs under graded conditions (source views, pose noise, corruption, ...):
+            `stress <runs> --out DIR [--cases a,b] [--quick]`; `stress --list` names the cases
   bench     time and size the training step and rendering: `bench size=demo|small|paper [overrides]`
   data      dataset tools: `data` lists them (check a layout, prepare ScanNet, make the embedded scenes)
   plugins   list registered components with provider and version, and plugins that failed to load
@@ -222,12 +224,19 @@ def _report(argv: list[str]) -> int:
     return report_main(argv)
 
 
+def _stress(argv: list[str]) -> int:
+    from gpnerf_core.stress.cli import main as stress_main
+
+    return stress_main(argv)
+
+
 COMMANDS: dict[str, Callable[[list[str]], int]] = {
     "run": _run,
     "eval": _eval,
     "finetune": _finetune,
     "render": _render,
     "report": _report,
+    "stress": _stress,
     "bench": _bench,
     "data": _data,
     "plugins": _plugins,

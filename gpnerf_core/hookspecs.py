@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 import pluggy
 
 if TYPE_CHECKING:
+    from gpnerf_core.interfaces import StressCase
     from gpnerf_core.registry import ComponentSpec, DataTool
 
 PROJECT_NAME = "gpnerf"
@@ -106,4 +107,14 @@ def gpnerf_register_data_tools() -> list[DataTool]:
 
     Returns:
         ``DataTool`` records; a name registered twice is an error naming both providers.
+    """
+
+
+@hookspec
+def gpnerf_register_stress_cases() -> list[StressCase]:
+    """Conditions ``python -m gpnerf_core stress`` evaluates trained models under (source views, pose noise, ...).
+
+    Returns:
+        ``StressCase`` instances (``gpnerf_core.interfaces.StressCase``); a name registered twice is an error
+        naming both providers.
     """

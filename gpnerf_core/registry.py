@@ -37,6 +37,7 @@ BUILTIN_PLUGINS: tuple[str, ...] = (
     "gpnerf_plugins.losses.plugin",
     "gpnerf_plugins.datasets.plugin",
     "gpnerf_plugins.view_selectors.plugin",
+    "gpnerf_plugins.stress.plugin",
 )
 
 # kind -> hook name; the kind is also the Hydra config group.
@@ -60,6 +61,9 @@ RUNTIME_ARGUMENTS: dict[str, tuple[str, ...]] = {
     "view_selector": (),
 }
 """Keyword arguments the pipeline passes to each kind's factory besides the config fields."""
+
+OTHER_HOOKS = ("gpnerf_register_data_tools", "gpnerf_register_stress_cases")
+"""Hooks whose records are not Hydra config options."""
 
 NAME_PATTERN = re.compile(r"^[a-z][a-z0-9_]*$")
 """Component names: snake_case, starting with a letter (they are Hydra option names)."""
@@ -159,6 +163,8 @@ class Registry:
     plugins: dict[str, PluginInfo] = field(default_factory=dict)
     disabled: list[str] = field(default_factory=list)
     data_tools: dict[str, tuple[DataTool, str]] = field(default_factory=dict)
+    stress_cases: dict[str, tuple[Any, str]] = field(default_factory=dict)
+    """``name -> (StressCase, plugin name)``."""
 
     def names(self, kind: str) -> list[str]:
         return sorted(self.components[kind])
@@ -319,7 +325,7 @@ class LoadedPlugins:
                 name = self.manager.get_name(exc.plugin) or str(exc.plugin)
                 self.manager.unregister(exc.plugin)
                 info = self.plugins.pop(name, PluginInfo(name))
-                known = ", ".join(sorted(KINDS.values()) + ["gpnerf_register_data_tools"])
+                known = ", ".join(sorted(KINDS.values()) + list(OTHER_HOOKS))
                 self.problems.append(
                     PluginProblem(info, f"implements a hook gpnerf-core does not define ({one_line(exc)}); "
                                         f"known hooks: {known}")
@@ -420,7 +426,46 @@ def collect(loaded: LoadedPlugins) -> Registry:
                 registry.problems.append(PluginProblem(info, f"the name is taken by {owner!r}", f"data/{tool.name}"))
             else:
                 registry.data_tools[tool.name] = (tool, impl.plugin_name)
+    _collect_stress_cases(loaded, registry)
     return registry
+
+
+def _collect_stress_cases(loaded: LoadedPlugins, registry: Registry) -> None:
+    hook = "gpnerf_register_stress_cases"
+    for impl in getattr(loaded.manager.hook, hook).get_hookimpls():
+        info = loaded.plugins.get(impl.plugin_name, PluginInfo(impl.plugin_name))
+        try:
+            cases = impl.function()
+        except Exception as exc:
+            registry.problems.append(PluginProblem(info, f"{hook} raised {type(exc).__name__}: {one_line(exc)}"))
+            continue
+        for case in cases or ():
+            problem = stress_case_problem(case)
+            name = getattr(case, "name", "?")
+            if problem is None and name in registry.stress_cases:
+                problem = f"the name is taken by {registry.stress_cases[name][1]!r}"
+            if problem is not None:
+                registry.problems.append(PluginProblem(info, problem, f"stress/{name}"))
+            else:
+                registry.stress_cases[name] = (case, impl.plugin_name)
+
+
+def stress_case_problem(case: Any) -> str | None:
+    """What is wrong with a registered stress case (None: nothing)."""
+    from gpnerf_core.interfaces import StressCase
+
+    if not isinstance(case, StressCase):
+        return f"{case!r} is not a StressCase instance"
+    if not isinstance(case.name, str) or not NAME_PATTERN.match(case.name):
+        return f"name {case.name!r} is not snake_case"
+    if not case.levels or not all(isinstance(v, (int, float)) for v in case.levels):
+        return f"levels {case.levels!r}: expected a non-empty tuple of numbers, mildest first"
+    unknown = [v for v in case.quick_levels if v not in case.levels]
+    if unknown:
+        return f"quick_levels has {unknown[0]!r}, which is not one of its levels {list(case.levels)}"
+    if case.split not in ("train", "unseen"):
+        return f"split {case.split!r}: expected train or unseen"
+    return None
 
 
 def register_config_options(registry: Registry) -> None:

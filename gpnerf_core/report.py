@@ -72,7 +72,7 @@ class RunRow:
         schema's sections (``model``, ``train``, ...) that a run's config lacks takes today's default, and empty values
         (``[]``, ``""``, None) count as absent, so runs written before an option existed group with runs written after
         that leave it at its default."""
-        config = {k: v for k, v in _with_schema_defaults(self.config).items() if k not in NOT_METHOD_KEYS}
+        config = {k: v for k, v in with_schema_defaults(self.config).items() if k not in NOT_METHOD_KEYS}
         if isinstance(config.get("train"), dict):
             config["train"] = {k: v for k, v in config["train"].items() if k not in NOT_METHOD_TRAIN_KEYS}
         return json.dumps(_without_empty(config), sort_keys=True, default=str)
@@ -87,7 +87,7 @@ def _schema_defaults() -> dict[str, Any]:
     return {k: v for k, v in defaults.items() if isinstance(v, dict)}
 
 
-def _with_schema_defaults(config: dict[str, Any]) -> dict[str, Any]:
+def with_schema_defaults(config: dict[str, Any]) -> dict[str, Any]:
     """``config`` with the keys its schema sections lack filled in from today's defaults."""
 
     def fill(value: Any, default: Any) -> Any:

@@ -11,7 +11,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -27,7 +27,10 @@ from gpnerf_core.evaluation import visualize as vis
 from gpnerf_core.frames import FrameCache, choose_sources
 from gpnerf_core.io import atomic_save_png
 from gpnerf_core.pipeline import Prediction
-from gpnerf_core.types import Frame, Scene
+from gpnerf_core.types import Frame, Scene, SourceViews
+
+SourcesFor = Callable[[Scene, int], SourceViews]
+"""``(scene, target frame index) -> the source views`` the model is given for that target."""
 
 SPLIT_LABELS = {"train": "train_heldout", "unseen": "unseen"}
 
@@ -99,10 +102,18 @@ def evaluate(
     frames: FrameCache,
     run_dir: Path,
     dist: Distributed,
+    *,
+    sources_for: SourcesFor | None = None,
+    references: bool = True,
 ) -> dict[str, Any]:
     """Evaluate every configured split; returns ``{"eval": {split: metrics}, ...}`` ready for metrics.json.
 
     Every process returns the same result; rank 0 alone writes the pictures.
+
+    Args:
+        sources_for: the source views of a target (default: ``model.num_source_views`` frames from the view
+            selector); the stress suite passes its cases' views here.
+        references: also score the references (2D teacher, majority class, connected-components instances).
     """
     for split in cfg.eval.splits:
         if split not in SPLIT_LABELS:
@@ -110,7 +121,7 @@ def evaluate(
     model = components.model.to(dist.device).eval()
     dataset = components.dataset
     semantics = model.has_semantics and not predicts_instances(components)
-    baseline_class = majority_class(components, frames) if semantics else None
+    baseline_class = majority_class(components, frames) if semantics and references else None
     results: dict[str, Any] = {}
     for split in cfg.eval.splits:
         label = SPLIT_LABELS[split]
@@ -119,7 +130,7 @@ def evaluate(
             results[label] = {"count/images": 0, "note": f"split {split!r} has no evaluation frames"}
             continue
         mine = [
-            _evaluate_view(cfg, components, frames, position, scene, index, baseline_class)
+            _evaluate_view(cfg, components, frames, position, scene, index, baseline_class, sources_for, references)
             for position, (scene, index) in enumerate(targets)
             if position % dist.world_size == dist.rank
         ]
@@ -157,13 +168,18 @@ def _evaluate_view(
     scene: Scene,
     index: int,
     baseline_class: int | None,
+    sources_for: SourcesFor | None,
+    references: bool,
 ) -> ViewRecord:
     model, dataset = components.model, components.dataset
     num_classes, ignore = dataset.num_classes, dataset.ignore_index
     target = frames.frame(scene, index)
-    sources = frames.source_views(
-        scene, choose_sources(components.view_selector, scene, index, cfg.model.num_source_views, None)
-    )
+    if sources_for is not None:
+        sources = sources_for(scene, index)
+    else:
+        sources = frames.source_views(
+            scene, choose_sources(components.view_selector, scene, index, cfg.model.num_source_views, None)
+        )
     started = time.perf_counter()
     prediction = model.predict(
         frames.camera(scene, target),
@@ -184,9 +200,10 @@ def _evaluate_view(
     instance_picture = None
     if classes is not None:
         confusion = M.confusion_matrix(classes, target.semantic, num_classes, ignore)
+    if classes is not None and references:
         teacher = model.teacher_logits(target.rgb.permute(2, 0, 1).to(frames.device)).argmax(dim=1)[0].cpu()
         teacher_confusion = M.confusion_matrix(teacher, target.semantic, num_classes, ignore)
-        constant = torch.full_like(target.semantic, baseline_class)
+        constant = torch.full_like(target.semantic, int(baseline_class))
         baseline_confusion = M.confusion_matrix(constant, target.semantic, num_classes, ignore)
         if target.instance is not None:
             top = torch.softmax(prediction.logits[0].float(), dim=0).max(dim=0).values.cpu()
@@ -197,8 +214,9 @@ def _evaluate_view(
         slots, confidence = I.slot_predictions(prediction.logits[0].cpu())
         instances, pairing = I.instance_record(slots, confidence, target.instance)
         instance_picture = (slots, pairing)
-        teacher = model.teacher_logits(target.rgb.permute(2, 0, 1).to(frames.device))[0].cpu()
-        teacher_instances, _ = I.instance_record(*I.slot_predictions(teacher), target.instance)
+        if references:
+            teacher = model.teacher_logits(target.rgb.permute(2, 0, 1).to(frames.device))[0].cpu()
+            teacher_instances, _ = I.instance_record(*I.slot_predictions(teacher), target.instance)
     pictures = {}
     if position < int(cfg.eval.save_images):
         pictures = _pictures(target, prediction, classes, gt_rgb, num_classes, ignore, scene.near, scene.far)
@@ -241,17 +259,20 @@ def summarize(
                 accumulator.add(value, group=record.scene)
         if record.confusion is not None:
             rendered.add_confusion(record.confusion, group=record.scene)
+        if record.teacher_confusion is not None:
             teacher.add_confusion(record.teacher_confusion, group=record.scene)
             baseline.add_confusion(record.baseline_confusion, group=record.scene)
     result: dict[str, Any] = dict(quality.compute())
     if semantics:
         result.update(rendered.compute())
         result["per_scene"] = rendered.compute_per_group()
-        result["baseline_majority"] = baseline.compute()
-        result["teacher_2d"] = teacher.compute()
+        if any(r.teacher_confusion is not None for r in records):
+            result["baseline_majority"] = baseline.compute()
+            result["teacher_2d"] = teacher.compute()
     if any(r.instances is not None for r in records):
         result.update(instances.compute())
-        result["teacher_2d"] = teacher_instances.compute()
+        if any(r.teacher_instances is not None for r in records):
+            result["teacher_2d"] = teacher_instances.compute()
     if any(r.instance_baseline is not None for r in records):
         result["baseline_connected_components"] = instance_baseline.compute()
     seconds = sum(r.seconds for r in records)

@@ -6,6 +6,7 @@ from gpnerf_core.interfaces.field_aggregator import FieldAggregator
 from gpnerf_core.interfaces.head import PerceptionHead
 from gpnerf_core.interfaces.loss import LossSet
 from gpnerf_core.interfaces.ray_aggregator import RayAggregator
+from gpnerf_core.interfaces.stress import StressCase
 from gpnerf_core.interfaces.view_selector import ViewSelector
 from gpnerf_core.interfaces.weights import ImportedWeights, ImportsWeights
 
@@ -19,5 +20,6 @@ __all__ = [
     "PerceptionHead",
     "RayAggregator",
     "SceneDataset",
+    "StressCase",
     "ViewSelector",
 ]

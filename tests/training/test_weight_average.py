@@ -13,7 +13,8 @@ from pipeline_check import TINY_MODEL, TINY_SCENES, make_trainer
 
 
 def tiny_cfg(tmp_path, *extra):
-    return compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES, f"dataset.root={tmp_path / 'scenes'}", *extra])
+    root = f"dataset.root={tmp_path / 'scenes'}"
+    return compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES, root, *extra])
 
 
 def test_average_follows_the_decay_schedule_and_copies_integer_buffers():

@@ -57,6 +57,7 @@ def make_embedded(argv: list[str]) -> int:
     parser.add_argument("--root", default=defaults.root)
     for key in ("num_train_scenes", "num_unseen_scenes", "frames_per_scene", "height", "width", "seed"):
         parser.add_argument(f"--{key.replace('_', '-')}", dest=key, type=int, default=getattr(defaults, key))
+    parser.add_argument("--textureless", action="store_true", help="one flat colour per surface instead of textures")
     args = vars(parser.parse_args(argv))
     dataset = EmbeddedScenes(**args)
     folder = dataset.prepare()

@@ -51,6 +51,8 @@ class EmbeddedScenesConfig(DatasetConfig):
     """Ray-sampling near bound, metres (the closest surface seen is about 0.5 m away)."""
     far: float = 6.5
     """Ray-sampling far bound, metres (the farthest wall point seen is under 6 m away)."""
+    textureless: bool = False
+    """Render every surface in one flat colour (same layouts and cameras; the stress suite's textureless case)."""
 
 
 class EmbeddedScenes(SceneDataset):
@@ -73,11 +75,14 @@ class EmbeddedScenes(SceneDataset):
         eval_every: int = EmbeddedScenesConfig.eval_every,
         near: float = EmbeddedScenesConfig.near,
         far: float = EmbeddedScenesConfig.far,
+        textureless: bool = EmbeddedScenesConfig.textureless,
         validate: str = EmbeddedScenesConfig.validate,
         scenes: Sequence[str] = (),
         unseen_scenes: Sequence[str] = (),
     ) -> None:
-        self.params = SceneSetParams(num_train_scenes, num_unseen_scenes, frames_per_scene, height, width, seed)
+        self.params = SceneSetParams(
+            num_train_scenes, num_unseen_scenes, frames_per_scene, height, width, seed, bool(textureless)
+        )
         generated = self.params.scene_names("train") + self.params.scene_names("unseen")
         self._lists = {
             "train": chosen_scenes("scenes", scenes, self.params.scene_names("train")),

@@ -54,6 +54,8 @@ class SceneSetParams:
     height: int = 120
     width: int = 160
     seed: int = 0
+    textureless: bool = False
+    """Every surface one flat colour instead of its texture (the stress suite's textureless variant)."""
 
     def __post_init__(self) -> None:
         for key in ("num_train_scenes", "num_unseen_scenes"):
@@ -74,7 +76,11 @@ class SceneSetParams:
         return tuple(f"{SPLIT_PREFIX[split]}_{k:02d}" for k in range(count))
 
     def as_dict(self) -> dict[str, int]:
-        return dataclasses.asdict(self)
+        """The parameters; ``textureless`` only when set, so textured sets keep their cache keys."""
+        values = dataclasses.asdict(self)
+        if not values["textureless"]:
+            del values["textureless"]
+        return values
 
     def cache_key(self) -> str:
         """Folder name: generator version plus a hash of the parameters and the renderer's version."""
@@ -113,7 +119,7 @@ def render_scene(folder: Path, params: SceneSetParams, split: str, index: int) -
     poses = orbit(camera_rng, params.frames_per_scene, (table.x, table.y), layout.table_top)
     rows = [format_pose(c2w) for c2w in poses]
     max_depth = 0.0
-    with RoomRenderer(layout) as renderer:
+    with RoomRenderer(layout, flat_colours=params.textureless) as renderer:
         for frame, row in enumerate(rows):
             view = renderer.render(parse_pose(row), params.height, params.width, HFOV_DEG)
             write_frame(folder, frame, view)

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import functools
 import math
+import tempfile
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -121,9 +123,10 @@ class RenderedView:
 class RoomRenderer:
     """A private pybullet DIRECT world holding one layout; use as a context manager."""
 
-    def __init__(self, layout: Layout) -> None:
+    def __init__(self, layout: Layout, flat_colours: bool = False) -> None:
         self._p = _pybullet()
         self.layout = layout
+        self.flat_colours = flat_colours
         self._client = self._p.connect(self._p.DIRECT)
         self._labels: dict[int, tuple[int, int]] = {}
         try:
@@ -172,6 +175,25 @@ class RoomRenderer:
         for instance_id, placement in enumerate(self.layout.bodies, start=1):
             body = self._place(placement)
             self._labels[body] = (ASSETS[placement.asset].class_id, instance_id)
+        if self.flat_colours:
+            self._flatten()
+
+    def _flatten(self) -> None:
+        """Replace every body's texture by one flat colour (fixed per body id, so per layout).
+
+        A white texture is bound to every link and tinted by ``rgbaColor`` (which multiplies the texture).
+        """
+        import imageio.v2 as imageio
+
+        p, client = self._p, self._client
+        with tempfile.TemporaryDirectory() as folder:
+            white = Path(folder) / "white.png"
+            imageio.imwrite(white, np.full((4, 4, 3), 255, dtype=np.uint8))
+            texture = p.loadTexture(str(white), physicsClientId=client)
+        for body in self._labels:
+            colour = (*np.random.default_rng(body).uniform(0.3, 0.9, 3).tolist(), 1.0)
+            for link in range(-1, p.getNumJoints(body, physicsClientId=client)):
+                p.changeVisualShape(body, link, textureUniqueId=texture, rgbaColor=colour, physicsClientId=client)
 
     def _place(self, placement: Placement) -> int:
         p, client = self._p, self._client

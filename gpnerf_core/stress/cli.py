@@ -1,0 +1,107 @@
+"""``python -m gpnerf_core stress <runs or checkpoints> [--cases a,b] [--quick] --out DIR``."""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+from gpnerf_core.errors import ConfigError, NonFiniteError
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:
+        raise ConfigError(f"{self.prog}: {message}")
+
+
+def parser() -> argparse.ArgumentParser:
+    p = _Parser(
+        prog="gpnerf_core stress",
+        description="Evaluate trained models under graded conditions (stress cases); runs that differ only by "
+                    "seed are one method (mean +- std).",
+    )
+    p.add_argument("paths", nargs="*", type=Path, help="run folders, folders of runs (sweeps) or .pt checkpoints")
+    p.add_argument("--cases", default="", help="comma-separated case names (default: all; --list shows them)")
+    p.add_argument("--quick", action="store_true",
+                   help="the most severe level of each case on 2 held-out views per scene (a smoke test)")
+    p.add_argument("--views-per-scene", type=int, default=None,
+                   help="held-out views evaluated per scene (default: all; 2 with --quick)")
+    p.add_argument("--out", type=Path, default=None, help="folder for stress.md, stress.csv, stress.json, <case>.png")
+    p.add_argument("--overwrite", action="store_true", help="replace the files of an earlier suite in --out")
+    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    p.add_argument("--list", action="store_true", help="list the registered cases and exit")
+    return p
+
+
+def list_cases() -> str:
+    from gpnerf_core.registry import get_registry
+
+    lines = []
+    for name, (case, provider) in get_registry().stress_cases.items():
+        levels = ", ".join(case.label(level) for level in case.levels)
+        lines.append(f"  {name:<18} [{provider}] {case.description}\n  {'':<18} levels: {levels}")
+    return "stress cases:\n" + "\n".join(lines)
+
+
+OUTPUTS = ("stress.md", "stress.csv", "stress.json")
+
+
+def main(argv: list[str]) -> int:
+    import torch
+
+    from gpnerf_core.io import atomic_write_json, atomic_write_text
+    from gpnerf_core.stress.runner import QUICK_VIEWS_PER_SCENE, choose_cases, models_from_paths, run_suite
+    from gpnerf_core.stress.summary import StressSummary
+
+    args = parser().parse_args(argv)
+    if args.list:
+        print(list_cases())
+        return 0
+    if not args.paths:
+        raise ConfigError("gpnerf_core stress: expected run folders or checkpoints to stress (--list shows the cases)")
+    if args.out is None:
+        raise ConfigError("gpnerf_core stress: --out DIR is required (where stress.md, .csv, .json and plots go)")
+    if args.out.exists() and not args.out.is_dir():
+        raise ConfigError(f"--out {args.out}: expected a folder, found a file")
+    if args.out.is_dir() and any((args.out / name).exists() for name in OUTPUTS) and not args.overwrite:
+        raise ConfigError(f"--out {args.out} already holds a stress suite's results; use another folder or --overwrite")
+    views = args.views_per_scene if args.views_per_scene is not None else (QUICK_VIEWS_PER_SCENE if args.quick else 0)
+    if views < 0:
+        raise ConfigError(f"--views-per-scene {views}: expected an integer >= 0 (0 = all)")
+    if args.threads < 0:
+        raise ConfigError(f"--threads {args.threads}: expected an integer >= 0")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    cases = choose_cases([c.strip() for c in args.cases.split(",") if c.strip()])
+    models = models_from_paths(args.paths)
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    started = time.perf_counter()
+    scratch = Path(tempfile.mkdtemp(prefix="gpnerf_stress_"))
+    try:
+        outcomes = run_suite(models, cases, quick=args.quick, views_per_scene=views, scratch=scratch, device=device)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    summary = StressSummary(outcomes)
+    args.out.mkdir(parents=True, exist_ok=True)
+    table = summary.markdown()
+    atomic_write_text(args.out / "stress.md", table)
+    atomic_write_text(args.out / "stress.csv", summary.csv())
+    atomic_write_json(args.out / "stress.json", summary.as_json() | {
+        "quick": args.quick, "views_per_scene": views, "seconds": round(time.perf_counter() - started, 1),
+        "models": [{"name": m.name, "method": m.method, "seed": m.seed, "checkpoint": str(m.checkpoint)}
+                   for m in models],
+    })
+    plots = summary.draw(args.out)
+    print(table)
+    print(f"stress: {len(models)} model(s), {len(cases)} case(s) in {time.perf_counter() - started:.0f} s; "
+          f"results and {len(plots)} plot(s) in {args.out}")
+    bad = summary.non_finite()
+    if bad:
+        first = bad[0]
+        raise NonFiniteError(
+            f"{len(bad)} evaluation(s) gave non-finite metrics; first: {first.model} {first.case} {first.label}: "
+            f"{', '.join(first.non_finite)}"
+        )
+    return 0

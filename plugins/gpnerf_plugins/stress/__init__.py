@@ -1,0 +1,1 @@
+"""Built-in stress cases: source views and baseline, pose noise, image corruption, textureless and unseen scenes."""

@@ -1,0 +1,244 @@
+"""The stress suite: its cases, the summary's failure rule, the CLI, and defined outputs under degenerate geometry."""
+
+import json
+import math
+import os
+import subprocess
+import sys
+from dataclasses import replace
+
+import pytest
+import torch
+
+from gpnerf_core.build import build_components
+from gpnerf_core.config import compose
+from gpnerf_core.errors import NonFiniteError
+from gpnerf_core.frames import FrameCache
+from gpnerf_core.interfaces import StressCase
+from gpnerf_core.registry import PluginInfo, collect, get_registry, make_plugin_manager
+from gpnerf_core.stress.runner import Outcome
+from gpnerf_core.stress.summary import StressSummary
+from gpnerf_core import hookimpl
+from gpnerf_plugins.stress.geometry_cases import Baseline, OneWrongCamera, random_rotations
+from gpnerf_plugins.stress.image_cases import Blur, Exposure, GaussianNoise, Jpeg, blur
+from pipeline_check import TINY_MODEL, TINY_SCENES
+
+TINY = [
+    "dataset.height=32", "dataset.width=48", "dataset.frames_per_scene=6", "dataset.eval_every=3",
+    "dataset.num_train_scenes=1", "feature_extractor.widths=[8,8,8,16]", "feature_extractor.fpn_channels=4",
+    "field_aggregator.width=16", "field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2",
+    "model.num_source_views=2", "train.rays=16", "threads=1", "eval.save_images=0",
+]
+
+
+def gpnerf(*args, cwd):
+    env = dict(os.environ, GPNERF_CACHE=str(cwd / "cache"), GPNERF_DISABLE_PLUGIN_AUTOLOAD="1")
+    return subprocess.run([sys.executable, "-m", "gpnerf_core", *args], cwd=cwd, env=env, capture_output=True,
+                          text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A tiny trained run (3 steps) in a folder of its own, with its scene cache."""
+    folder = tmp_path_factory.mktemp("stress")
+    result = gpnerf("run", "+head=unet", "+loss=dgs", *TINY, "train.steps=3", f"out_dir={folder / 'run'}", cwd=folder)
+    assert result.returncode == 0, result.stderr[-2000:]
+    return folder
+
+
+# ---- the suite from the command line ---------------------------------------------------------------------------------
+
+
+def test_quick_suite_runs_every_case_and_writes_tables_plots_and_reasons(trained):
+    out = trained / "quick"
+    result = gpnerf("stress", str(trained / "run"), "--quick", "--threads", "1", "--out", str(out), cwd=trained)
+    assert result.returncode == 0, result.stderr[-3000:]
+    summary = json.loads((out / "stress.json").read_text())
+    registered = set(get_registry().stress_cases)
+    assert set(summary["cases"]) == registered
+    outcomes = summary["outcomes"]
+    evaluated = [o for o in outcomes if not o["skipped"]]
+    assert all(not o["non_finite"] and math.isfinite(o["metrics"]["miou"]) for o in evaluated)
+    by_case = {o["case"]: o for o in outcomes}
+    assert by_case["textureless"]["skipped"] is None  # the flat-colour variant was rendered and evaluated
+    # Three disjoint thirds of 2 source views need 6 candidates; this scene has 4 training frames.
+    assert "three disjoint thirds" in by_case["baseline"]["skipped"]
+    table = (out / "stress.md").read_text()
+    assert "### wrong_camera" in table and "fails at" in table and "Skipped: a target has" in table
+    assert (out / "source_views.png").stat().st_size > 0 and "clean" in (out / "stress.csv").read_text()
+    again = gpnerf("stress", str(trained / "run"), "--quick", "--out", str(out), cwd=trained)
+    assert again.returncode == 2 and "already holds a stress suite's results" in again.stderr
+
+
+def test_unknown_case_lists_the_known_ones(trained):
+    result = gpnerf("stress", str(trained / "run"), "--cases", "fog", "--out", str(trained / "x"), cwd=trained)
+    assert result.returncode == 2
+    assert "unknown stress case 'fog'; known cases: source_views, baseline" in result.stderr
+    assert not (trained / "x").exists()
+
+
+def test_no_runs_is_one_line(tmp_path):
+    (tmp_path / "empty").mkdir()
+    result = gpnerf("stress", str(tmp_path / "empty"), "--out", str(tmp_path / "o"), cwd=tmp_path)
+    assert result.returncode == 2 and "no trained runs or checkpoints under" in result.stderr
+
+
+class PoisonedImages(StressCase):
+    name = "poisoned_images"
+    description = "source images full of NaN"
+    levels = (1.0,)
+
+    def perturb_sources(self, level, sources, generator):
+        return replace(sources, rgb=torch.full_like(sources.rgb, float("nan")))
+
+
+def test_a_case_giving_non_finite_metrics_fails_the_suite_after_writing_it(trained, monkeypatch):
+    from gpnerf_core.stress.cli import main
+
+    monkeypatch.setenv("GPNERF_CACHE", str(trained / "cache"))
+    monkeypatch.setitem(get_registry().stress_cases, "poisoned_images", (PoisonedImages(), "test"))
+    out = trained / "poisoned"
+    expected = r"1 evaluation\(s\) gave non-finite metrics; first: run poisoned_images 1: .*NaN"
+    with pytest.raises(NonFiniteError, match=expected):
+        main([str(trained / "run"), "--cases", "poisoned_images", "--quick", "--out", str(out)])
+    outcome = json.loads((out / "stress.json").read_text())["outcomes"][1]
+    assert outcome["case"] == "poisoned_images" and "contains NaN or Inf" in outcome["error"]
+    assert "| NOT FINITE |" in (out / "stress.md").read_text() and outcome["non_finite"]
+
+
+# ---- registration ----------------------------------------------------------------------------------------------------
+
+
+def test_third_party_cases_register_and_bad_ones_are_reported():
+    class NoLevels(StressCase):
+        name = "no_levels"
+
+    class Fine(StressCase):
+        name = "fine_case"
+        levels = (1.0, 2.0)
+
+    plugin = type("plugin", (), {})()
+
+    @hookimpl
+    def gpnerf_register_stress_cases():
+        return [Fine(), NoLevels(), "not a case", Fine()]
+
+    plugin.gpnerf_register_stress_cases = gpnerf_register_stress_cases
+    loaded = make_plugin_manager(builtins=(), autoload=False)
+    loaded.register(plugin, PluginInfo("third", "third-dist", "1.0"))
+    registry = collect(loaded)
+    assert list(registry.stress_cases) == ["fine_case"]
+    problems = [str(p) for p in registry.problems]
+    assert any("stress/no_levels rejected: levels ()" in p for p in problems)
+    assert any("is not a StressCase instance" in p for p in problems)
+    assert any("stress/fine_case rejected: the name is taken by 'third'" in p for p in problems)
+
+
+# ---- the cases -------------------------------------------------------------------------------------------------------
+
+
+def test_random_rotations_turn_by_exactly_the_level():
+    rotations = random_rotations(16, 5.0, torch.Generator().manual_seed(0))
+    angles = torch.rad2deg(torch.arccos(((rotations.diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2).clamp(-1, 1)))
+    assert torch.allclose(angles, torch.full((16,), 5.0, dtype=torch.float64), atol=1e-6)
+    assert torch.allclose(rotations @ rotations.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(16, 3, 3))
+
+
+@pytest.fixture()
+def scene_and_sources(tmp_path):
+    cfg = compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES, f"dataset.root={tmp_path / 'scenes'}",
+                   "dataset.frames_per_scene=12", "dataset.eval_every=4"])
+    components = build_components(cfg)
+    frames = FrameCache(components.dataset, torch.device("cpu"))
+    scene = frames.scene(components.dataset.scenes("train")[0])
+    target = scene.eval_frames[0]
+    return components, frames, scene, target, frames.source_views(scene, list(scene.train_frames[:2]))
+
+
+def test_baseline_thirds_are_ordered_by_distance_and_never_take_the_target(scene_and_sources):
+    _, _, scene, target, _ = scene_and_sources
+    case = Baseline()
+    assert case.unavailable(3.0, {}, [scene], 2) is None
+    distance = {}
+    for level in case.levels:
+        picked = case.source_indices(level, scene, target, 2, lambda *a: [])
+        assert len(picked) == 2 and target not in picked and set(picked) <= set(scene.train_frames)
+        distance[level] = float((scene.c2w[picked, :3, 3] - scene.c2w[target, :3, 3]).norm(dim=-1).mean())
+    assert distance[1.0] < distance[2.0] < distance[3.0]
+
+
+def test_perturbations_are_reproducible_and_stay_in_range(scene_and_sources):
+    *_, sources = scene_and_sources
+    for case in (GaussianNoise(), Blur(), Jpeg(), Exposure(), OneWrongCamera()):
+        for level in case.levels:
+            a = case.perturb_sources(level, sources, torch.Generator().manual_seed(1))
+            b = case.perturb_sources(level, sources, torch.Generator().manual_seed(1))
+            assert torch.equal(a.rgb, b.rgb) and torch.equal(a.c2w, b.c2w), case.name
+            assert a.rgb.shape == sources.rgb.shape and 0 <= float(a.rgb.min()) and float(a.rgb.max()) <= 1
+    moved = OneWrongCamera().perturb_sources(90.0, sources, torch.Generator().manual_seed(1))
+    assert not torch.equal(moved.c2w[0], sources.c2w[0]) and torch.equal(moved.c2w[1:], sources.c2w[1:])
+    assert float((moved.c2w[0, :3, 3] - sources.c2w[0, :3, 3]).norm()) == pytest.approx(0.5, abs=1e-5)
+
+
+def test_blur_keeps_a_constant_image_and_its_mean():
+    constant = torch.full((1, 3, 16, 20), 0.4)
+    assert torch.allclose(blur(constant, 2.0), constant, atol=1e-6)
+    noise = torch.rand(2, 3, 32, 32, generator=torch.Generator().manual_seed(0))
+    blurred = blur(noise, 1.0)
+    assert blurred.std() < noise.std() and abs(float(blurred.mean() - noise.mean())) < 0.01
+
+
+# ---- defined outputs under degenerate geometry (documented in docs/architecture.md) ---------------------------------
+
+
+def _assert_finite(model, camera, sources):
+    prediction = model.predict(camera, sources, stride=0, chunk_rays=256)
+    for name in ("rgb", "depth", "semantic", "logits"):
+        value = getattr(prediction, name)
+        assert value is not None and bool(torch.isfinite(value).all()), name
+    return prediction
+
+
+def test_rays_no_source_view_sees_and_samples_behind_every_camera_give_finite_outputs(scene_and_sources):
+    components, frames, scene, target, sources = scene_and_sources
+    model = components.model.eval()
+    camera = frames.camera(scene, frames.frame(scene, target))
+    flipped = sources.c2w.clone()
+    flipped[:, :3, :3] = flipped[:, :3, :3] @ torch.diag(torch.tensor([-1.0, 1.0, -1.0]))  # every sample behind
+    _assert_finite(model, camera, replace(sources, c2w=flipped))
+    away = sources.c2w.clone()
+    away[:, :3, 3] += 1000.0  # no sample projects into any source image: every sample invalid
+    _assert_finite(model, camera, replace(sources, c2w=away))
+    one = replace(sources, rgb=sources.rgb[:1], intrinsics=sources.intrinsics[:1], c2w=sources.c2w[:1])
+    _assert_finite(model, camera, one)
+
+
+# ---- the summary -----------------------------------------------------------------------------------------------------
+
+
+def _outcome(method, seed, case, level, miou, psnr=20.0, label=None):
+    return Outcome(f"{method}_{seed}", method, seed, case, level, label or ("clean" if level is None else f"{level:g}"),
+                   {"miou": miou, "psnr": psnr})
+
+
+def test_failure_rule_and_least_degraded_method():
+    outcomes = []
+    for seed in (0, 1):
+        outcomes += [
+            _outcome("a", seed, "clean", None, 0.6), _outcome("a", seed, "blur", 1.0, 0.5),
+            _outcome("a", seed, "blur", 2.0, 0.29),
+            _outcome("b", seed, "clean", None, 0.4), _outcome("b", seed, "blur", 1.0, 0.38),
+            _outcome("b", seed, "blur", 2.0, 0.3),
+        ]
+    summary = StressSummary(outcomes)
+    assert summary.failure("a", "blur") == "2" and summary.failure("b", "blur") == "holds"
+    assert summary.retained("a", "blur") == pytest.approx((0.5 / 0.6 + 0.29 / 0.6) / 2)
+    assert summary.least_degraded("blur")[0] == "b"
+    assert "| a | mIoU x100 | 60.00 ± 0.00 | 50.00 ± 0.00 | 29.00 ± 0.00 | 2 |" in summary.markdown()
+
+
+def test_models_without_semantics_fail_on_psnr():
+    outcomes = [Outcome("r", "rgb", 0, "clean", None, "clean", {"psnr": 24.0}),
+                Outcome("r", "rgb", 0, "jpeg", 20.0, "20", {"psnr": 19.0}),
+                Outcome("r", "rgb", 0, "jpeg", 8.0, "8", {"psnr": 17.5})]
+    assert StressSummary(outcomes).failure("rgb", "jpeg") == "8"
