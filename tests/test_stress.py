@@ -242,3 +242,19 @@ def test_models_without_semantics_fail_on_psnr():
                 Outcome("r", "rgb", 0, "jpeg", 20.0, "20", {"psnr": 19.0}),
                 Outcome("r", "rgb", 0, "jpeg", 8.0, "8", {"psnr": 17.5})]
     assert StressSummary(outcomes).failure("rgb", "jpeg") == "8"
+
+
+def test_merge_summarises_suites_run_apart(trained):
+    runs = []
+    for name in ("a", "b"):
+        out = trained / f"part_{name}"
+        result = gpnerf("stress", str(trained / "run"), "--quick", "--cases", "blur,jpeg", "--out", str(out),
+                        cwd=trained)
+        assert result.returncode == 0, result.stderr[-2000:]
+        runs.append(out)
+    merged = gpnerf("stress", "--merge", *map(str, runs), "--out", str(trained / "merged"), cwd=trained)
+    assert merged.returncode == 0, merged.stderr[-2000:]
+    summary = json.loads((trained / "merged" / "stress.json").read_text())
+    assert len(summary["outcomes"]) == 6 and set(summary["cases"]) == {"blur", "jpeg"}
+    # The same model twice: two values per cell, no spread (evaluation is deterministic).
+    assert "± 0.00" in (trained / "merged" / "stress.md").read_text()

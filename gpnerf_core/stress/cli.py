@@ -7,6 +7,7 @@ import shutil
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 from gpnerf_core.errors import ConfigError, NonFiniteError
 
@@ -32,6 +33,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace the files of an earlier suite in --out")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     p.add_argument("--list", action="store_true", help="list the registered cases and exit")
+    p.add_argument("--merge", action="store_true",
+                   help="the paths are --out folders of earlier suites (e.g. one per process): summarise them together")
     return p
 
 
@@ -46,6 +49,31 @@ def list_cases() -> str:
 
 
 OUTPUTS = ("stress.md", "stress.csv", "stress.json")
+
+
+def merged_outcomes(folders: list[Path]) -> tuple[list[Any], list[dict[str, Any]]]:
+    """The outcomes and models of earlier suites' ``stress.json`` files, in the order given."""
+    import json
+    import math
+
+    from gpnerf_core.errors import DataError
+    from gpnerf_core.stress.runner import Outcome
+
+    outcomes, models = [], []
+    for folder in folders:
+        path = folder / "stress.json"
+        if not path.is_file():
+            raise DataError(f"--merge {folder}: no stress.json (expected the --out folder of an earlier suite)")
+        try:
+            saved = json.loads(path.read_text())
+            for o in saved["outcomes"]:
+                metrics = {k: float(v) if not isinstance(v, str) else math.nan for k, v in o["metrics"].items()}
+                outcomes.append(Outcome(o["model"], o["method"], o["seed"], o["case"], o["level"], o["label"],
+                                        metrics, o.get("skipped"), o.get("seconds", 0.0), o.get("error")))
+            models += saved.get("models", [])
+        except (json.JSONDecodeError, KeyError, TypeError) as exc:
+            raise DataError(f"{path}: not a stress suite's results ({type(exc).__name__}: {exc})") from None
+    return outcomes, models
 
 
 def main(argv: list[str]) -> int:
@@ -74,15 +102,20 @@ def main(argv: list[str]) -> int:
         raise ConfigError(f"--threads {args.threads}: expected an integer >= 0")
     if args.threads:
         torch.set_num_threads(args.threads)
-    cases = choose_cases([c.strip() for c in args.cases.split(",") if c.strip()])
-    models = models_from_paths(args.paths)
-    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     started = time.perf_counter()
-    scratch = Path(tempfile.mkdtemp(prefix="gpnerf_stress_"))
-    try:
-        outcomes = run_suite(models, cases, quick=args.quick, views_per_scene=views, scratch=scratch, device=device)
-    finally:
-        shutil.rmtree(scratch, ignore_errors=True)
+    if args.merge:
+        outcomes, models = merged_outcomes(args.paths)
+        cases = sorted({o.case for o in outcomes if o.case != "clean"})
+    else:
+        cases = choose_cases([c.strip() for c in args.cases.split(",") if c.strip()])
+        models = models_from_paths(args.paths)
+        device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        scratch = Path(tempfile.mkdtemp(prefix="gpnerf_stress_"))
+        try:
+            outcomes = run_suite(models, cases, quick=args.quick, views_per_scene=views, scratch=scratch,
+                                 device=device)
+        finally:
+            shutil.rmtree(scratch, ignore_errors=True)
     summary = StressSummary(outcomes)
     args.out.mkdir(parents=True, exist_ok=True)
     table = summary.markdown()
@@ -90,8 +123,9 @@ def main(argv: list[str]) -> int:
     atomic_write_text(args.out / "stress.csv", summary.csv())
     atomic_write_json(args.out / "stress.json", summary.as_json() | {
         "quick": args.quick, "views_per_scene": views, "seconds": round(time.perf_counter() - started, 1),
-        "models": [{"name": m.name, "method": m.method, "seed": m.seed, "checkpoint": str(m.checkpoint)}
-                   for m in models],
+        "models": models if args.merge else [
+            {"name": m.name, "method": m.method, "seed": m.seed, "checkpoint": str(m.checkpoint)} for m in models
+        ],
     })
     plots = summary.draw(args.out)
     print(table)
