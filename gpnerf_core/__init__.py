@@ -8,6 +8,7 @@ from gpnerf_core.interfaces import (
     PerceptionHead,
     RayAggregator,
     SceneDataset,
+    StressCase,
     ViewSelector,
 )
 from gpnerf_core.registry import ComponentSpec, DataTool, get_registry
@@ -23,6 +24,7 @@ __all__ = [
     "PerceptionHead",
     "RayAggregator",
     "SceneDataset",
+    "StressCase",
     "ViewSelector",
     "get_registry",
     "hookimpl",

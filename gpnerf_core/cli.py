@@ -183,6 +183,9 @@ def _plugins(argv: list[str]) -> int:
         for name in sorted(entries):
             entry = entries[name]
             rows.append((kind, name, entry.provider, entry.version, entry.spec.description))
+    for name, (case, provider) in registry.stress_cases.items():
+        version = registry.plugins[provider].version if provider in registry.plugins else "builtin"
+        rows.append(("stress_case", name, provider, version, case.description))
     widths = [max(len(row[i]) for row in rows) for i in range(4)]
     for row in rows:
         print("  ".join(cell.ljust(widths[i]) for i, cell in enumerate(row[:4])) + "  " + row[4])

@@ -48,6 +48,8 @@ CASES = {
     "resume missing": (["train.resume={ws}/nope.pt"], "train.resume={ws}/nope.pt: no such file"),
     "bad schedule": (["train.lr_schedule=linear"], "train.lr_schedule='linear': expected one of exponential, cosine"),
     "instance loss on a class head": (["loss=instance"], "loss 'instance' trains instances but head 'unet' predicts"),
+    "weight average decay of 1": (["train.ema_decay=1"], "train.ema_decay=1.0: expected a decay in [0, 1)"),
+    "unknown weight choice": (["eval.weights=best"], "eval.weights='best': expected one of average, trained"),
 }
 
 

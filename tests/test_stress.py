@@ -258,3 +258,13 @@ def test_merge_summarises_suites_run_apart(trained):
     assert len(summary["outcomes"]) == 6 and set(summary["cases"]) == {"blur", "jpeg"}
     # The same model twice: two values per cell, no spread (evaluation is deterministic).
     assert "± 0.00" in (trained / "merged" / "stress.md").read_text()
+
+
+def test_merge_of_a_folder_without_results_is_one_line(tmp_path):
+    from gpnerf_core.errors import DataError
+    from gpnerf_core.stress.cli import main
+
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DataError, match=r"--merge .*empty: no stress.json \(expected the --out folder"):
+        main(["--merge", str(tmp_path / "empty"), "--out", str(tmp_path / "out")])
+    assert not (tmp_path / "out").exists()
