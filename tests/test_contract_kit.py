@@ -4,6 +4,7 @@ import dataclasses
 import math
 import textwrap
 import types
+from dataclasses import replace
 from typing import Callable, Tuple
 
 import pytest
@@ -19,6 +20,7 @@ from gpnerf_core import (
     PerceptionHead,
     RayAggregator,
     SceneDataset,
+    StressCase,
     ViewSelector,
     hookimpl,
 )
@@ -557,3 +559,84 @@ def test_pytest_plugin_makes_one_item_per_component_and_check(pytester):
     result.assert_outcomes(passed=len(CHECKS["head"]) - 1, failed=1, errors=1)
     assert "test_forgotten_decorator takes gpnerf_check but is not decorated" in result.stdout.str()
     assert "check 'output size' failed: logits [2, 51, 7, 9], expected [2, 51, 37, 45]" in result.stdout.str()
+
+
+# ---- stress cases ----------------------------------------------------------------------------------------------------
+
+
+def stress_plugin(*cases):
+    module = types.ModuleType(f"stress_plugin_{'_'.join(c.name for c in cases)}")
+
+    @hookimpl
+    def gpnerf_register_stress_cases():
+        return list(cases)
+
+    module.gpnerf_register_stress_cases = gpnerf_register_stress_cases
+    return module
+
+
+class GoodCase(StressCase):
+    name = "good_case"
+    levels = (0.1, 0.5)
+
+    def perturb_sources(self, level, sources, generator):
+        noise = torch.rand(sources.rgb.shape, generator=generator) * level
+        return replace(sources, rgb=(sources.rgb + noise).clamp(0, 1))
+
+
+class InPlace(GoodCase):
+    name = "in_place"
+
+    def perturb_sources(self, level, sources, generator):
+        sources.rgb.mul_(0.5)
+        return sources
+
+
+class GlobalRandom(GoodCase):
+    name = "global_random"
+
+    def perturb_sources(self, level, sources, generator):
+        return replace(sources, rgb=(sources.rgb + torch.rand(sources.rgb.shape) * level).clamp(0, 1))
+
+
+class ScaledPoses(GoodCase):
+    name = "scaled_poses"
+
+    def perturb_sources(self, level, sources, generator):
+        c2w = sources.c2w.clone()
+        c2w[:, :3, :3] *= 1 + level
+        return replace(sources, c2w=c2w)
+
+
+class TakesTheTarget(GoodCase):
+    name = "takes_the_target"
+
+    def source_indices(self, level, scene, target, num_views, choose):
+        return [target, *choose(scene, target, num_views - 1)]
+
+
+class OutOfRange(GoodCase):
+    name = "out_of_range"
+
+    def perturb_sources(self, level, sources, generator):
+        return replace(sources, rgb=sources.rgb * 2)
+
+
+def test_a_correct_stress_case_passes_every_check():
+    results = check_plugin(stress_plugin(GoodCase()))
+    assert [r.check for r in results] == ["levels", "sources", "perturbation", "determinism"]
+    assert all(r.component == "stress_case/good_case" for r in results)
+
+
+@pytest.mark.parametrize("case, check, words", [
+    (InPlace(), "perturbation", "changed its input in place"),
+    (GlobalRandom(), "determinism", "draw randomness from the generator argument only"),
+    (ScaledPoses(), "perturbation", "is not a rigid camera-to-world pose"),
+    (TakesTheTarget(), "sources", "never the target"),
+    (OutOfRange(), "perturbation", "expected [0, 1]"),
+])
+def test_each_broken_stress_case_fails_its_check(case, check, words):
+    results = check_plugin(stress_plugin(case), raise_on_failure=False)
+    failed = {r.check: r.message for r in results if r.failed}
+    assert list(failed) == [check] and words in failed[check]
+    assert failed[check].startswith(f"stress_case {case.name!r} (plugin stress_plugin_{case.name}")

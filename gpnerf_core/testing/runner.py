@@ -9,6 +9,7 @@ from typing import Any, Callable, Mapping, Sequence
 from gpnerf_core.registry import PluginInfo, PluginProblem
 from gpnerf_core.testing.checks import CHECKS, RUNTIME, CheckFailed, CheckSkipped, Subject
 from gpnerf_core.testing.checks.common import component_label
+from gpnerf_core.testing.checks.stress import CHECKS as STRESS_CHECKS
 from gpnerf_core.testing.target import Target, load_targets
 
 PASSED, FAILED, SKIPPED = "passed", "failed", "skipped"
@@ -91,7 +92,7 @@ def plugin_checks(
     """
     loaded = load_targets(targets)
     checks = [_problem_check(problem) for problem in loaded.problems]
-    if not loaded.components and not loaded.problems:
+    if not loaded.components and not loaded.problems and not loaded.stress_cases:
         checks.append(_problem_check(PluginProblem(PluginInfo(", ".join(loaded.plugins)), "registers no components")))
     configs = dict(configs or {})
     keys = {f"{entry.kind}/{entry.spec.name}" for entry in loaded.components}
@@ -107,6 +108,12 @@ def plugin_checks(
         plugin = f"{entry.provider} {entry.version}"
         for name, function in CHECKS[entry.kind].items():
             checks.append(Check(key, plugin, name, subject.label, functools.partial(function, subject)))
+    for case, provider in loaded.stress_cases:
+        info = loaded.registry.plugins.get(provider, PluginInfo(provider))
+        label = component_label("stress_case", case.name, provider, info.version)
+        for name, function in STRESS_CHECKS.items():
+            checks.append(Check(f"stress_case/{case.name}", f"{provider} {info.version}", name, label,
+                                functools.partial(function, case)))
     return checks
 
 

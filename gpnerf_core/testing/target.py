@@ -44,6 +44,8 @@ class LoadedTarget:
     plugins: tuple[str, ...]
     components: tuple[RegisteredComponent, ...]
     problems: tuple[PluginProblem, ...]
+    stress_cases: tuple[tuple[Any, str], ...] = ()
+    """``(StressCase, plugin name)`` of the target's registered stress cases."""
 
 
 def load_targets(targets: Target | Sequence[Target]) -> LoadedTarget:
@@ -67,7 +69,8 @@ def load_targets(targets: Target | Sequence[Target]) -> LoadedTarget:
     components = tuple(
         entry for kind in KINDS for _, entry in sorted(registry.components[kind].items()) if entry.provider in names
     )
-    return LoadedTarget(registry, tuple(dict.fromkeys(names)), components, problems)
+    cases = tuple(entry for entry in registry.stress_cases.values() if entry[1] in names)
+    return LoadedTarget(registry, tuple(dict.fromkeys(names)), components, problems, cases)
 
 
 def _resolve(target: Target) -> list[tuple[PluginInfo, Any]]:
