@@ -26,9 +26,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("paths", nargs="*", type=Path, help="run folders, folders of runs (sweeps) or .pt checkpoints")
     p.add_argument("--cases", default="", help="comma-separated case names (default: all; --list shows them)")
     p.add_argument("--quick", action="store_true",
-                   help="the most severe level of each case on 2 held-out views per scene (a smoke test)")
+                   help="the most severe level of each case on 1 held-out view per scene (a smoke test)")
     p.add_argument("--views-per-scene", type=int, default=None,
-                   help="held-out views evaluated per scene (default: all; 2 with --quick)")
+                   help="held-out views evaluated per scene (default: all; 1 with --quick)")
     p.add_argument("--out", type=Path, default=None, help="folder for stress.md, stress.csv, stress.json, <case>.png")
     p.add_argument("--overwrite", action="store_true", help="replace the files of an earlier suite in --out")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")

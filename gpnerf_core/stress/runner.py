@@ -30,7 +30,7 @@ METRICS = {
 }
 """Figures kept per evaluation: name -> (split label placeholder, protocol id in ``metrics.json``)."""
 
-QUICK_VIEWS_PER_SCENE = 2
+QUICK_VIEWS_PER_SCENE = 1
 """``--quick``: held-out views per scene evaluated (0 = all otherwise)."""
 
 
