@@ -234,6 +234,8 @@ def test_failure_rule_and_least_degraded_method():
     assert summary.failure("a", "blur") == "2" and summary.failure("b", "blur") == "holds"
     assert summary.retained("a", "blur") == pytest.approx((0.5 / 0.6 + 0.29 / 0.6) / 2)
     assert summary.least_degraded("blur")[0] == "b"
+    assert summary.best_at_most_severe("blur") == ("b", "2", pytest.approx(0.3))
+    assert "Highest at the most severe level (2): b (30.00)." in summary.markdown()
     assert "| a | mIoU x100 | 60.00 ± 0.00 | 50.00 ± 0.00 | 29.00 ± 0.00 | 2 |" in summary.markdown()
 
 

@@ -111,6 +111,20 @@ class StressSummary:
         scored = [(m, r) for m in self.methods if (r := self.retained(m, case)) is not None]
         return max(scored, key=lambda item: item[1]) if scored else None
 
+    def best_at_most_severe(self, case: str) -> tuple[str, str, float] | None:
+        """``(method, level label, mean)`` of the highest headline score at the case's most severe evaluated level.
+
+        Degradation is relative to each method's clean score, so a weak method can degrade least and still be the
+        worst choice under stress; this names the best absolute score there (methods sharing a headline metric).
+        """
+        for level, label in reversed(self.levels(case)):
+            scored = [(m, c.mean) for m in self.methods
+                      if (c := self.cell(m, case, level, self.metric_of(m))) is not None]
+            if scored:
+                method, value = max(scored, key=lambda item: item[1])
+                return method, label, value
+        return None
+
     def non_finite(self) -> list[Outcome]:
         return [o for o in self.outcomes if o.non_finite]
 
@@ -147,6 +161,10 @@ class StressSummary:
             lines.append("")
             if best is not None:
                 lines.append(f"Degrades least: {best[0]} (retains {best[1]:.2f} of its clean score on average).")
+            top = self.best_at_most_severe(case)
+            if top is not None and len(self.methods) > 1:
+                scale = 100.0 if self.metric_of(top[0]) == "miou" else 1.0
+                lines.append(f"Highest at the most severe level ({top[1]}): {top[0]} ({top[2] * scale:.2f}).")
             for reason in reasons:
                 lines.append(f"Skipped: {reason}.")
             lines.append("")
@@ -176,7 +194,8 @@ class StressSummary:
                     method: {"fails_at": self.failure(method, case), "retained": _finite(self.retained(method, case))}
                     for method in self.methods
                 }
-                | {"least_degraded": (self.least_degraded(case) or (None,))[0]}
+                | {"least_degraded": (self.least_degraded(case) or (None,))[0],
+                   "highest_at_most_severe": (self.best_at_most_severe(case) or (None,))[0]}
                 for case in self.cases
             },
         }
