@@ -23,12 +23,8 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from gpnerf_core.errors import ConfigError, DataError, NonFiniteError
 from gpnerf_core.interfaces import StressCase
 
-METRICS = {
-    "miou": ("train_heldout", "miou/image_mean_present"),
-    "accuracy": ("train_heldout", "acc/image_total"),
-    "psnr": ("train_heldout", "psnr/clamped"),
-}
-"""Figures kept per evaluation: name -> (split label placeholder, protocol id in ``metrics.json``)."""
+METRICS = {"miou": "miou/image_mean_present", "accuracy": "acc/image_total", "psnr": "psnr/clamped"}
+"""Figures kept per evaluation: name -> protocol id in ``metrics.json`` (mIoU and accuracy only with semantics)."""
 
 QUICK_VIEWS_PER_SCENE = 1
 """``--quick``: held-out views per scene evaluated (0 = all otherwise)."""
@@ -201,8 +197,7 @@ class _Evaluator:
                           references=False)
         label = "train_heldout" if split == "train" else "unseen"
         values = result["eval"][label]
-        return {name: float(values.get(key, float("nan"))) for name, (_, key) in METRICS.items()
-                if key in values}
+        return {name: float(values[key]) for name, key in METRICS.items() if key in values}
 
     def scenes(self, case: StressCase, level: float) -> list[Any]:
         cfg, components, frames = self.variant(case.dataset_overrides(level, self.cfg.dataset))
