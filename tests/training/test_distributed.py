@@ -16,6 +16,9 @@ TINY = [
     "field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2", "model.num_source_views=2",
     "train.rays=16", "train.log_every=1", "train.steps=3", "train.targets_per_step=2",
     "eval.max_views_per_scene=2", "eval.save_images=1",
+    # Without the CPU scale's clip: clipping multiplies every gradient by 4 / norm, and the norm's last bits differ
+    # between the two reduction orders, which Adam's first steps turn into differences above the tolerance below.
+    "train.grad_clip=0",
 ]
 
 
