@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import torch
@@ -51,3 +54,19 @@ def assert_both_splits_scored(metrics: dict, num_classes: int) -> None:
         values = metrics["eval"][split]
         assert values["count/images"] >= 1 and 0.0 <= values["miou/image_mean_present"] <= 1.0
         assert len(values["iou/dataset_per_class"]) == num_classes
+
+
+TINY_CLI = [
+    "dataset.height=32", "dataset.width=48", "dataset.frames_per_scene=6", "dataset.eval_every=3",
+    "dataset.num_train_scenes=1", "feature_extractor.widths=[8,8,8,16]", "feature_extractor.fpn_channels=4",
+    "field_aggregator.width=16", "field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2",
+    "model.num_source_views=2", "train.rays=16", "threads=1", "eval.save_images=0",
+]
+"""A tiny run through the command line: one 32x48 layout, a small model (the subprocess tests' overrides)."""
+
+
+def gpnerf(*args, cwd):
+    """``python -m gpnerf_core <args>`` in ``cwd``, with its own scene cache and no entry-point plugins."""
+    env = dict(os.environ, GPNERF_CACHE=str(cwd / "cache"), GPNERF_DISABLE_PLUGIN_AUTOLOAD="1")
+    return subprocess.run([sys.executable, "-m", "gpnerf_core", *args], cwd=cwd, env=env, capture_output=True,
+                          text=True, timeout=600)

@@ -1,9 +1,6 @@
 """``finetune``: a generalized checkpoint trained further on chosen scenes, their held-out frames evaluated on a curve."""
 
 import json
-import os
-import subprocess
-import sys
 
 import pytest
 import torch
@@ -13,20 +10,7 @@ from gpnerf_core.build import build_model
 from gpnerf_core.config import compose
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.finetune import curve_points, finetune_weights
-
-TINY = [
-    "dataset.height=32", "dataset.width=48", "dataset.frames_per_scene=6", "dataset.eval_every=3",
-    "dataset.num_train_scenes=1", "feature_extractor.widths=[8,8,8,16]", "feature_extractor.fpn_channels=4",
-    "field_aggregator.width=16", "field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2",
-    "model.num_source_views=2", "train.rays=16", "threads=1", "eval.save_images=0",
-]
-
-
-def gpnerf(*args, cwd):
-    env = dict(os.environ, GPNERF_CACHE=str(cwd / "cache"), GPNERF_DISABLE_PLUGIN_AUTOLOAD="1")
-    return subprocess.run([sys.executable, "-m", "gpnerf_core", *args], cwd=cwd, env=env, capture_output=True,
-                          text=True, timeout=600)
-
+from pipeline_check import TINY_CLI as TINY, gpnerf
 
 def test_curve_points_run_from_zero_to_the_last_step():
     assert curve_points(6, 4) == [0, 2, 4, 6]

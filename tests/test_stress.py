@@ -2,9 +2,6 @@
 
 import json
 import math
-import os
-import subprocess
-import sys
 from dataclasses import replace
 
 import pytest
@@ -21,21 +18,8 @@ from gpnerf_core.stress.summary import StressSummary
 from gpnerf_core import hookimpl
 from gpnerf_plugins.stress.geometry_cases import Baseline, OneWrongCamera, random_rotations
 from gpnerf_plugins.stress.image_cases import Blur, Exposure, GaussianNoise, Jpeg, blur
-from pipeline_check import TINY_MODEL, TINY_SCENES
-
-TINY = [
-    "dataset.height=32", "dataset.width=48", "dataset.frames_per_scene=6", "dataset.eval_every=3",
-    "dataset.num_train_scenes=1", "feature_extractor.widths=[8,8,8,16]", "feature_extractor.fpn_channels=4",
-    "field_aggregator.width=16", "field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2",
-    "model.num_source_views=2", "train.rays=16", "threads=1", "eval.save_images=0",
-]
-
-
-def gpnerf(*args, cwd):
-    env = dict(os.environ, GPNERF_CACHE=str(cwd / "cache"), GPNERF_DISABLE_PLUGIN_AUTOLOAD="1")
-    return subprocess.run([sys.executable, "-m", "gpnerf_core", *args], cwd=cwd, env=env, capture_output=True,
-                          text=True, timeout=600)
-
+from pipeline_check import TINY_CLI as TINY
+from pipeline_check import TINY_MODEL, TINY_SCENES, gpnerf
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
