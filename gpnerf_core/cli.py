@@ -26,6 +26,8 @@ commands:
   report    tabulate run folders (a sweep, the Table 4 ablation) beside the paper's numbers
   stress    evaluate trained runs under graded conditions (source views, pose noise, corruption, ...):
             `stress <runs> --out DIR [--cases a,b] [--quick]`; `stress --list` names the cases
+  size      the smallest model within a tolerance of the configured one on these scenes, by short runs:
+            `size +head=unet +loss=dgs [size.steps=300] [size.tolerance=0.02] [size.max_parameters=...]`
   bench     time and size the training step and rendering: `bench size=demo|small|paper [overrides]`
   data      dataset tools: `data` lists them (check a layout, prepare ScanNet, make the embedded scenes)
   plugins   list registered components with provider and version, and plugins that failed to load
@@ -82,7 +84,7 @@ def precheck(argv: list[str]) -> None:
 
     if any(argument.startswith("-") for argument in argv):
         return
-    overrides = [a for a in argv if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
+    overrides = [a for a in argv if not a.lstrip("+~").startswith(("hydra.", "hydra/")) or is_search_path(a)]
     try:
         cfg = compose(overrides)
     except GpnerfError:
@@ -92,6 +94,12 @@ def precheck(argv: list[str]) -> None:
     validate_config(cfg)
     if cfg.out_dir:
         check_writable_folder(Path(cfg.out_dir))
+
+
+def is_search_path(override: str) -> bool:
+    """``hydra.searchpath=[file://<dir>]``: where ``+experiment=<name>`` finds a config written outside the package
+    (``size``'s ``experiment/sized.yaml``); it changes what composes, so it is kept wherever the config is composed."""
+    return override.lstrip("+~").startswith("hydra.searchpath=")
 
 
 def check_writable_folder(path: Path) -> None:
@@ -227,6 +235,12 @@ def _report(argv: list[str]) -> int:
     return report_main(argv)
 
 
+def _size(argv: list[str]) -> int:
+    from gpnerf_core.sizing.command import main as size_main
+
+    return size_main(argv)
+
+
 def _stress(argv: list[str]) -> int:
     from gpnerf_core.stress.cli import main as stress_main
 
@@ -240,6 +254,7 @@ COMMANDS: dict[str, Callable[[list[str]], int]] = {
     "render": _render,
     "report": _report,
     "stress": _stress,
+    "size": _size,
     "bench": _bench,
     "data": _data,
     "plugins": _plugins,

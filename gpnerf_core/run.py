@@ -54,9 +54,14 @@ def _run_dir(cfg: DictConfig) -> Path:
 
 
 def task_overrides() -> tuple[str, ...]:
-    """The Hydra overrides of this job as typed (``+head=unet``, ``train.steps=10``, ...)."""
+    """The Hydra overrides of this job as typed (``+head=unet``, ``train.steps=10``, ...), and the search path if one
+    was given (``eval``, ``finetune`` and resuming compose the checkpoint's overrides again and need it)."""
+    from gpnerf_core.cli import is_search_path
+
     hydra = _hydra_config()
-    return tuple(hydra.overrides.task) if hydra is not None else ()
+    if hydra is None:
+        return ()
+    return (*[o for o in hydra.overrides.hydra if is_search_path(o)], *hydra.overrides.task)
 
 
 def override_key(override: str) -> str:

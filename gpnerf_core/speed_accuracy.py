@@ -71,6 +71,7 @@ COSTS = (
     Axis("training throughput", "rays/s", lambda m: m.get("train", {}).get("rays_per_second"), True),
     Axis("rendering", "s per frame", _first_split_timing("seconds_per_frame"), False),
     Axis("parameters", "millions", lambda m: _millions(m.get("parameters", {}).get("total")), False),
+    Axis("FLOPs per ray", "millions", lambda m: _millions(m.get("flops_per_ray")), False),
     Axis("peak memory", "MB", _first_split_timing("peak_memory_mb"), False),
 )
 

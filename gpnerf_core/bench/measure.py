@@ -25,7 +25,7 @@ from gpnerf_core.build import build_components
 from gpnerf_core.config import compose
 from gpnerf_core.device import peak_memory_mb, resolve_device
 from gpnerf_core.distributed import Distributed
-from gpnerf_core.frames import choose_sources
+from gpnerf_core.frames import FrameCache, choose_sources
 from gpnerf_core.training.checkpoint import RunRecord
 from gpnerf_core.training.trainer import Trainer
 from gpnerf_core.validation import check_data, validate_config
@@ -52,7 +52,7 @@ def _timed(run: Callable[[], Any], device: torch.device, warmup: int, repeats: i
     return seconds
 
 
-def _flops(run: Callable[[], Any]) -> int:
+def count_flops(run: Callable[[], Any]) -> int:
     """Matmul and convolution flops of one run, forward and backward (torch's FLOP counter)."""
     with FlopCounterMode(display=False) as counter:
         run()
@@ -85,13 +85,13 @@ def measure(spec: dict[str, Any]) -> dict[str, Any]:
             model.train()
             seconds = _timed(trainer.train_step, device, spec["warmup"], spec["repeats"], progress)
             rays = int(cfg.train.rays) * int(cfg.train.targets_per_step)
-            result.update(rays=rays, flops=_flops(trainer.train_step))
+            result.update(rays=rays, flops=count_flops(trainer.train_step))
         else:
             model.eval()
-            render = _renderer(cfg, trainer)
+            render = view_renderer(cfg, model, trainer.frames, trainer.sampler.selector, trainer.sampler.scene_names[0])
             seconds = _timed(render, device, spec["warmup"], spec["repeats"], progress)
             prediction = render()
-            result.update(rays=int(prediction.rgb.shape[0] * prediction.rgb.shape[1]), flops=_flops(render))
+            result.update(rays=int(prediction.rgb.shape[0] * prediction.rgb.shape[1]), flops=count_flops(render))
     result.update(
         seconds=seconds,
         seconds_median=statistics.median(seconds),
@@ -101,17 +101,14 @@ def measure(spec: dict[str, Any]) -> dict[str, Any]:
     return result
 
 
-def _renderer(cfg: Any, trainer: Trainer) -> Callable[[], Any]:
-    """``predict`` on the first held-out view of the first training scene, at the configured stride."""
-    frames = trainer.frames
-    scene = frames.scene(trainer.sampler.scene_names[0])
-    index = scene.eval_frames[0]
-    sources = frames.source_views(
-        scene, choose_sources(trainer.sampler.selector, scene, index, int(cfg.model.num_source_views), None)
-    )
+def view_renderer(cfg: Any, model: Any, frames: FrameCache, selector: Any, scene_name: str) -> Callable[[], Any]:
+    """``predict`` on the first held-out view of ``scene_name`` (a training scene), at the configured stride."""
+    scene = frames.scene(scene_name)
+    index = scene.eval_frames[0] if scene.eval_frames else scene.train_frames[0]
+    sources = frames.source_views(scene, choose_sources(selector, scene, index, int(cfg.model.num_source_views), None))
     camera = frames.camera(scene, frames.frame(scene, index))
     stride, chunk = int(cfg.eval.render_stride), int(cfg.eval.chunk_rays)
-    return lambda: trainer.model.predict(camera, sources, stride=stride, chunk_rays=chunk)
+    return lambda: model.predict(camera, sources, stride=stride, chunk_rays=chunk)
 
 
 if __name__ == "__main__":
