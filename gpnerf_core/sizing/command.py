@@ -40,6 +40,7 @@ from gpnerf_core.sizing.search import (
     descend,
     describe,
     format_figure,
+    format_option,
     knob_order,
     meets,
 )
@@ -217,7 +218,7 @@ def _refuse_unreachable_budgets(budgets: dict[str, float], levels: dict[str, tup
         values = {"max_parameters": f"{cost.parameters:,} parameters",
                   "max_flops_per_ray": f"{format_figure(cost.flops_per_ray)} FLOPs per ray"}
         raise ConfigError(
-            "; ".join(f"size.{b}={format_figure(static[b])}: no configuration the search can reach meets it "
+            "; ".join(f"size.{b}={format_option(static[b])}: no configuration the search can reach meets it "
                       f"(the smallest, {reached}, has {values[b]})" for b in failed)
         )
 

@@ -145,14 +145,18 @@ def choose(trials: list[Trial], budgets: dict[str, float]) -> tuple[Trial | None
             continue
         what, unit = BUDGETS[budget]
         best = f"the least within tolerance is {format_figure(min(values))}{unit}" if values else "nothing measured it"
-        reasons.append(f"size.{budget}={format_figure(limit)}: no configuration within the tolerance meets it ({what}: {best})")
+        reasons.append(f"size.{budget}={format_option(limit)}: no configuration within the tolerance meets it ({what}: {best})")
     if not reasons:
         reasons.append("no configuration within the tolerance meets every budget at once: "
-                       + ", ".join(f"size.{b}={format_figure(v)}" for b, v in budgets.items()))
+                       + ", ".join(f"size.{b}={format_option(v)}" for b, v in budgets.items()))
     return None, "; ".join(reasons)
 
 
 def format_figure(value: float) -> str:
-    if abs(value) >= 1e5:
-        return f"{value:,.0f}"
-    return f"{value:.4g}"
+    """A figure for a message: thousands separated from 10,000 on, else 4 significant digits."""
+    return f"{value:,.0f}" if abs(value) >= 1e4 else f"{value:.4g}"
+
+
+def format_option(value: float) -> str:
+    """A budget as the user would type it (``2000000``, ``0.5``)."""
+    return f"{value:.12g}"
