@@ -226,3 +226,21 @@ def test_a_budget_no_reachable_configuration_meets_is_refused_before_training(tm
     line = result.stderr.strip().splitlines()[-1]
     assert line.startswith("error: size.max_parameters=1000: no configuration the search can reach meets it")
     assert not (tmp_path / "out" / "runs").exists()
+
+
+def test_a_level_that_cannot_be_built_is_passed_over_not_ending_its_knob():
+    def cost_of(changes):
+        if changes.get("field_aggregator.width") == 24:
+            raise ConfigError("semantic width 64 is not a multiple of the view attention's 24 channels")
+        return _cost(changes)
+
+    scores = {"the reference": 0.70, "transformer width 16": 0.69, "transformer width 16, coarse samples 18": 0.60}
+    order = knob_order(LEVELS, cost_of)
+    assert order == ["field_aggregator.width", "model.coarse_samples"]  # ranked by width 16, its first buildable level
+    trials = descend(LEVELS, order, cost_of, _trainer(scores), tolerance=0.02)
+    assert [(t.name, t.kept) for t in trials] == [
+        ("reference", True), ("transformer width 24", False), ("transformer width 16", True),
+        ("coarse samples 18", False),
+    ]
+    assert trials[1].error.startswith("cannot be built: semantic width 64") and trials[1].accuracy is None
+    assert choose(trials, {})[0].changes == {"field_aggregator.width": 16}

@@ -36,6 +36,7 @@ from gpnerf_core.sizing.scene import SceneMeasurement, measure_scenes
 from gpnerf_core.sizing.search import (
     ReferenceFailed,
     Trial,
+    buildable_cost,
     choose,
     descend,
     describe,
@@ -153,8 +154,9 @@ def _size(cfg: Any, overrides: list[str], options: SizeOptions, metric: str, tol
     def on_trial(trial: Trial, reference: Trial) -> None:
         verdict = "reference" if trial is reference else ("kept" if trial.kept else "not kept")
         shown = "failed: " + str(trial.error) if trial.accuracy is None else f"{metric} {trial.accuracy:.4f}"
-        print(f"    {trial.name}: {shown}, {trial.cost.parameters / 1e6:.3f} M parameters, "
-              f"{trial.cost.flops_per_ray / 1e6:.2f} MFLOP/ray -> {verdict}", flush=True)
+        costs = (f", {trial.cost.parameters / 1e6:.3f} M parameters, {trial.cost.flops_per_ray / 1e6:.2f} MFLOP/ray"
+                 if trial.cost.rays else "")
+        print(f"    {trial.name}: {shown}{costs} -> {verdict}", flush=True)
         trials_so_far.append(trial)
         _write_report(out, scene, request_of(out), trials_so_far, None, None, notes, metric, tolerance)
 
@@ -210,7 +212,9 @@ def _refuse_unreachable_budgets(budgets: dict[str, float], levels: dict[str, tup
     if not static:
         return
     smallest = {key: smaller[-1] for key, (_, smaller) in levels.items()}
-    cost = cost_of(smallest)
+    cost = buildable_cost(cost_of, smallest)
+    if not isinstance(cost, StaticCost):
+        return  # the smallest corner cannot be built; the descent reports the budgets at the end
     trial = Trial("smallest", smallest, cost)
     failed = meets(trial, static)
     if failed:
@@ -411,7 +415,8 @@ def format_report(scene: SceneMeasurement, request: dict[str, Any], trials: list
         kept = "reference" if trial is reference else ("yes" if trial.kept else "no")
         accuracy = "failed: " + str(trial.error) if trial.accuracy is None else f"{trial.accuracy:.4f}"
         cells = [trial.name + mark, describe(trial.changes), kept, accuracy, _cell(m.get("miou unseen"), 4), _cell(m.get("psnr held-out"), 2),
-                 f"{trial.cost.parameters / 1e6:.3f}", f"{trial.cost.flops_per_ray / 1e6:.2f}",
+                 *((f"{trial.cost.parameters / 1e6:.3f}", f"{trial.cost.flops_per_ray / 1e6:.2f}") if trial.cost.rays
+                   else ("", "")),
                  _cell(m.get("rays_per_second"), 0), _cell(m.get("seconds_per_frame"), 2), _cell(m.get("peak_memory_mb"), 0)]
         lines.append("| " + " | ".join(cells) + " |")
     lines.append("")

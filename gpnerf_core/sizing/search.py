@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
+from gpnerf_core.errors import GpnerfError
 from gpnerf_core.sizing.costs import StaticCost
 from gpnerf_core.sizing.knobs import label_of
 
@@ -39,6 +40,10 @@ class Trial:
     kept: bool = False
 
 
+UNBUILT = StaticCost(parameters=0, flops_per_ray=0.0, rays=0)
+"""The cost recorded for a configuration that could not be built (it is never kept, so never chosen)."""
+
+
 def change_name(key: str, value: int) -> str:
     return f"{label_of(key)} {value}"
 
@@ -48,13 +53,26 @@ def describe(changes: dict[str, int]) -> str:
     return ", ".join(change_name(k, v) for k, v in changes.items()) or "the reference"
 
 
+def buildable_cost(cost_of: Callable[[dict[str, int]], StaticCost], changes: dict[str, int]) -> StaticCost | str:
+    """The cost of ``changes``, or why that configuration cannot be built (a width another width must divide)."""
+    try:
+        return cost_of(changes)
+    except GpnerfError as exc:
+        return str(exc)
+
+
 def knob_order(levels: dict[str, tuple[int, list[int]]], cost_of: Callable[[dict[str, int]], StaticCost]) -> list[str]:
-    """Knobs by the FLOPs per ray (then parameters) their first level saves from the reference, most first."""
+    """Knobs by the FLOPs per ray (then parameters) their first buildable level saves from the reference, most first;
+    a knob with no buildable level on its own goes last."""
     reference = cost_of({})
     savings = {}
     for key, (_, smaller) in levels.items():
-        cost = cost_of({key: smaller[0]})
-        savings[key] = (reference.flops_per_ray - cost.flops_per_ray, reference.parameters - cost.parameters)
+        savings[key] = (-1.0, -1.0)
+        for value in smaller:
+            cost = buildable_cost(cost_of, {key: value})
+            if isinstance(cost, StaticCost):
+                savings[key] = (reference.flops_per_ray - cost.flops_per_ray, reference.parameters - cost.parameters)
+                break
     return sorted(levels, key=lambda key: savings[key], reverse=True)
 
 
@@ -87,7 +105,13 @@ def descend(
     for key in order:
         for value in levels[key][1]:
             changes = {**kept, key: value}
-            trial = Trial(change_name(key, value), changes, cost_of(changes))
+            cost = buildable_cost(cost_of, changes)
+            if not isinstance(cost, StaticCost):  # not a score below tolerance: the next level may build
+                trials.append(Trial(change_name(key, value), changes, UNBUILT, error=f"cannot be built: {cost}"))
+                if on_trial:
+                    on_trial(trials[-1], reference)
+                continue
+            trial = Trial(change_name(key, value), changes, cost)
             train(trial)
             trial.kept = trial.accuracy is not None and trial.accuracy >= reference.accuracy - tolerance
             trials.append(trial)
