@@ -442,7 +442,7 @@ def _cell(value: float | None, digits: int) -> str:
 
 
 def _draw(out: Path, trials: list[Trial], chosen: Trial | None) -> None:
-    """Every trial on the speed-accuracy chart (FLOPs per ray among the costs)."""
+    """Every trial on the speed-accuracy chart (FLOPs per ray among the costs), labelled by its whole configuration."""
     from gpnerf_core.report import RowGroup, find_runs
     from gpnerf_core.speed_accuracy import draw, methods_from_groups
 
@@ -454,7 +454,6 @@ def _draw(out: Path, trials: list[Trial], chosen: Trial | None) -> None:
         rows = [type(row)(row.folder, row.config, {**row.metrics, "flops_per_ray": trial.cost.flops_per_ray})
                 for row in rows]
         groups.append(RowGroup(tuple(rows)))
-        suffix = " (chosen)" if trial is chosen else (" (reference)" if trial is trials[0] else "")
-        labels.append(trial.name + suffix)
+        labels.append(describe(trial.changes) + (" (chosen)" if trial is chosen else ""))
     if groups:
         draw(methods_from_groups(groups, labels), out)
