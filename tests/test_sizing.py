@@ -16,7 +16,7 @@ from gpnerf_core.sizing.search import Trial, choose, descend, describe, knob_ord
 from gpnerf_core.types import Frame
 from pipeline_check import TINY_CLI, TINY_MODEL, TINY_SCENES, gpnerf
 
-# ---- the scene measurement ----------------------------------------------------------------------------------------------
+# ---- the scene measurement -----------------------------------------------------------------------------------
 
 
 def _frame(x: float, depth: float, height: int = 32, width: int = 48, focal: float = 24.0) -> Frame:
@@ -78,7 +78,7 @@ def test_frames_without_depth_keep_the_configured_bounds():
     assert not measured.has_depth and measured.near is None and measured.coverage == {}
 
 
-# ---- knobs, descent, budgets ----------------------------------------------------------------------------------------------
+# ---- knobs, descent, budgets ---------------------------------------------------------------------------------
 
 
 def test_knob_levels_shrink_from_the_reference_and_respect_the_coverage_floor():
@@ -174,7 +174,7 @@ def test_size_options_are_checked_one_line_each():
     assert resolve_metric(parse_size_options([])[0], has_head=False) == ("psnr", 0.5)
 
 
-# ---- the command ----------------------------------------------------------------------------------------------------------
+# ---- the command ---------------------------------------------------------------------------------------------
 
 
 SIZE = ["+head=unet", "+loss=dgs", *TINY_CLI, "feature_extractor.fpn_channels=8", "size.steps=2"]

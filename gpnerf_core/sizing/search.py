@@ -9,7 +9,7 @@ every kept configuration was itself trained and measured, the combination includ
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Callable
 
 from gpnerf_core.errors import GpnerfError
 from gpnerf_core.sizing.costs import StaticCost
