@@ -50,10 +50,8 @@ from gpnerf_core.validation import check_data, validate_config
 OUTPUTS = ("size.md", "size.json", "scene.json", "speed_accuracy.png", "speed_accuracy.csv", "pareto.txt",
            "experiment", "runs", "request.json")
 """What a sizing writes into its folder; ``size.overwrite=true`` removes exactly these."""
-MEASURED = {
-    "held-out": ("eval", "train_heldout"),
-    "unseen": ("eval", "unseen"),
-}
+MEASURED = {"held-out": "train_heldout", "unseen": "unseen"}
+"""Splits whose accuracy a trial reports (name -> ``metrics.json`` split)."""
 
 
 class SizeFailed(GpnerfError):
@@ -288,7 +286,7 @@ def _measured(results: list[dict[str, Any]]) -> dict[str, float]:
         return sum(values) / len(values) if values else None
 
     figures: dict[str, float | None] = {}
-    for name, (_, split) in MEASURED.items():
+    for name, split in MEASURED.items():
         for metric, (_, key) in METRICS.items():
             figures[f"{metric} {name}"] = mean([m.get("eval", {}).get(split, {}).get(key) for m in results])
     timing = [m.get("eval", {}).get("train_heldout", {}).get("timing", {}) for m in results]

@@ -12,6 +12,13 @@ from gpnerf_core.sizing.knobs import KNOBS
 METRICS = {"miou": ("train_heldout", "miou/image_mean_present"), "psnr": ("train_heldout", "psnr/clamped")}
 """Selection metric -> where it is in ``metrics.json`` (held-out views of the training scenes, never unseen scenes)."""
 DEFAULT_TOLERANCE = {"miou": 0.02, "psnr": 0.5}
+NUMBERS: dict[str, tuple] = {
+    "steps": (int, 0),
+    "seeds": (int, 1, 10),
+    "min_coverage": (float, 0.0, 1.0),
+    "depth_margin": (float, 0.0, 0.9),
+}
+"""Numeric options: (type, minimum[, maximum]); the others (tolerance, budgets) are floats >= 0."""
 
 
 @dataclass
@@ -84,20 +91,10 @@ def parse_size_options(argv: list[str]) -> tuple[SizeOptions, list[str]]:
             raise ConfigError(f"{argument!r}: unknown size option; known: {', '.join('size.' + k for k in known)}")
         if name == "out":
             options.out = value
-        elif name == "steps":
-            options.steps = _number(name, value, int, 0)
-        elif name == "seeds":
-            options.seeds = _number(name, value, int, 1, 10)
         elif name == "metric":
             if value not in METRICS:
                 raise ConfigError(f"size.metric={value!r}: expected one of {', '.join(METRICS)}")
             options.metric = value
-        elif name == "tolerance":
-            options.tolerance = _number(name, value, float, 0.0)
-        elif name == "min_coverage":
-            options.min_coverage = _number(name, value, float, 0.0, 1.0)
-        elif name == "depth_margin":
-            options.depth_margin = _number(name, value, float, 0.0, 0.9)
         elif name == "knobs":
             options.knobs = _knobs(value)
         elif name == "overwrite":
@@ -105,7 +102,7 @@ def parse_size_options(argv: list[str]) -> tuple[SizeOptions, list[str]]:
                 raise ConfigError(f"size.overwrite={value!r}: expected true or false")
             options.overwrite = value.lower() == "true"
         else:
-            setattr(options, name, _number(name, value, float, 0.0))
+            setattr(options, name, _number(name, value, *NUMBERS.get(name, (float, 0.0))))
     return options, overrides
 
 
