@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 import shlex
 import shutil
 import subprocess
@@ -449,8 +450,7 @@ def _draw(out: Path, trials: list[Trial], chosen: Trial | None) -> None:
         rows = [row for path in trial.runs if Path(path).is_dir() for row in find_runs([Path(path)])]
         if not rows or trial.accuracy is None:
             continue
-        rows = [type(row)(row.folder, row.config, {**row.metrics, "flops_per_ray": trial.cost.flops_per_ray})
-                for row in rows]
+        rows = [replace(row, metrics={**row.metrics, "flops_per_ray": trial.cost.flops_per_ray}) for row in rows]
         groups.append(RowGroup(tuple(rows)))
         labels.append(describe(trial.changes) + (" (chosen)" if trial is chosen else ""))
     if groups:

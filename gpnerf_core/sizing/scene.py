@@ -15,7 +15,7 @@ from torch import Tensor
 
 from gpnerf_core.frames import FrameCache, choose_sources
 from gpnerf_core.geometry.projection import project_points
-from gpnerf_core.geometry.rays import pixel_grid
+from gpnerf_core.geometry.rays import pixel_grid, rays_through_pixels
 from gpnerf_core.interfaces import SceneDataset, ViewSelector
 
 MIN_VALID_DEPTH = 0.05
@@ -80,20 +80,17 @@ def _seen_by(depth: Tensor, intrinsics: Tensor, c2w: Tensor, sources: list[Any],
     z = depth[v, u]
     keep = z > 0
     pixels, z = pixels[keep], z[keep]
-    ones = torch.ones_like(pixels[:, :1])
-    camera_points = (torch.cat([pixels, ones], -1) @ torch.linalg.inv(intrinsics).T) * z[:, None]
-    world = camera_points @ c2w[:3, :3].T + c2w[:3, 3]
-    seen = []
-    for source in sources:
-        uv, zs = project_points(world, source.intrinsics[None], source.c2w[None])
-        uv, zs = uv[0], zs[0]
-        inside = (zs > 1e-6) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= height - 0.5)
-        su = uv[:, 0].round().clamp(0, width - 1).long()
-        sv = uv[:, 1].round().clamp(0, height - 1).long()
-        surface = source.depth[sv, su]
-        unoccluded = (surface <= 0) | (zs <= surface * (1 + OCCLUSION_TOLERANCE))
-        seen.append(inside & unoccluded)
-    return torch.stack(seen, -1) if seen else torch.zeros((int(keep.sum()), 0), dtype=torch.bool)
+    if not sources:
+        return torch.zeros((int(keep.sum()), 0), dtype=torch.bool)
+    rays = rays_through_pixels(pixels, intrinsics, c2w, near=0.0, far=1.0)  # directions have camera z = 1
+    world = rays.origins + rays.directions * z[:, None]
+    uv, zs = project_points(world, torch.stack([s.intrinsics for s in sources]), torch.stack([s.c2w for s in sources]))
+    inside = (zs > 1e-6) & (uv[..., 0] >= -0.5) & (uv[..., 0] <= width - 0.5) & (uv[..., 1] >= -0.5) & (uv[..., 1] <= height - 0.5)
+    su = uv[..., 0].round().clamp(0, width - 1).long()
+    sv = uv[..., 1].round().clamp(0, height - 1).long()
+    surface = torch.stack([s.depth for s in sources])[torch.arange(len(sources))[:, None], sv, su]
+    unoccluded = (surface <= 0) | (zs <= surface * (1 + OCCLUSION_TOLERANCE))
+    return (inside & unoccluded).T
 
 
 def measure_scenes(
