@@ -11,7 +11,8 @@ from gpnerf_core.interfaces import (
     StressCase,
     ViewSelector,
 )
-from gpnerf_core.registry import ComponentSpec, DataTool, get_registry
+from gpnerf_core.registry import get_registry
+from gpnerf_core.specs import ComponentSpec, DataTool
 
 __version__ = "0.1.0"
 

@@ -7,6 +7,7 @@ misspelled key (``train.step=10``) fails at composition with the key named.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Optional
 
 from omegaconf import MISSING
@@ -170,6 +171,13 @@ class RootConfig:
     """Checkpoint the ``eval`` command evaluates, ``finetune`` starts from and ``render`` renders."""
 
 
+def config_dir() -> str:
+    """The folder of the primary config (``conf/``, installed as the package ``gpnerf_conf``)."""
+    import gpnerf_conf
+
+    return str(Path(gpnerf_conf.__file__).resolve().parent)
+
+
 def run_dir_resolver(out_dir: str, default: str) -> str:
     """``hydra.run.dir``: ``out_dir`` when set, else Hydra's dated default, so nothing lands under ``outputs/``."""
     return out_dir or default
@@ -192,7 +200,6 @@ def compose(overrides: list[str] | tuple[str, ...] = ()) -> Any:
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
-    from gpnerf_core.cli import config_dir
     from gpnerf_core.registry import get_registry
 
     get_registry()

@@ -7,15 +7,26 @@ pose is a finite rigid transform. ``full``: also every training and evaluation f
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Sequence
+from typing import Protocol, Sequence
 
 import torch
 
 from gpnerf_core.errors import ConfigError, GpnerfError
 from gpnerf_core.geometry.poses import EXPECTED_RIGID, rigid_transform_problem
+from gpnerf_core.types import Scene
 
-if TYPE_CHECKING:
-    from gpnerf_core.interfaces.dataset import SceneDataset
+
+class CheckedDataset(Protocol):
+    """What the checks read of a dataset (``SceneDataset`` has it; the checks never need more)."""
+
+    @property
+    def num_classes(self) -> int: ...
+
+    @property
+    def ignore_index(self) -> int: ...
+
+    def load_scene(self, name: str) -> Scene: ...
+
 
 VALIDATION_LEVELS = ("quick", "full", "off")
 
@@ -27,7 +38,7 @@ def check_validation_level(level: str) -> str:
     return level
 
 
-def check_scene_files(dataset: "SceneDataset", scenes: Sequence[str], level: str) -> list[str]:
+def check_scene_files(dataset: CheckedDataset, scenes: Sequence[str], level: str) -> list[str]:
     """Problems in ``scenes`` at ``level``, one line each naming the file, or the scene and frame."""
     check_validation_level(level)
     if level == "off":
@@ -49,7 +60,7 @@ def check_scene_files(dataset: "SceneDataset", scenes: Sequence[str], level: str
     return problems
 
 
-def _frame_problems(dataset: "SceneDataset", scene: object, index: int) -> list[str]:
+def _frame_problems(dataset: CheckedDataset, scene: Scene, index: int) -> list[str]:
     where = f"scene {scene.name!r} frame {index}"
     try:
         frame = scene.load_frame(index)

@@ -64,3 +64,18 @@ def autocast(device: torch.device, precision: str) -> ContextManager:
     if dtype is None:
         return contextlib.nullcontext()
     return torch.autocast(device_type=device.type, dtype=dtype)
+
+
+def machine_info() -> dict[str, object]:
+    """What a run's figures were measured on (``metrics.json``'s ``machine``): platform, CPU count, torch threads and
+    the CUDA device's name (None without one)."""
+    import os
+    import platform
+
+    return {
+        "platform": platform.platform(),
+        "processor": platform.machine(),
+        "cpus": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
+    }

@@ -14,7 +14,7 @@ import pluggy
 
 if TYPE_CHECKING:
     from gpnerf_core.interfaces import StressCase
-    from gpnerf_core.registry import ComponentSpec, DataTool
+    from gpnerf_core.specs import ComponentSpec, DataTool
 
 PROJECT_NAME = "gpnerf"
 hookspec = pluggy.HookspecMarker(PROJECT_NAME)

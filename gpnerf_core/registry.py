@@ -18,12 +18,13 @@ import re
 import sys
 import traceback
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping
+from typing import Any, Mapping
 
 import pluggy
 
 from gpnerf_core import hookspecs
 from gpnerf_core.errors import ConfigError, GpnerfError, PluginError
+from gpnerf_core.specs import ComponentSpec, DataTool
 
 ENTRY_POINT_GROUP = "gpnerf"
 DISABLE_AUTOLOAD_ENV = "GPNERF_DISABLE_PLUGIN_AUTOLOAD"
@@ -67,39 +68,6 @@ OTHER_HOOKS = ("gpnerf_register_data_tools", "gpnerf_register_stress_cases")
 
 NAME_PATTERN = re.compile(r"^[a-z][a-z0-9_]*$")
 """Component names: snake_case, starting with a letter (they are Hydra option names)."""
-
-
-@dataclass(frozen=True)
-class ComponentSpec:
-    """A component a plugin offers.
-
-    Attributes:
-        name: registry key and Hydra option name (snake_case).
-        factory: called as ``factory(**config_fields_without_name, **runtime_kwargs)``.
-        config: a dataclass type whose fields are the factory's keyword arguments; its ``name`` field
-            must default to ``name``. It becomes the Hydra option's schema.
-        description: one line shown by ``python -m gpnerf_core plugins``.
-    """
-
-    name: str
-    factory: Callable[..., Any]
-    config: type
-    description: str = ""
-
-
-@dataclass(frozen=True)
-class DataTool:
-    """A subcommand of ``python -m gpnerf_core data``.
-
-    Attributes:
-        name: the subcommand (``check``, ``prepare-scannet``, ...).
-        run: ``run(argv) -> exit code``; parses its own arguments.
-        description: one line shown by ``python -m gpnerf_core data``.
-    """
-
-    name: str
-    run: Callable[[list[str]], int]
-    description: str = ""
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ import torch
 from torch import Tensor, nn
 
 from gpnerf_core.errors import ConfigError
-from gpnerf_core.geometry.projection import SampledMaps
+from gpnerf_core.types import SampledMaps
 
 
 class StreamedRendering(torch.autograd.Function):

@@ -56,7 +56,7 @@ def test_incompatible_widths_are_config_errors():
 
 def sampled_maps(rays, samples, views, channels, seed=0, dtype=torch.float64):
     """Random maps and grid coordinates, some outside the maps (zeros there)."""
-    from gpnerf_core.geometry.projection import SampledMaps
+    from gpnerf_core.types import SampledMaps
 
     g = torch.Generator().manual_seed(seed)
     maps = torch.randn(views, channels, 6, 8, generator=g, dtype=dtype)
@@ -112,7 +112,7 @@ def test_streamed_rendering_passes_gradcheck():
 
 
 def test_source_maps_with_gradients_take_the_dense_path_and_receive_gradients():
-    from gpnerf_core.geometry.projection import SampledMaps
+    from gpnerf_core.types import SampledMaps
 
     renderer = SemanticFieldRenderer(semantic_dim=16, attention_channels=8, ray_heads=4, num_blocks=2).double()
     base = sampled_maps(2, 4, 3, 16)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -29,6 +30,30 @@ from gpnerf_core.frames import FrameCache, choose_sources
 from gpnerf_core.training.checkpoint import RunRecord
 from gpnerf_core.training.trainer import Trainer
 from gpnerf_core.validation import check_data, validate_config
+
+OUT_OF_MEMORY = ("OutOfMemoryError", "MemoryError", "out of memory", "can't allocate memory")
+"""Markers of a child that ran out of memory (with a kill by signal 9)."""
+
+
+def run_measurement(overrides: list[str], phase: str, warmup: int, repeats: int) -> dict[str, Any]:
+    """One measurement in a child process; an error (out of memory included) comes back as ``{"error": ...}``."""
+    with tempfile.TemporaryDirectory() as folder:
+        progress = Path(folder) / "progress.json"
+        spec = {"overrides": overrides, "phase": phase, "warmup": warmup, "repeats": repeats, "progress": str(progress)}
+        done = subprocess.run(
+            [sys.executable, "-m", "gpnerf_core.bench.measure", json.dumps(spec)], capture_output=True, text=True
+        )
+        reached = json.loads(progress.read_text()) if progress.exists() else {}
+    if done.returncode == 0:
+        return json.loads(done.stdout.strip().splitlines()[-1])
+    lines = [line for line in done.stderr.strip().splitlines() if line.strip()]
+    last = lines[-1] if lines else f"exit code {done.returncode}"
+    killed = done.returncode in (-9, 137)
+    if killed or any(marker in done.stderr for marker in OUT_OF_MEMORY):
+        peak = reached.get("peak_memory_mb")
+        where = f"peak {peak:.0f} MiB after {reached.get('done', 0)} timed repetitions" if peak else "while building"
+        return {"error": f"out of memory ({where})", "out_of_memory": True}
+    return {"error": last}
 
 
 def _synchronize(device: torch.device) -> None:

@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 from torch.profiler import ProfilerActivity, profile
 
-from gpnerf_core.bench.command import VARIANTS, variant_overrides
+from gpnerf_core.bench.sizes import VARIANTS, variant_overrides
 from gpnerf_core.bench.sizes import get_size
 from gpnerf_core.build import build_components
 from gpnerf_core.config import compose

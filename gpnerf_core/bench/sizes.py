@@ -69,3 +69,13 @@ def get_size(name: str) -> Size:
     if name not in SIZES:
         raise ConfigError(f"bench size={name!r} is unknown; known sizes: {', '.join(SIZES)}")
     return SIZES[name]
+
+
+VARIANTS = ("gpnerf", "gnt_only")
+"""What ``bench`` measures at each size: GP-NeRF, and its GNT-only anchor (``GNT_ONLY``)."""
+
+
+def variant_overrides(size: Size, variant: str, overrides: list[str]) -> list[str]:
+    """The overrides of ``variant`` at ``size``, the user's last (they win)."""
+    extra = size.semantic if variant == "gpnerf" else GNT_ONLY
+    return [*size.common, *extra, *overrides]

@@ -9,9 +9,9 @@ every kept configuration was itself trained and measured, the combination includ
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Any, Callable
 
-from gpnerf_core.errors import GpnerfError
+from gpnerf_core.errors import ConfigError, GpnerfError
 from gpnerf_core.sizing.costs import StaticCost
 from gpnerf_core.sizing.knobs import label_of
 
@@ -184,3 +184,25 @@ def format_figure(value: float) -> str:
 def format_option(value: float) -> str:
     """A budget as the user would type it (``2000000``, ``0.5``)."""
     return f"{value:.12g}"
+
+
+def refuse_unreachable_budgets(budgets: dict[str, float], levels: dict[str, tuple[int, list[int]]],
+                                cost_of: Any) -> None:
+    """Parameter and FLOP budgets are known before training: refuse one not even every knob at its lowest meets."""
+    static = {b: v for b, v in budgets.items() if b in ("max_parameters", "max_flops_per_ray")}
+    if not static:
+        return
+    smallest = {key: smaller[-1] for key, (_, smaller) in levels.items()}
+    cost = buildable_cost(cost_of, smallest)
+    if not isinstance(cost, StaticCost):
+        return  # the smallest corner cannot be built; the descent reports the budgets at the end
+    trial = Trial("smallest", smallest, cost)
+    failed = meets(trial, static)
+    if failed:
+        reached = ", ".join(f"{label_of(k)} {v}" for k, v in smallest.items()) or "the reference (no knob to turn)"
+        values = {"max_parameters": f"{cost.parameters:,} parameters",
+                  "max_flops_per_ray": f"{format_figure(cost.flops_per_ray)} FLOPs per ray"}
+        raise ConfigError(
+            "; ".join(f"size.{b}={format_option(static[b])}: no configuration the search can reach meets it "
+                      f"(the smallest, {reached}, has {values[b]})" for b in failed)
+        )

@@ -65,7 +65,7 @@ class Outcome:
 
 def models_from_paths(paths: Sequence[Path]) -> list[ModelUnderTest]:
     """Run folders (or folders of runs) and ``.pt`` checkpoints, each a model; grouped into methods by config."""
-    from gpnerf_core.report import RunRow, find_runs, group_runs, method_labels
+    from gpnerf_core.reporting.runs import RunRow, find_runs, group_runs, method_labels
     from gpnerf_core.training.checkpoint import read_checkpoint
 
     rows: list[RunRow] = []
@@ -123,7 +123,7 @@ def choose_cases(names: Sequence[str] | None) -> list[StressCase]:
 
 def _config(model: ModelUnderTest, views_per_scene: int, dataset_overrides: dict[str, Any]) -> DictConfig:
     """The run's config (keys it predates at today's defaults) for evaluation, with the dataset overrides."""
-    from gpnerf_core.report import with_schema_defaults
+    from gpnerf_core.reporting.runs import with_schema_defaults
 
     cfg = OmegaConf.create(with_schema_defaults(copy.deepcopy(model.config)))
     with open_dict(cfg):

@@ -10,16 +10,13 @@ reported with the peak it reached and the others still run.
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
 from gpnerf_core.bench.machine import matmul_peak_gflops
-from gpnerf_core.bench.sizes import GNT_ONLY, SIZES, Size, get_size
+from gpnerf_core.bench.measure import run_measurement
+from gpnerf_core.bench.sizes import VARIANTS, get_size, variant_overrides
 from gpnerf_core.config import compose
 from gpnerf_core.device import resolve_device
 from gpnerf_core.errors import ConfigError
@@ -28,9 +25,7 @@ from gpnerf_core.run_folder import RunFolder
 from gpnerf_core.validation import validate_config
 
 OWN_KEYS = ("size", "repeats", "warmup", "out_dir", "phases")
-VARIANTS = ("gpnerf", "gnt_only")
 PHASES = ("train", "render")
-OUT_OF_MEMORY = ("OutOfMemoryError", "MemoryError", "out of memory", "can't allocate memory")
 
 
 def _parse(argv: list[str]) -> tuple[dict[str, str], list[str]]:
@@ -52,32 +47,6 @@ def _count(own: dict[str, str], key: str, default: int, minimum: int) -> int:
     if value < minimum:
         raise ConfigError(f"bench {key}={value}: expected an integer >= {minimum}")
     return value
-
-
-def variant_overrides(size: Size, variant: str, overrides: list[str]) -> list[str]:
-    extra = size.semantic if variant == "gpnerf" else GNT_ONLY
-    return [*size.common, *extra, *overrides]
-
-
-def run_measurement(overrides: list[str], phase: str, warmup: int, repeats: int) -> dict[str, Any]:
-    """One measurement in a child process; an error (out of memory included) comes back as ``{"error": ...}``."""
-    with tempfile.TemporaryDirectory() as folder:
-        progress = Path(folder) / "progress.json"
-        spec = {"overrides": overrides, "phase": phase, "warmup": warmup, "repeats": repeats, "progress": str(progress)}
-        done = subprocess.run(
-            [sys.executable, "-m", "gpnerf_core.bench.measure", json.dumps(spec)], capture_output=True, text=True
-        )
-        reached = json.loads(progress.read_text()) if progress.exists() else {}
-    if done.returncode == 0:
-        return json.loads(done.stdout.strip().splitlines()[-1])
-    lines = [line for line in done.stderr.strip().splitlines() if line.strip()]
-    last = lines[-1] if lines else f"exit code {done.returncode}"
-    killed = done.returncode in (-9, 137)
-    if killed or any(marker in done.stderr for marker in OUT_OF_MEMORY):
-        peak = reached.get("peak_memory_mb")
-        where = f"peak {peak:.0f} MiB after {reached.get('done', 0)} timed repetitions" if peak else "while building"
-        return {"error": f"out of memory ({where})", "out_of_memory": True}
-    return {"error": last}
 
 
 def main(argv: list[str]) -> int:
@@ -182,6 +151,3 @@ def _render_cells(render: dict[str, Any]) -> tuple[str, ...]:
         return (render["error"], "", "")
     return (f"{render['rays'] / render['seconds_median']:.0f}", f"{render['seconds_median']:.3f}",
             f"{render['peak_memory_mb']:.0f}")
-
-
-__all__ = ["SIZES", "main"]

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "gpnerf-head-separable"
+EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "gpnerf-head-separable"
 DISTRIBUTION = "gpnerf-head-separable"
 TINY = (  # a 4-step run on two 8-frame scenes of 48 x 64 pixels
     "dataset.num_train_scenes=1 dataset.num_unseen_scenes=1 dataset.frames_per_scene=8 dataset.eval_every=4 "

@@ -1,4 +1,5 @@
-"""``python -m gpnerf_core stress <runs or checkpoints> [--cases a,b] [--quick] --out DIR``."""
+"""``python -m gpnerf_core stress <runs or checkpoints> [--cases a,b] [--quick] --out DIR``: evaluate trained models
+under graded conditions (the cases and their runner live in ``gpnerf_core.stress``)."""
 
 from __future__ import annotations
 
@@ -10,15 +11,11 @@ from pathlib import Path
 from typing import Any
 
 from gpnerf_core.errors import ConfigError, NonFiniteError
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:
-        raise ConfigError(f"{self.prog}: {message}")
+from gpnerf_core.jobs import ArgumentParser
 
 
 def parser() -> argparse.ArgumentParser:
-    p = _Parser(
+    p = ArgumentParser(
         prog="gpnerf_core stress",
         description="Evaluate trained models under graded conditions (stress cases); runs that differ only by "
                     "seed are one method (mean +- std).",

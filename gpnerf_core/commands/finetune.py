@@ -12,76 +12,30 @@ from __future__ import annotations
 
 import sys
 import time
-from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
-import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from gpnerf_core.build import build_components
+from gpnerf_core.device import machine_info
 from gpnerf_core.distributed import Distributed
 from gpnerf_core.errors import ConfigError
+from gpnerf_core.evaluation.curves import CURVE_KEYS, curve_points
 from gpnerf_core.io import atomic_write_json
-from gpnerf_core.training.checkpoint import (
-    MODEL_SECTIONS,
-    NOT_MODEL_KEYS,
-    config_differences,
-    evaluation_weights,
-    format_differences,
-    load_weights,
-)
-
-CURVE_KEYS = (
-    "miou/image_mean_present",
-    "miou/dataset",
-    "acc/total",
-    "psnr/clamped",
-    "ssim/gaussian11",
-    "instance/ap_matched@0.75",
-    "instance/coco_mask_ap",
-)
-"""Metrics a curve entry keeps for each evaluated split (``finetune.curve``, ``eval_curve`` of ``run``)."""
+from gpnerf_core.jobs import checkpoint_config, claim_run_folder, job, launch_from_checkpoint, start
+from gpnerf_core.training.checkpoint import evaluation_weights
+from gpnerf_core.training.finetuning import finetune_weights
+from gpnerf_core.validation import check_data
 
 
-def curve_points(steps: int, points: int) -> list[int]:
-    """``points`` step counts from 0 to ``steps`` evenly (0, N/4, N/2, 3N/4, N for 5), distinct and ascending."""
-    if points < 2:
-        raise ConfigError(f"finetune.points={points}: expected at least 2 (before fine-tuning and after it)")
-    return sorted({round(steps * k / (points - 1)) for k in range(points)})
+def main(argv: list[str]) -> int:
+    return launch_from_checkpoint(finetune_task, argv, "finetune")
 
 
-def finetune_weights(
-    model: torch.nn.Module, state: Mapping[str, torch.Tensor], path: Path, old_config: str, new_config: str
-) -> list[str]:
-    """Load a checkpoint's weights for fine-tuning; returns the head tensors re-initialised for a new class count.
-
-    A head tensor whose shape differs only because the class count changed keeps the fresh initialisation; any
-    other difference is a ConfigError naming the config keys that differ from the checkpoint's.
-    """
-    own = model.state_dict()
-    reinitialised = []
-    for key, value in state.items():
-        if key in own and tuple(own[key].shape) != tuple(value.shape):
-            if key.startswith("head.") and tuple(own[key].shape[1:]) == tuple(value.shape[1:]):
-                reinitialised.append(key)
-                continue
-            differences = config_differences(old_config, new_config, MODEL_SECTIONS, NOT_MODEL_KEYS)
-            raise ConfigError(
-                f"finetune checkpoint={path}: tensor {key!r} has shape {list(value.shape)}, this model "
-                f"{list(own[key].shape)}; the model config differs from the checkpoint's: "
-                f"{format_differences(differences) or 'no key (a different plugin version?)'}"
-            )
-    kept = {key: value for key, value in state.items() if key not in reinitialised}
-    kept.update({key: own[key] for key in reinitialised})
-    load_weights(model, kept, f"checkpoint {path}")
-    return reinitialised
-
-
-def finetune_task_body(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
-    from gpnerf_core.build import build_components
+@job
+def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.evaluation.evaluator import evaluate, print_summary
-    from gpnerf_core.run import _machine, _prepare, _start, checkpoint_config
     from gpnerf_core.training.trainer import Trainer
-    from gpnerf_core.validation import check_data
 
     checkpoint, state, notes = checkpoint_config(cfg, "finetune")
     scenes = list(cfg.dataset.get("scenes") or [])
@@ -96,14 +50,14 @@ def finetune_task_body(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     points = curve_points(total, int(cfg.finetune.points))
     with open_dict(cfg):
         cfg.eval.splits = ["train"]  # the chosen scenes' held-out frames
-    _start(cfg)
+    start(cfg)
     components = build_components(cfg)
     check_data(cfg, components, training=True)
     start_weights, which = evaluation_weights(state, str(cfg.eval.weights))
     reinitialised = finetune_weights(
         components.model, start_weights, checkpoint, state["config"], OmegaConf.to_yaml(cfg, resolve=True)
     )
-    folder, record = _prepare(cfg, dist, resuming=False)
+    folder, record = claim_run_folder(cfg, dist, resuming=False)
     run_dir = folder.path
     with folder:
         if dist.is_main:
@@ -141,7 +95,7 @@ def finetune_task_body(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
         metrics = {
             "config_sha256": record.config_sha256,
             "seed": int(cfg.seed),
-            "machine": _machine(),
+            "machine": machine_info(),
             "finetune": {
                 "checkpoint": str(checkpoint),
                 "checkpoint_step": state["step"],

@@ -4,7 +4,7 @@ import pytest
 import yaml
 
 from gpnerf_core.errors import DataError
-from gpnerf_core.report import find_runs, format_table
+from gpnerf_core.reporting.runs import find_runs, format_table
 
 
 def write_run(folder, loss, joint, miou, seed=0, head="unet"):
@@ -80,7 +80,7 @@ def test_a_schema_key_a_run_predates_counts_as_its_default(tmp_path):
 
 
 def test_the_pareto_front_keeps_the_methods_nothing_beats_on_both_axes():
-    from gpnerf_core.speed_accuracy import ACCURACY, COSTS, Method, Point, pareto_front
+    from gpnerf_core.reporting.speed_accuracy import ACCURACY, COSTS, Method, Point, pareto_front
 
     miou, seconds, throughput = ACCURACY[0], COSTS[0], COSTS[1]
 
@@ -140,7 +140,7 @@ def test_report_chart_refuses_a_file_and_runs_with_nothing_to_draw(tmp_path):
 
 
 def test_chart_labels_name_the_method_and_tell_apart_two_variants_of_one():
-    from gpnerf_core.report import find_runs, group_runs, method_labels
+    from gpnerf_core.reporting.runs import find_runs, group_runs, method_labels
 
     import tempfile
     from pathlib import Path

@@ -5,7 +5,7 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf.errors import ConfigKeyError
 
-from gpnerf_core.cli import config_dir
+from gpnerf_core.config import config_dir
 from gpnerf_core.config import register_schema
 from gpnerf_core.registry import KINDS, get_registry
 

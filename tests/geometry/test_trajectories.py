@@ -1,28 +1,16 @@
-"""``render``: trajectories (interpolated, spiral) and the MP4 / GIF / PNG frames of a trained model."""
+"""Camera trajectories for ``render``: quaternion round trips, interpolation through key poses, the spiral."""
 
-import json
 import math
-import os
-import subprocess
-import sys
 
-import imageio.v2 as imageio
 import pytest
 import torch
 
-from gpnerf_core.render_video import (
+from gpnerf_core.geometry.trajectories import (
     interpolate_poses,
     quaternion_to_rotation,
     rotation_to_quaternion,
     spiral_poses,
 )
-
-TINY = [
-    "dataset.height=32", "dataset.width=48", "dataset.frames_per_scene=6", "dataset.eval_every=3",
-    "dataset.num_train_scenes=1", "feature_extractor.widths=[8,8,8,16]", "feature_extractor.fpn_channels=4",
-    "field_aggregator.width=16", "field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2",
-    "model.num_source_views=2", "train.rays=16", "threads=1", "eval.save_images=0",
-]
 
 
 def rotation(axis, angle):
@@ -65,28 +53,3 @@ def test_spiral_circles_the_centre_and_looks_at_the_focus_point():
         to_target = (target - p[:3, 3]) / (target - p[:3, 3]).norm()
         assert torch.allclose(p[:3, 2], to_target, atol=1e-9)
         assert torch.isclose(torch.det(p[:3, :3]), torch.tensor(1.0, dtype=torch.float64))
-
-
-def test_render_writes_mp4_gif_and_frames(tmp_path):
-    env = dict(os.environ, GPNERF_CACHE=str(tmp_path / "cache"), GPNERF_DISABLE_PLUGIN_AUTOLOAD="1")
-
-    def gpnerf(*args):
-        return subprocess.run([sys.executable, "-m", "gpnerf_core", *args], cwd=tmp_path, env=env,
-                              capture_output=True, text=True, timeout=600)
-
-    base = gpnerf("run", "+head=unet", "+loss=dgs", *TINY, "train.steps=2", f"out_dir={tmp_path / 'base'}")
-    assert base.returncode == 0, base.stderr[-2000:]
-    checkpoint = tmp_path / "base" / "checkpoints" / "step_0000002.pt"
-    result = gpnerf("render", f"checkpoint={checkpoint}", "render.frames=4", f"out_dir={tmp_path / 'video'}")
-    assert result.returncode == 0, result.stderr[-2000:]
-    video = tmp_path / "video"
-    assert sorted(p.name for p in (video / "frames").iterdir()) == [f"{i:04d}.png" for i in range(4)]
-    frame = imageio.imread(video / "frames" / "0000.png")
-    assert frame.shape[1] > 3 * 48  # rgb, depth and semantics side by side
-    assert len(imageio.mimread(video / "trajectory.gif")) == 4
-    assert sum(1 for _ in imageio.get_reader(video / "trajectory.mp4")) == 4  # len() of an ffmpeg reader is inf
-    assert json.loads((video / "render.json").read_text())["scene"] == "unseen_00"
-    assert not list(video.glob(".*partial*"))
-    bad = gpnerf("render", f"checkpoint={checkpoint}", "render.path=orbit", f"out_dir={tmp_path / 'bad'}")
-    assert bad.returncode == 2 and bad.stderr.strip() == "error: render.path='orbit'; expected one of: interpolate, spiral"
-    assert not (tmp_path / "bad").exists()

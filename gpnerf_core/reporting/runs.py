@@ -1,4 +1,5 @@
-"""``python -m gpnerf_core report <folders>``: one table from many run folders (a sweep, an ablation, seeds).
+"""Run folders read back: one table from many of them (a sweep, an ablation, seeds), for ``report``, ``stress`` and
+``size``.
 
 Rows are the run folders found below the given paths (any folder holding ``metrics.json`` and ``config.yaml``). Runs
 whose configs differ only by ``seed`` (and by where or how they ran: ``out_dir``, ``threads``, ``device``, ...) form
@@ -11,7 +12,6 @@ numbers are ScanNet at full size: context, not a target for CPU-sized runs.
 
 from __future__ import annotations
 
-import argparse
 import json
 import statistics
 from dataclasses import dataclass
@@ -20,7 +20,7 @@ from typing import Any
 
 import yaml
 
-from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.errors import DataError
 
 # Table 4 of the paper: (joint attention, S.D, gradient block, D.G) -> (ID, mIoU, PSNR) on ScanNet.
 PAPER_TABLE4 = {
@@ -219,41 +219,9 @@ def format_table(rows: list[RunRow]) -> str:
     return "\n".join(lines)
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:
-        raise ConfigError(f"{self.prog}: {message}")
-
-
-def main(argv: list[str]) -> int:
-    parser = _Parser(prog="gpnerf_core report", description="Tabulate run folders (mIoU is the per-image protocol, x100).")
-    parser.add_argument("paths", nargs="+", type=Path)
-    parser.add_argument("--chart", type=Path, metavar="DIR",
-                        help="also draw accuracy against cost (speed_accuracy.png, .csv, pareto.txt in DIR)")
-    args = parser.parse_args(argv)
-    if args.chart is not None and args.chart.exists() and not args.chart.is_dir():
-        raise ConfigError(f"--chart {args.chart}: expected a folder, found a file")
-    rows = find_runs(args.paths)
-    if not rows:
-        raise DataError(f"no run folders (metrics.json + config.yaml) under {', '.join(map(str, args.paths))}")
-    print(format_table(rows))
-    if args.chart is not None:
-        from gpnerf_core.speed_accuracy import draw, methods_from_groups
-
-        groups = group_runs([_with_parameter_count(row) for row in rows])
-        methods = methods_from_groups(groups, method_labels(groups))
-        if not any(fronts_possible(m) for m in methods):
-            raise DataError("--chart: no run has both an accuracy (mIoU, PSNR, AP) and a cost (time, rays/s, "
-                            "s/frame, parameters, memory) in its metrics.json; nothing to draw")
-        fronts = draw(methods, args.chart)
-        print(f"\nPareto fronts (speed_accuracy.png, speed_accuracy.csv, pareto.txt in {args.chart}):")
-        for panel, names in fronts.items():
-            print(f"  {panel}: {', '.join(names)}")
-    return 0
-
-
 def fronts_possible(method: Any) -> bool:
     """The method has a point on at least one (accuracy, cost) panel."""
-    from gpnerf_core.speed_accuracy import ACCURACY, COSTS
+    from gpnerf_core.reporting.speed_accuracy import ACCURACY, COSTS
 
     return any(a.name in method.points for a in ACCURACY) and any(c.name in method.points for c in COSTS)
 
@@ -275,7 +243,7 @@ def method_labels(groups: list[RowGroup]) -> list[str]:
     ]
 
 
-def _with_parameter_count(row: RunRow) -> RunRow:
+def with_parameter_count(row: RunRow) -> RunRow:
     """Runs written before ``metrics.json`` held ``parameters``: count the model tensors of their final checkpoint."""
     if row.error is not None or "parameters" in row.metrics:
         return row

@@ -77,7 +77,7 @@ class PoisonedImages(StressCase):
 
 
 def test_a_case_giving_non_finite_metrics_fails_the_suite_after_writing_it(trained, monkeypatch):
-    from gpnerf_core.stress.cli import main
+    from gpnerf_core.commands.stress import main
 
     monkeypatch.setenv("GPNERF_CACHE", str(trained / "cache"))
     monkeypatch.setitem(get_registry().stress_cases, "poisoned_images", (PoisonedImages(), "test"))
@@ -248,7 +248,7 @@ def test_merge_summarises_suites_run_apart(trained):
 
 def test_merge_of_a_folder_without_results_is_one_line(tmp_path):
     from gpnerf_core.errors import DataError
-    from gpnerf_core.stress.cli import main
+    from gpnerf_core.commands.stress import main
 
     (tmp_path / "empty").mkdir()
     with pytest.raises(DataError, match=r"--merge .*empty: no stress.json \(expected the --out folder"):

@@ -1,0 +1,54 @@
+"""``python -m gpnerf_core eval checkpoint=<.pt> [overrides]``: evaluate a checkpoint with the config it was trained
+with (recomposed from its overrides plus the command's) and write ``metrics.json`` into a new run folder."""
+
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+from omegaconf import DictConfig
+
+from gpnerf_core.device import machine_info
+from gpnerf_core.distributed import Distributed
+from gpnerf_core.io import atomic_write_json
+from gpnerf_core.jobs import claim_run_folder, job, launch_from_checkpoint, model_from_checkpoint
+from gpnerf_core.training.checkpoint import config_differences, format_differences
+
+
+def main(argv: list[str]) -> int:
+    return launch_from_checkpoint(eval_task, argv, "eval")
+
+
+@job
+def eval_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
+    from gpnerf_core.evaluation.evaluator import evaluate, print_summary
+    from gpnerf_core.frames import FrameCache
+
+    loaded = model_from_checkpoint(cfg, dist, "eval", check_scenes=True)
+    checkpoint, state, notes, components, which = (
+        loaded.path, loaded.state, loaded.notes, loaded.components, loaded.weights)
+    folder, record = claim_run_folder(cfg, dist, resuming=False)
+    with folder:
+        if dist.is_main:
+            ignore = ("checkpoint", "out_dir", "overwrite")
+            differences = config_differences(state["config"], record.config_yaml, ignore=ignore)
+            if differences:
+                print(f"eval: differences from the checkpoint's config: {format_differences(differences)}",
+                      file=sys.stderr)
+            for note in notes:
+                print(f"note: {note}", file=sys.stderr)
+        evaluation = evaluate(cfg, components, FrameCache(components.dataset, dist.device), folder.path, dist)
+        metrics = {
+            "checkpoint": str(checkpoint),
+            "checkpoint_step": state["step"],
+            "checkpoint_config_sha256": state["config_sha256"],
+            "evaluated_weights": which,
+            "config_sha256": record.config_sha256,
+            "machine": machine_info(),
+            "parameters": components.model.parameter_counts(),
+            **evaluation,
+        }
+        if dist.is_main:
+            atomic_write_json(folder.path / "metrics.json", metrics)
+            print_summary(metrics, folder.path)
+    return metrics

@@ -1,0 +1,34 @@
+"""``python -m gpnerf_core plugins``: registered components (kind, name, provider, version, description), disabled
+plugins and the problems of plugins that failed; exit code 1 when there are problems."""
+
+from __future__ import annotations
+
+from gpnerf_core.errors import GpnerfError
+from gpnerf_core.registry import get_registry
+
+
+def main(argv: list[str]) -> int:
+    if argv:
+        raise GpnerfError(f"plugins takes no arguments, got {' '.join(argv)!r}")
+    registry = get_registry()
+    rows = [("kind", "name", "provider", "version", "description")]
+    for kind, entries in registry.components.items():
+        for name in sorted(entries):
+            entry = entries[name]
+            rows.append((kind, name, entry.provider, entry.version, entry.spec.description))
+    for name, (case, provider) in registry.stress_cases.items():
+        version = registry.plugins[provider].version if provider in registry.plugins else "builtin"
+        rows.append(("stress_case", name, provider, version, case.description))
+    widths = [max(len(row[i]) for row in rows) for i in range(4)]
+    for row in rows:
+        print("  ".join(cell.ljust(widths[i]) for i, cell in enumerate(row[:4])) + "  " + row[4])
+    if registry.disabled:
+        print("\ndisabled:")
+        for name in registry.disabled:
+            print(f"  {name}")
+    if registry.problems:
+        print("\nproblems:")
+        for problem in registry.problems:
+            print(f"  {problem}")
+        return 1
+    return 0

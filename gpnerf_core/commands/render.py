@@ -1,0 +1,107 @@
+"""``python -m gpnerf_core render checkpoint=<.pt> [render.scene=...] [render.path=interpolate|spiral] [render.frames=N]``.
+
+Renders a novel-view trajectory of one scene with a trained model: RGB, depth and the head's semantic classes side by
+side per frame, written as PNG frames, an MP4 (imageio with its ffmpeg plugin) and a GIF in the run folder. The
+trajectories are ``gpnerf_core.geometry.trajectories``'; each rendered pose takes its source views from the scene's
+training frames with the configured view selector.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig
+
+from gpnerf_core.distributed import Distributed
+from gpnerf_core.errors import ConfigError
+from gpnerf_core.geometry.trajectories import trajectory
+from gpnerf_core.jobs import claim_run_folder, job, launch_from_checkpoint, model_from_checkpoint
+
+
+def main(argv: list[str]) -> int:
+    return launch_from_checkpoint(render_task, argv, "render")
+
+
+@job
+def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
+    import imageio.v2 as imageio
+    from tqdm import tqdm
+
+    from gpnerf_core.evaluation import visualize as vis
+    from gpnerf_core.evaluation.instances import slot_predictions
+    from gpnerf_core.frames import FrameCache
+    from gpnerf_core.io import atomic_write_json
+    from gpnerf_core.types import TargetCamera
+
+    loaded = model_from_checkpoint(cfg, dist, "render", check_scenes=False)
+    checkpoint, notes, components = loaded.path, loaded.notes, loaded.components
+    model = components.model.eval()
+    frames = FrameCache(components.dataset, dist.device)
+    split_scenes = list(components.dataset.scenes("unseen")) + list(components.dataset.scenes("train"))
+    name = str(cfg.render.scene) or (split_scenes[0] if split_scenes else "")
+    if name not in split_scenes:
+        raise ConfigError(f"render.scene={name!r} is not a scene of this dataset; known: {', '.join(split_scenes)}")
+    scene = frames.scene(name)
+    poses = trajectory(scene, cfg.render)
+    reference = frames.frame(scene, scene.train_frames[0])
+    candidates = list(scene.train_frames)
+    count = min(int(cfg.model.num_source_views), len(candidates))
+    folder, _ = claim_run_folder(cfg, dist, resuming=False)
+    run_dir = folder.path
+    pictures = []
+    with folder:
+        for note in notes:
+            print(f"note: {note}", file=sys.stderr)
+        for pose in tqdm(poses, desc="render", unit="frame", file=sys.stderr, dynamic_ncols=True):
+            c2w = pose.float()
+            positions = components.view_selector.select(c2w, scene.c2w[candidates], count, None)
+            sources = frames.source_views(scene, [candidates[p] for p in positions])
+            camera = TargetCamera(
+                intrinsics=reference.intrinsics.to(dist.device), c2w=c2w.to(dist.device),
+                height=reference.height, width=reference.width, near=scene.near, far=scene.far,
+            )
+            prediction = model.predict(camera, sources, stride=int(cfg.eval.render_stride),
+                                       chunk_rays=int(cfg.eval.chunk_rays))
+            s = prediction.stride
+            rgb = (prediction.rgb.clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8)
+            tiles = [np.kron(rgb, np.ones((s, s, 1), dtype=np.uint8)),
+                     np.kron(vis.depth_to_color(prediction.depth.cpu(), scene.near, scene.far),
+                             np.ones((s, s, 1), dtype=np.uint8))]
+            labels = ["rgb", "depth"]
+            if prediction.logits is not None and model.head.predicts == "instances":
+                slots, _ = slot_predictions(prediction.logits[0].cpu())
+                tiles.append(vis.colorize_instances(slots))  # a slot keeps its colour from frame to frame
+                labels.append("instances")
+            elif prediction.logits is not None:
+                classes = prediction.logits[0].argmax(0).cpu()
+                dataset = components.dataset
+                tiles.append(vis.colorize_labels(classes, dataset.num_classes, dataset.ignore_index))
+                labels.append("semantic")
+            pictures.append(vis.side_by_side(tiles, labels))
+        for index, picture in enumerate(pictures):
+            vis.save_image(run_dir / "frames" / f"{index:04d}.png", picture)
+        fps = int(cfg.render.fps)
+        _write_video(imageio, run_dir / "trajectory.mp4", pictures, fps)
+        _write_video(imageio, run_dir / "trajectory.gif", pictures, fps)
+        result = {"checkpoint": str(checkpoint), "scene": name, "path": str(cfg.render.path), "frames": len(pictures),
+                  "outputs": ["trajectory.mp4", "trajectory.gif", "frames/"]}
+        atomic_write_json(run_dir / "render.json", result)
+        print(f"rendered {len(pictures)} frames of {name} to {run_dir} (trajectory.mp4, trajectory.gif, frames/)")
+    return result
+
+
+def _write_video(imageio: Any, path: Path, pictures: list[np.ndarray], fps: int) -> None:
+    """Write frames to ``path`` through a temporary name, so a failure leaves no half-written video."""
+    temporary = path.with_name(f".{path.stem}.partial{path.suffix}")
+    try:
+        if path.suffix == ".gif":
+            imageio.mimsave(temporary, pictures, duration=1000 / max(fps, 1), loop=0)
+        else:
+            even = [p[: p.shape[0] // 2 * 2, : p.shape[1] // 2 * 2] for p in pictures]  # yuv420p needs even sides
+            imageio.mimsave(temporary, even, fps=fps, codec="libx264", macro_block_size=1)
+        temporary.replace(path)
+    finally:
+        temporary.unlink(missing_ok=True)

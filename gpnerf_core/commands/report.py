@@ -1,0 +1,43 @@
+"""``python -m gpnerf_core report <folders> [--chart DIR]``: one table from many run folders (a sweep, an ablation,
+seeds) beside the paper's Table 4, and optionally the accuracy-against-cost chart (``gpnerf_core.reporting``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.jobs import ArgumentParser
+from gpnerf_core.reporting.runs import (
+    find_runs,
+    format_table,
+    fronts_possible,
+    group_runs,
+    method_labels,
+    with_parameter_count,
+)
+from gpnerf_core.reporting.speed_accuracy import draw, methods_from_groups
+
+
+def main(argv: list[str]) -> int:
+    parser = ArgumentParser(prog="gpnerf_core report", description="Tabulate run folders (mIoU is the per-image protocol, x100).")
+    parser.add_argument("paths", nargs="+", type=Path)
+    parser.add_argument("--chart", type=Path, metavar="DIR",
+                        help="also draw accuracy against cost (speed_accuracy.png, .csv, pareto.txt in DIR)")
+    args = parser.parse_args(argv)
+    if args.chart is not None and args.chart.exists() and not args.chart.is_dir():
+        raise ConfigError(f"--chart {args.chart}: expected a folder, found a file")
+    rows = find_runs(args.paths)
+    if not rows:
+        raise DataError(f"no run folders (metrics.json + config.yaml) under {', '.join(map(str, args.paths))}")
+    print(format_table(rows))
+    if args.chart is not None:
+        groups = group_runs([with_parameter_count(row) for row in rows])
+        methods = methods_from_groups(groups, method_labels(groups))
+        if not any(fronts_possible(m) for m in methods):
+            raise DataError("--chart: no run has both an accuracy (mIoU, PSNR, AP) and a cost (time, rays/s, "
+                            "s/frame, parameters, memory) in its metrics.json; nothing to draw")
+        fronts = draw(methods, args.chart)
+        print(f"\nPareto fronts (speed_accuracy.png, speed_accuracy.csv, pareto.txt in {args.chart}):")
+        for panel, names in fronts.items():
+            print(f"  {panel}: {', '.join(names)}")
+    return 0

@@ -1,0 +1,141 @@
+"""``python -m gpnerf_core run [overrides]``: train on the dataset's training scenes, then evaluate held-out views and
+unseen scenes, and write the run folder (the main job; ``-m`` sweeps).
+
+Runs as one process or as N under torchrun. Rank 0 alone writes the run folder, which it first locks
+(``jobs.claim_run_folder``); every other process learns the folder from rank 0.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, open_dict
+
+from gpnerf_core.build import build_components
+from gpnerf_core.device import machine_info
+from gpnerf_core.distributed import Distributed
+from gpnerf_core.evaluation.curves import curve_entry, eval_scalars
+from gpnerf_core.io import atomic_write_json
+from gpnerf_core.jobs import claim_run_folder, job, launch, start
+from gpnerf_core.validation import check_data
+
+
+def main(argv: list[str]) -> int:
+    return launch(run_task, argv, "gpnerf_core run")
+
+
+@job
+def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
+    from gpnerf_core.evaluation.evaluator import evaluate, print_summary
+    from gpnerf_core.evaluation.visualize import plot_training_curves
+    from gpnerf_core.training.init_weights import init_weights
+    from gpnerf_core.training.loggers import make_loggers
+    from gpnerf_core.training.sampler import check_global_batch
+    from gpnerf_core.training.trainer import Trainer
+
+    start(cfg)
+    check_global_batch(int(cfg.train.targets_per_step), dist.world_size)
+    resuming = bool(cfg.train.resume)
+    components = build_components(cfg)
+    check_data(cfg, components, training=True)
+    if cfg.model.init and not resuming:
+        report = init_weights(components.model, Path(cfg.model.init), strict=bool(cfg.model.init_strict))
+        if dist.is_main:
+            print(report, file=sys.stderr)
+    folder, record = claim_run_folder(cfg, dist, resuming=resuming)
+    run_dir = folder.path
+    with folder:
+        trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record)
+        if dist.is_main:
+            for note in trainer.notes:
+                print(f"note: {note}", file=sys.stderr)
+            if dist.enabled:
+                print(
+                    f"distributed: {dist.world_size} processes ({dist.backend}), "
+                    f"{trainer.sampler.targets_per_rank} target view(s) each, "
+                    f"{int(cfg.train.rays) * int(cfg.train.targets_per_step)} rays per step in all",
+                    file=sys.stderr,
+                )
+        loggers = make_loggers(list(cfg.train.loggers), run_dir, trainer.resumed_step) if dist.is_main else []
+        try:
+            started = time.perf_counter()
+            curve = _evaluated_curve(cfg, components, trainer, run_dir, dist, loggers)
+            result = trainer.fit(progress=True, loggers=loggers)
+            if dist.is_main:
+                atomic_write_json(run_dir / "training_curves.json", result.history)
+                if result.history:
+                    loss_keys = [*trainer.loss_names, "loss"]
+                    plot_training_curves(result.history, run_dir / "training_curves.png", loss_keys=loss_keys)
+            with trainer.evaluation_weights() as weights:
+                evaluation = evaluate(cfg, components, trainer.frames, run_dir, dist)
+            metrics = {
+                "config_sha256": record.config_sha256,
+                "seed": int(cfg.seed),
+                "machine": machine_info(),
+                "train": {
+                    "steps": result.steps,
+                    "seconds": round(result.seconds, 2),
+                    "rays_per_second": round(result.rays_per_second, 1),
+                    "final_loss": result.history[-1]["loss"] if result.history else None,
+                    "checkpoint": str(result.checkpoint) if result.checkpoint else None,
+                    "world_size": result.world_size,
+                    "targets_per_step": int(cfg.train.targets_per_step),
+                    "targets_per_rank": result.targets_per_rank,
+                    "rays_per_step": result.rays_per_step,
+                    "backend": dist.backend,
+                    "precision": str(cfg.train.precision),
+                },
+                "evaluated_weights": weights,
+                "parameters": components.model.parameter_counts(),
+                **evaluation,
+                "wall_seconds": round(time.perf_counter() - started, 2),
+            }
+            if curve:
+                metrics["eval_curve"] = [*curve, curve_entry(result.steps, result.seconds, evaluation)]
+            if dist.is_main:
+                for logger in loggers:
+                    logger.log(result.steps, eval_scalars(evaluation))
+                atomic_write_json(run_dir / "metrics.json", metrics)
+                print_summary(metrics, run_dir)
+        finally:
+            for logger in loggers:
+                logger.close()
+    return metrics
+
+
+def _evaluated_curve(cfg: DictConfig, components: Any, trainer: Any, run_dir: Path, dist: Distributed,
+                     loggers: list[Any]) -> list[dict[str, Any]]:
+    """With ``eval.every_steps``: train to every multiple of it below ``train.steps`` and evaluate there (no pictures;
+    a checkpoint at each). Evaluation draws no random numbers, so the training after it is the training without it."""
+    from gpnerf_core.evaluation.evaluator import evaluate
+
+    every, total = int(cfg.eval.every_steps), int(cfg.train.steps)
+    curve: list[dict[str, Any]] = []
+    if not every:
+        return curve
+    for point in range(every, total, every):
+        if point <= trainer.step:
+            continue
+        with open_dict(cfg):
+            cfg.train.steps, saved_images = point, cfg.eval.save_images
+            cfg.eval.save_images = 0
+        try:
+            trainer.fit(progress=True, loggers=loggers)
+            with trainer.evaluation_weights():
+                evaluation = evaluate(cfg, components, trainer.frames, run_dir, dist)
+        finally:
+            with open_dict(cfg):
+                cfg.train.steps, cfg.eval.save_images = total, saved_images
+        curve.append(curve_entry(trainer.step, trainer.elapsed, evaluation))
+        if dist.is_main:
+            for logger in loggers:
+                logger.log(trainer.step, eval_scalars(evaluation))
+            shown = ", ".join(
+                f"{split} {values.get('miou/image_mean_present', values.get('psnr/clamped', float('nan'))):.3f}"
+                for split, values in evaluation["eval"].items() if isinstance(values, dict)
+            )
+            print(f"eval at step {trainer.step}: {shown}", file=sys.stderr)
+    return curve
