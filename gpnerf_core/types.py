@@ -64,6 +64,8 @@ class Scene:
         eval_frames: held-out targets, disjoint from ``train_frames`` (except under a dataset's explicitly named
             ``paper_parity`` protocol, which reproduces the reference code's overlap); never used as sources.
         load_frame: ``index -> Frame``; the dataset decides caching.
+        labelled: False for a scene without semantic labels (a user's own capture): its frames' ``semantic`` is all
+            the dataset's ``ignore_index``, and no label metric is computed on it (reported as not available).
     """
 
     name: str
@@ -76,6 +78,7 @@ class Scene:
     train_frames: tuple[int, ...]
     eval_frames: tuple[int, ...]
     load_frame: Callable[[int], Frame] = field(repr=False, compare=False)
+    labelled: bool = True
 
     @property
     def num_frames(self) -> int:

@@ -1,1 +1,2 @@
-"""The stress suite: trained models evaluated under graded conditions (``python -m gpnerf_core stress``)."""
+"""The stress suite: trained models evaluated under graded conditions (``runner``) and summarised (``summary``); driven
+by ``python -m gpnerf_core stress``."""
