@@ -2,6 +2,7 @@
 
 from gpnerf_core import ComponentSpec, DataTool, hookimpl
 from gpnerf_plugins.datasets import tools
+from gpnerf_plugins.datasets.capture.dataset import CaptureScenes, CaptureScenesConfig
 from gpnerf_plugins.datasets.embedded.dataset import EmbeddedScenes, EmbeddedScenesConfig
 from gpnerf_plugins.datasets.replica.dataset import (
     ReplicaInstanceScenes,
@@ -38,6 +39,12 @@ def gpnerf_register_datasets() -> list[ComponentSpec]:
             ScanNetScenes,
             ScanNetScenesConfig,
             "ScanNet scans (Semantic-Ray export layout), 20 benchmark classes",
+        ),
+        ComponentSpec(
+            "capture",
+            CaptureScenes,
+            CaptureScenesConfig,
+            "your own captures: nerfstudio transforms.json (PINHOLE/OPENCV), labels optional",
         ),
     ]
 

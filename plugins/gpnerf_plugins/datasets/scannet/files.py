@@ -182,17 +182,6 @@ def read_intrinsic(path: Path) -> np.ndarray:
     return k
 
 
-def scale_intrinsics(k: np.ndarray, sx: float, sy: float) -> np.ndarray:
-    """Intrinsics ``[3, 3]`` after resizing the image by ``sx`` horizontally and ``sy`` vertically.
-
-    Pixel centres sit at integers (``gpnerf_core.types``), so a resize maps ``u + 0.5`` to ``sx (u + 0.5)``:
-    ``fx' = sx fx``, ``cx' = sx (cx + 0.5) - 0.5`` (likewise in y). This is the mapping of area-aligned
-    resizes (PIL, skimage, the nearest-neighbour pick below).
-    """
-    a = np.array([[sx, 0.0, (sx - 1.0) / 2.0], [0.0, sy, (sy - 1.0) / 2.0], [0.0, 0.0, 1.0]])
-    return a @ k
-
-
 def _layout_error(error: ImageError, missing: str, unreadable: str, frame: str | None) -> LayoutError:
     """``error`` as a layout problem: expected ``missing``, found nothing; or expected ``unreadable``, found why."""
     if error.missing:

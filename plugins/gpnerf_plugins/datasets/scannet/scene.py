@@ -27,6 +27,7 @@ from PIL import Image
 
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.types import Frame, Scene
+from gpnerf_plugins.datasets.common.cameras import scale_intrinsics
 from gpnerf_plugins.datasets.common.image_io import resize_nearest
 from gpnerf_plugins.datasets.scannet.files import (
     DEPTH_SCALE,
@@ -41,7 +42,6 @@ from gpnerf_plugins.datasets.scannet.files import (
     read_integer_image,
     read_intrinsic,
     read_pose,
-    scale_intrinsics,
     scan_frames,
 )
 from gpnerf_plugins.datasets.scannet.labels import IGNORE_INDEX, LabelMap

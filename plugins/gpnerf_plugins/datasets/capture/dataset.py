@@ -1,0 +1,395 @@
+"""The ``capture`` dataset: a user's own captures in nerfstudio's ``transforms.json`` format (docs/datasets/capture.md).
+
+``dataset.root`` holds one capture (``transforms.json`` in it) or one folder per capture. Frames are undistorted
+(``OPENCV`` cameras), resized to the dataset's size with their intrinsics scaled, and their poses (and depths and
+depth bounds) multiplied by ``dataset.scale``. A capture without semantic labels is a scene with ``labelled=False``:
+its frames' labels are all the ignore index, and label metrics are not computed on it.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from gpnerf_core.data_checks import check_validation_level
+from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.interfaces import SPLITS, SceneDataset
+from gpnerf_core.types import Frame, Scene
+from gpnerf_plugins.datasets.base import DatasetConfig
+from gpnerf_plugins.datasets.capture.transforms import TRANSFORMS_FILE, CaptureFile, CaptureFrame, read_transforms
+from gpnerf_plugins.datasets.capture.undistort import Undistorter
+from gpnerf_plugins.datasets.common.cameras import scale_intrinsics
+from gpnerf_plugins.datasets.common.image_io import decode_image, resize_nearest, resize_rgb
+from gpnerf_plugins.datasets.common.paths import from_launch_dir
+from gpnerf_plugins.datasets.common.scene_lists import chosen_scenes, disjoint_unseen, missing_scene
+
+CLASSES_FILE = "classes.json"
+DEFAULT_DEPTH_UNIT = 1e-3
+"""Metres per stored depth unit when neither the file nor ``dataset.depth_unit`` says (nerfstudio's default: mm)."""
+SIZE_MULTIPLE = 16
+"""Automatic sizes are multiples of this (the feature extractors' coarsest stride)."""
+DEPTH_PERCENTILES = (1.0, 99.0)
+DEPTH_MARGIN = 0.1
+"""Bounds from depth maps: the 1st and 99th percentiles of the valid depths, widened by 10% on each side."""
+DEPTH_FRAMES = 8
+"""Frames (spread over the capture) whose depth maps give the bounds when the file has none."""
+
+
+@dataclass
+class CaptureScenesConfig(DatasetConfig):
+    """Options of the captures under ``root``.
+
+    ``root`` holds ``transforms.json`` (one capture, named after the folder) or folders that each hold one. A size of 0
+    is automatic: the first frame's aspect, the long side ``long_side``, both multiples of 16. ``near``/``far`` of 0
+    are taken from the capture: the frames' ``near``/``far`` (``data import-colmap`` writes them), else its depth maps.
+    """
+
+    name: str = "capture"
+    """Registry name of this dataset."""
+    height: int = 0
+    """Image height frames are loaded at, pixels (0 = automatic, see long_side)."""
+    width: int = 0
+    """Image width frames are loaded at, pixels (0 = automatic, see long_side)."""
+    long_side: int = 160
+    """Automatic size: the long side in pixels (the short one follows the capture's aspect)."""
+    near: float = 0.0
+    """Ray-sampling near bound, metres after ``scale`` (0 = from the capture)."""
+    far: float = 0.0
+    """Ray-sampling far bound, metres after ``scale`` (0 = from the capture)."""
+    eval_every: int = 8
+    """Without split lists in the file, every eval_every-th frame (from frame eval_every // 2) is held out; 0 = none."""
+    scale: float = 1.0
+    """Multiplies camera positions, depths and depth bounds: brings a capture in arbitrary units (COLMAP's) to metres."""
+    depth_unit: float = 0.0
+    """Metres per stored depth unit (0 = the file's depth_unit_scale_factor, else 0.001)."""
+    classes_file: str = ""
+    """A classes.json ({"classes": [...], "ignore_index": 255}) for every capture; "" = each capture's own or root's."""
+    scenes: list[str] = field(default_factory=list)
+    """Captures trained on (folder names under root); empty = every capture not in unseen_scenes."""
+    unseen_scenes: list[str] = field(default_factory=list)
+    """Captures never trained on, evaluated for generalization; empty = none."""
+
+
+@dataclass(frozen=True)
+class ClassList:
+    names: tuple[str, ...]
+    ignore_index: int
+    path: Path
+
+
+class CaptureScenes(SceneDataset):
+    """Captures in nerfstudio's format under ``root`` (construction touches no file)."""
+
+    def __init__(
+        self,
+        root: str = CaptureScenesConfig.root,
+        height: int = CaptureScenesConfig.height,
+        width: int = CaptureScenesConfig.width,
+        long_side: int = CaptureScenesConfig.long_side,
+        near: float = CaptureScenesConfig.near,
+        far: float = CaptureScenesConfig.far,
+        eval_every: int = CaptureScenesConfig.eval_every,
+        scale: float = CaptureScenesConfig.scale,
+        depth_unit: float = CaptureScenesConfig.depth_unit,
+        classes_file: str = CaptureScenesConfig.classes_file,
+        validate: str = CaptureScenesConfig.validate,
+        scenes: Sequence[str] = (),
+        unseen_scenes: Sequence[str] = (),
+    ) -> None:
+        if not root:
+            raise ConfigError("dataset.root is empty; expected a capture folder holding transforms.json, or a folder "
+                              "of such capture folders")
+        for key, size in (("height", height), ("width", width)):
+            if size < 0 or size % SIZE_MULTIPLE:
+                raise ConfigError(f"dataset.{key}={size}: expected 0 (automatic) or a positive multiple of "
+                                  f"{SIZE_MULTIPLE}")
+        if (height == 0) != (width == 0):
+            raise ConfigError(f"dataset.height={height}, dataset.width={width}: expected both 0 (automatic) or both set")
+        if long_side < SIZE_MULTIPLE:
+            raise ConfigError(f"dataset.long_side={long_side}: expected at least {SIZE_MULTIPLE} pixels")
+        if near < 0 or far < 0 or (near and far and near >= far) or (bool(near) != bool(far)):
+            raise ConfigError(f"dataset.near={near}, dataset.far={far}: expected both 0 (from the capture) or "
+                              "0 < near < far (metres)")
+        if not scale > 0 or scale == float("inf"):
+            raise ConfigError(f"dataset.scale={scale}: expected a finite factor > 0")
+        if eval_every < 0:
+            raise ConfigError(f"dataset.eval_every={eval_every}: expected an integer >= 0 (0 = no held-out frames)")
+        if depth_unit < 0:
+            raise ConfigError(f"dataset.depth_unit={depth_unit}: expected metres per depth unit > 0 (0 = the file's)")
+        self.validation = check_validation_level(validate)
+        self.root = from_launch_dir(root)
+        self.size = (int(height), int(width))
+        self.long_side = int(long_side)
+        self.bounds = (float(near), float(far))
+        self.eval_every = int(eval_every)
+        self.scale = float(scale)
+        self.depth_unit = float(depth_unit)
+        self.classes_path = from_launch_dir(classes_file) if classes_file else None
+        self._given = {"train": chosen_scenes("scenes", scenes, ()),
+                       "unseen": chosen_scenes("unseen_scenes", unseen_scenes, ())}
+        self._files: dict[str, CaptureFile] = {}
+        self._scenes: dict[str, Scene] = {}
+        self._classes: ClassList | None = None
+        self._classes_read = False
+
+    # -- scenes and splits -----------------------------------------------------------------------------------------
+
+    def _found(self) -> dict[str, Path]:
+        """Capture name -> folder: ``root`` itself when it holds transforms.json, else its subfolders that do."""
+        if (self.root / TRANSFORMS_FILE).is_file():
+            return {self.root.name: self.root}
+        if not self.root.is_dir():
+            raise DataError(f"{self.root}: not a folder; expected a capture folder holding {TRANSFORMS_FILE}, or a "
+                            "folder of capture folders")
+        found = {p.name: p for p in sorted(self.root.iterdir()) if (p / TRANSFORMS_FILE).is_file()}
+        if not found:
+            raise DataError(f"{self.root}: no {TRANSFORMS_FILE} in it or in its folders; expected a capture (make one "
+                            "with `data prepare-capture` or `data import-colmap`)")
+        return found
+
+    def scenes(self, split: str) -> tuple[str, ...]:
+        if split not in SPLITS:
+            raise ConfigError(f"unknown split {split!r}; expected one of: {', '.join(SPLITS)}")
+        found = self._found()
+        for key, names in (("scenes", self._given["train"]), ("unseen_scenes", self._given["unseen"])):
+            for name in names:
+                if name not in found:
+                    raise missing_scene(self.root, name, f"a capture folder with {TRANSFORMS_FILE} (dataset.{key})")
+        unseen = disjoint_unseen(self._given["train"], self._given["unseen"], train_given=bool(self._given["train"]),
+                                 unseen_given=bool(self._given["unseen"]))
+        if split == "unseen":
+            return unseen
+        return self._given["train"] or tuple(name for name in found if name not in unseen)
+
+    def capture(self, name: str) -> CaptureFile:
+        """The parsed transforms.json of capture ``name``."""
+        if name not in self._files:
+            found = self._found()
+            if name not in found:
+                raise missing_scene(self.root, name, f"a capture folder with {TRANSFORMS_FILE}")
+            self._files[name] = read_transforms(found[name] / TRANSFORMS_FILE)
+        return self._files[name]
+
+    # -- classes ---------------------------------------------------------------------------------------------------
+
+    def _class_list(self) -> ClassList | None:
+        """The one class list of the labelled captures: ``classes_file``, else their own or root's classes.json."""
+        if self._classes_read:
+            return self._classes
+        candidates = [self.classes_path] if self.classes_path else [
+            *(folder / CLASSES_FILE for folder in self._found().values()), self.root / CLASSES_FILE]
+        lists = [read_class_list(path) for path in dict.fromkeys(candidates) if path.is_file()]
+        if self.classes_path and not lists:
+            raise DataError(f"{self.classes_path}: missing (dataset.classes_file); expected a classes.json")
+        for other in lists[1:]:
+            if (other.names, other.ignore_index) != (lists[0].names, lists[0].ignore_index):
+                raise DataError(f"{other.path}: class list differs from {lists[0].path}; expected one class list for "
+                                "every capture of the dataset (or dataset.classes_file)")
+        self._classes, self._classes_read = (lists[0] if lists else None), True
+        return self._classes
+
+    @property
+    def class_names(self) -> tuple[str, ...]:
+        """The captures' class list; empty when no capture has one (a model's own list is then used)."""
+        classes = self._class_list()
+        return classes.names if classes else ()
+
+    @property
+    def ignore_index(self) -> int:
+        classes = self._class_list()
+        return classes.ignore_index if classes else 255
+
+    # -- loading ---------------------------------------------------------------------------------------------------
+
+    def load_scene(self, name: str) -> Scene:
+        if name not in self._scenes:
+            self._scenes[name] = self._scene(name, self.capture(name))
+        return self._scenes[name]
+
+    def _scene(self, name: str, capture: CaptureFile) -> Scene:
+        frames = capture.frames
+        labelled = [f.semantic is not None for f in frames]
+        if any(labelled) and not all(labelled):
+            first = frames[labelled.index(False)]
+            raise DataError(f"{capture.path}: frame {first.name!r} has no semantic_file_path while others have one; "
+                            "expected labels for every frame of a labelled capture, or for none")
+        if all(labelled) and self._class_list() is None:
+            raise DataError(f"{capture.path}: frames have semantic_file_path but no {CLASSES_FILE} names the classes "
+                            f"(beside it, in {self.root} or dataset.classes_file)")
+        height, width = self._load_size(frames[0])
+        intrinsics = np.stack([scale_intrinsics(f.camera.intrinsics, width / f.camera.width, height / f.camera.height)
+                               for f in frames])
+        c2w = np.stack([f.c2w for f in frames])
+        c2w[:, :3, 3] *= self.scale
+        train, held_out = self._split(capture)
+        reader = _FrameReader(self, capture, (height, width), intrinsics, c2w)
+        near, far = self._depth_bounds(name, capture, reader)
+        return Scene(
+            name=name, c2w=torch.from_numpy(c2w).float(), intrinsics=torch.from_numpy(intrinsics).float(),
+            height=height, width=width, near=near, far=far, train_frames=train, eval_frames=held_out,
+            load_frame=reader, labelled=all(labelled),
+        )
+
+    def _load_size(self, first: CaptureFrame) -> tuple[int, int]:
+        if self.size != (0, 0):
+            return self.size
+        h, w = first.camera.height, first.camera.width
+        ratio = self.long_side / max(h, w)
+        return (max(SIZE_MULTIPLE, round(h * ratio / SIZE_MULTIPLE) * SIZE_MULTIPLE),
+                max(SIZE_MULTIPLE, round(w * ratio / SIZE_MULTIPLE) * SIZE_MULTIPLE))
+
+    def _split(self, capture: CaptureFile) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """(training, held-out) frame indices: the file's split lists, else every ``eval_every``-th frame."""
+        names = [f.name for f in capture.frames]
+        if capture.held_out is not None or capture.train is not None:
+            held_out = set(capture.held_out or ())
+            train = set(capture.train) if capture.train is not None else set(names) - held_out
+            both = sorted(train & held_out)
+            if both:
+                raise DataError(f"{capture.path}: frame {both[0]!r} is both in train_filenames and in the held-out "
+                                "lists; expected disjoint lists")
+            return (tuple(i for i, n in enumerate(names) if n in train),
+                    tuple(i for i, n in enumerate(names) if n in held_out))
+        if not self.eval_every:
+            return tuple(range(len(names))), ()
+        held = tuple(i for i in range(len(names)) if i % self.eval_every == self.eval_every // 2)
+        return tuple(i for i in range(len(names)) if i not in held), held
+
+    def _depth_bounds(self, name: str, capture: CaptureFile, reader: "_FrameReader") -> tuple[float, float]:
+        """``dataset.near/far`` if set; else the frames' bounds from the file; else the depth maps' (see
+        ``DEPTH_PERCENTILES``, ``DEPTH_MARGIN``); all in metres after ``scale``."""
+        if self.bounds != (0.0, 0.0):
+            return self.bounds
+        frames = capture.frames
+        nears = [f.near for f in frames if f.near is not None]
+        fars = [f.far for f in frames if f.far is not None]
+        if nears and fars:
+            return min(nears) * self.scale, max(fars) * self.scale
+        with_depth = [i for i, f in enumerate(frames) if f.depth is not None]
+        if with_depth:
+            picks = [with_depth[round(k * (len(with_depth) - 1) / max(DEPTH_FRAMES - 1, 1))]
+                     for k in range(min(DEPTH_FRAMES, len(with_depth)))]
+            depths = np.concatenate([reader.depth(i).ravel() for i in dict.fromkeys(picks)])
+            valid = depths[depths > 0]
+            if valid.size:
+                low, high = np.percentile(valid, DEPTH_PERCENTILES)
+                near = float(low) * (1.0 - DEPTH_MARGIN)
+                far = float(high) * (1.0 + DEPTH_MARGIN)
+                if near > 0 and far > near:
+                    return near, far
+        raise DataError(f"capture {name!r} ({capture.path}): no depth bounds (no near/far per frame, no depth maps); "
+                        "set dataset.near and dataset.far in metres (after dataset.scale)")
+
+
+def read_class_list(path: Path) -> ClassList:
+    """``classes.json``: ``{"classes": [names...], "ignore_index": 255}``."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DataError(f"{path}: not readable JSON ({exc}); expected {{\"classes\": [...], \"ignore_index\": 255}}") \
+            from None
+    names = data.get("classes") if isinstance(data, dict) else None
+    if not isinstance(names, list) or not names or not all(isinstance(n, str) and n for n in names):
+        raise DataError(f"{path}: 'classes' is missing or not a list of names; expected {{\"classes\": [\"wall\", ...], "
+                        "\"ignore_index\": 255}")
+    ignore = data.get("ignore_index", 255)
+    if not isinstance(ignore, int) or isinstance(ignore, bool) or 0 <= ignore < len(names):
+        raise DataError(f"{path}: ignore_index={ignore!r}; expected an integer outside the class ids 0..{len(names) - 1}")
+    return ClassList(tuple(names), int(ignore), Path(path))
+
+
+class _FrameReader:
+    """``Scene.load_frame`` of a capture: decode, undistort, resize, mask and scale one frame."""
+
+    def __init__(self, dataset: CaptureScenes, capture: CaptureFile, size: tuple[int, int], intrinsics: np.ndarray,
+                 c2w: np.ndarray) -> None:
+        self.dataset, self.capture, self.size = dataset, capture, size
+        self.intrinsics, self.c2w = intrinsics, c2w
+        unit = dataset.depth_unit or capture.depth_unit or DEFAULT_DEPTH_UNIT
+        self.depth_scale = unit * dataset.scale
+        self._undistorters: dict[tuple, Undistorter] = {}
+
+    def _undistorter(self, frame: CaptureFrame) -> Undistorter | None:
+        camera = frame.camera
+        if camera.distortion is None:
+            return None
+        key = (camera.intrinsics.tobytes(), camera.distortion, camera.height, camera.width)
+        if key not in self._undistorters:
+            self._undistorters[key] = Undistorter(camera.intrinsics, camera.distortion, camera.height, camera.width)
+        return self._undistorters[key]
+
+    def _stored(self, path: Path, frame: CaptureFrame, what: str) -> np.ndarray:
+        """A frame's image file as an array, checked to have the colour image's size."""
+        if path.suffix.lower() == ".npy":
+            try:
+                array = np.load(path, allow_pickle=False)
+            except (OSError, ValueError) as exc:
+                raise DataError(f"{path}: unreadable {what} ({exc}); expected a 2-D .npy array") from None
+        else:
+            array = np.asarray(decode_image(path, f"a {what} image"))
+        if array.shape[:2] != (frame.camera.height, frame.camera.width):
+            raise DataError(f"{path}: {what} is {array.shape[1]}x{array.shape[0]}, the image "
+                            f"{frame.camera.width}x{frame.camera.height}; expected the same size")
+        return array
+
+    def depth(self, index: int) -> np.ndarray:
+        """``[H, W]`` float32 metres (after ``scale``) at the dataset's size, 0 where unknown."""
+        frame = self.capture.frames[index]
+        if frame.depth is None:
+            return np.zeros(self.size, dtype=np.float32)
+        stored = self._stored(frame.depth, frame, "depth")
+        if stored.ndim != 2 or not (np.issubdtype(stored.dtype, np.integer) or np.issubdtype(stored.dtype, np.floating)):
+            raise DataError(f"{frame.depth}: depth of shape {list(stored.shape)} and type {stored.dtype}; expected a "
+                            "single-channel 16-bit PNG or a 2-D .npy")
+        depth = stored.astype(np.float32) * np.float32(self.depth_scale)
+        if not np.isfinite(depth).all() or (depth < 0).any():
+            raise DataError(f"{frame.depth}: depth negative or not finite; expected depths >= 0 (0 = unknown)")
+        undistort = self._undistorter(frame)
+        if undistort is not None:
+            depth = undistort.values(depth)
+        return resize_nearest(depth, *self.size).astype(np.float32)
+
+    def __call__(self, index: int) -> Frame:
+        frame = self.capture.frames[index]
+        image = decode_image(frame.image, "an image (PNG or JPEG)")
+        rgb = np.asarray(image.convert("RGB"), dtype=np.float32) / 255.0
+        undistort = self._undistorter(frame)
+        if undistort is not None:
+            rgb = undistort.rgb(rgb)
+        rgb = resize_rgb(rgb, *self.size)
+        depth = self.depth(index)
+        ignore = self.dataset.ignore_index
+        if frame.semantic is not None:
+            stored = self._stored(frame.semantic, frame, "semantic label")
+            if stored.ndim != 2 or not np.issubdtype(stored.dtype, np.integer):
+                raise DataError(f"{frame.semantic}: labels of shape {list(stored.shape)} and type {stored.dtype}; "
+                                "expected a single-channel 8- or 16-bit PNG of class ids")
+            labels = stored.astype(np.int64)
+            if undistort is not None:
+                labels = undistort.labels(labels, ignore)
+            labels = resize_nearest(labels, *self.size)
+        else:
+            labels = np.full(self.size, ignore, dtype=np.int64)
+        if frame.mask is not None:
+            mask = self._stored(frame.mask, frame, "mask")
+            mask = (mask if mask.ndim == 2 else mask[..., 0]).astype(np.float32)
+            if undistort is not None:
+                mask = undistort.values(mask)
+            keep = resize_nearest(mask, *self.size) > 0
+            labels = np.where(keep, labels, ignore)
+            depth = np.where(keep, depth, 0.0).astype(np.float32)
+        return Frame(
+            rgb=torch.from_numpy(np.ascontiguousarray(rgb)),
+            depth=torch.from_numpy(np.ascontiguousarray(depth)),
+            semantic=torch.from_numpy(np.ascontiguousarray(labels)),
+            intrinsics=torch.from_numpy(self.intrinsics[index]).float(),
+            c2w=torch.from_numpy(self.c2w[index]).float(),
+        )
+
+
+__all__ = ["CaptureScenes", "CaptureScenesConfig", "read_class_list"]

@@ -1,0 +1,222 @@
+"""The ``capture`` dataset: nerfstudio's transforms.json written from embedded scenes reads back as the same scene
+(poses, intrinsics, colours, depth, labels), distortion is undone, and every malformed file is one line."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from capture_fixtures import write_capture
+from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_plugins.datasets.capture.dataset import CaptureScenes
+from gpnerf_plugins.datasets.embedded import CLASS_NAMES, SceneSetParams, generate
+from gpnerf_plugins.datasets.embedded.dataset import EmbeddedScenes
+
+TINY = dict(num_train_scenes=1, num_unseen_scenes=0, frames_per_scene=8, height=48, width=64, seed=0)
+DISTORTION = (-0.3, 0.08, 0.002, -0.001)
+
+
+@pytest.fixture(scope="module")
+def embedded_scene(tmp_path_factory):
+    root = generate(SceneSetParams(**TINY), tmp_path_factory.mktemp("embedded") / "set")
+    dataset = EmbeddedScenes(root=str(root), num_train_scenes=1, num_unseen_scenes=0, frames_per_scene=8, height=48,
+                             width=64, eval_every=0)
+    return dataset.load_scene(dataset.scenes("train")[0])
+
+
+@pytest.fixture(scope="module")
+def capture(embedded_scene, tmp_path_factory):
+    return write_capture(embedded_scene, tmp_path_factory.mktemp("captures") / "room")
+
+
+def load(root, **options):
+    dataset = CaptureScenes(root=str(root), height=options.pop("height", 48), width=options.pop("width", 64), **options)
+    return dataset, dataset.load_scene(dataset.scenes("train")[0])
+
+
+def test_a_capture_reads_back_as_the_scene_it_was_written_from(embedded_scene, capture):
+    dataset, scene = load(capture)
+    assert dataset.class_names == CLASS_NAMES and scene.labelled
+    assert torch.allclose(scene.c2w, embedded_scene.c2w, atol=1e-6)
+    assert torch.allclose(scene.intrinsics, embedded_scene.intrinsics, atol=1e-5)
+    for index in (0, 5):
+        mine, truth = scene.load_frame(index), embedded_scene.load_frame(index)
+        assert torch.equal(mine.rgb, truth.rgb)
+        assert torch.equal(mine.semantic, truth.semantic)
+        assert (mine.depth - truth.depth).abs().max() <= 0.0005 + 1e-6  # stored in millimetres
+    # bounds from the depth maps: the 1st / 99th percentiles, 10% margin
+    depths = torch.cat([embedded_scene.load_frame(i).depth.flatten() for i in range(8)])
+    assert scene.near < float(depths[depths > 0].quantile(0.02)) and scene.far > float(depths.quantile(0.98))
+
+
+def test_every_eighth_frame_from_the_fourth_is_held_out_unless_the_file_lists_splits(capture, tmp_path):
+    _, scene = load(capture)
+    assert scene.eval_frames == (4,) and scene.train_frames == (0, 1, 2, 3, 5, 6, 7)
+    _, scene = load(capture, eval_every=3)
+    assert scene.eval_frames == (1, 4, 7)
+    listed = _copy(capture, tmp_path, lambda t: t.update(train_filenames=["images/frame_00000.png",
+                                                                          "images/frame_00002.png"],
+                                                         val_filenames=["images/frame_00007.png"]))
+    _, scene = load(listed)
+    assert scene.train_frames == (0, 2) and scene.eval_frames == (7,)
+
+
+def test_opencv_distortion_is_undone(embedded_scene, tmp_path):
+    distorted = write_capture(embedded_scene, tmp_path / "lens", distortion=DISTORTION)
+    _, scene = load(distorted)
+    interior = (slice(6, -6), slice(6, -6))  # the corners the lens pushed outside the frame carry no data
+    for index in (2, 5):
+        truth, mine = embedded_scene.load_frame(index), scene.load_frame(index)
+        raw_labels = np.asarray(Image.open(distorted / "semantics" / f"frame_{index:05d}.png")).astype(np.int64)
+        raw_rgb = np.asarray(Image.open(distorted / "images" / f"frame_{index:05d}.png"), dtype=np.float32) / 255
+        assert (raw_labels == truth.semantic.numpy())[interior].mean() < 0.975  # the lens moved the edges
+        assert float((mine.semantic == truth.semantic)[interior].float().mean()) > 0.985
+        # colours: resampled twice (by the fixture's lens and by the loader), so blurred, but in place
+        assert float((mine.rgb - truth.rgb)[interior].abs().mean()) < 0.7 * np.abs(raw_rgb - truth.rgb.numpy())[
+            interior].mean()
+
+
+def test_the_undistortion_grid_lands_within_a_hundredth_of_a_pixel():
+    """Each undistorted pixel samples the recorded image where the lens put it: kornia's inverse brings it back."""
+    from kornia.geometry.calibration import undistort_points
+
+    from gpnerf_plugins.datasets.capture.undistort import Undistorter
+
+    k = np.array([[32.0, 0, 31.5], [0, 32.0, 23.5], [0, 0, 1]])
+    grid = Undistorter(k, DISTORTION + (0.0,), 48, 64).grid[0].double()
+    recorded = (grid + 1) * torch.tensor([63 / 2, 47 / 2], dtype=torch.float64)
+    back = undistort_points(recorded.reshape(-1, 2), torch.from_numpy(k), torch.tensor(DISTORTION, dtype=torch.float64),
+                            num_iters=50)
+    v, u = torch.meshgrid(torch.arange(48.0), torch.arange(64.0), indexing="ij")
+    assert (back.reshape(48, 64, 2) - torch.stack([u, v], -1).double()).abs().max() < 0.01
+
+
+def test_per_frame_intrinsics_camera_angle_and_applied_transform(embedded_scene, capture, tmp_path):
+    per_frame = write_capture(embedded_scene, tmp_path / "per_frame", per_frame_intrinsics=True)
+    _, scene = load(per_frame)
+    assert torch.allclose(scene.intrinsics, embedded_scene.intrinsics, atol=1e-5)
+    fov = 2 * math.atan(0.5 * 64 / float(embedded_scene.intrinsics[0, 0, 0]))
+
+    def blender(t):
+        for key in ("fl_x", "fl_y", "cx", "cy"):
+            t.pop(key)
+        t["camera_angle_x"] = fov
+
+    _, scene = load(_copy(capture, tmp_path, blender))
+    assert torch.allclose(scene.intrinsics[0, 0, 0], embedded_scene.intrinsics[0, 0, 0], rtol=1e-5)
+    assert float(scene.intrinsics[0, 0, 2]) == pytest.approx(31.5)
+
+    applied = np.eye(4)[[0, 2, 1, 3]]
+    applied[2] *= -1  # ns-process-data's swap of COLMAP's world axes
+
+    def moved(t):
+        for frame in t["frames"]:
+            frame["transform_matrix"] = (applied @ np.asarray(frame["transform_matrix"])).tolist()
+        t["applied_transform"] = applied[:3].tolist()
+
+    _, scene = load(_copy(capture, tmp_path, moved))
+    assert torch.allclose(scene.c2w, embedded_scene.c2w, atol=1e-6)
+
+
+def test_size_scale_and_masks(embedded_scene, capture, tmp_path):
+    dataset, scene = load(capture, height=0, width=0, long_side=80, scale=2.0)
+    assert (scene.height, scene.width) == (64, 80)  # 48x64 to a long side of 80: 60x80, 60 rounded to 16s
+    assert torch.allclose(scene.c2w[:, :3, 3], 2 * embedded_scene.c2w[:, :3, 3], atol=1e-5)
+    assert float(scene.intrinsics[0, 0, 0]) == pytest.approx(32 * 80 / 64) and float(scene.intrinsics[0, 1, 1]) == \
+        pytest.approx(32 * 64 / 48)
+    frame, truth = scene.load_frame(0), embedded_scene.load_frame(0)
+    assert frame.rgb.shape == (64, 80, 3) and float(frame.depth.max()) == pytest.approx(2 * float(truth.depth.max()),
+                                                                                       rel=0.02)
+    mask = np.full((48, 64), 255, np.uint8)
+    mask[:, :32] = 0
+
+    def masked(t):
+        (Path(t["_folder"]) / "masks").mkdir()
+        Image.fromarray(mask).save(Path(t["_folder"]) / "masks" / "m.png")
+        for frame in t["frames"]:
+            frame["mask_path"] = "masks/m.png"
+
+    _, scene = load(_copy(capture, tmp_path, masked))
+    frame = scene.load_frame(0)
+    assert bool((frame.semantic[:, :32] == 255).all()) and bool((frame.depth[:, :32] == 0).all())
+    assert torch.equal(frame.semantic[:, 32:], truth.semantic[:, 32:])
+
+
+def test_a_capture_without_labels_is_an_unlabelled_scene(embedded_scene, tmp_path):
+    plain = write_capture(embedded_scene, tmp_path / "plain", labels=False)
+    dataset, scene = load(plain)
+    assert dataset.class_names == () and not scene.labelled
+    assert bool((scene.load_frame(0).semantic == dataset.ignore_index).all())
+
+
+def test_several_captures_under_one_root_and_the_scene_lists(embedded_scene, capture, tmp_path):
+    root = tmp_path / "captures"
+    for name in ("kitchen", "hall"):
+        shutil.copytree(capture, root / name)
+    dataset = CaptureScenes(root=str(root), height=48, width=64, unseen_scenes=["hall"])
+    assert dataset.scenes("train") == ("kitchen",) and dataset.scenes("unseen") == ("hall",)
+    with pytest.raises(DataError, match="attic"):
+        CaptureScenes(root=str(root), scenes=["attic"]).scenes("train")
+
+
+@pytest.mark.parametrize("change,message", [
+    (lambda t: t["frames"][0].pop("transform_matrix"), "frame 'images/frame_00000.png' has no 'transform_matrix'"),
+    (lambda t: t.update(camera_model="FISHEYE"), "camera_model='FISHEYE'; expected one of PINHOLE, SIMPLE_PINHOLE"),
+    (lambda t: t["frames"][1].update(file_path="../../etc/passwd"), "leaves the capture folder"),
+    (lambda t: t["frames"][2]["transform_matrix"][0].__setitem__(3, float("nan")), "holds NaN or Inf"),
+    (lambda t: t["frames"][2]["transform_matrix"][0].__setitem__(0, 3.0), "rotation not orthonormal"),
+    (lambda t: t.update(w=100), "image is 64x48 but w=100"),
+    (lambda t: t.pop("fl_x"), "no intrinsics"),
+    (lambda t: t.update(frames=[]), "'frames' is missing or empty"),
+    (lambda t: t["frames"][3].update(file_path="images/nothing.png"), "nothing.png"),
+])
+def test_a_malformed_transforms_file_is_one_line_naming_it(capture, tmp_path, change, message):
+    broken = _copy(capture, tmp_path, change)
+    with pytest.raises(DataError) as error:
+        load(broken)
+    text = str(error.value)
+    assert message in text and "\n" not in text
+    assert str(broken) in text
+
+
+@pytest.mark.parametrize("options,message", [
+    (dict(root=""), "dataset.root is empty"),
+    (dict(root="x", height=50, width=64), "dataset.height=50"),
+    (dict(root="x", near=0.5, far=0.0), "dataset.near=0.5"),
+    (dict(root="x", scale=0.0), "dataset.scale=0.0"),
+])
+def test_bad_options_are_refused_before_any_file_is_read(options, message):
+    with pytest.raises(ConfigError, match=message.replace(".", r"\.")):
+        CaptureScenes(**options)
+
+
+def test_a_capture_trains_and_evaluates_through_the_command_line(capture, tmp_path):
+    from pipeline_check import TINY_MODEL, gpnerf
+
+    model = [o for o in TINY_MODEL if not o.startswith("eval.")] + ["eval.save_images=0"]
+    result = gpnerf("run", "+head=unet", "+loss=dgs", "dataset=capture", f"dataset.root={capture}",
+                    "dataset.height=32", "dataset.width=48", *model, f"out_dir={tmp_path / 'run'}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert metrics["eval"]["train_heldout"]["count/images"] == 1
+    assert math.isfinite(metrics["eval"]["train_heldout"]["psnr/clamped"])
+
+
+def _copy(capture: Path, tmp_path: Path, change) -> Path:
+    """A copy of ``capture`` whose transforms.json ``change`` edited (it may use ``t["_folder"]``)."""
+    folder = tmp_path / f"copy_{len(list(tmp_path.glob('copy_*')))}"
+    shutil.copytree(capture, folder)
+    transforms = json.loads((folder / "transforms.json").read_text())
+    transforms["_folder"] = str(folder)
+    change(transforms)
+    transforms.pop("_folder")
+    (folder / "transforms.json").write_text(json.dumps(transforms))
+    return folder
+
