@@ -32,6 +32,8 @@ class Frame:
         instance: ``[H, W]`` int64 instance ids (0 = background) or None when the dataset has none.
         intrinsics: ``[3, 3]`` float32 pinhole matrix at this image's resolution.
         c2w: ``[4, 4]`` float32 camera-to-world pose (OpenCV).
+        valid: ``[H, W]`` bool, False where the capture's mask excludes the pixel (never trained on; its label is the
+            ignore index and its depth 0), or None when every pixel counts.
     """
 
     rgb: Tensor
@@ -40,6 +42,7 @@ class Frame:
     intrinsics: Tensor
     c2w: Tensor
     instance: Tensor | None = None
+    valid: Tensor | None = None
 
     @property
     def height(self) -> int:

@@ -102,8 +102,12 @@ class StepSampler:
         source_indices = choose_sources(self.selector, scene, frame_index, self.num_source_views, view_generator)
         frame = frames.frame(scene, frame_index)
         height, width = frame.height, frame.width
-        flat = torch.randperm(height * width, generator=view_generator, device="cpu")
-        flat = flat[: min(self.rays_per_view, height * width)]
+        if frame.valid is None:
+            flat = torch.randperm(height * width, generator=view_generator, device="cpu")
+        else:  # a masked frame: rays only through the pixels its mask keeps
+            kept = frame.valid.reshape(-1).nonzero().squeeze(1).cpu()
+            flat = kept[torch.randperm(kept.numel(), generator=view_generator, device="cpu")]
+        flat = flat[: min(self.rays_per_view, flat.numel())]
         pixels = torch.stack([flat % width, flat // width], dim=-1).to(torch.float32)
         device = frames.device
         return TargetView(

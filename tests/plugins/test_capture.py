@@ -143,10 +143,20 @@ def test_size_scale_and_masks(embedded_scene, capture, tmp_path):
         for frame in t["frames"]:
             frame["mask_path"] = "masks/m.png"
 
-    _, scene = load(_copy(capture, tmp_path, masked))
+    dataset, scene = load(_copy(capture, tmp_path, masked))
     frame = scene.load_frame(0)
     assert bool((frame.semantic[:, :32] == 255).all()) and bool((frame.depth[:, :32] == 0).all())
     assert torch.equal(frame.semantic[:, 32:], truth.semantic[:, 32:])
+    assert torch.equal(frame.valid, torch.from_numpy(mask > 0))
+    # training draws its rays only through the pixels the mask keeps
+    from gpnerf_core.frames import FrameCache
+    from gpnerf_core.training.sampler import StepSampler
+    from gpnerf_plugins.view_selectors.nearest import NearestViews
+
+    sampler = StepSampler(FrameCache(dataset, torch.device("cpu")), NearestViews(), scene_names=[scene.name],
+                          num_source_views=2, rays_per_view=2000, targets_per_step=1, seed=0)
+    view = sampler._target_view(scene.name, 0, seed=3)
+    assert view.pixels.shape[0] == 32 * 48 and bool((view.pixels[:, 0] >= 32).all())
 
 
 def test_a_capture_without_labels_is_an_unlabelled_scene(embedded_scene, tmp_path):

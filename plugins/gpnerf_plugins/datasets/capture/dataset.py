@@ -364,6 +364,7 @@ class _FrameReader:
         rgb = resize_rgb(rgb, *self.size)
         depth = self.depth(index)
         ignore = self.dataset.ignore_index
+        valid = None
         if frame.semantic is not None:
             stored = self._stored(frame.semantic, frame, "semantic label")
             if stored.ndim != 2 or not np.issubdtype(stored.dtype, np.integer):
@@ -381,14 +382,19 @@ class _FrameReader:
             if undistort is not None:
                 mask = undistort.values(mask)
             keep = resize_nearest(mask, *self.size) > 0
+            if not keep.any():
+                raise DataError(f"{frame.mask}: the mask keeps no pixel of frame {frame.name!r}; expected 0 only where "
+                                "pixels are to be ignored")
             labels = np.where(keep, labels, ignore)
             depth = np.where(keep, depth, 0.0).astype(np.float32)
+            valid = torch.from_numpy(np.ascontiguousarray(keep))
         return Frame(
             rgb=torch.from_numpy(np.ascontiguousarray(rgb)),
             depth=torch.from_numpy(np.ascontiguousarray(depth)),
             semantic=torch.from_numpy(np.ascontiguousarray(labels)),
             intrinsics=torch.from_numpy(self.intrinsics[index]).float(),
             c2w=torch.from_numpy(self.c2w[index]).float(),
+            valid=valid,
         )
 
 
