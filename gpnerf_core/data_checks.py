@@ -1,8 +1,12 @@
 """The generic check of a dataset's files before training (``SceneDataset.check_files``).
 
-``quick``: every scene loads (its reader indexes the files and reads the image headers and poses) and every camera
-pose is a finite rigid transform. ``full``: also every training and evaluation frame decodes, its colours lie in
-[0, 1], its depth is finite and non-negative and its labels are class ids or the ignore index. ``off``: nothing.
+``quick``: every scene loads (its reader indexes the files and reads the image headers and poses), every camera
+pose is a finite rigid transform and the cameras' scale fits the scene's near/far (``gpnerf_core.pose_sanity``).
+``full``: also every training and evaluation frame decodes, its colours lie in [0, 1], its depth is finite and
+non-negative and its labels are class ids or the ignore index. ``off``: nothing.
+
+``check_scene_files`` returns the problems that refuse training; ``pose_warnings`` the pose findings that do not (an
+outlier, isolated or turned-away camera, a doubtful scale), which the pre-training check prints as notes.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ import torch
 
 from gpnerf_core.errors import ConfigError, GpnerfError
 from gpnerf_core.geometry.poses import EXPECTED_RIGID, rigid_transform_problem
+from gpnerf_core.pose_sanity import PoseFinding, check_poses
 from gpnerf_core.types import Scene
 
 
@@ -50,13 +55,62 @@ def check_scene_files(dataset: CheckedDataset, scenes: Sequence[str], level: str
         except GpnerfError as exc:
             problems.append(str(exc))
             continue
-        for index, pose in enumerate(scene.c2w):
-            problem = rigid_transform_problem(pose.numpy())
-            if problem is not None:
-                problems.append(f"scene {name!r} frame {index}: camera pose has {problem}; expected {EXPECTED_RIGID}")
+        rigid = _rigid_problems(name, scene)
+        problems += rigid
+        if not rigid:
+            try:
+                problems += [_located(name, f) for f in scene_pose_findings(scene) if f.refuses]
+            except GpnerfError as exc:
+                problems.append(f"scene {name!r} {exc}")
         if level == "full":
             for index in sorted(set(scene.train_frames) | set(scene.eval_frames)):
                 problems += _frame_problems(dataset, scene, index)
+    return problems
+
+
+def pose_warnings(dataset: CheckedDataset, scenes: Sequence[str], level: str) -> list[str]:
+    """The pose findings of ``scenes`` that do not refuse training, one line each naming the scene and frame.
+
+    Nothing at ``level = "off"``; a scene that does not load or has a non-rigid pose is skipped (``check_scene_files``
+    reports it).
+    """
+    if check_validation_level(level) == "off":
+        return []
+    notes = []
+    for name in scenes:
+        try:
+            scene = dataset.load_scene(name)
+        except GpnerfError:
+            continue
+        if not _rigid_problems(name, scene):
+            try:
+                notes += [_located(name, f) for f in scene_pose_findings(scene) if not f.refuses]
+            except GpnerfError:
+                continue
+    return notes
+
+
+def scene_pose_findings(scene: Scene) -> list[PoseFinding]:
+    """Pose sanity of the frames ``scene`` uses (training and held-out), frames named by their index."""
+    frames = sorted(set(scene.train_frames) | set(scene.eval_frames))
+    if len(frames) < 2:
+        return []
+    index = torch.tensor(frames)
+    return check_poses(scene.c2w[index], scene.intrinsics[index], scene.height, scene.width, scene.near, scene.far,
+                       names=[str(i) for i in frames])
+
+
+def _located(scene: str, finding: PoseFinding) -> str:
+    where = f"scene {scene!r}" + (f" frame {finding.frame}" if finding.frame is not None else "")
+    return f"{where}: {finding.message}"
+
+
+def _rigid_problems(name: str, scene: Scene) -> list[str]:
+    problems = []
+    for index, pose in enumerate(scene.c2w):
+        problem = rigid_transform_problem(pose.numpy())
+        if problem is not None:
+            problems.append(f"scene {name!r} frame {index}: camera pose has {problem}; expected {EXPECTED_RIGID}")
     return problems
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 import typing
 from typing import Any, Callable
 
@@ -15,6 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from gpnerf_core.build import Components
 from gpnerf_core.config import RootConfig
+from gpnerf_core.data_checks import pose_warnings
 from gpnerf_core.device import PRECISIONS
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.registry import KINDS
@@ -125,6 +127,9 @@ def check_data(cfg: DictConfig, components: Components, *, training: bool = True
         raise DataError(
             f"dataset.validate={level} found {len(problems)} problem(s) before training; first: {problems[0]}{more}"
         )
+    for note in pose_warnings(dataset, scenes, level):  # outlier, isolated or turned-away cameras: train, but say so
+        print(f"note: {note}", file=sys.stderr)
+    _require_labels(cfg, components, training)
     _require_instances(cfg, components, scenes, training)
     views = int(cfg.model.num_source_views)
     training_scenes = set(dataset.scenes("train")) if training else set()
@@ -139,14 +144,29 @@ def check_data(cfg: DictConfig, components: Components, *, training: bool = True
             )
 
 
+def _require_labels(cfg: DictConfig, components: Components, training: bool) -> None:
+    """A loss set that reads labels (``LossSet.needs_labels``, True unless it says otherwise) trains on no scene without
+    labels (``Scene.labelled`` False): its labels are all ignored, so its label terms would silently be zero."""
+    loss = components.loss
+    if not training or loss is None or not getattr(loss, "needs_labels", True):
+        return
+    for name in components.dataset.scenes("train"):
+        if not components.dataset.load_scene(name).labelled:
+            raise ConfigError(
+                f"scene {name!r} has no labels, but loss {cfg.loss.name!r} trains on labels; train without labels "
+                "with +loss=label_free (colour + distillation from the 2D teacher)"
+            )
+
+
 INSTANCE_FRAMES_CHECKED = 8
 """Training frames per scene (spread over the scene) whose instance count is checked against ``head.slots``."""
 
 
 def _require_instances(cfg: DictConfig, components: Components, scenes: list[str], training: bool) -> None:
-    """An instance head (or a loss set that trains one) needs instance ids in every scene it trains or evaluates on
-    (the first frame of each scene is looked at), and before training at most ``head.slots`` ids in a frame (checked on
-    ``INSTANCE_FRAMES_CHECKED`` frames per training scene; the loss names any other frame that has more)."""
+    """An instance head (or a loss set that trains one) needs instance ids in every labelled scene it trains or
+    evaluates on (the first frame of each scene is looked at; a scene without labels is only rendered), and before
+    training at most ``head.slots`` ids in a frame (checked on ``INSTANCE_FRAMES_CHECKED`` frames per training scene;
+    the loss names any other frame that has more)."""
     head = components.model.head
     needs = (training and components.loss is not None and components.loss.needs_instances) or (
         head is not None and head.predicts == "instances"
@@ -155,6 +175,8 @@ def _require_instances(cfg: DictConfig, components: Components, scenes: list[str
         return
     for name in scenes:
         scene = components.dataset.load_scene(name)
+        if not scene.labelled:
+            continue
         first = (scene.train_frames or scene.eval_frames)[0]
         if scene.load_frame(first).instance is None:
             raise ConfigError(

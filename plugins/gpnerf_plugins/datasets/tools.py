@@ -8,27 +8,38 @@ from typing import Callable
 
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_plugins.datasets.common.layout_check import LayoutReport
+from gpnerf_plugins.datasets.common.pose_report import RayRange
 
 
-def layout_checkers() -> dict[str, Callable[[Path], LayoutReport]]:
-    """Checkers by layout name (imported lazily: checking one layout never imports the others)."""
+def layout_checkers() -> dict[str, Callable[[Path, float | None, float | None], LayoutReport]]:
+    """Checkers by layout name, called with the root and the ray range pose sanity uses (None: the layout's dataset's
+    default ``near``/``far``); imported lazily: checking one layout never imports the others."""
 
-    def replica(root: Path) -> LayoutReport:
-        from gpnerf_plugins.datasets.replica.dataset import check_replica_layout
+    def replica(root: Path, near: float | None, far: float | None) -> LayoutReport:
+        from gpnerf_plugins.datasets.replica.dataset import ReplicaScenesConfig as Config, check_replica_layout
 
-        return check_replica_layout(root)
+        return check_replica_layout(root, rays=_rays(Config.near, Config.far, near, far), hfov_deg=Config.hfov_deg)
 
-    def replica_instance(root: Path) -> LayoutReport:
+    def replica_instance(root: Path, near: float | None, far: float | None) -> LayoutReport:
+        from gpnerf_plugins.datasets.replica.dataset import ReplicaInstanceScenesConfig as Config
         from gpnerf_plugins.datasets.replica.dataset import check_replica_instance_layout
 
-        return check_replica_instance_layout(root)
+        rays = _rays(Config.near, Config.far, near, far)
+        return check_replica_instance_layout(root, rays=rays, hfov_deg=Config.hfov_deg)
 
-    def scannet(root: Path) -> LayoutReport:
-        from gpnerf_plugins.datasets.scannet.dataset import check_scannet_layout
+    def scannet(root: Path, near: float | None, far: float | None) -> LayoutReport:
+        from gpnerf_plugins.datasets.scannet.dataset import ScanNetScenesConfig as Config, check_scannet_layout
 
-        return check_scannet_layout(root)
+        return check_scannet_layout(root, rays=_rays(Config.near, Config.far, near, far))
 
     return {"replica": replica, "replica_instance": replica_instance, "scannet": scannet}
+
+
+def _rays(default_near: float, default_far: float, near: float | None, far: float | None) -> RayRange:
+    rays = RayRange(default_near if near is None else near, default_far if far is None else far)
+    if not 0.0 < rays.near < rays.far < float("inf"):
+        raise ConfigError(f"--near {rays.near:g} --far {rays.far:g}: expected 0 < near < far (metres)")
+    return rays
 
 
 class _Parser(argparse.ArgumentParser):
@@ -41,10 +52,14 @@ def check(argv: list[str]) -> int:
     parser = _Parser(prog="gpnerf_core data check", description="Check a dataset folder against a layout.")
     parser.add_argument("root", type=Path)
     parser.add_argument("--layout", required=True, choices=sorted(checkers))
+    parser.add_argument("--near", type=float, default=None, help="pose sanity's near bound, metres (default: the "
+                        "dataset's dataset.near)")
+    parser.add_argument("--far", type=float, default=None, help="pose sanity's far bound, metres (default: the "
+                        "dataset's dataset.far)")
     args = parser.parse_args(argv)
     if not args.root.is_dir():
         raise DataError(f"{args.root}: expected a dataset folder, found nothing there")
-    report = checkers[args.layout](args.root)
+    report = checkers[args.layout](args.root, args.near, args.far)
     print(report.format())
     return 0 if report.ok else 1
 

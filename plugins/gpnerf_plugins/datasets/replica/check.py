@@ -1,7 +1,8 @@
 """Layout checkers behind ``python -m gpnerf_core data check <root> --layout replica|replica_instance``.
 
 They walk every scene (and sequence), decode every file and report each problem with its file, frame, what the
-layout expects and what was found, instead of stopping at the first one as the loaders do.
+layout expects and what was found, instead of stopping at the first one as the loaders do. Given the ray range, they
+also report each sequence's pose findings (``gpnerf_core.pose_sanity``) with the frame numbers.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import numpy as np
 from gpnerf_core.geometry import EXPECTED_RIGID, rigid_transform_problem
 from gpnerf_plugins.datasets.common.image_io import ImageError, describe, is_integer_map, is_rgb8, one_line_error, read_png
 from gpnerf_plugins.datasets.common.layout_check import LayoutReport, Problem
+from gpnerf_plugins.datasets.common.pose_report import RayRange, report_poses
 from gpnerf_plugins.datasets.replica.classes import CLASS_NAMES, MAX_RAW_ID, raw_to_class_table
 from gpnerf_plugins.datasets.replica.layout import (
     CLASS_DIR,
@@ -22,6 +24,7 @@ from gpnerf_plugins.datasets.replica.layout import (
     RGB_DIR,
     TRAJECTORY_FILE,
     frame_file_pattern,
+    hfov_intrinsics,
 )
 from gpnerf_plugins.datasets.replica.splits import INSTANCE_SCENES_FILE, PROTOCOL_FILES, read_split_file
 
@@ -31,8 +34,10 @@ POSE_ROW = "a row of 16 numbers (row-major 4x4 camera-to-world)"
 class _Walk:
     """Accumulates problems, counts, raw class-id pixel counts and instance-id counts over a whole dataset."""
 
-    def __init__(self, report: LayoutReport) -> None:
+    def __init__(self, report: LayoutReport, rays: RayRange | None = None, hfov_deg: float | None = None) -> None:
         self.report = report
+        self.rays, self.hfov_deg = rays, hfov_deg
+        self.poses: list[np.ndarray | None] = []  # the last trajectory's rows (None: unusable)
         self.counts: Counter[str] = Counter()
         self.raw_pixels = np.zeros(MAX_RAW_ID + 1, dtype=np.int64)
         self.unknown_pixels = 0
@@ -75,11 +80,13 @@ class _Walk:
             self.problem(path, None, f"a text file with {POSE_ROW} per frame", one_line_error(exc))
             return None
         rows = 0
+        self.poses = []
         for line_no, line in enumerate(lines, start=1):
             if not line.strip():
                 continue
             frame = numbers[rows] if rows < len(numbers) else None
             rows += 1
+            self.poses.append(None)
             where = f"{path}:{line_no}"
             try:
                 values = np.array([float(v) for v in line.split()], dtype=np.float64)
@@ -90,6 +97,8 @@ class _Walk:
                 self.problem(where, frame, POSE_ROW, f"{values.size} numbers")
             elif (problem := rigid_transform_problem(values.reshape(4, 4))) is not None:
                 self.problem(where, frame, EXPECTED_RIGID, problem)
+            else:
+                self.poses[-1] = values.reshape(4, 4)
         self.counts["poses"] += rows
         return rows
 
@@ -173,6 +182,11 @@ class _Walk:
                     instance_ids.update(np.unique(image).tolist())
         if INSTANCE_DIR in others:
             self.report.notes.append(f"{folder}: {len(instance_ids)} distinct instance ids")
+        usable = rows == len(rgb) and all(pose is not None for pose in self.poses)
+        if self.rays is not None and self.hfov_deg is not None and size is not None and usable:
+            intrinsics = hfov_intrinsics(size[0], size[1], self.hfov_deg)
+            names = [str(number) for number in numbers]
+            report_poses(self.report, folder / TRAJECTORY_FILE, self.poses, intrinsics, size, self.rays, names)
 
     def finish(self, found_scenes: list[str], split_files: list[str]) -> LayoutReport:
         listed = sorted({name for split in split_files for name in read_split_file(split)})
@@ -200,13 +214,15 @@ def _subfolders(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith("."))
 
 
-def check_replica_layout(root: Path) -> LayoutReport:
+def check_replica_layout(root: Path, *, rays: RayRange | None = None, hfov_deg: float | None = None) -> LayoutReport:
     """Check ``<root>/<scene>/Sequence_<n>/{rgb,depth,semantic_class}/`` + ``traj_w_c.txt`` (Semantic-NeRF renders).
 
-    ``class_histogram`` counts the pixels of every ``semantic_class`` frame after the 51-class mapping.
+    ``class_histogram`` counts the pixels of every ``semantic_class`` frame after the 51-class mapping. With ``rays``
+    and ``hfov_deg``, each sequence whose poses all parse gets pose sanity: a scale that refuses is a problem, other
+    findings are notes naming the frame number.
     """
     root = Path(root)
-    walk = _Walk(LayoutReport("replica", root))
+    walk = _Walk(LayoutReport("replica", root), rays, hfov_deg)
     found = []
     for scene in _subfolders(root):
         sequences = [d for d in _subfolders(scene) if d.name.startswith("Sequence_")]
@@ -226,14 +242,16 @@ def check_replica_layout(root: Path) -> LayoutReport:
     return walk.finish(found, [name for pair in PROTOCOL_FILES.values() for name in pair])
 
 
-def check_replica_instance_layout(root: Path) -> LayoutReport:
+def check_replica_instance_layout(
+    root: Path, *, rays: RayRange | None = None, hfov_deg: float | None = None
+) -> LayoutReport:
     """Check ``<root>/<scene>/{rgb,depth,semantic_instance}/`` + ``traj_w_c.txt`` (DM-NeRF renders, frames 0..N-1).
 
     An optional ``semantic_class`` folder is checked too and fills ``class_histogram``; the notes give each scene's
-    number of distinct instance ids.
+    number of distinct instance ids. ``rays`` and ``hfov_deg``: pose sanity as in ``check_replica_layout``.
     """
     root = Path(root)
-    walk = _Walk(LayoutReport("replica_instance", root))
+    walk = _Walk(LayoutReport("replica_instance", root), rays, hfov_deg)
     found = []
     for scene in _subfolders(root):
         if not (scene / RGB_DIR).is_dir() and not (scene / TRAJECTORY_FILE).is_file():

@@ -11,6 +11,7 @@ from PIL import Image
 from gpnerf_core.errors import DataError
 from gpnerf_plugins.datasets.common.image_io import one_line_error
 from gpnerf_plugins.datasets.common.layout_check import LayoutReport
+from gpnerf_plugins.datasets.common.pose_report import RayRange, report_poses
 from gpnerf_plugins.datasets.scannet.files import (
     COLOR_DIR,
     DEPTH_DIR,
@@ -73,9 +74,12 @@ def _png_complete(path: Path, frame: str, kind: str) -> tuple[int, int]:
 class _SceneCheck:
     """Checks of one scene folder, appending to a shared report."""
 
-    def __init__(self, report: LayoutReport, path: Path, label_map: LabelMap | None, histogram_every: int) -> None:
+    def __init__(self, report: LayoutReport, path: Path, label_map: LabelMap | None, histogram_every: int,
+                 rays: RayRange | None = None) -> None:
         self.report, self.path, self.label_map, self.every = report, path, label_map, histogram_every
+        self.rays = rays
         self.invalid_poses = 0
+        self.poses: dict[str, np.ndarray] = {}  # finite rigid poses by frame token (the frames the loader keeps)
         self.unknown_ids: Counter[int] = Counter()
 
     def problem(self, error: LayoutError) -> None:
@@ -106,13 +110,18 @@ class _SceneCheck:
                         f"{self.path.name}: {len(orphans)} {folder}/ files without a colour image "
                         "(ignored by the loader)"
                     )
+        intrinsic = None
         try:
-            read_intrinsic(self.path / INTRINSIC_COLOR)
+            intrinsic = read_intrinsic(self.path / INTRINSIC_COLOR)
         except LayoutError as error:
             self.problem(error)
         reference = None
         for position, files in enumerate(frames):
             reference = self.frame(files, position, reference)
+        if self.rays is not None and intrinsic is not None and reference is not None:
+            tokens = list(self.poses)
+            poses = [self.poses[token] for token in tokens]
+            report_poses(self.report, self.path / POSE_DIR, poses, intrinsic, reference, self.rays, tokens)
         self.count("frames", len(frames))
         self.count("invalid poses", self.invalid_poses)
         if self.invalid_poses:
@@ -131,8 +140,11 @@ class _SceneCheck:
     def frame(self, files: FrameFiles, position: int, reference: tuple[int, int] | None) -> tuple[int, int] | None:
         """Check one frame's files (and its instance PNG, if any); returns the colour size the scene's frames share."""
         try:
-            if not pose_is_valid(read_pose(files.pose, files.token)):
+            pose = read_pose(files.pose, files.token)
+            if not pose_is_valid(pose):
                 self.invalid_poses += 1
+            else:
+                self.poses[files.token] = pose
         except LayoutError as error:
             self.problem(error)
         try:
@@ -190,7 +202,11 @@ class _SceneCheck:
 
 
 def check_scannet_layout(
-    root: str | Path, *, label_map_file: str | Path | None = None, histogram_every: int = 10
+    root: str | Path,
+    *,
+    label_map_file: str | Path | None = None,
+    histogram_every: int = 10,
+    rays: RayRange | None = None,
 ) -> LayoutReport:
     """Walk ``root`` (the folder of ``sceneXXXX_YY`` folders) against the ScanNet layout.
 
@@ -198,12 +214,15 @@ def check_scannet_layout(
     decoding pixels (headers, PNG CRCs, the JPEG end marker, pose and intrinsic numbers); labels of every
     ``histogram_every``-th frame of each scene are decoded for the class histogram (20 classes + ignore). A scene
     whose ``instance-filt/`` lacks a frame's PNG is a problem; a scene without the folder is fine. Invalid poses
-    and label ids the tsv lacks are notes, not problems: the loader handles them.
+    and label ids the tsv lacks are notes, not problems: the loader handles them. With ``rays``, the frames with a
+    valid pose get pose sanity (``gpnerf_core.pose_sanity``, colour intrinsics at the colour size): a scale that
+    refuses is a problem, other findings are notes naming the frame.
 
     Args:
         root: the dataset folder.
         label_map_file: the tsv; default ``<root>/scannetv2-labels.combined.tsv``.
         histogram_every: decode the labels of one frame in this many (1 = all; decoding dominates the run time).
+        rays: the ray range pose sanity measures the cameras' scale against; None = no pose sanity.
     """
     root = Path(root)
     if histogram_every < 1:
@@ -226,7 +245,7 @@ def check_scannet_layout(
     if not scenes:
         report.problems.append(LayoutError(root, "sceneXXXX_YY scene folders", "none").problem)
     for scene in scenes:
-        _SceneCheck(report, scene, label_map, histogram_every).run()
+        _SceneCheck(report, scene, label_map, histogram_every, rays).run()
     names = {p.name for p in scenes}
     for split, listed in (("train", read_split("train")), ("unseen (test)", read_split("test"))):
         report.notes.append(f"{split} split: {len(names & set(listed))} of its {len(listed)} scenes present")
