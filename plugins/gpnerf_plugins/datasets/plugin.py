@@ -2,6 +2,7 @@
 
 from gpnerf_core import ComponentSpec, DataTool, hookimpl
 from gpnerf_plugins.datasets import tools
+from gpnerf_plugins.datasets.capture import colmap_import, prepare
 from gpnerf_plugins.datasets.capture.dataset import CaptureScenes, CaptureScenesConfig
 from gpnerf_plugins.datasets.embedded.dataset import EmbeddedScenes, EmbeddedScenesConfig
 from gpnerf_plugins.datasets.replica.dataset import (
@@ -58,5 +59,15 @@ def gpnerf_register_data_tools() -> list[DataTool]:
             "prepare-scannet",
             tools.prepare_scannet,
             "turn a ScanNet scan (.sens + _2d-label-filt.zip) into the Semantic-Ray layout",
+        ),
+        DataTool(
+            "import-colmap",
+            colmap_import.main,
+            "a COLMAP sparse model and its images to a capture: `data import-colmap <model> --images DIR --out DIR`",
+        ),
+        DataTool(
+            "prepare-capture",
+            prepare.main,
+            "a video or photo folder to a capture by structure from motion: `data prepare-capture <src> --out DIR`",
         ),
     ]
