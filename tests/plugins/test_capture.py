@@ -230,3 +230,16 @@ def _copy(capture: Path, tmp_path: Path, change) -> Path:
     (folder / "transforms.json").write_text(json.dumps(transforms))
     return folder
 
+
+
+def test_data_check_reads_every_frame_of_every_capture(capture, tmp_path, capsys):
+    from gpnerf_core.cli import main
+
+    assert main(["data", "check", str(capture), "--layout", "capture"]) == 0
+    out = capsys.readouterr().out
+    assert "captures: 1" in out and "labelled captures: 1" in out and "frames: 8" in out and "problems: none" in out
+    broken = _copy(capture, tmp_path, lambda t: None)
+    (broken / "images" / "frame_00006.png").write_bytes(b"not a png")
+    assert main(["data", "check", str(broken), "--layout", "capture"]) == 1
+    out = capsys.readouterr().out
+    assert "frame_00006.png: unreadable image" in out and "problems (1)" in out

@@ -53,7 +53,7 @@ def gpnerf_register_datasets() -> list[ComponentSpec]:
 @hookimpl
 def gpnerf_register_data_tools() -> list[DataTool]:
     return [
-        DataTool("check", tools.check, "check a dataset folder: `data check <root> --layout replica|replica_instance|scannet`"),
+        DataTool("check", tools.check, "check a dataset folder: `data check <root> --layout replica|replica_instance|scannet|capture`"),
         DataTool("make", tools.make_embedded, "render the embedded scenes into the cache: `data make [--seed N ...]`"),
         DataTool(
             "prepare-scannet",

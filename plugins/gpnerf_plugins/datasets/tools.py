@@ -32,7 +32,13 @@ def layout_checkers() -> dict[str, Callable[[Path, float | None, float | None], 
 
         return check_scannet_layout(root, rays=_rays(Config.near, Config.far, near, far))
 
-    return {"replica": replica, "replica_instance": replica_instance, "scannet": scannet}
+    def capture(root: Path, near: float | None, far: float | None) -> LayoutReport:
+        from gpnerf_plugins.datasets.capture.check import check_capture_layout
+
+        rays = None if near is None and far is None else _rays(near or 0.0, far or 0.0, near, far)
+        return check_capture_layout(root, rays)
+
+    return {"replica": replica, "replica_instance": replica_instance, "scannet": scannet, "capture": capture}
 
 
 def _rays(default_near: float, default_far: float, near: float | None, far: float | None) -> RayRange:
@@ -53,7 +59,7 @@ def check(argv: list[str]) -> int:
     parser.add_argument("root", type=Path)
     parser.add_argument("--layout", required=True, choices=sorted(checkers))
     parser.add_argument("--near", type=float, default=None, help="pose sanity's near bound, metres (default: the "
-                        "dataset's dataset.near)")
+                        "dataset's dataset.near; a capture's own bounds)")
     parser.add_argument("--far", type=float, default=None, help="pose sanity's far bound, metres (default: the "
                         "dataset's dataset.far)")
     args = parser.parse_args(argv)
