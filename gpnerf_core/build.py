@@ -3,21 +3,69 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from pathlib import Path
+from typing import Any, Mapping
 
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.interfaces import LossSet, SceneDataset, ViewSelector
 from gpnerf_core.pipeline import GeneralizableNeRF
 from gpnerf_core.registry import Registry, get_registry
 from gpnerf_core.semantic_field import SemanticFieldRenderer
+from gpnerf_core.training.checkpoint import stored_classes
+
+
+@dataclass(frozen=True)
+class ClassList:
+    """The classes a model's head predicts.
+
+    Attributes:
+        names: names of the class ids 0..K-1.
+        ignore_index: the label value of unlabelled pixels in the labels the model was trained on.
+        source: where the list came from, for notes (``"dataset 'embedded'"``, ``"checkpoint <path>"``).
+        from_checkpoint: the list is a checkpoint's (the dataset has none).
+    """
+
+    names: tuple[str, ...]
+    ignore_index: int
+    source: str = "dataset"
+    from_checkpoint: bool = False
+
+    @property
+    def num_classes(self) -> int:
+        return len(self.names)
+
+    def describe(self, shown: int = 6) -> str:
+        """``9 classes of checkpoint <path> (wall, floor, ..., 3 more)``, for notes."""
+        more = len(self.names) - shown
+        names = ", ".join(self.names[:shown]) + (f", ... {more} more" if more > 0 else "")
+        return f"{self.num_classes} classes of {self.source} ({names})"
+
+    def note(self, dataset: str) -> str:
+        """What a command says when dataset ``dataset`` has no class list and these (a checkpoint's) are used."""
+        return f"dataset {dataset!r} has no class list: using the {self.describe()}"
+
+
+def checkpoint_classes(state: Mapping[str, Any], path: str | Path) -> ClassList | None:
+    """The classes a checkpoint stores (``stored_classes``) as a class list for a dataset without one; None for a
+    checkpoint written before checkpoints kept them."""
+    stored = stored_classes(state, path)
+    return None if stored is None else ClassList(*stored, source=f"checkpoint {path}", from_checkpoint=True)
 
 
 @dataclass
 class Components:
+    """What a config builds.
+
+    Attributes:
+        classes: the classes the model predicts (and evaluation scores, renders and names): the dataset's, or, for a
+            dataset without a class list (a capture without labels), the checkpoint's the model was trained with.
+    """
+
     dataset: SceneDataset
     view_selector: ViewSelector
     model: GeneralizableNeRF
     loss: LossSet | None
+    classes: ClassList
 
 
 def head_predicts(head_cfg: Any, registry: Registry) -> str:
@@ -81,11 +129,45 @@ def build_model(cfg: Any, num_classes: int, registry: Registry | None = None) ->
     )
 
 
-def build_components(cfg: Any, registry: Registry | None = None) -> Components:
+def model_classes(
+    cfg: Any, dataset: SceneDataset, fallback: ClassList | None, registry: Registry | None = None
+) -> ClassList:
+    """The dataset's classes, or ``fallback`` (a checkpoint's) when the dataset has no class list.
+
+    Raises:
+        ConfigError: the dataset has no class list, there is no fallback and the config has a head that predicts
+            classes (it would have none).
+    """
+    if dataset.class_names:
+        return ClassList(tuple(dataset.class_names), int(dataset.ignore_index), f"dataset {cfg.dataset.name!r}")
+    if fallback is not None:
+        return fallback
+    head = cfg.get("head")
+    if head is not None and head_predicts(head, registry or get_registry()) == "classes":
+        raise ConfigError(
+            f"dataset {cfg.dataset.name!r} has no class list (class_names is empty), so head {head.name!r} has no "
+            "classes to predict; train on a dataset with classes, or start from a trained model: eval, render and "
+            "finetune checkpoint=<.pt> use the classes the checkpoint stores (one written before checkpoints stored "
+            "them has none)"
+        )
+    return ClassList((), int(dataset.ignore_index), f"dataset {cfg.dataset.name!r}")
+
+
+def build_components(cfg: Any, registry: Registry | None = None, *, classes: ClassList | None = None) -> Components:
+    """Build the dataset, view selector, model and loss set of ``cfg``.
+
+    Args:
+        classes: the classes to build the head with when the dataset has no class list (a checkpoint's:
+            ``checkpoint_classes``); a dataset with its own list always uses it.
+    """
     registry = registry or get_registry()
     dataset = registry.build("dataset", cfg.dataset)
     selector = registry.build("view_selector", cfg.view_selector)
-    model = build_model(cfg, dataset.num_classes, registry)
+    label_space = model_classes(cfg, dataset, classes, registry)
+    model = build_model(cfg, label_space.num_classes, registry)
+    # Every checkpoint of this model stores its classes (save_checkpoint reads them here), so eval, render and finetune
+    # can name them on a dataset that has none.
+    model.classes = label_space
     loss = None
     if cfg.get("loss") is not None:
         loss = registry.build("loss", cfg.loss)
@@ -102,4 +184,4 @@ def build_components(cfg: Any, registry: Registry | None = None) -> Components:
                 f"loss {cfg.loss.name!r} trains {loss.head_predicts} but head {cfg.head.name!r} predicts {predicts}; "
                 f"use {wanted} or a loss set for {predicts} (+loss={'instance' if predicts == 'instances' else 'dgs'})"
             )
-    return Components(dataset=dataset, view_selector=selector, model=model, loss=loss)
+    return Components(dataset=dataset, view_selector=selector, model=model, loss=loss, classes=label_space)

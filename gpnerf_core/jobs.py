@@ -32,7 +32,7 @@ from typing import Any, Callable, NoReturn
 import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from gpnerf_core.build import build_components
+from gpnerf_core.build import build_components, checkpoint_classes
 from gpnerf_core.distributed import Distributed, init_distributed
 from gpnerf_core.errors import ConfigError, GpnerfError
 from gpnerf_core.io import atomic_write_json, atomic_write_text
@@ -405,11 +405,14 @@ class CheckpointModel:
 
 
 def model_from_checkpoint(cfg: DictConfig, dist: Distributed, command: str, *, check_scenes: bool) -> CheckpointModel:
-    """``checkpoint_config``, ``start``, build the components, (``check_scenes``: ``check_data`` on the evaluated
-    splits), load the evaluation weights and move the model to the job's device. Nothing is written."""
+    """``checkpoint_config``, ``start``, build the components (a dataset without a class list takes the checkpoint's),
+    (``check_scenes``: ``check_data`` on the evaluated splits), load the evaluation weights and move the model to the
+    job's device. Nothing is written."""
     checkpoint, state, notes = checkpoint_config(cfg, command)
     start(cfg)
-    components = build_components(cfg)
+    components = build_components(cfg, classes=checkpoint_classes(state, checkpoint))
+    if components.classes.from_checkpoint:
+        notes.append(components.classes.note(str(cfg.dataset.name)))
     if check_scenes:
         check_data(cfg, components, training=False)
     weights, which = evaluation_weights(state, str(cfg.eval.weights))

@@ -5,7 +5,9 @@ trains on the chosen scenes' training frames only and evaluates their held-out f
 (the paper's Table 1 "fine-tuning" and Table 2's per-scene setting). The held-out frames are evaluated at several
 step counts (``finetune.points``, default 0, N/4, N/2, N), so ``metrics.json`` holds the curve of accuracy against
 fine-tuning steps and seconds. A dataset with another class count re-initialises only the head's tensors that carry
-the class dimension (its last layer) and says so; any other mismatch names the config keys that differ.
+the class dimension (its last layer) and says so; any other mismatch names the config keys that differ. A dataset
+without a class list (a capture without labels) keeps the checkpoint's classes; on scenes without labels, fine-tune
+with a loss set that needs none (``+loss=label_free``): the label metrics of the curve are then None.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from gpnerf_core.build import build_components
+from gpnerf_core.build import build_components, checkpoint_classes
 from gpnerf_core.device import machine_info
 from gpnerf_core.distributed import Distributed
 from gpnerf_core.errors import ConfigError
@@ -51,7 +53,9 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     with open_dict(cfg):
         cfg.eval.splits = ["train"]  # the chosen scenes' held-out frames
     start(cfg)
-    components = build_components(cfg)
+    components = build_components(cfg, classes=checkpoint_classes(state, checkpoint))
+    if components.classes.from_checkpoint:
+        notes.append(components.classes.note(str(cfg.dataset.name)))
     check_data(cfg, components, training=True)
     start_weights, which = evaluation_weights(state, str(cfg.eval.weights))
     reinitialised = finetune_weights(
@@ -66,7 +70,7 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             if reinitialised:
                 old_classes = int(start_weights[reinitialised[0]].shape[0])
                 print(
-                    f"note: {components.dataset.num_classes} classes instead of the checkpoint's {old_classes}: "
+                    f"note: {components.classes.num_classes} classes instead of the checkpoint's {old_classes}: "
                     f"re-initialised {', '.join(reinitialised)} (the head's last layer); every other tensor loaded",
                     file=sys.stderr,
                 )
@@ -87,7 +91,7 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             entry.update({key: held_out[key] for key in CURVE_KEYS if key in held_out})
             curve.append(entry)
             if dist.is_main:
-                shown = ", ".join(f"{k} {v:.3f}" for k, v in entry.items() if k in CURVE_KEYS)
+                shown = ", ".join(f"{k} {v:.3f}" for k, v in entry.items() if k in CURVE_KEYS and v is not None)
                 print(f"finetune step {trainer.step}: {shown}", file=sys.stderr)
         with open_dict(cfg):
             cfg.train.steps = total

@@ -1,9 +1,11 @@
 """``python -m gpnerf_core render checkpoint=<.pt> [render.scene=...] [render.path=interpolate|spiral] [render.frames=N]``.
 
 Renders a novel-view trajectory of one scene with a trained model: RGB, depth and the head's semantic classes side by
-side per frame, written as PNG frames, an MP4 (imageio with its ffmpeg plugin) and a GIF in the run folder. The
-trajectories are ``gpnerf_core.geometry.trajectories``'; each rendered pose takes its source views from the scene's
-training frames with the configured view selector.
+side per frame, written as PNG frames, an MP4 (imageio with its ffmpeg plugin) and a GIF in the run folder, with the
+classes' colour legend (``legend.png``; ``render.json`` names them). The classes are the model's: the dataset's, or the
+checkpoint's on a dataset without a class list (a capture without labels). The trajectories are
+``gpnerf_core.geometry.trajectories``'; each rendered pose takes its source views from the scene's training frames with
+the configured view selector.
 """
 
 from __future__ import annotations
@@ -39,6 +41,8 @@ def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     loaded = model_from_checkpoint(cfg, dist, "render", check_scenes=False)
     checkpoint, notes, components = loaded.path, loaded.notes, loaded.components
     model = components.model.eval()
+    classes = components.classes
+    semantic = model.has_semantics and model.head.predicts != "instances"
     frames = FrameCache(components.dataset, dist.device)
     split_scenes = list(components.dataset.scenes("unseen")) + list(components.dataset.scenes("train"))
     name = str(cfg.render.scene) or (split_scenes[0] if split_scenes else "")
@@ -76,9 +80,7 @@ def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
                 tiles.append(vis.colorize_instances(slots))  # a slot keeps its colour from frame to frame
                 labels.append("instances")
             elif prediction.logits is not None:
-                classes = prediction.logits[0].argmax(0).cpu()
-                dataset = components.dataset
-                tiles.append(vis.colorize_labels(classes, dataset.num_classes, dataset.ignore_index))
+                tiles.append(vis.colorize_labels(prediction.logits[0].argmax(0).cpu(), classes.num_classes))
                 labels.append("semantic")
             pictures.append(vis.side_by_side(tiles, labels))
         for index, picture in enumerate(pictures):
@@ -86,10 +88,15 @@ def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
         fps = int(cfg.render.fps)
         _write_video(imageio, run_dir / "trajectory.mp4", pictures, fps)
         _write_video(imageio, run_dir / "trajectory.gif", pictures, fps)
+        outputs = ["trajectory.mp4", "trajectory.gif", "frames/"]
+        if semantic and classes.names:
+            vis.save_image(run_dir / "legend.png", vis.class_legend(classes.names))
+            outputs.append("legend.png")
         result = {"checkpoint": str(checkpoint), "scene": name, "path": str(cfg.render.path), "frames": len(pictures),
-                  "outputs": ["trajectory.mp4", "trajectory.gif", "frames/"]}
+                  "outputs": outputs, "classes": list(classes.names) if semantic else None,
+                  "classes_from": classes.source if semantic else None}
         atomic_write_json(run_dir / "render.json", result)
-        print(f"rendered {len(pictures)} frames of {name} to {run_dir} (trajectory.mp4, trajectory.gif, frames/)")
+        print(f"rendered {len(pictures)} frames of {name} to {run_dir} ({', '.join(outputs)})")
     return result
 
 

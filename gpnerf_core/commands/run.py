@@ -133,9 +133,15 @@ def _evaluated_curve(cfg: DictConfig, components: Any, trainer: Any, run_dir: Pa
         if dist.is_main:
             for logger in loggers:
                 logger.log(trainer.step, eval_scalars(evaluation))
-            shown = ", ".join(
-                f"{split} {values.get('miou/image_mean_present', values.get('psnr/clamped', float('nan'))):.3f}"
-                for split, values in evaluation["eval"].items() if isinstance(values, dict)
-            )
+            shown = ", ".join(f"{split} {_headline(values)}" for split, values in evaluation["eval"].items()
+                              if isinstance(values, dict))
             print(f"eval at step {trainer.step}: {shown}", file=sys.stderr)
     return curve
+
+
+def _headline(values: dict[str, Any]) -> str:
+    """A split's per-image mIoU, or its PSNR where labels are not available (an unlabelled capture)."""
+    for key, name in (("miou/image_mean_present", "mIoU"), ("psnr/clamped", "PSNR")):
+        if values.get(key) is not None:
+            return f"{name} {values[key]:.3f}"
+    return "n/a"

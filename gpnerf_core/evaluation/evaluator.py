@@ -1,8 +1,13 @@
 """Evaluation: render whole held-out views, decode them, score them with tagged protocols.
 
-Each view is evaluated on its own into a small ``ViewRecord`` (confusion matrices, PSNR/SSIM, timing, and the
-pictures of the first few views); the records are then summarised in view order. Under torchrun each process
+Each view is evaluated on its own into a small ``ViewRecord`` (confusion matrices, PSNR/SSIM, depth errors, timing,
+and the pictures of the first few views); the records are then summarised in view order. Under torchrun each process
 evaluates every ``world_size``-th view and the records are gathered, so the metrics equal a single process's.
+
+A scene without labels (``Scene.labelled`` False, a user's capture) is rendered and scored on colour and depth only:
+every label metric of a split whose scenes all lack labels is None with ``labels/unavailable_reason``, never 0, and a
+split mixing both scores labels on its labelled scenes and lists the others (``labels/unlabelled_scenes``). Classes
+are the model's (``Components.classes``: a checkpoint's where the dataset has no class list).
 """
 
 from __future__ import annotations
@@ -44,12 +49,15 @@ class ViewRecord:
         scene, frame: which view.
         quality: ``{PSNR_CLAMPED, SSIM_GAUSSIAN11}``.
         confusion, teacher_confusion, baseline_confusion: ``[K, K]`` of the rendered prediction, of the 2D
-            reference and of the majority class; None without semantics.
+            reference and of the majority class; None without semantics or labels (or, the baseline, without a
+            majority class).
         seconds: encode + render + decode time; rays: rays rendered.
         pictures: ``{file suffix: uint8 image}`` for the first ``eval.save_images`` views, else empty.
         instances, teacher_instances: an instance head's scores on the rendered map and on the 2D reference map.
         instance_baseline: a class head's connected components scored as instances (the trivial baseline), where
             the frame has instance ids.
+        labelled: the scene has labels (``Scene.labelled``); without, only ``quality`` and ``depth`` are scored.
+        depth: ``{DEPTH_ABS_REL, DEPTH_RMSE}``, or None when the frame has no ground-truth depth.
     """
 
     position: int
@@ -65,6 +73,8 @@ class ViewRecord:
     instances: I.InstanceRecord | None = None
     teacher_instances: I.InstanceRecord | None = None
     instance_baseline: I.InstanceRecord | None = None
+    labelled: bool = True
+    depth: dict[str, float] | None = None
 
 
 def predicts_instances(components: Components) -> bool:
@@ -72,16 +82,21 @@ def predicts_instances(components: Components) -> bool:
     return head is not None and head.predicts == "instances"
 
 
-def majority_class(components: Components, frames: FrameCache, max_frames_per_scene: int = 8) -> int:
-    """Most frequent class over (a spread sample of) the training scenes' training frames."""
+def majority_class(components: Components, frames: FrameCache, max_frames_per_scene: int = 8) -> int | None:
+    """Most frequent class over (a spread sample of) the labelled training scenes' training frames; None when no
+    training scene has labels."""
     dataset = components.dataset
     labels = []
     for name in dataset.scenes("train"):
         scene = frames.scene(name)
+        if not scene.labelled:
+            continue
         indices = scene.train_frames
         step = max(1, len(indices) // max_frames_per_scene)
         labels += [frames.frame(scene, i).semantic for i in indices[::step]]
-    counts = M.class_pixel_counts(labels, dataset.num_classes, dataset.ignore_index)
+    if not labels:
+        return None
+    counts = M.class_pixel_counts(labels, components.classes.num_classes, dataset.ignore_index)
     return int(np.argmax(counts))
 
 
@@ -120,7 +135,8 @@ def evaluate(
             raise ConfigError(f"eval.splits contains {split!r}; expected some of {', '.join(SPLIT_LABELS)}")
     model = components.model.to(dist.device).eval()
     dataset = components.dataset
-    semantics = model.has_semantics and not predicts_instances(components)
+    instance_head = predicts_instances(components)
+    semantics = model.has_semantics and not instance_head
     baseline_class = majority_class(components, frames) if semantics and references else None
     results: dict[str, Any] = {}
     for split in cfg.eval.splits:
@@ -138,10 +154,11 @@ def evaluate(
         memory = dist.all_reduce(torch.tensor(peak_memory_mb(dist.device), device=dist.device), op="max")
         if dist.is_main:
             _write_pictures(run_dir / "images" / label, records)
-        results[label] = summarize(records, dataset.num_classes, dataset.ignore_index, semantics, float(memory))
+        results[label] = summarize(records, components.classes.num_classes, dataset.ignore_index, semantics,
+                                   float(memory), instance_head=instance_head)
     return {
         "eval": results,
-        "baseline_class": None if baseline_class is None else dataset.class_names[baseline_class],
+        "baseline_class": None if baseline_class is None else components.classes.names[baseline_class],
         "lpips": M.lpips_vgg_status(),
         "eval_world_size": dist.world_size,
     }
@@ -172,7 +189,8 @@ def _evaluate_view(
     references: bool,
 ) -> ViewRecord:
     model, dataset = components.model, components.dataset
-    num_classes, ignore = dataset.num_classes, dataset.ignore_index
+    num_classes, ignore = components.classes.num_classes, dataset.ignore_index
+    labelled = scene.labelled
     target = frames.frame(scene, index)
     if sources_for is not None:
         sources = sources_for(scene, index)
@@ -195,20 +213,22 @@ def _evaluate_view(
     gt_rgb = _area_downsample(target.rgb, prediction.stride)
     rendered_rgb = prediction.rgb.cpu()
     quality = {M.PSNR_CLAMPED: M.psnr(rendered_rgb, gt_rgb), M.SSIM_GAUSSIAN11: M.ssim(rendered_rgb, gt_rgb)}
+    depth = M.depth_errors(prediction.depth.cpu(), target.depth)
     confusion = teacher_confusion = baseline_confusion = None
     instances = teacher_instances = instance_baseline = None
     instance_picture = None
-    if classes is not None:
+    if classes is not None and labelled:
         confusion = M.confusion_matrix(classes, target.semantic, num_classes, ignore)
-    if classes is not None and references:
+    if classes is not None and references and labelled:
         teacher = model.teacher_logits(target.rgb.permute(2, 0, 1).to(frames.device)).argmax(dim=1)[0].cpu()
         teacher_confusion = M.confusion_matrix(teacher, target.semantic, num_classes, ignore)
-        constant = torch.full_like(target.semantic, int(baseline_class))
-        baseline_confusion = M.confusion_matrix(constant, target.semantic, num_classes, ignore)
+        if baseline_class is not None:
+            constant = torch.full_like(target.semantic, int(baseline_class))
+            baseline_confusion = M.confusion_matrix(constant, target.semantic, num_classes, ignore)
         if target.instance is not None:
             top = torch.softmax(prediction.logits[0].float(), dim=0).max(dim=0).values.cpu()
             instance_baseline, _ = I.instance_record(*I.connected_component_instances(classes, top), target.instance)
-    if instance_head:
+    if instance_head and labelled:
         if target.instance is None:
             raise DataError(f"scene {scene.name!r} frame {index}: no instance ids to evaluate the instance head on")
         slots, confidence = I.slot_predictions(prediction.logits[0].cpu())
@@ -219,9 +239,14 @@ def _evaluate_view(
             teacher_instances, _ = I.instance_record(*I.slot_predictions(teacher), target.instance)
     pictures = {}
     if position < int(cfg.eval.save_images):
-        pictures = _pictures(target, prediction, classes, gt_rgb, num_classes, ignore, scene.near, scene.far)
+        pictures = _pictures(target, prediction, classes, gt_rgb, num_classes, ignore, scene.near, scene.far,
+                             labelled=labelled)
         if instance_picture is not None:
             pictures["instances"] = _instance_picture(*instance_picture, target.instance)
+        elif instance_head:  # a scene without labels: the predicted instances alone
+            slots, _ = I.slot_predictions(prediction.logits[0].cpu())
+            pictures["instances"] = vis.side_by_side([vis.colorize_instances(slots)],
+                                                     ["predicted instances (no labels)"])
     return ViewRecord(
         position=position,
         scene=scene.name,
@@ -236,20 +261,36 @@ def _evaluate_view(
         instances=instances,
         teacher_instances=teacher_instances,
         instance_baseline=instance_baseline,
+        labelled=labelled,
+        depth=depth,
     )
 
 
 def summarize(
-    records: list[ViewRecord], num_classes: int, ignore_index: int, semantics: bool, peak_memory: float
+    records: list[ViewRecord],
+    num_classes: int,
+    ignore_index: int,
+    semantics: bool,
+    peak_memory: float,
+    *,
+    instance_head: bool = False,
 ) -> dict[str, Any]:
-    """The split's metrics from its view records, taken in order."""
+    """The split's metrics from its view records, taken in order.
+
+    Args:
+        semantics: a class head (segmentation protocols); instance_head: an instance head (instance protocols).
+    """
     quality = M.ImageQualityAccumulator()
-    rendered = M.SegmentationAccumulator(num_classes, ignore_index)
-    teacher = M.SegmentationAccumulator(num_classes, ignore_index)
-    baseline = M.SegmentationAccumulator(num_classes, ignore_index)
+    depth = M.DepthAccumulator()
+    # Without a class head there are no class ids to accumulate (a dataset without a class list may have none).
+    rendered, teacher, baseline = (
+        (M.SegmentationAccumulator(num_classes, ignore_index) for _ in range(3)) if semantics else (None, None, None)
+    )
     instances, teacher_instances, instance_baseline = (I.InstanceAccumulator() for _ in range(3))
     for record in records:
         quality.add_scores(record.quality, group=record.scene)
+        if record.depth is not None:
+            depth.add_scores(record.depth, group=record.scene)
         for accumulator, value in (
             (instances, record.instances),
             (teacher_instances, record.teacher_instances),
@@ -261,13 +302,26 @@ def summarize(
             rendered.add_confusion(record.confusion, group=record.scene)
         if record.teacher_confusion is not None:
             teacher.add_confusion(record.teacher_confusion, group=record.scene)
+        if record.baseline_confusion is not None:
             baseline.add_confusion(record.baseline_confusion, group=record.scene)
     result: dict[str, Any] = dict(quality.compute())
+    result.update(depth.compute())
+    unlabelled = list(dict.fromkeys(r.scene for r in records if not r.labelled))
+    if not any(r.labelled for r in records):
+        if semantics or instance_head:
+            result.update(_labels_unavailable(M.no_labels_reason(unlabelled), instance_head))
+        return _with_timing(result, records, peak_memory)
     if semantics:
         result.update(rendered.compute())
         result["per_scene"] = rendered.compute_per_group()
         if any(r.teacher_confusion is not None for r in records):
-            result["baseline_majority"] = baseline.compute()
+            if any(r.baseline_confusion is not None for r in records):
+                result["baseline_majority"] = baseline.compute()
+            else:
+                result["baseline_majority"] = None
+                result[M.BASELINE_MAJORITY_UNAVAILABLE_REASON] = (
+                    "no training scene has labels to take the majority class from"
+                )
             result["teacher_2d"] = teacher.compute()
     if any(r.instances is not None for r in records):
         result.update(instances.compute())
@@ -275,6 +329,21 @@ def summarize(
             result["teacher_2d"] = teacher_instances.compute()
     if any(r.instance_baseline is not None for r in records):
         result["baseline_connected_components"] = instance_baseline.compute()
+    if unlabelled and (semantics or instance_head):
+        result[M.LABELS_UNLABELLED_SCENES] = unlabelled
+        result[M.COUNT_IMAGES_WITHOUT_LABELS] = sum(1 for r in records if not r.labelled)
+    return _with_timing(result, records, peak_memory)
+
+
+def _labels_unavailable(reason: str, instance_head: bool) -> dict[str, Any]:
+    """Every label metric of a split without labels as None (never 0), with the reason."""
+    keys = I.AP_KEYS if instance_head else M.SEGMENTATION_KEYS
+    references = ("teacher_2d",) if instance_head else ("baseline_majority", "teacher_2d")
+    return {**{key: None for key in keys}, **{name: None for name in references}, M.LABELS_UNAVAILABLE_REASON: reason}
+
+
+def _with_timing(result: dict[str, Any], records: list[ViewRecord], peak_memory: float) -> dict[str, Any]:
+    """``result`` with the split's ``timing``: seconds per frame, rays per second, peak memory."""
     seconds = sum(r.seconds for r in records)
     rays = sum(r.rays for r in records)
     result["timing"] = {
@@ -294,8 +363,11 @@ def _pictures(
     ignore: int,
     near: float,
     far: float,
+    *,
+    labelled: bool = True,
 ) -> dict[str, np.ndarray]:
-    """The pictures of one view, by file suffix; rendered maps are shown at full size, a block per cell."""
+    """The pictures of one view, by file suffix; rendered maps are shown at full size, a block per cell. Without labels
+    the semantic picture shows the predicted classes alone."""
     pred_rgb = prediction.rgb.cpu()
     s = prediction.stride
     pictures = {
@@ -310,13 +382,16 @@ def _pictures(
             ["rendered depth", "ground truth"],
         ),
     }
-    if classes is not None:
+    if classes is not None and labelled:
         pictures["semantic"] = vis.side_by_side(
             [vis.colorize_labels(classes, num_classes, ignore),
              vis.colorize_labels(target.semantic, num_classes, ignore),
              vis.error_map(classes, target.semantic, ignore)],
             ["predicted classes", "ground truth", "errors"],
         )
+    elif classes is not None:
+        pictures["semantic"] = vis.side_by_side([vis.colorize_labels(classes, num_classes)],
+                                                ["predicted classes (no labels)"])
     if prediction.semantic is not None:
         pictures["features_pca"] = _upscale(vis.pca_rgb(prediction.semantic.cpu()), s)
     return pictures
@@ -356,19 +431,11 @@ def print_summary(metrics: dict[str, Any], run_dir: Path) -> None:
         )
     for split, values in metrics.get("eval", {}).items():
         parts = [f"{split:>14}:"]
-        if M.MIOU_IMAGE_MEAN_PRESENT in values:
-            parts.append(f"mIoU {_fmt(values.get(M.MIOU_IMAGE_MEAN_PRESENT))} (per image)")
-            parts.append(f"{_fmt(values.get(M.MIOU_DATASET))} (dataset)")
-            base = values.get("baseline_majority", {})
-            parts.append(f"| majority baseline {_fmt(base.get(M.MIOU_IMAGE_MEAN_PRESENT))}")
-            parts.append(f"| acc {_fmt(values.get(M.ACC_TOTAL))}")
-        if I.AP_MATCHED_75 in values:
-            parts.append(f"AP@0.75 {_fmt(values.get(I.AP_MATCHED_75))} (matched)")
-            parts.append(f"| COCO AP {_fmt(values.get(I.COCO_AP))}")
-            parts.append(f"AP75 {_fmt(values.get(I.COCO_AP75))}")
-        cc = values.get("baseline_connected_components")
-        if cc:
-            parts.append(f"| instances from connected components: AP@0.75 {_fmt(cc.get(I.AP_MATCHED_75))}")
+        reason = values.get(M.LABELS_UNAVAILABLE_REASON)
+        if reason is not None:
+            parts.append(f"labels: not available ({reason})")
+        else:
+            parts += _label_parts(values)
         parts.append(f"| PSNR {_fmt(values.get(M.PSNR_CLAMPED), 2)} SSIM {_fmt(values.get(M.SSIM_GAUSSIAN11))}")
         timing = values.get("timing", {})
         parts.append(f"| {timing.get('seconds_per_frame', float('nan')):.2f} s/frame")
@@ -376,6 +443,28 @@ def print_summary(metrics: dict[str, Any], run_dir: Path) -> None:
     lines.append(f"run folder: {run_dir.resolve()}")
     print("\n".join(lines))
     sys.stdout.flush()
+
+
+def _label_parts(values: dict[str, Any]) -> list[str]:
+    """The summary's label numbers of one split (mIoU and its references, or the instance APs)."""
+    parts = []
+    if M.MIOU_IMAGE_MEAN_PRESENT in values:
+        parts.append(f"mIoU {_fmt(values.get(M.MIOU_IMAGE_MEAN_PRESENT))} (per image)")
+        parts.append(f"{_fmt(values.get(M.MIOU_DATASET))} (dataset)")
+        base = values.get("baseline_majority") or {}
+        parts.append(f"| majority baseline {_fmt(base.get(M.MIOU_IMAGE_MEAN_PRESENT))}")
+        parts.append(f"| acc {_fmt(values.get(M.ACC_TOTAL))}")
+    if I.AP_MATCHED_75 in values:
+        parts.append(f"AP@0.75 {_fmt(values.get(I.AP_MATCHED_75))} (matched)")
+        parts.append(f"| COCO AP {_fmt(values.get(I.COCO_AP))}")
+        parts.append(f"AP75 {_fmt(values.get(I.COCO_AP75))}")
+    cc = values.get("baseline_connected_components")
+    if cc:
+        parts.append(f"| instances from connected components: AP@0.75 {_fmt(cc.get(I.AP_MATCHED_75))}")
+    unlabelled = values.get(M.LABELS_UNLABELLED_SCENES)
+    if unlabelled:
+        parts.append(f"(labels scored on the labelled scenes only; without labels: {', '.join(unlabelled)})")
+    return parts
 
 
 def _fmt(value: Any, digits: int = 3) -> str:

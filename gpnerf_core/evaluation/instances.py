@@ -44,6 +44,9 @@ COCO_AP75 = "instance/coco_mask_ap75"
 COUNT_INSTANCES = "count/gt_instances"
 """Ground-truth instances over the evaluated views."""
 
+AP_KEYS = (AP_MATCHED_75, AP_MATCHED, COCO_AP, COCO_AP50, COCO_AP75)
+"""The instance protocols of an instance head (None, with ``labels/unavailable_reason``, on scenes without labels)."""
+
 
 def instance_masks(ids: Tensor) -> tuple[Tensor, Tensor]:
     """Masks of every id present: ``[H, W]`` integer ids -> (ids ``[G]`` ascending, masks ``[G, H * W]`` bool)."""

@@ -63,6 +63,39 @@ LPIPS_VGG = "lpips/vgg"
 LPIPS_VGG_REASON = "lpips/vgg_unavailable_reason"
 """Why :data:`LPIPS_VGG` is None."""
 
+DEPTH_ABS_REL = "depth/abs_rel"
+"""Per image mean of ``|d - d*| / d*`` over the rendered cells (``eval.render_stride`` pixels a side) whose every pixel
+has ground-truth depth (camera z in metres, 0 = unknown), ``d*`` the mean of the cell's pixels and ``d`` the rendered
+depth; averaged within groups, then over groups. Images without such a cell are left out (counted in
+:data:`COUNT_IMAGES_WITH_DEPTH`); None when no image has one, with the reason under :data:`DEPTH_UNAVAILABLE_REASON`."""
+
+DEPTH_RMSE = "depth/rmse"
+"""Per image ``sqrt(mean (d - d*)^2)`` in metres over the same cells as :data:`DEPTH_ABS_REL`; averaged within groups,
+then over groups."""
+
+DEPTH_UNAVAILABLE_REASON = "depth/unavailable_reason"
+"""Why :data:`DEPTH_ABS_REL` and :data:`DEPTH_RMSE` are None (no evaluated frame has ground-truth depth)."""
+
+COUNT_IMAGES_WITH_DEPTH = "count/images_with_depth"
+"""Number of images that entered the depth protocols."""
+
+LABELS_UNAVAILABLE_REASON = "labels/unavailable_reason"
+"""Why every label metric of a split is None: none of its scenes has labels (``Scene.labelled`` False, a capture
+without labels). The label metrics are :data:`SEGMENTATION_KEYS` and the ``baseline_majority`` and ``teacher_2d``
+references for a class head, the instance APs (:data:`gpnerf_core.evaluation.instances.AP_KEYS`) and ``teacher_2d``
+for an instance head; each is None, never 0. Present only in such a split."""
+
+LABELS_UNLABELLED_SCENES = "labels/unlabelled_scenes"
+"""The scenes of a split without labels when the split also has labelled ones: every label metric is computed on the
+labelled scenes only (the image-quality and depth protocols on all). Present only in such a split."""
+
+COUNT_IMAGES_WITHOUT_LABELS = "count/images_without_labels"
+"""Images of the scenes in :data:`LABELS_UNLABELLED_SCENES` (in the image-quality and depth protocols only)."""
+
+BASELINE_MAJORITY_UNAVAILABLE_REASON = "baseline_majority_unavailable_reason"
+"""Why a split's ``baseline_majority`` is None although its labels are scored: no training scene has labels to take
+the majority class from."""
+
 COUNT_IMAGES = "count/images"
 """Number of images that entered the per-image protocols."""
 
@@ -78,6 +111,27 @@ DEFAULT_GROUP = "all"
 
 # ----------------------------------------------------------------------------------------------------------------
 # Segmentation
+
+
+SEGMENTATION_KEYS = (
+    MIOU_IMAGE_MEAN_PRESENT,
+    ACC_IMAGE_TOTAL,
+    ACC_IMAGE_CLASS_MEAN_PRESENT,
+    MIOU_DATASET,
+    ACC_TOTAL,
+    ACC_CLASS_MEAN,
+    IOU_DATASET_PER_CLASS,
+)
+"""The segmentation protocols of a class head (None, with :data:`LABELS_UNAVAILABLE_REASON`, on scenes without
+labels)."""
+
+
+def no_labels_reason(scenes: Sequence[str], shown: int = 5) -> str:
+    """``scene 'a' has no labels`` / ``scenes 'a', 'b' have no labels`` (the first ``shown`` named)."""
+    names = ", ".join(repr(name) for name in scenes[:shown])
+    if len(scenes) > shown:
+        names += f" and {len(scenes) - shown} more"
+    return f"scene {names} has no labels" if len(scenes) == 1 else f"scenes {names} have no labels"
 
 
 def _as_labels(labels: Tensor | np.ndarray, name: str) -> Tensor:
@@ -464,6 +518,73 @@ class ImageQualityAccumulator:
             }
             for group, scores in self._scores.items()
         }
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Depth
+
+
+def depth_errors(pred: Tensor, gt: Tensor) -> dict[str, float] | None:
+    """One image's depth protocols (:data:`DEPTH_ABS_REL`, :data:`DEPTH_RMSE`).
+
+    Args:
+        pred: ``[h, w]`` rendered depth in metres, one value per cell of ``H / h`` pixels a side.
+        gt: ``[H, W]`` ground-truth depth in metres, 0 (or not finite) where unknown.
+
+    Returns:
+        The two values, or None when no cell has ground-truth depth at every pixel.
+
+    Raises:
+        NonFiniteError: the rendered depth holds NaN or Inf.
+        ValueError: ``H, W`` is not a whole multiple of ``h, w``.
+    """
+    pred = pred.detach().to("cpu", torch.float64)
+    gt = gt.detach().to("cpu", torch.float64)
+    if pred.dim() != 2 or gt.dim() != 2:
+        raise ValueError(f"depth maps must be [h, w] and [H, W], got {list(pred.shape)} and {list(gt.shape)}")
+    stride = gt.shape[0] // pred.shape[0]
+    if stride < 1 or tuple(gt.shape) != (pred.shape[0] * stride, pred.shape[1] * stride):
+        raise ValueError(
+            f"ground-truth depth {list(gt.shape)} is not a whole multiple of the rendered {list(pred.shape)}"
+        )
+    if not bool(torch.isfinite(pred).all()):
+        raise NonFiniteError("rendered depth contains NaN or Inf values")
+    known = torch.isfinite(gt) & (gt > 0)
+    cells = torch.nn.functional.avg_pool2d(torch.where(known, gt, 0.0)[None, None], stride)[0, 0]
+    covered = torch.nn.functional.avg_pool2d(known.to(torch.float64)[None, None], stride)[0, 0] == 1.0
+    if not bool(covered.any()):
+        return None
+    truth, rendered = cells[covered], pred[covered]
+    return {
+        DEPTH_ABS_REL: float(((rendered - truth).abs() / truth).mean()),
+        DEPTH_RMSE: float((rendered - truth).square().mean().sqrt()),
+    }
+
+
+class DepthAccumulator:
+    """Collects per-image depth errors and averages them within groups, then over groups."""
+
+    _KEYS = (DEPTH_ABS_REL, DEPTH_RMSE)
+
+    def __init__(self) -> None:
+        self._scores: dict[str, dict[str, list[float]]] = {}
+
+    def add_scores(self, scores: dict[str, float], group: str = DEFAULT_GROUP) -> None:
+        """Add one image's :func:`depth_errors`."""
+        bucket = self._scores.setdefault(group, {key: [] for key in self._KEYS})
+        for key in self._KEYS:
+            bucket[key].append(scores[key])
+
+    def compute(self) -> dict[str, Any]:
+        """``{DEPTH_ABS_REL, DEPTH_RMSE, COUNT_IMAGES_WITH_DEPTH}``, and :data:`DEPTH_UNAVAILABLE_REASON` when no image
+        had ground-truth depth."""
+        result: dict[str, Any] = {
+            key: _group_then_mean({g: s[key] for g, s in self._scores.items()}) for key in self._KEYS
+        }
+        result[COUNT_IMAGES_WITH_DEPTH] = sum(len(s[DEPTH_ABS_REL]) for s in self._scores.values())
+        if not result[COUNT_IMAGES_WITH_DEPTH]:
+            result[DEPTH_UNAVAILABLE_REASON] = "no evaluated frame has ground-truth depth"
+        return result
 
 
 def lpips_vgg_status() -> dict[str, Any]:

@@ -88,6 +88,31 @@ def colorize_labels(
     return out
 
 
+def class_legend(names: Sequence[str], swatch: int = 12, gap: int = 3) -> np.ndarray:
+    """The legend of :func:`colorize_labels`: one row per class, its colour swatch and its name, on white.
+
+    Args:
+        names: class names, ids 0..K-1 in order.
+        swatch: side of each colour square in pixels; gap: white pixels around rows.
+
+    Returns:
+        ``[K * (swatch + gap) + gap, W, 3]`` uint8, W fitting the longest name.
+    """
+    if not names:
+        raise ValueError("class_legend needs at least one class name")
+    palette = label_palette(len(names))
+    font = _font(max(8, swatch - 1))
+    widths = [ImageDraw.Draw(Image.new("RGB", (1, 1))).textlength(str(name), font=font) for name in names]
+    width = int(gap * 3 + swatch + max(widths)) + 1
+    canvas = Image.new("RGB", (width, len(names) * (swatch + gap) + gap), (255, 255, 255))
+    draw = ImageDraw.Draw(canvas)
+    for index, name in enumerate(names):
+        top = gap + index * (swatch + gap)
+        draw.rectangle((gap, top, gap + swatch - 1, top + swatch - 1), fill=tuple(int(c) for c in palette[index]))
+        draw.text((2 * gap + swatch, top - 1), str(name), fill=(0, 0, 0), font=font)
+    return np.asarray(canvas, dtype=np.uint8).copy()
+
+
 def colorize_instances(ids: Tensor | np.ndarray) -> np.ndarray:
     """Colour an instance-id map: id ``i`` gets hue ``frac(0.618034 * i)`` (golden-ratio steps keep neighbouring ids
     apart), the same colour in every picture.

@@ -25,7 +25,8 @@ class SceneDataset(ABC):
     @property
     @abstractmethod
     def class_names(self) -> tuple[str, ...]:
-        """Names of the classes 0..K-1."""
+        """Names of the classes 0..K-1; empty for a dataset whose scenes have no labels (a user's capture), where a
+        trained model's own class list is used (``eval``, ``render``, ``finetune`` from its checkpoint)."""
 
     @property
     def num_classes(self) -> int:

@@ -22,6 +22,11 @@ class LossSet(nn.Module, ABC):
     needs_instances: bool = False
     """Target views carry the frames' instance ids (``LossInputs.instances``); a dataset without them is refused
     before training."""
+    needs_labels: bool = True
+    """Some term reads the target's labels (class ids or instance ids). Training on a scene without labels
+    (``Scene.labelled`` False, its labels all ``ignore_index``) is then refused before any work. True unless the loss
+    set says otherwise, so a loss set that never declared it is never trained silently on empty labels; a loss set
+    whose terms need none (colour, distillation from the 2D teacher) sets it False."""
     head_predicts: str | None = None
     """What the head's logits must be for this loss set: ``"classes"``, ``"instances"``, or None (no head needed, or
     either)."""

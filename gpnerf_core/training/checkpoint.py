@@ -2,7 +2,9 @@
 
 A checkpoint holds the model, optimizer and schedule, the step, every process's random state and the step
 sampler's, and what made it: the composed config (YAML) and its hash, the Hydra overrides that composed it,
-the components used (kind, name, provider, version) and the software versions. It is loaded with
+the components used (kind, name, provider, version), the software versions, and the classes its head predicts
+(``class_names``, ``ignore_index``: what ``eval``, ``render`` and ``finetune`` use on a dataset without a class list;
+absent from checkpoints written before they were stored, which still load). It is loaded with
 ``torch.load(weights_only=True)``: nothing in it is unpickled as code.
 """
 
@@ -72,9 +74,12 @@ def save_checkpoint(
     """Write a checkpoint atomically (a reader never sees half a file).
 
     Args:
+        model: the model; the classes it predicts are stored from its ``classes`` attribute (a ``ClassList``, set by
+            ``build_components``; None for a model built otherwise).
         rng_states: one ``{"cpu": ByteTensor, "cuda": ByteTensor | None}`` per process, in rank order.
         weight_average: ``WeightAverage.state_dict()`` when the run keeps one (``train.ema_decay``).
     """
+    classes = getattr(model, "classes", None)
     state = {
         "format": FORMAT_VERSION,
         "step": step,
@@ -91,8 +96,27 @@ def save_checkpoint(
         "overrides": list(record.overrides),
         "components": record.components,
         "versions": software_versions(),
+        "class_names": None if classes is None else [str(name) for name in classes.names],
+        "ignore_index": None if classes is None else int(classes.ignore_index),
     }
     return atomic_torch_save(path, state)
+
+
+def stored_classes(state: Mapping[str, Any], path: str | Path) -> tuple[tuple[str, ...], int] | None:
+    """The class names and ignore index a checkpoint's model was trained with, or None when it stores none (written
+    before checkpoints kept them, by a model built without ``build_components``, or by one trained without classes).
+
+    Raises:
+        DataError: the stored values are not a list of names and an integer.
+    """
+    names, ignore = state.get("class_names"), state.get("ignore_index")
+    if names is None or (isinstance(names, (list, tuple)) and not names):
+        return None
+    if not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
+        raise DataError(f"checkpoint {path}: class_names is {names!r:.80}; expected a list of class names")
+    if not isinstance(ignore, int) or isinstance(ignore, bool):
+        raise DataError(f"checkpoint {path}: ignore_index is {ignore!r}; expected an integer")
+    return tuple(names), int(ignore)
 
 
 def read_checkpoint(path: str | Path) -> dict[str, Any]:

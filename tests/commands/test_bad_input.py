@@ -36,7 +36,7 @@ CASES = {
     "zero chunk": (["eval.chunk_rays=0"], "eval.chunk_rays=0: expected an integer >= 1"),
     "unknown key with +": (["+train.foo=1"], "unknown config key 'train.foo'"),
     "unknown head": (["+head=nope"], "unknown head 'nope'; known head names: instance, per_pixel, unet"),
-    "unknown dataset": (["dataset=nope"], "unknown dataset 'nope'; known dataset names: embedded"),
+    "unknown dataset": (["dataset=nope"], "unknown dataset 'nope'; known dataset names: capture, embedded, replica"),
     "unknown component option": (["+head.depth=3"], "head.depth is not an option of head 'unet'"),
     "source views": (["model.num_source_views=5"], "model.num_source_views=5 but scene 'layout_00' offers 3"),
     "bad device": (["device=tpu"], "device='tpu' is not a torch device"),

@@ -243,3 +243,38 @@ def test_data_check_reads_every_frame_of_every_capture(capture, tmp_path, capsys
     assert main(["data", "check", str(broken), "--layout", "capture"]) == 1
     out = capsys.readouterr().out
     assert "frame_00006.png: unreadable image" in out and "problems (1)" in out
+
+
+def test_bounds_from_the_sparse_points_of_ply_file_path(embedded_scene, tmp_path):
+    """A nerfstudio capture without depth maps: its sparse points (in the file's world, applied_transform included)
+    give the bounds."""
+    import pycolmap
+
+    capture = write_capture(embedded_scene, tmp_path / "sparse", depth=False, labels=False)
+    frame = embedded_scene.load_frame(0)
+    k, c2w = frame.intrinsics.double(), frame.c2w.double()
+    v, u = torch.meshgrid(torch.arange(0, 48, 4.0), torch.arange(0, 64, 4.0), indexing="ij")
+    depth = frame.depth[::4, ::4].double()
+    rays = torch.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], torch.ones_like(u)], -1).double()
+    world = (rays * depth[..., None]).reshape(-1, 3) @ c2w[:3, :3].T + c2w[:3, 3]
+    applied = np.eye(4)[[0, 2, 1, 3]]
+    applied[2] *= -1
+    cloud = pycolmap.Reconstruction()
+    for point in world[depth.reshape(-1) > 0].numpy() @ applied[:3, :3].T:
+        cloud.add_point3D(point, pycolmap.Track(), np.zeros(3, np.uint8))
+    cloud.export_PLY(str(capture / "sparse_pc.ply"))
+    transforms = json.loads((capture / "transforms.json").read_text())
+    for entry in transforms["frames"]:
+        entry["transform_matrix"] = (applied @ np.asarray(entry["transform_matrix"])).tolist()
+    transforms.update(applied_transform=applied[:3].tolist(), ply_file_path="sparse_pc.ply")
+    (capture / "transforms.json").write_text(json.dumps(transforms))
+    _, scene = load(capture)
+    seen = depth[depth > 0]
+    # frame 0 sees these points at their true depths: its bounds (0.9 x 1st, 1.1 x 99th percentile) hold them
+    assert 0 < scene.near < float(seen.quantile(0.01)) and scene.far > float(seen.quantile(0.99))
+    assert scene.far < 3 * float(seen.max())
+    assert torch.allclose(scene.c2w, embedded_scene.c2w, atol=1e-6)
+    transforms["ply_file_path"] = "missing.ply"
+    (capture / "transforms.json").write_text(json.dumps(transforms))
+    with pytest.raises(DataError, match="missing.ply: unreadable point cloud"):
+        load(capture)

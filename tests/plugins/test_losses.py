@@ -1,7 +1,8 @@
-"""Tests of the loss terms and the rgb/ce/sd/dgs loss sets."""
+"""Tests of the loss terms and the rgb/ce/sd/dgs/label_free loss sets."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -15,6 +16,8 @@ from gpnerf_core.types import LossInputs, RaySamples, RenderedRays
 from gpnerf_plugins.losses.sets import (
     CeLossConfig,
     DgsLossConfig,
+    LabelFreeLossConfig,
+    LabelFreeLossSet,
     LossSetConfig,
     RgbLossConfig,
     SdLossConfig,
@@ -174,19 +177,21 @@ def test_gt_depth_centre_picks_the_nearest_sample_and_falls_back_when_unknown():
 
 
 @pytest.mark.parametrize(
-    "config, keys, semantics, sample_semantics",
+    "config, keys, semantics, sample_semantics, labels",
     [
-        (RgbLossConfig, {"rgb"}, False, False),
-        (CeLossConfig, {"rgb", "ce"}, True, False),
-        (SdLossConfig, {"rgb", "ce", "sd"}, True, False),
-        (DgsLossConfig, {"rgb", "ce", "sd", "dgs"}, True, True),
+        (RgbLossConfig, {"rgb"}, False, False, False),
+        (CeLossConfig, {"rgb", "ce"}, True, False, True),
+        (SdLossConfig, {"rgb", "ce", "sd"}, True, False, True),
+        (DgsLossConfig, {"rgb", "ce", "sd", "dgs"}, True, True, True),
+        (LabelFreeLossConfig, {"rgb", "sd", "dgs"}, True, True, False),
     ],
 )
-def test_registered_sets_return_their_terms_and_flags(config, keys, semantics, sample_semantics):
+def test_registered_sets_return_their_terms_and_flags(config, keys, semantics, sample_semantics, labels):
     registry = collect(make_plugin_manager(builtins=("gpnerf_plugins.losses.plugin",), autoload=False))
-    assert registry.names("loss") == ["ce", "dgs", "instance", "rgb", "sd"]
+    assert registry.names("loss") == ["ce", "dgs", "instance", "label_free", "rgb", "sd"]
     loss_set = registry.build("loss", OmegaConf.structured(config))
     assert (loss_set.needs_semantics, loss_set.needs_sample_semantics) == (semantics, sample_semantics)
+    assert loss_set.needs_labels is labels
     terms = loss_set(_inputs())
     assert set(terms) == keys
     assert all(t.dim() == 0 and torch.isfinite(t) for t in terms.values())
@@ -298,3 +303,29 @@ def test_config_defaults_match_the_constructor():
     assert loss_set.weights == expected
     assert (loss_set.dgs_window, loss_set.dgs_center, loss_set.teacher_stop_grad) == (2, "pred_weights", True)
     assert [c().name for c in (RgbLossConfig, CeLossConfig, SdLossConfig, DgsLossConfig)] == ["rgb", "ce", "sd", "dgs"]
+
+
+def test_label_free_is_colour_and_both_distillations_and_never_reads_labels():
+    inputs = _inputs()
+    registry = collect(make_plugin_manager(builtins=("gpnerf_plugins.losses.plugin",), autoload=False))
+    label_free = registry.build("loss", OmegaConf.structured(LabelFreeLossConfig))
+    terms = label_free(inputs)
+    expected = WeightedLossSet(ce_weight=0.0)(inputs)  # the dgs set's weights, without the cross-entropy
+    assert set(terms) == {"rgb", "sd", "dgs"} and all(torch.equal(terms[k], expected[k]) for k in terms)
+    ignored = dataclasses.replace(inputs, labels=torch.full_like(inputs.labels, IGNORE))
+    assert all(torch.equal(label_free(ignored)[k], terms[k]) for k in terms)
+    assert label_free.head_predicts is None and not label_free.needs_instances
+
+
+def test_label_free_refuses_a_cross_entropy_and_keeps_gt_depth_centres():
+    with pytest.raises(ConfigError, match=r"^loss.ce_weight=1.0: the label_free loss set trains without labels; "
+                                          r"expected 0 \(a loss set with the cross-entropy: \+loss=dgs\)$"):
+        LabelFreeLossSet(ce_weight=1.0)
+    assert LabelFreeLossSet(dgs_center="gt_depth").needs_labels is False  # depth is not a label
+
+
+def test_needs_labels_follows_the_cross_entropy_weight():
+    assert WeightedLossSet(**{**RGB_ONLY, "sd_weight": 0.25}).needs_labels is False
+    assert WeightedLossSet(ce_weight=0.5).needs_labels is True
+    registry = collect(make_plugin_manager(builtins=("gpnerf_plugins.losses.plugin",), autoload=False))
+    assert registry.build("loss", {"name": "instance"}).needs_labels is True  # instance ids are labels

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import torch
@@ -88,6 +89,32 @@ def check_flags(subject: Subject) -> None:
                           f"(terms reach: {', '.join(reached) or 'nothing'})")
 
 
+def check_labels(subject: Subject) -> None:
+    """``needs_labels`` (default True) tells the truth where it is False: the terms are the same when every label is
+    the ignore index, as on a scene without labels, and instance ids (labels too) are not asked for."""
+    loss = subject.build()
+    needs = call("reading needs_labels", lambda: getattr(loss, "needs_labels", True))
+    expect(isinstance(needs, bool), f"needs_labels is {needs!r}, expected a bool")
+    if needs:
+        return
+    expect(not getattr(loss, "needs_instances", False),
+           "needs_labels is False but needs_instances is True; instance ids are labels, so set needs_labels = True")
+    inputs = inputs_for(loss)
+    if inputs.labels is None:
+        return  # needs_semantics is False: the pipeline gives it no labels at all
+    unlabelled = dataclasses.replace(inputs, labels=torch.full_like(inputs.labels, inputs.ignore_index))
+    with_labels = terms(loss, inputs, "with labels")
+    without = terms(loss, unlabelled, "with every label the ignore index, as on a scene without labels")
+    expect(set(with_labels) == set(without),
+           f"needs_labels is False but the terms change with the labels: {sorted(with_labels)} with labels, "
+           f"{sorted(without)} with every label ignored; a loss set that reads labels must set needs_labels = True")
+    for name, value in with_labels.items():
+        value, other = value.detach(), without[name].detach()
+        expect(torch.allclose(value, other, rtol=1e-5, atol=1e-7),
+               f"needs_labels is False but term {name!r} changes when every label is ignored ({float(value):.6g} -> "
+               f"{float(other):.6g}); a loss set that reads labels must set needs_labels = True")
+
+
 def reached_leaves(result: Outputs, inputs: LossInputs) -> list[str]:
     """The input tensors some term's gradient reaches."""
     leaves = loss_leaves(inputs)
@@ -152,6 +179,7 @@ def check_degenerate(subject: Subject) -> None:
 CHECKS = {
     "build": check_build,
     "flags": check_flags,
+    "labels": check_labels,
     "terms": check_terms,
     "gradients": check_gradients,
     "train and eval": check_modes,

@@ -107,6 +107,7 @@ class InstanceLossSet(WeightedLossSet):
         options["ce_weight"] = 0.0
         super().__init__(**options, extra_weights={"instance": instance_weight})
         self.needs_semantics = True
+        self.needs_labels = True  # the instance term reads the target's instance ids
         self.head_predicts = "instances"
 
     @staticmethod

@@ -1,10 +1,18 @@
-"""Registers the built-in loss sets (GP-NeRF's Table 4 rows)."""
+"""Registers the built-in loss sets (GP-NeRF's Table 4 rows, the instance set, and the label-free set)."""
 
 from __future__ import annotations
 
 from gpnerf_core import ComponentSpec, hookimpl
 from gpnerf_plugins.losses.instance import InstanceLossConfig, InstanceLossSet
-from gpnerf_plugins.losses.sets import CeLossConfig, DgsLossConfig, RgbLossConfig, SdLossConfig, WeightedLossSet
+from gpnerf_plugins.losses.sets import (
+    CeLossConfig,
+    DgsLossConfig,
+    LabelFreeLossConfig,
+    LabelFreeLossSet,
+    RgbLossConfig,
+    SdLossConfig,
+    WeightedLossSet,
+)
 
 
 @hookimpl
@@ -15,4 +23,7 @@ def gpnerf_register_losses() -> list[ComponentSpec]:
         ComponentSpec("sd", WeightedLossSet, SdLossConfig, "colour + cross-entropy + 2D semantic distillation"),
         ComponentSpec("dgs", WeightedLossSet, DgsLossConfig, "colour + cross-entropy + 2D and depth-guided distill."),
         ComponentSpec("instance", InstanceLossSet, InstanceLossConfig, "colour + Hungarian instance loss + 2D distill"),
+        ComponentSpec(
+            "label_free", LabelFreeLossSet, LabelFreeLossConfig, "colour + 2D and depth-guided distill., no labels"
+        ),
     ]

@@ -1,4 +1,5 @@
-"""The weighted loss sets of GP-NeRF's Table 4 (``rgb``, ``ce``, ``sd``, ``dgs``), built by one class.
+"""The weighted loss sets of GP-NeRF's Table 4 (``rgb``, ``ce``, ``sd``, ``dgs``), built by one class, and
+``label_free`` (``rgb`` + ``sd`` + ``dgs``, for scenes without labels), a subclass that refuses a cross-entropy.
 
 Default weights, in this module's normalisations, and what GP-NeRF's code effectively uses (ScanNet):
 
@@ -108,6 +109,17 @@ class DgsLossConfig(LossSetConfig):
     """Registry name of the loss set."""
 
 
+@dataclass
+class LabelFreeLossConfig(LossSetConfig):
+    """Colour and both distillations from the 2D teacher, no label anywhere: adapting a trained model to scenes
+    without labels (a user's own capture). The teacher is the extractor's own features of the target image."""
+
+    name: str = "label_free"
+    """Registry name of the loss set."""
+    ce_weight: float = 0.0
+    """The cross-entropy reads labels; this loss set has none (must stay 0)."""
+
+
 class WeightedLossSet(LossSet):
     """Returns the weighted terms ``rgb``, ``ce``, ``sd``, ``dgs`` whose weight is non-zero.
 
@@ -147,6 +159,8 @@ class WeightedLossSet(LossSet):
         self.needs_semantics = any(term != "rgb" for term in self.weights)
         self.needs_sample_semantics = "dgs" in self.weights
         self.head_predicts = "classes" if "ce" in self.weights else None
+        # rgb, sd and dgs read colours, the teacher and (gt_depth centre) depth; only the cross-entropy reads labels.
+        self.needs_labels = "ce" in self.weights
 
     def forward(self, inputs: LossInputs) -> dict[str, Tensor]:
         """Weighted scalar terms by name for one step; the total is their sum."""
@@ -185,3 +199,21 @@ class WeightedLossSet(LossSet):
             centre = centre_from_weights(last.weights)
         window = sample_window(centre, last.sample_semantic.shape[1], self.dgs_window)
         return depth_guided_distance(last.sample_semantic, self._teacher(inputs, "dgs"), window, self.dgs_push_away)
+
+
+class LabelFreeLossSet(WeightedLossSet):
+    """``rgb``, ``sd`` and ``dgs`` of ``WeightedLossSet``, refusing a cross-entropy weight: it trains without labels.
+
+    Every term reads only what an unlabelled scene has: the target colours, the teacher features of the target image
+    (``sd``, and ``dgs`` around the predicted weights' peak, or around the GT depth where ``dgs_center=gt_depth`` and
+    the frame has depth). Args: the fields of ``LabelFreeLossConfig`` except ``name``.
+    """
+
+    def __init__(self, **options: float | bool | str) -> None:
+        ce_weight = float(options.pop("ce_weight", 0.0))
+        if ce_weight != 0.0:
+            raise ConfigError(
+                f"loss.ce_weight={ce_weight}: the label_free loss set trains without labels; expected 0 "
+                "(a loss set with the cross-entropy: +loss=dgs)"
+            )
+        super().__init__(ce_weight=0.0, **options)

@@ -261,8 +261,9 @@ class CaptureScenes(SceneDataset):
         return tuple(i for i in range(len(names)) if i not in held), held
 
     def _depth_bounds(self, name: str, capture: CaptureFile, reader: "_FrameReader") -> tuple[float, float]:
-        """``dataset.near/far`` if set; else the frames' bounds from the file; else the depth maps' (see
-        ``DEPTH_PERCENTILES``, ``DEPTH_MARGIN``); all in metres after ``scale``."""
+        """``dataset.near/far`` if set; else, in this order, the frames' bounds from the file, the depth maps' (see
+        ``DEPTH_PERCENTILES``, ``DEPTH_MARGIN``), or the sparse points' (``ply_file_path``: each frame's bounds from
+        the points in front of it and inside its image, by ``import-colmap``'s rule); metres after ``scale``."""
         if self.bounds != (0.0, 0.0):
             return self.bounds
         frames = capture.frames
@@ -282,8 +283,47 @@ class CaptureScenes(SceneDataset):
                 far = float(high) * (1.0 + DEPTH_MARGIN)
                 if near > 0 and far > near:
                     return near, far
-        raise DataError(f"capture {name!r} ({capture.path}): no depth bounds (no near/far per frame, no depth maps); "
-                        "set dataset.near and dataset.far in metres (after dataset.scale)")
+        if capture.points is not None:
+            bounds = _point_bounds(capture, reader.c2w, reader.intrinsics, reader.size, self.scale)
+            if bounds is not None:
+                return bounds
+        raise DataError(f"capture {name!r} ({capture.path}): no depth bounds (no near/far per frame, no depth maps, no "
+                        "ply_file_path points in view); set dataset.near and dataset.far in metres (after "
+                        "dataset.scale)")
+
+
+def _point_bounds(capture: CaptureFile, c2w: np.ndarray, intrinsics: np.ndarray, size: tuple[int, int],
+                  scale: float) -> tuple[float, float] | None:
+    """Scene bounds from the sparse points: per frame, ``import-colmap``'s rule on the depths of the points in front
+    of it and inside its image; the smallest near and the largest far. None when no frame sees enough points."""
+    import pycolmap
+
+    from gpnerf_plugins.datasets.capture.colmap_import import depth_bounds
+
+    cloud = pycolmap.Reconstruction()
+    try:
+        cloud.import_PLY(str(capture.points))
+    except Exception as exc:  # pycolmap raises its own exception types for a missing or malformed file
+        raise DataError(f"{capture.points}: unreadable point cloud ({type(exc).__name__}: {exc}); expected the PLY "
+                        "of ply_file_path") from None
+    if not cloud.num_points3D():
+        return None
+    points = np.stack([p.xyz for p in cloud.points3D.values()])
+    points = (points @ capture.world[:3, :3].T + capture.world[:3, 3]) * scale
+    height, width = size
+    bounds = []
+    for pose, k in zip(c2w, intrinsics):
+        camera = (points - pose[:3, 3]) @ pose[:3, :3]  # world -> camera (OpenCV)
+        z = camera[:, 2]
+        front = z > 1e-9
+        pixels = (camera[front, :2] / z[front, None]) * k[[0, 1], [0, 1]] + k[:2, 2]
+        inside = (pixels[:, 0] > -0.5) & (pixels[:, 0] < width - 0.5) & (pixels[:, 1] > -0.5) & (pixels[:, 1] < height - 0.5)
+        found = depth_bounds(z[front][inside])
+        if found is not None:
+            bounds.append(found)
+    if not bounds:
+        return None
+    return min(b[0] for b in bounds), max(b[1] for b in bounds)
 
 
 def read_class_list(path: Path) -> ClassList:

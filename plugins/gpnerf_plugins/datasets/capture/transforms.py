@@ -11,7 +11,8 @@ What is read (docs/datasets/capture.md has the whole contract):
   COLMAP's world, rigid up to a uniform scale) is undone, so the poses are in the sparse model's world.
 - optional ``depth_file_path`` (16-bit PNG or ``.npy``; metres per unit from ``depth_unit_scale_factor``),
   ``mask_path`` (0 = ignore the pixel) and the extensions ``semantic_file_path`` (class-id image), ``near``, ``far``.
-- nerfstudio's ``train_filenames`` / ``val_filenames`` / ``test_filenames`` where present.
+- nerfstudio's ``train_filenames`` / ``val_filenames`` / ``test_filenames`` where present, and ``ply_file_path`` (the
+  sparse points ns-process-data exports, in the same world as the poses).
 
 Every path stays inside the capture folder; every problem is one ``DataError`` naming the file and the key.
 """
@@ -20,7 +21,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -83,6 +84,9 @@ class CaptureFile:
         held_out: names listed in ``val_filenames`` / ``test_filenames``; train: names in ``train_filenames``;
             both None when the file lists no split.
         depth_unit: metres per stored depth unit (``depth_unit_scale_factor``), or None if the file does not say.
+        points: the sparse point cloud (``ply_file_path``), or None.
+        world: ``[4, 4]`` the inverse of ``applied_transform`` (identity without one): maps the file's world, where
+            ``points`` lie, to the poses' world.
     """
 
     path: Path
@@ -90,6 +94,8 @@ class CaptureFile:
     train: tuple[str, ...] | None
     held_out: tuple[str, ...] | None
     depth_unit: float | None
+    points: Path | None = None
+    world: np.ndarray = field(default_factory=lambda: np.eye(4))
 
 
 def read_transforms(path: Path) -> CaptureFile:
@@ -121,9 +127,10 @@ def read_transforms(path: Path) -> CaptureFile:
     depth_unit = data.get("depth_unit_scale_factor")
     if depth_unit is not None and not _positive(depth_unit):
         raise DataError(f"{path}: depth_unit_scale_factor={depth_unit!r}; expected metres per depth unit > 0")
+    points = _inside(path, str(data["ply_file_path"]), str(path), "ply_file_path") if data.get("ply_file_path") else None
     return CaptureFile(path, tuple(frames), _names(path, data, ("train_filenames",), names),
                        _names(path, data, ("val_filenames", "test_filenames"), names),
-                       float(depth_unit) if depth_unit is not None else None)
+                       float(depth_unit) if depth_unit is not None else None, points, world)
 
 
 def _frame(path: Path, index: int, frame: dict[str, Any], top: dict[str, Any], world: np.ndarray) -> CaptureFrame:
@@ -141,9 +148,9 @@ def _frame(path: Path, index: int, frame: dict[str, Any], top: dict[str, Any], w
         raise DataError(f"{where}: transform_matrix has {problem}; expected {EXPECTED_RIGID}")
     c2w = _in_world(world, c2w) @ OPENGL_TO_OPENCV
     optional = {}
-    for key, field in (("depth_file_path", "depth"), ("mask_path", "mask"), ("semantic_file_path", "semantic")):
+    for key, attribute in (("depth_file_path", "depth"), ("mask_path", "mask"), ("semantic_file_path", "semantic")):
         if frame.get(key):
-            optional[field] = _inside(path, str(frame[key]), where, key)
+            optional[attribute] = _inside(path, str(frame[key]), where, key)
     for key in ("near", "far"):
         if key in frame:
             if not _positive(frame[key]):
