@@ -200,7 +200,15 @@ class GeneralizableNeRF(nn.Module):
     # ---- whole views (evaluation, rendering) ---------------------------------------------------------------------
 
     @torch.inference_mode()
-    def predict(self, camera: TargetCamera, sources: SourceViews, *, stride: int, chunk_rays: int) -> Prediction:
+    def predict(
+        self,
+        camera: TargetCamera,
+        sources: SourceViews,
+        *,
+        stride: int,
+        chunk_rays: int,
+        features: FeatureMaps | None = None,
+    ) -> Prediction:
         """Render a whole target view and decode the rendered semantic map.
 
         Args:
@@ -209,11 +217,14 @@ class GeneralizableNeRF(nn.Module):
             stride: render every ``stride``-th pixel (cell centres); 0 = the semantic map's stride, so the head
                 sees a complete map.
             chunk_rays: rays rendered at once (bounds memory).
+            features: the sources' encoded maps when the caller keeps them (``feature_cache.SourceFeatureCache``);
+                None encodes them here.
 
         Source features are computed once and reused for every chunk; per-sample semantic features are never
         materialised.
         """
-        features = self.encode(sources.rgb)
+        if features is None:
+            features = self.encode(sources.rgb)
         stride = stride or self.semantic_stride(features, camera.height)
         height, width = camera.image_size
         if height % stride or width % stride:

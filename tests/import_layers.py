@@ -19,8 +19,8 @@ ROOT = Path(__file__).resolve().parents[1]
 SOURCE_ROOTS = {"gpnerf_core": ROOT / "gpnerf_core", "gpnerf_plugins": ROOT / "plugins" / "gpnerf_plugins"}
 
 TOOL_PACKAGES = ("gpnerf_core.bench", "gpnerf_core.stress", "gpnerf_core.sizing", "gpnerf_core.reporting",
-                 "gpnerf_core.testing")
-"""Reusable measurement and reporting code the commands drive (and plugin authors' contract kit)."""
+                 "gpnerf_core.testing", "gpnerf_core.viewer")
+"""Reusable measurement, reporting and viewing code the commands drive (and plugin authors' contract kit)."""
 
 LAYERS = ("engine", "plugins", "tools", "jobs", "commands", "cli")
 """From the bottom up (docs/architecture.md draws them)."""

@@ -11,6 +11,7 @@ the configured view selector.
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +20,7 @@ from omegaconf import DictConfig
 
 from gpnerf_core.distributed import Distributed
 from gpnerf_core.errors import ConfigError
+from gpnerf_core.feature_cache import SourceFeatureCache
 from gpnerf_core.geometry.trajectories import trajectory
 from gpnerf_core.jobs import claim_run_folder, job, launch_from_checkpoint, model_from_checkpoint
 
@@ -44,6 +46,10 @@ def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     classes = components.classes
     semantic = model.has_semantics and model.head.predicts != "instances"
     frames = FrameCache(components.dataset, dist.device)
+    budget = float(cfg.render.feature_cache_mb)
+    if budget < 0:
+        raise ConfigError(f"render.feature_cache_mb={budget}: expected megabytes >= 0 (0 = no cache)")
+    feature_cache = SourceFeatureCache(budget) if budget > 0 else None
     split_scenes = list(components.dataset.scenes("unseen")) + list(components.dataset.scenes("train"))
     name = str(cfg.render.scene) or (split_scenes[0] if split_scenes else "")
     if name not in split_scenes:
@@ -59,16 +65,19 @@ def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     with folder:
         for note in notes:
             print(f"note: {note}", file=sys.stderr)
+        started = time.perf_counter()
         for pose in tqdm(poses, desc="render", unit="frame", file=sys.stderr, dynamic_ncols=True):
             c2w = pose.float()
             positions = components.view_selector.select(c2w, scene.c2w[candidates], count, None)
-            sources = frames.source_views(scene, [candidates[p] for p in positions])
+            chosen = [candidates[p] for p in positions]
+            sources = frames.source_views(scene, chosen)
+            features = feature_cache.features(model, scene.name, chosen, sources.rgb) if feature_cache else None
             camera = TargetCamera(
                 intrinsics=reference.intrinsics.to(dist.device), c2w=c2w.to(dist.device),
                 height=reference.height, width=reference.width, near=scene.near, far=scene.far,
             )
             prediction = model.predict(camera, sources, stride=int(cfg.eval.render_stride),
-                                       chunk_rays=int(cfg.eval.chunk_rays))
+                                       chunk_rays=int(cfg.eval.chunk_rays), features=features)
             s = prediction.stride
             rgb = (prediction.rgb.clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8)
             tiles = [np.kron(rgb, np.ones((s, s, 1), dtype=np.uint8)),
@@ -83,6 +92,7 @@ def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
                 tiles.append(vis.colorize_labels(prediction.logits[0].argmax(0).cpu(), classes.num_classes))
                 labels.append("semantic")
             pictures.append(vis.side_by_side(tiles, labels))
+        render_seconds = time.perf_counter() - started
         for index, picture in enumerate(pictures):
             vis.save_image(run_dir / "frames" / f"{index:04d}.png", picture)
         fps = int(cfg.render.fps)
@@ -94,7 +104,10 @@ def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             outputs.append("legend.png")
         result = {"checkpoint": str(checkpoint), "scene": name, "path": str(cfg.render.path), "frames": len(pictures),
                   "outputs": outputs, "classes": list(classes.names) if semantic else None,
-                  "classes_from": classes.source if semantic else None}
+                  "classes_from": classes.source if semantic else None,
+                  "render_seconds": round(render_seconds, 3),
+                  "feature_cache": {"budget_mb": budget, "frames_encoded": feature_cache.stats.misses,
+                                    "frames_reused": feature_cache.stats.hits} if feature_cache else None}
         atomic_write_json(run_dir / "render.json", result)
         print(f"rendered {len(pictures)} frames of {name} to {run_dir} ({', '.join(outputs)})")
     return result

@@ -1,0 +1,84 @@
+"""The source-feature cache: cached and uncached renders are equal, each source frame is encoded once per model
+state, a weight change is never served stale features, and the budget evicts least recently used frames."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from gpnerf_core.build import build_components
+from gpnerf_core.config import compose
+from gpnerf_core.errors import ConfigError
+from gpnerf_core.feature_cache import SourceFeatureCache
+from gpnerf_core.frames import FrameCache, choose_sources
+from pipeline_check import TINY_MODEL, TINY_SCENES
+
+
+@pytest.fixture(scope="module")
+def setup():
+    cfg = compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES, "model.num_source_views=3"])
+    torch.manual_seed(0)
+    components = build_components(cfg)
+    model = components.model.eval()
+    frames = FrameCache(components.dataset, torch.device("cpu"))
+    scene = frames.scene(components.dataset.scenes("train")[0])
+    return model, frames, scene, components.view_selector
+
+
+def views(setup):
+    model, frames, scene, selector = setup
+    for target in scene.eval_frames + scene.train_frames[:3]:
+        chosen = choose_sources(selector, scene, target, 3, None)
+        yield target, chosen, frames.source_views(scene, chosen), frames.camera(scene, frames.frame(scene, target))
+
+
+def test_cached_renders_equal_uncached_ones_and_each_frame_is_encoded_once(setup):
+    model = setup[0]
+    cache = SourceFeatureCache(budget_mb=64)
+    requested = set()
+    for _, chosen, sources, camera in views(setup):
+        plain = model.predict(camera, sources, stride=0, chunk_rays=256)
+        cached = model.predict(camera, sources, stride=0, chunk_rays=256,
+                               features=cache.features(model, setup[2].name, chosen, sources.rgb))
+        # batched convolutions of another batch composition reassociate sums: equal up to float32 rounding (~1e-5 on
+        # colour and depth, 1e-5 on rendered features, amplified to ~1e-4 in the logits); the same classes everywhere
+        for name, tolerance in (("rgb", 1e-4), ("depth", 1e-4), ("semantic", 1e-4), ("logits", 1e-3)):
+            difference = (getattr(cached, name) - getattr(plain, name)).abs().max()
+            assert difference < tolerance, (name, float(difference))
+        assert torch.equal(cached.logits.argmax(1), plain.logits.argmax(1))
+        requested |= set(chosen)
+    assert cache.stats.misses == len(requested) and cache.stats.hits > 0  # every frame encoded exactly once
+
+
+def test_a_weight_change_is_never_served_old_features(setup):
+    model, _, scene, _ = setup
+    target, chosen, sources, camera = next(views(setup))
+    cache = SourceFeatureCache(budget_mb=64)
+    before = cache.features(model, scene.name, chosen, sources.rgb)
+    with torch.no_grad():
+        parameter = next(model.parameters())
+        parameter.add_(0.5)
+    try:
+        after = cache.features(model, scene.name, chosen, sources.rgb)
+        assert cache.stats.misses == 2 * len(chosen)
+        assert not torch.allclose(after.radiance, before.radiance)
+        assert torch.allclose(after.radiance, model.encode(sources.rgb).radiance, atol=1e-5)
+    finally:
+        with torch.no_grad():
+            parameter.sub_(0.5)
+
+
+def test_the_budget_evicts_least_recently_used_frames(setup):
+    model, _, scene, _ = setup
+    _, chosen, sources, _ = next(views(setup))
+    one = SourceFeatureCache(budget_mb=64)
+    one.features(model, scene.name, chosen[:1], sources.rgb[:1])
+    frame_bytes = one.stats.bytes
+    cache = SourceFeatureCache(budget_mb=2.5 * frame_bytes / 2**20)  # room for two frames
+    cache.features(model, scene.name, chosen[:2], sources.rgb[:2])
+    cache.features(model, scene.name, chosen[2:3], sources.rgb[2:3])
+    assert len(cache) == 2 and cache.stats.bytes <= cache.budget
+    cache.features(model, scene.name, chosen[1:3], sources.rgb[1:3])  # both still there: no encoding
+    assert cache.stats.misses == 3
+    with pytest.raises(ConfigError, match="budget"):
+        SourceFeatureCache(budget_mb=0)
