@@ -140,6 +140,9 @@ class RenderConfig:
     """``spiral``: distance to the point looked at, metres."""
     fps: int = 10
     """Frames per second of the MP4 and GIF."""
+    feature_cache_mb: float = 512.0
+    """Encoded source features kept between frames of the trajectory (``feature_cache``), megabytes; 0 = encode the
+    sources of every frame again."""
 
 
 @dataclass
