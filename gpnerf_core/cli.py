@@ -23,6 +23,8 @@ commands:
             `finetune checkpoint=<path> dataset.scenes=[<scene>] train.steps=N [finetune.points=4]`
   render    render a novel-view trajectory to MP4, GIF and PNG frames (RGB, depth, semantics side by side):
             `render checkpoint=<path> [render.scene=<name>] [render.path=interpolate|spiral] [render.frames=N]`
+  view      serve an interactive web viewer of a checkpoint's novel views (RGB, depth, semantics) on localhost:
+            `view checkpoint=<path> [view.scene=<name>] [view.port=8080] [view.host=127.0.0.1]`
   report    tabulate run folders (a sweep, the Table 4 ablation) beside the paper's numbers
   stress    evaluate trained runs under graded conditions (source views, pose noise, corruption, ...):
             `stress <runs> --out DIR [--cases a,b] [--quick]`; `stress --list` names the cases
@@ -34,7 +36,9 @@ commands:
 """
 
 
-COMMANDS = ("run", "eval", "finetune", "render", "report", "stress", "size", "bench", "data", "plugins")
+COMMANDS = (
+    "run", "eval", "finetune", "render", "view", "report", "stress", "size", "bench", "data", "plugins",
+)
 """The commands, in the order ``--help`` lists them; each is ``gpnerf_core.commands.<name>``."""
 
 

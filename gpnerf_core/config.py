@@ -146,6 +146,24 @@ class RenderConfig:
 
 
 @dataclass
+class ViewConfig:
+    port: int = 8080
+    """``view``: TCP port of the web viewer (0 = any free port; a port in use is refused)."""
+    host: str = "127.0.0.1"
+    """``view``: address the viewer listens on (the default reaches this machine only; 0.0.0.0 = every interface)."""
+    scene: str = ""
+    """``view``: the scene shown first ("" = the first unseen scene, else the first training scene)."""
+    stride: int = 2
+    """``view``: pixels per rendered cell of the full frame, rendered once the camera rests."""
+    preview_stride: int = 8
+    """``view``: pixels per rendered cell of the coarse preview shown first while the camera moves."""
+    source_views: int = 0
+    """``view``: source views per rendered view (0 = ``model.num_source_views``); the viewer's slider changes it."""
+    feature_cache_mb: float = 256.0
+    """``view``: megabytes of encoded source feature maps kept, so a moving camera encodes only new sources (0 = off)."""
+
+
+@dataclass
 class RootConfig:
     feature_extractor: Any = MISSING
     field_aggregator: Any = MISSING
@@ -166,6 +184,7 @@ class RootConfig:
     eval: EvalConfig = field(default_factory=EvalConfig)
     finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
+    view: ViewConfig = field(default_factory=ViewConfig)
     out_dir: str = ""
     """Run folder; empty = Hydra's output directory. Nothing is written under ``outputs/`` when it is set."""
     overwrite: bool = False

@@ -41,6 +41,10 @@ def _fraction(v: Any) -> bool:
     return _positive(v) and v <= 1
 
 
+def _port(v: Any) -> bool:
+    return _count(0)(v) and v <= 65535
+
+
 def _ema_decay(v: Any) -> bool:
     return _non_negative(v) and v < 1
 
@@ -71,6 +75,11 @@ RULES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("eval.max_views_per_scene", _count(0), f"{COUNT0} (0 = all)"),
     ("eval.save_images", _count(0), COUNT0),
     ("eval.every_steps", _count(0), f"{COUNT0} (0 = only at the end of training)"),
+    ("view.port", _port, "a TCP port in [0, 65535] (0 = any free port)"),
+    ("view.stride", _count(1), COUNT),
+    ("view.preview_stride", _count(1), COUNT),
+    ("view.source_views", _count(0), f"{COUNT0} (0 = model.num_source_views)"),
+    ("view.feature_cache_mb", _non_negative, "megabytes >= 0 (0 = no feature cache)"),
 )
 """(key, check, what is expected) for every numeric key of the schema (``gpnerf_core/config.py``)."""
 

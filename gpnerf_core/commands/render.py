@@ -71,7 +71,8 @@ def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             positions = components.view_selector.select(c2w, scene.c2w[candidates], count, None)
             chosen = [candidates[p] for p in positions]
             sources = frames.source_views(scene, chosen)
-            features = feature_cache.features(model, scene.name, chosen, sources.rgb) if feature_cache else None
+            features = (feature_cache.features(model, scene.name, chosen, sources.rgb)
+                        if feature_cache is not None else None)
             camera = TargetCamera(
                 intrinsics=reference.intrinsics.to(dist.device), c2w=c2w.to(dist.device),
                 height=reference.height, width=reference.width, near=scene.near, far=scene.far,
@@ -107,7 +108,7 @@ def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
                   "classes_from": classes.source if semantic else None,
                   "render_seconds": round(render_seconds, 3),
                   "feature_cache": {"budget_mb": budget, "frames_encoded": feature_cache.stats.misses,
-                                    "frames_reused": feature_cache.stats.hits} if feature_cache else None}
+                                    "frames_reused": feature_cache.stats.hits} if feature_cache is not None else None}
         atomic_write_json(run_dir / "render.json", result)
         print(f"rendered {len(pictures)} frames of {name} to {run_dir} ({', '.join(outputs)})")
     return result

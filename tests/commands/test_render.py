@@ -33,7 +33,11 @@ def test_render_writes_mp4_gif_and_frames(tmp_path):
     assert frame.shape[1] > 3 * 48  # rgb, depth and semantics side by side
     assert len(imageio.mimread(video / "trajectory.gif")) == 4
     assert sum(1 for _ in imageio.get_reader(video / "trajectory.mp4")) == 4  # len() of an ffmpeg reader is inf
-    assert json.loads((video / "render.json").read_text())["scene"] == "unseen_00"
+    written = json.loads((video / "render.json").read_text())
+    assert written["scene"] == "unseen_00"
+    # consecutive poses reuse their sources' encoded features: fewer encoded than used
+    reuse = written["feature_cache"]
+    assert reuse["frames_reused"] > 0 and reuse["frames_encoded"] < 4 * 2
     assert not list(video.glob(".*partial*"))
     bad = gpnerf("render", f"checkpoint={checkpoint}", "render.path=orbit", f"out_dir={tmp_path / 'bad'}")
     assert bad.returncode == 2 and bad.stderr.strip() == "error: render.path='orbit'; expected one of: interpolate, spiral"

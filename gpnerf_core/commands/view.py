@@ -1,0 +1,79 @@
+"""``python -m gpnerf_core view checkpoint=<.pt> [dataset and scene overrides] [view.port=8080] [view.host=127.0.0.1]``.
+
+Serves an interactive web viewer of a trained model (``gpnerf_core.viewer``): the scene's cameras and depth points,
+and the model's novel view for the browser's camera (RGB, depth, semantic classes or instances, PCA of the rendered
+features), rendered progressively. Binds 127.0.0.1 unless ``view.host`` says otherwise; prints the URL; serves until
+Ctrl-C or SIGTERM. Writes nothing: the folder Hydra creates for the job is removed again when it stays empty.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+from typing import Any
+
+from omegaconf import DictConfig
+
+from gpnerf_core.distributed import Distributed
+from gpnerf_core.errors import ConfigError, GpnerfError
+from gpnerf_core.jobs import job, launch_from_checkpoint, model_from_checkpoint, run_dir
+
+
+def main(argv: list[str]) -> int:
+    return launch_from_checkpoint(view_task, argv, "view")
+
+
+@job
+def view_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
+    from gpnerf_core.feature_cache import SourceFeatureCache
+    from gpnerf_core.frames import FrameCache
+    from gpnerf_core.viewer.server import ViewerOptions, ViewerServer, check_port_free, serve_until_stopped
+    from gpnerf_core.viewer.renderer import SceneRenderer
+
+    try:
+        _remove_empty_job_folder(cfg)
+        host, port = str(cfg.view.host), int(cfg.view.port)
+        check_port_free(host, port)  # before loading the model: a port in use is refused at once
+        loaded = model_from_checkpoint(cfg, dist, "view", check_scenes=False)
+        components = loaded.components
+        for note in loaded.notes:
+            print(f"note: {note}", file=sys.stderr)
+        model = components.model.eval()
+        scenes = list(components.dataset.scenes("unseen")) + list(components.dataset.scenes("train"))
+        first = str(cfg.view.scene) or (scenes[0] if scenes else "")
+        if first not in scenes:
+            raise ConfigError(f"view.scene={first!r} is not a scene of this dataset; known: {', '.join(scenes)}")
+        budget = float(cfg.view.feature_cache_mb)
+        renderer = SceneRenderer(
+            model, FrameCache(components.dataset, dist.device), components.view_selector,
+            num_classes=components.classes.num_classes, chunk_rays=int(cfg.eval.chunk_rays),
+            default_source_views=int(cfg.model.num_source_views),
+            feature_cache=SourceFeatureCache(budget) if budget > 0 else None,
+        )
+        semantic = model.has_semantics and model.head.predicts != "instances"
+        options = ViewerOptions(
+            host=host, port=port, scene=first, scenes=tuple(scenes), stride=int(cfg.view.stride),
+            preview_stride=int(cfg.view.preview_stride), source_views=int(cfg.view.source_views),
+            class_names=tuple(components.classes.names) if semantic else (),
+        )
+        stop = threading.Event()
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+        server = ViewerServer(renderer, options).start()
+        serve_until_stopped(server, stop)
+        return {"url": server.url if server.server else f"http://{host}:{port}", "frames": server.frames_delivered}
+    finally:
+        _remove_empty_job_folder(cfg)
+
+
+def _remove_empty_job_folder(cfg: DictConfig) -> None:
+    """The viewer writes no file: the job folder Hydra made before the task ran goes again if it is empty (a folder the
+    user named with ``out_dir`` is left alone)."""
+    if cfg.out_dir:
+        return
+    try:
+        folder = run_dir(cfg)
+    except GpnerfError:
+        return
+    if folder.is_dir() and not any(folder.iterdir()):
+        folder.rmdir()

@@ -1,0 +1,103 @@
+"""The viewer's server: starts on a free localhost port, serves the page, renders the camera a websocket client sends
+(the same frame ``predict`` gives), refuses a port in use, and stops with no thread left."""
+
+import socket
+import threading
+import time
+import urllib.request
+
+import msgspec
+import pytest
+import torch
+import viser
+from viser import _messages
+from websockets.sync.client import connect
+
+from gpnerf_core.errors import ConfigError
+from gpnerf_core.viewer.server import ViewerOptions, ViewerServer, check_port_free, depth_points
+
+OPTIONS = dict(host="127.0.0.1", port=0, scene="layout_00", scenes=("unseen_00", "layout_00"), stride=2,
+               preview_stride=8, source_views=2, class_names=("floor", "wall"))
+
+
+def _camera_message(request, height=320, width=480):
+    message = _messages.ViewerCameraMessage(
+        wxyz=request.wxyz, position=request.position, fov=request.fov, near=0.01, far=100.0, image_height=height,
+        image_width=width, look_at=tuple(float(p) for p in request.position), up_direction=(0.0, -1.0, 0.0),
+    )
+    return msgspec.msgpack.encode(message.as_serializable_dict())
+
+
+def _wait(condition, timeout=60.0):
+    end = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.05)
+
+
+def test_serves_a_client_its_camera_and_stops_cleanly(tiny, at_frame):
+    components, renderer = tiny
+    before = set(threading.enumerate())
+    server = ViewerServer(renderer, ViewerOptions(**OPTIONS)).start()
+    try:
+        assert server.url.startswith("http://127.0.0.1:") and server.port > 0
+        page = urllib.request.urlopen(server.url, timeout=10).read().decode()
+        assert "<html" in page.lower()
+        request = at_frame(renderer, "layout_00", 0)
+        with connect(f"ws://127.0.0.1:{server.port}", subprotocols=[f"viser-v{viser.__version__}"],
+                     open_timeout=10, close_timeout=5, max_size=None) as websocket:
+            websocket.send(_camera_message(request))
+            _wait(lambda: server.frames_delivered >= 2)  # the preview, then the full frame
+            (state,) = server._clients.values()
+            view = state.last
+            assert view.stage == "full" and view.stride == 2 and view.error is None
+            camera = renderer.camera(state.last_request, 8)
+            sources = renderer.frames.source_views(renderer.frames.scene("layout_00"), list(view.sources))
+            expected = components.model.predict(camera, sources, stride=2, chunk_rays=256)
+            assert torch.equal(view.prediction.rgb, expected.rgb)
+            assert torch.equal(view.prediction.logits, expected.logits)
+            assert camera.width == 48  # the browser's 3:2 canvas at the scene's 32 rows
+            assert state.gui["layer"].options == ("rgb", "depth", "semantic", "features")
+            assert len(state.highlighted) == len(view.sources)
+            state.layer = "semantic"  # as the Layer dropdown sets it; then a class is highlighted
+            state.gui["highlight"].value = "wall"
+            server._show(next(iter(server.server.get_clients().values())), state, state.last_request, view)
+            assert state.gui["legend"].visible and state.gui["highlight"].visible
+    finally:
+        server.stop()
+    _wait(lambda: set(threading.enumerate()) <= before, timeout=15)
+
+
+def test_a_port_in_use_is_refused_naming_it(tiny):
+    _, renderer = tiny
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        with pytest.raises(ConfigError, match=f"view.port={port}: 127.0.0.1:{port} is already in use"):
+            check_port_free("127.0.0.1", port)
+        before = set(threading.enumerate())
+        with pytest.raises(ConfigError, match="already in use"):
+            ViewerServer(renderer, ViewerOptions(**{**OPTIONS, "port": port})).start()
+        assert set(threading.enumerate()) == before
+
+
+def test_a_scene_that_cannot_be_shown_is_refused_before_serving(tiny):
+    _, renderer = tiny
+    before = set(threading.enumerate())
+    with pytest.raises(Exception, match="no_such_scene"):
+        ViewerServer(renderer, ViewerOptions(**{**OPTIONS, "scene": "no_such_scene"})).start()
+    assert set(threading.enumerate()) == before
+
+
+def test_depth_points_lie_on_the_frames_depths(tiny):
+    _, renderer = tiny
+    scene = renderer.frames.scene("layout_00")
+    frame = renderer.frames.frame(scene, 0)
+    points, colours = depth_points([frame], 200)
+    assert 0 < len(points) <= 200 and colours.shape == points.shape
+    w2c = torch.linalg.inv(frame.c2w.double())
+    camera = (w2c[:3, :3] @ torch.from_numpy(points).double().T + w2c[:3, 3:4]).T
+    uv = (frame.intrinsics.double() @ camera.T).T
+    u, v = (uv[:, 0] / uv[:, 2]).round().long(), (uv[:, 1] / uv[:, 2]).round().long()
+    assert torch.allclose(camera[:, 2].float(), frame.depth[v, u], atol=1e-4)
