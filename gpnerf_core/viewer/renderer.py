@@ -13,6 +13,7 @@ from typing import Callable, Hashable
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from gpnerf_core.evaluation import visualize as vis
 from gpnerf_core.evaluation.instances import slot_predictions
@@ -20,12 +21,30 @@ from gpnerf_core.feature_cache import SourceFeatureCache
 from gpnerf_core.frames import FrameCache
 from gpnerf_core.interfaces import ViewSelector
 from gpnerf_core.pipeline import GeneralizableNeRF, Prediction
-from gpnerf_core.types import TargetCamera
+from gpnerf_core.types import Scene, TargetCamera
 from gpnerf_core.viewer.camera import view_from_viser
 
-LAYERS = ("rgb", "depth", "semantic", "instances", "features")
+LAYERS = ("rgb", "depth", "semantic", "instances", "features", "error")
 """Picture layers a view may have: ``semantic`` with a class head, ``instances`` with an instance head, ``features``
-(PCA of the rendered semantic map) with a semantic field."""
+(PCA of the rendered semantic map) with a semantic field, ``error`` (per-pixel colour error against the real frame)
+when the camera sits at a frame of the scene."""
+SNAP_DISTANCE = 1e-3
+"""A camera within this many metres of a frame's centre ..."""
+SNAP_ANGLE = 1e-3
+"""... and this many radians of its orientation sits at that frame: it is rendered with the frame's own camera (its
+size and intrinsics), without the frame among its sources, and compared with it."""
+
+
+def frame_at(scene: Scene, c2w: torch.Tensor) -> int | None:
+    """The frame of ``scene`` whose pose is ``c2w`` (a camera snapped to it, up to ``SNAP_DISTANCE``/``SNAP_ANGLE``)."""
+    pose = c2w.detach().cpu().double()
+    distance = (scene.c2w[:, :3, 3].double() - pose[:3, 3]).norm(dim=-1)
+    index = int(distance.argmin())
+    if float(distance[index]) > SNAP_DISTANCE:
+        return None
+    relative = scene.c2w[index, :3, :3].double().T @ pose[:3, :3]
+    angle = math.acos(max(-1.0, min(1.0, (float(relative.trace()) - 1.0) / 2.0)))
+    return index if angle <= SNAP_ANGLE else None
 
 
 def highlight_class(picture: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
@@ -68,6 +87,7 @@ class RenderedView:
         sources: the scene frame indices used as source views.
         seconds: wall time of the render; prediction: the model's output (None on failure).
         error: one line when the render failed, else None.
+        frame, psnr: the scene frame the camera sits at and the render's PSNR against it (clamped colours), or None.
     """
 
     stage: str
@@ -77,6 +97,8 @@ class RenderedView:
     seconds: float
     prediction: Prediction | None = None
     error: str | None = None
+    frame: int | None = None
+    psnr: float | None = None
 
 
 class SceneRenderer:
@@ -118,10 +140,11 @@ class SceneRenderer:
         return TargetCamera(intrinsics=view.intrinsics.to(device), c2w=view.c2w.to(device), height=view.height,
                             width=view.width, near=scene.near, far=scene.far)
 
-    def sources_for(self, scene_name: str, c2w: torch.Tensor, count: int) -> list[int]:
-        """The scene's training frames the selector picks for a camera at ``c2w`` (``count`` 0 = the default)."""
+    def sources_for(self, scene_name: str, c2w: torch.Tensor, count: int, exclude: int | None = None) -> list[int]:
+        """The scene's training frames (but ``exclude``) the selector picks for a camera at ``c2w`` (``count`` 0 = the
+        default)."""
         scene = self.frames.scene(scene_name)
-        candidates = list(scene.train_frames)
+        candidates = [i for i in scene.train_frames if i != exclude] or list(scene.train_frames)
         count = min(count or self.default_source_views, len(candidates))
         positions = self.selector.select(c2w.cpu().float(), scene.c2w[candidates], count, None)
         return [candidates[p] for p in positions]
@@ -131,7 +154,13 @@ class SceneRenderer:
         began = time.perf_counter()
         with self.lock:
             scene = self.frames.scene(scene_name)
-            indices = self.sources_for(scene_name, camera.c2w, source_views)
+            index = frame_at(scene, camera.c2w)
+            frame = self.frames.frame(scene, index) if index is not None else None
+            if frame is not None and frame.height % stride == 0 and frame.width % stride == 0:
+                camera = self.frames.camera(scene, frame)  # compared pixel for pixel with the real frame
+            else:
+                index = frame = None
+            indices = self.sources_for(scene_name, camera.c2w, source_views, exclude=index)
             sources = self.frames.source_views(scene, indices)
             features = None
             if self.feature_cache is not None:
@@ -139,8 +168,14 @@ class SceneRenderer:
             prediction = self.model.predict(camera, sources, stride=stride, chunk_rays=self.chunk_rays,
                                             features=features)
         layers = self.layers(prediction, scene.near, scene.far)
+        psnr = None
+        if frame is not None:
+            real = F.avg_pool2d(frame.rgb.permute(2, 0, 1)[None], prediction.stride)[0].permute(1, 2, 0)
+            rendered = torch.nan_to_num(prediction.rgb.float().cpu()).clamp(0, 1)
+            layers["error"] = vis.rgb_error_map(rendered, real)
+            psnr = float(-10 * torch.log10(((rendered - real.clamp(0, 1)) ** 2).mean().clamp_min(1e-10)))
         return RenderedView(stage=stage, stride=prediction.stride, layers=layers, sources=tuple(indices),
-                            seconds=time.perf_counter() - began, prediction=prediction)
+                            seconds=time.perf_counter() - began, prediction=prediction, frame=index, psnr=psnr)
 
     def layers(self, prediction: Prediction, near: float, far: float) -> dict[str, np.ndarray]:
         """The picture layers of a prediction; non-finite values are shown black, never raised."""

@@ -366,8 +366,9 @@ class ViewerServer:
         client.scene.set_background_image(picture, format="jpeg")
         self._highlight(client, state, request.scene, view.sources)
         sources = ", ".join(str(s) for s in view.sources)
+        compared = f"  \nat frame {view.frame}: PSNR {view.psnr:.2f} against it" if view.frame is not None else ""
         state.gui["status"].content = (f"**{view.stage}** (stride {view.stride}): {view.seconds:.2f} s  \n"
-                                       f"source views: {sources}")
+                                       f"source views: {sources}{compared}")
 
     def _highlight(self, client: Any, state: _ClientState, scene_name: str, sources: Sequence[int]) -> None:
         for handle in state.highlighted:

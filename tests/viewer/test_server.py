@@ -51,13 +51,15 @@ def test_serves_a_client_its_camera_and_stops_cleanly(tiny, at_frame):
             (state,) = server._clients.values()
             view = state.last
             assert view.stage == "full" and view.stride == 2 and view.error is None
-            camera = renderer.camera(state.last_request, 8)
-            sources = renderer.frames.source_views(renderer.frames.scene("layout_00"), list(view.sources))
+            scene = renderer.frames.scene("layout_00")
+            assert view.frame == 0 and 0 not in view.sources  # at a frame: its own camera, compared with it
+            camera = renderer.frames.camera(scene, renderer.frames.frame(scene, 0))
+            sources = renderer.frames.source_views(scene, list(view.sources))
             expected = components.model.predict(camera, sources, stride=2, chunk_rays=256)
             assert torch.equal(view.prediction.rgb, expected.rgb)
             assert torch.equal(view.prediction.logits, expected.logits)
             assert camera.width == 48  # the browser's 3:2 canvas at the scene's 32 rows
-            assert state.gui["layer"].options == ("rgb", "depth", "semantic", "features")
+            assert state.gui["layer"].options == ("rgb", "depth", "semantic", "features", "error")
             assert len(state.highlighted) == len(view.sources)
             state.layer = "semantic"  # as the Layer dropdown sets it; then a class is highlighted
             state.gui["highlight"].value = "wall"
