@@ -15,19 +15,18 @@ A Hydra command (``run``, ``eval``, ``finetune``, ``render``) goes through these
    unless resuming or ``overwrite=true``) and writes what the run is made from (``config.yaml``, its hash,
    ``overrides.yaml``, ``plugins.json``); every other rank learns the folder from rank 0 and writes nothing.
 
-Commands that are not Hydra jobs (``report``, ``stress``, ``size``, ``bench``) parse their own arguments and
-use the same error convention: raise a ``GpnerfError``; ``cli.main`` prints it as one line and exits 2.
+Commands that are not Hydra jobs (``report``, ``stress``, ``size``, ``bench``) parse their own arguments
+(``gpnerf_core.arguments.ArgumentParser``) and use the same error convention: raise a ``GpnerfError``; ``cli.main`` prints it as one line and exits 2.
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 import shlex
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, NoReturn
+from typing import Any, Callable
 
 import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
@@ -458,11 +457,3 @@ def restore_model_config(cfg: DictConfig, checkpoint_yaml: str, checkpoint_overr
     if not restored:
         return []
     return [f"kept the checkpoint's value of {', '.join(restored)} (the defaults changed since it was written)"]
-
-
-class ArgumentParser(argparse.ArgumentParser):
-    """argparse for the commands that parse their own arguments: a usage error is a ``ConfigError`` (one line,
-    exit code 2 through ``cli.main``), not argparse's usage block and ``SystemExit``."""
-
-    def error(self, message: str) -> NoReturn:
-        raise ConfigError(f"{self.prog}: {message}")

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_core.jobs import ArgumentParser
+from gpnerf_core.arguments import ArgumentParser
 from gpnerf_core.reporting.runs import (
     find_runs,
     format_table,

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from gpnerf_core.errors import ConfigError, NonFiniteError
-from gpnerf_core.jobs import ArgumentParser
+from gpnerf_core.arguments import ArgumentParser
 
 
 def parser() -> argparse.ArgumentParser:

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 from typing import Callable
 
+from gpnerf_core.arguments import ArgumentParser
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_plugins.datasets.common.layout_check import LayoutReport
 from gpnerf_plugins.datasets.common.pose_report import RayRange
@@ -48,14 +48,10 @@ def _rays(default_near: float, default_far: float, near: float | None, far: floa
     return rays
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # one-line ConfigError instead of argparse's exit 2 with usage
-        raise ConfigError(f"{self.prog}: {message}")
-
 
 def check(argv: list[str]) -> int:
     checkers = layout_checkers()
-    parser = _Parser(prog="gpnerf_core data check", description="Check a dataset folder against a layout.")
+    parser = ArgumentParser(prog="gpnerf_core data check", description="Check a dataset folder against a layout.")
     parser.add_argument("root", type=Path)
     parser.add_argument("--layout", required=True, choices=sorted(checkers))
     parser.add_argument("--near", type=float, default=None, help="pose sanity's near bound, metres (default: the "
@@ -74,7 +70,7 @@ def make_embedded(argv: list[str]) -> int:
     from gpnerf_plugins.datasets.embedded.dataset import EmbeddedScenes, EmbeddedScenesConfig
 
     defaults = EmbeddedScenesConfig()
-    parser = _Parser(prog="gpnerf_core data make", description="Render the embedded scenes into the cache (or --root).")
+    parser = ArgumentParser(prog="gpnerf_core data make", description="Render the embedded scenes into the cache (or --root).")
     parser.add_argument("--root", default=defaults.root)
     for key in ("num_train_scenes", "num_unseen_scenes", "frames_per_scene", "height", "width", "seed"):
         parser.add_argument(f"--{key.replace('_', '-')}", dest=key, type=int, default=getattr(defaults, key))

@@ -25,7 +25,6 @@ a non-empty ``--out`` is refused unless ``--overwrite``.
 
 from __future__ import annotations
 
-import argparse
 import re
 import shutil
 import struct
@@ -37,6 +36,7 @@ import numpy as np
 from PIL import Image
 from tqdm import tqdm
 
+from gpnerf_core.arguments import ArgumentParser
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.io import atomic_write_json
 from gpnerf_plugins.datasets.capture.staging import check_destination, staged
@@ -59,12 +59,6 @@ NEAR_FAR_RULE = (
 EXACT_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 """COLMAP camera models the capture layout holds exactly (as PINHOLE or OPENCV); others are undistorted."""
 
-
-class OneLineParser(argparse.ArgumentParser):
-    """argparse whose errors are a one-line ``ConfigError`` (exit 2 through the CLI) instead of usage and exit 2."""
-
-    def error(self, message: str) -> None:
-        raise ConfigError(f"{self.prog}: {message}")
 
 
 def load_pycolmap() -> Any:
@@ -428,7 +422,7 @@ def import_colmap(model: Path, images: Path, out: Path, *, overwrite: bool = Fal
 
 def main(argv: list[str]) -> int:
     """Entry point of ``data import-colmap``: imports, prints the summary and where the scene is."""
-    parser = OneLineParser(
+    parser = ArgumentParser(
         prog="gpnerf_core data import-colmap",
         description="Turn a COLMAP sparse model and its images into a capture (transforms.json + images/). "
         f"Per-frame near/far: {NEAR_FAR_RULE}.",

@@ -31,11 +31,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+from gpnerf_core.arguments import ArgumentParser
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_plugins.datasets.capture import video_frames
 from gpnerf_plugins.datasets.capture.colmap_import import (
     NEAR_FAR_RULE,
-    OneLineParser,
     TRANSFORMS_FILE,
     format_summary,
     import_model,
@@ -65,8 +65,8 @@ def parse_intrinsics(text: str | None) -> tuple[float, float, float, float] | No
     return values  # type: ignore[return-value]
 
 
-def build_parser() -> OneLineParser:
-    parser = OneLineParser(
+def build_parser() -> ArgumentParser:
+    parser = ArgumentParser(
         prog="gpnerf_core data prepare-capture",
         description="Turn a video or a folder of photos into a posed capture (transforms.json + images/) by structure "
         "from motion (pycolmap). Blurry frames: " + video_frames.SHARPNESS_RULE + ". Per-frame near/far: "

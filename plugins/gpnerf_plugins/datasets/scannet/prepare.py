@@ -10,7 +10,6 @@ temporary folder beside the destination and renamed into place at the end, so an
 
 from __future__ import annotations
 
-import argparse
 import io
 import os
 import re
@@ -24,6 +23,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from gpnerf_core.arguments import ArgumentParser
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_plugins.datasets.scannet.files import (
     COLOR_DIR,
@@ -258,14 +258,10 @@ def _make_shareable(folder: Path) -> None:
     folder.chmod(0o777 & ~umask)
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # one-line ConfigError instead of argparse's exit 2 with usage
-        raise ConfigError(f"{self.prog}: {message}")
-
 
 def main(argv: list[str]) -> int:
     """Entry point of ``data prepare-scannet``; prints how many frames were written and where."""
-    parser = _Parser(
+    parser = ArgumentParser(
         prog="gpnerf_core data prepare-scannet",
         description="Turn a ScanNet scan (.sens + _2d-label-filt.zip, optionally _2d-instance-filt.zip) into the "
         "layout the scannet dataset reads.",
