@@ -20,13 +20,7 @@ from pipeline_check import TINY_MODEL, TINY_SCENES, make_trainer
 CHECKPOINT_CLASSES = ClassList(("wall", "floor", "chair"), 255, "checkpoint old.pt", from_checkpoint=True)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """The configs' ``threads=1`` (``model_from_checkpoint`` sets it too), restored afterwards."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")  # the configs' threads=1 (model_from_checkpoint sets it too)
 
 
 @pytest.fixture(scope="module")

@@ -97,15 +97,6 @@ def test_depth_errors_use_cells_whose_every_pixel_has_depth():
         M.depth_errors(pred, torch.ones(3, 4))
 
 
-@pytest.fixture
-def one_thread():
-    """The configs' ``threads=1`` (a command sets it in ``start``); more threads only contend on the CI's 2 cores."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """A tiny untrained model (seeded) on the embedded rooms generated once into a folder."""
