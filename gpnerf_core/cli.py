@@ -2,7 +2,8 @@
 
 Each command is the module ``gpnerf_core.commands.<command>`` with ``main(argv) -> exit code``, imported when it is
 called (``plugins`` does not pay for torch's training stack). A ``GpnerfError`` a command raises is printed as one line
-and exit code 2 (``GPNERF_DEBUG=1`` shows the traceback instead).
+and exit code 2 (``GPNERF_DEBUG=1`` shows the traceback instead). SIGTERM raises ``signals.Terminated`` inside a command,
+so it unwinds like Ctrl-C (children stopped, ``finally`` blocks run); either is one line and exit code 130 or 143.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import os
 import sys
 
 from gpnerf_core.errors import GpnerfError
+from gpnerf_core.signals import Terminated, interruption, sigterm_raises
 
 USAGE = """usage: python -m gpnerf_core <command> [options]
 
@@ -52,9 +54,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: unknown command {command!r}; known commands: {', '.join(COMMANDS)}", file=sys.stderr)
         return 2
     try:
-        return importlib.import_module(f"gpnerf_core.commands.{command}").main(rest)
+        with sigterm_raises():
+            return importlib.import_module(f"gpnerf_core.commands.{command}").main(rest)
     except GpnerfError as exc:
         if os.environ.get("GPNERF_DEBUG"):
             raise
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except (KeyboardInterrupt, Terminated) as exc:
+        name, code = interruption(exc)
+        print(f"interrupted ({name}): {command} stopped; what it had finished and written stays", file=sys.stderr)
+        return code

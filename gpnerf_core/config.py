@@ -84,8 +84,12 @@ class TrainConfig:
     """Steps between entries of the training curves."""
     checkpoint_every: int = 0
     """Steps between checkpoints (0 = only the final one)."""
+    keep_checkpoints: int = 0
+    """Keep only the newest K checkpoints of the run folder, deleting older ones as new ones are written (0 = keep
+    all)."""
     resume: Optional[str] = None
-    """Checkpoint to resume from (restores model, optimizer, step and random state)."""
+    """Checkpoint to resume from (restores model, optimizer, step and random state), or ``auto``: the newest intact
+    checkpoint in ``out_dir`` if there is one, else a fresh start (what a restarted or requeued job runs)."""
     resume_strict: bool = True
     """Refuse to resume when the model or loss config differs from the checkpoint's (False: print the
     differences and go on)."""

@@ -106,6 +106,28 @@ def init_distributed(device_name: str) -> Distributed:
     if device.type == "cuda":
         torch.cuda.set_device(device)
     if not dist.is_initialized():
-        kwargs = {"device_id": device} if device.type == "cuda" else {}
+        kwargs: dict[str, Any] = {"device_id": device} if device.type == "cuda" else {}
+        store = _attempt_store(world_size)
+        if store is not None:
+            kwargs["store"] = store
         dist.init_process_group(backend=backend, rank=rank, world_size=world_size, **kwargs)
     return Distributed(rank=rank, world_size=world_size, local_rank=local_rank, device=device)
+
+
+def _attempt_store(world_size: int) -> dist.Store | None:
+    """Under torchrun's agent store, a client of it whose keys are private to this restart attempt; else None
+    (``env://`` as usual).
+
+    torchrun (2.13) keeps one store across restarts of the worker group, so the processes of a restarted group would
+    read the addresses the dead group published and fail to connect ("Connection refused"). Prefixing the keys by
+    ``TORCHELASTIC_RESTART_COUNT`` gives each attempt its own.
+    """
+    if os.environ.get("TORCHELASTIC_USE_AGENT_STORE") != "True" or "TORCHELASTIC_RESTART_COUNT" not in os.environ:
+        return None
+    from datetime import timedelta
+
+    client = dist.TCPStore(
+        host_name=os.environ["MASTER_ADDR"], port=int(os.environ["MASTER_PORT"]), world_size=world_size,
+        is_master=False, timeout=timedelta(minutes=10),
+    )
+    return dist.PrefixStore(f"gpnerf/attempt_{os.environ['TORCHELASTIC_RESTART_COUNT']}", client)

@@ -11,7 +11,9 @@ A Hydra command (``run``, ``eval``, ``finetune``, ``render``) goes through these
    exits 2 after the sweep (``FAILED_SWEEP_JOBS``). A job refused before training leaves no folder behind.
 3. ``start(cfg)`` inside the task: validates again (a sweep's jobs were not prechecked), refuses a fixed ``out_dir``
    shared by a sweep's jobs, sets the thread count and the seed (which fixes the model's initialisation).
-4. ``claim_run_folder(cfg, dist, resuming=...)``: rank 0 locks the run folder (refusing a live one, and a finished one
+4. ``plan_resume(cfg, dist)`` (``run``): turns ``train.resume=auto`` into the newest intact checkpoint of ``out_dir`` (or a
+   fresh start) and refuses a resume the checkpoint cannot honour (another seed, fewer steps than it reached).
+5. ``claim_run_folder(cfg, dist, resuming=...)``: rank 0 locks the run folder (refusing a live one, and a finished one
    unless resuming or ``overwrite=true``) and writes what the run is made from (``config.yaml``, its hash,
    ``overrides.yaml``, ``plugins.json``); every other rank learns the folder from rank 0 and writes nothing.
 
@@ -33,9 +35,10 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from gpnerf_core.build import build_components, checkpoint_classes
 from gpnerf_core.distributed import Distributed, init_distributed
-from gpnerf_core.errors import ConfigError, GpnerfError
+from gpnerf_core.errors import ConfigError, DataError, GpnerfError
 from gpnerf_core.io import atomic_write_json, atomic_write_text
 from gpnerf_core.overrides import RUN_SPECIFIC_KEYS, is_search_path, merge_overrides, override_key
+from gpnerf_core.signals import Terminated, interruption
 from gpnerf_core.run_folder import RunFolder, RunFolderError, remove_untrained_run
 from gpnerf_core.training.checkpoint import (
     MODEL_SECTIONS,
@@ -47,6 +50,7 @@ from gpnerf_core.training.checkpoint import (
     read_checkpoint,
 )
 from gpnerf_core.training.interrupt import TrainingInterrupted
+from gpnerf_core.training.resume import newest_intact_checkpoint, run_checkpoints
 from gpnerf_core.validation import check_data, validate_config
 
 FAILED_SWEEP_JOBS: list[str] = []
@@ -198,6 +202,13 @@ def guarded(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
                 return None
             _remove_if_empty(cfg)
             sys.exit(2)
+        except RuntimeError as exc:
+            if not lost_peer(exc) or os.environ.get("GPNERF_DEBUG"):
+                raise
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            print(f"error: another process of the job stopped ({first[:160]}); under torchrun --max-restarts=N with "
+                  "train.resume=auto the group restarts from the newest checkpoint", file=sys.stderr)
+            sys.exit(1)
         except TrainingInterrupted as stop:
             if stop.checkpoint is not None:
                 print(
@@ -206,12 +217,23 @@ def guarded(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
                     file=sys.stderr,
                 )
             sys.exit(stop.exit_code)
-        except KeyboardInterrupt:
-            print("interrupted (SIGINT) outside the training loop; files already written stay", file=sys.stderr)
-            sys.exit(130)
+        except (KeyboardInterrupt, Terminated) as exc:
+            name, code = interruption(exc)
+            print(f"interrupted ({name}) outside the training loop; files already written stay", file=sys.stderr)
+            sys.exit(code)
 
     wrapper.__name__ = task.__name__
     return wrapper
+
+
+def lost_peer(exc: BaseException) -> bool:
+    """True for the error a collective raises when another process of the group died (gloo/NCCL)."""
+    backend_error = getattr(torch.distributed, "DistBackendError", ())
+    text = str(exc)
+    return isinstance(exc, backend_error) or any(
+        marker in text for marker in ("Connection closed by peer", "Connection reset by peer", "Broken pipe",
+                                      "NCCL communicator was aborted")
+    )
 
 
 def in_sweep() -> bool:
@@ -246,16 +268,19 @@ def _remove_if_empty(cfg: DictConfig) -> None:
 
 
 def resume_command(folder: Path, checkpoint: Path | None) -> str:
-    """The command that resumes this run from ``checkpoint`` in the same folder (a torchrun line under torchrun)."""
-    kept = [o for o in task_overrides() if override_key(o) not in RUN_SPECIFIC_KEYS]
+    """The command that resumes this run from ``checkpoint`` in the same folder (a torchrun line under torchrun):
+    ``run``, or ``finetune`` with its ``checkpoint=`` (the start it fine-tunes from) kept."""
+    command = sys.argv[0].split()[-1] if sys.argv and sys.argv[0].startswith("gpnerf_core ") else "run"
+    dropped = [key for key in RUN_SPECIFIC_KEYS if not (command == "finetune" and key == "checkpoint")]
+    kept = [o for o in task_overrides() if override_key(o) not in dropped]
     args = [*kept, f"out_dir={folder}", f"train.resume={checkpoint}"]
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world > 1:
         local = os.environ.get("LOCAL_WORLD_SIZE", str(world))
         nodes = " (on every node, with the same --nnodes/--rdzv-endpoint)" if int(local) != world else ""
-        launcher = f"torchrun --nproc_per_node={local} -m gpnerf_core run"
+        launcher = f"torchrun --nproc_per_node={local} -m gpnerf_core {command}"
         return f"{launcher} {' '.join(shlex.quote(a) for a in args)}{nodes}"
-    return f"python -m gpnerf_core run {' '.join(shlex.quote(a) for a in args)}"
+    return f"python -m gpnerf_core {command} {' '.join(shlex.quote(a) for a in args)}"
 
 
 # -- 3. inside the task: validate, seed, claim the folder --------------------------------------------------------
@@ -282,7 +307,80 @@ def _refuse_shared_out_dir(cfg: DictConfig) -> None:
         )
 
 
-def claim_run_folder(cfg: DictConfig, dist: Distributed, *, resuming: bool) -> tuple[RunFolder, RunRecord]:
+@dataclass(frozen=True)
+class ResumePlan:
+    """How a ``run`` starts: from ``checkpoint`` (None: from scratch), with notes to print; ``replace_leftovers``: the
+    folder may hold files of an earlier attempt of this run that died before its first checkpoint (``resume=auto``),
+    which the claim replaces."""
+
+    checkpoint: Path | None
+    notes: tuple[str, ...] = ()
+    replace_leftovers: bool = False
+
+    @property
+    def resuming(self) -> bool:
+        return self.checkpoint is not None
+
+
+def plan_resume(cfg: DictConfig, dist: Distributed) -> ResumePlan:
+    """Resolve ``train.resume`` (``auto``: rank 0 picks the newest intact checkpoint of ``out_dir`` and every rank takes
+    the same) and check that the checkpoint can continue this config; ``cfg.train.resume`` becomes the path chosen.
+
+    Raises:
+        ConfigError: ``auto`` without ``out_dir``; another ``seed`` than the checkpoint's (its random streams go on,
+            the new seed would be recorded but not used); ``train.steps`` below the checkpoint's step.
+        DataError: the checkpoint is missing or damaged; ``auto`` found only damaged ones.
+    """
+    value = cfg.train.resume
+    if not value:
+        return ResumePlan(None)
+    notes: list[str] = []
+    if str(value) == "auto":
+        if not cfg.out_dir:
+            raise ConfigError("train.resume=auto needs out_dir=<folder>: the fixed folder a restarted job resumes in")
+        outcome = dist.broadcast_object(_find_auto_checkpoint(Path(str(cfg.out_dir))) if dist.is_main else None)
+        if outcome[0] == "error":
+            raise DataError(outcome[1])
+        found, notes = outcome[1], list(outcome[2])
+        with open_dict(cfg):
+            cfg.train.resume = found
+        if found is None:
+            notes.append(f"train.resume=auto: no checkpoint in {cfg.out_dir}; training from the start")
+            return ResumePlan(None, tuple(notes), replace_leftovers=True)
+        notes.append(f"train.resume=auto: resuming from {found}")
+    path = Path(str(cfg.train.resume))
+    if not path.is_file():
+        raise DataError(f"train.resume={path}: no such file; expected a checkpoint written by run (checkpoints/)")
+    state = read_checkpoint(path)
+    written = OmegaConf.create(state["config"]) if state.get("config") else OmegaConf.create({})
+    if "seed" in written and int(written.seed) != int(cfg.seed):
+        raise ConfigError(
+            f"train.resume={path}: seed={int(cfg.seed)} differs from the checkpoint's seed={int(written.seed)}; a "
+            "resumed run continues the checkpoint's random streams, so leave seed as it was or start a new run"
+        )
+    if int(cfg.train.steps) < int(state["step"]):
+        raise ConfigError(
+            f"train.resume={path}: train.steps={int(cfg.train.steps)} is below the step {int(state['step'])} the "
+            "checkpoint reached; give train.steps >= that step (equal: evaluate it again)"
+        )
+    return ResumePlan(path, tuple(notes))
+
+
+def _find_auto_checkpoint(folder: Path) -> tuple[str, Any, Any]:
+    """``("ok", path or None, notes)`` for ``train.resume=auto`` in ``folder``, or ``("error", message, None)``."""
+    try:
+        found, notes = newest_intact_checkpoint(folder)
+    except GpnerfError as exc:
+        return ("error", str(exc), None)
+    if found is None and (folder / "metrics.json").exists():
+        return ("error", f"train.resume=auto: {folder} holds a finished run's metrics.json but no checkpoint to "
+                         "resume from; choose another out_dir, or overwrite=true to replace it", None)
+    return ("ok", None if found is None else str(found), notes)
+
+
+def claim_run_folder(
+    cfg: DictConfig, dist: Distributed, *, resuming: bool, replace_leftovers: bool = False
+) -> tuple[RunFolder, RunRecord]:
     """Rank 0 claims (locks) the run folder and writes what the run is made from; every rank gets the same folder.
 
     Returns the claimed folder (a context manager that releases the lock) and the run's record (config YAML, its
@@ -294,7 +392,8 @@ def claim_run_folder(cfg: DictConfig, dist: Distributed, *, resuming: bool) -> t
     outcome: tuple[str, Any] = ("ok", [])
     if dist.is_main:
         try:
-            outcome = ("ok", folder.claim(resuming=resuming, overwrite=bool(cfg.overwrite)))
+            overwrite = bool(cfg.overwrite) or replace_leftovers
+            outcome = ("ok", folder.claim(resuming=resuming, overwrite=overwrite))
         except GpnerfError as exc:
             outcome = ("error", str(exc))
     outcome = dist.broadcast_object(outcome)

@@ -30,6 +30,7 @@ RUN_FILES = (
     "training_curves.png",
     "scalars.csv",
     "bench.json",
+    "finetune_curve.json",
 )
 RUN_FOLDERS = ("checkpoints", "images", "tensorboard")
 """What a run writes; ``overwrite=true`` deletes exactly these."""

@@ -49,11 +49,15 @@ def _ema_decay(v: Any) -> bool:
     return _non_negative(v) and v < 1
 
 
+MAX_SEED = 2**63 - 1
+"""torch.manual_seed's largest seed that every seeded stream here (torch, numpy, the samplers' hashes) accepts."""
+MAX_THREADS = 1024
+"""More threads than any machine here has cores; beyond it OpenMP fails to start them (a traceback, not a run)."""
 COUNT = "an integer >= 1"
 COUNT0 = "an integer >= 0"
 RULES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
-    ("seed", _count(0), COUNT0),
-    ("threads", _count(0), f"{COUNT0} (0 = torch's default)"),
+    ("seed", lambda v: _count(0)(v) and v <= MAX_SEED, f"an integer in [0, {MAX_SEED}]"),
+    ("threads", lambda v: _count(0)(v) and v <= MAX_THREADS, f"an integer in [0, {MAX_THREADS}] (0 = torch's default)"),
     ("train.steps", _count(1), COUNT),
     ("train.rays", _count(1), COUNT),
     ("train.targets_per_step", _count(1), COUNT),
@@ -67,6 +71,7 @@ RULES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("train.ema_decay", _ema_decay, "a decay in [0, 1) (0 = no weight average)"),
     ("train.log_every", _count(1), COUNT),
     ("train.checkpoint_every", _count(0), f"{COUNT0} (0 = only the final checkpoint)"),
+    ("train.keep_checkpoints", _count(0), f"{COUNT0} (0 = keep every checkpoint)"),
     ("model.coarse_samples", _count(2), "an integer >= 2"),
     ("model.fine_samples", _count(0), f"{COUNT0} (0 = one pass)"),
     ("model.num_source_views", _count(1), COUNT),

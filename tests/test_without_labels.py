@@ -94,8 +94,8 @@ def test_checkpoints_store_their_classes_and_older_ones_still_load(root, tmp_pat
     assert state["class_names"] == list(CLASS_NAMES) and state["ignore_index"] == IGNORE_INDEX
     assert stored_classes(state, result.checkpoint) == (CLASS_NAMES, IGNORE_INDEX)
 
-    old = tmp_path / "old.pt"  # as written before checkpoints kept their classes
-    torch.save({k: v for k, v in state.items() if k not in ("class_names", "ignore_index")}, old)
+    old = tmp_path / "old.pt"  # as written before checkpoints kept their classes (and their content hash)
+    torch.save({k: v for k, v in state.items() if k not in ("class_names", "ignore_index", "content_sha256")}, old)
     assert stored_classes(read_checkpoint(old), old) is None
     with open_dict(cfg):
         cfg.checkpoint = str(old)

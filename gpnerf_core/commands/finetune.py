@@ -12,8 +12,10 @@ with a loss set that needs none (``+loss=label_free``): the label metrics of the
 
 from __future__ import annotations
 
+import json
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
@@ -21,10 +23,10 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from gpnerf_core.build import build_components, checkpoint_classes
 from gpnerf_core.device import machine_info
 from gpnerf_core.distributed import Distributed
-from gpnerf_core.errors import ConfigError
+from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.evaluation.curves import CURVE_KEYS, curve_points
 from gpnerf_core.io import atomic_write_json
-from gpnerf_core.jobs import checkpoint_config, claim_run_folder, job, launch_from_checkpoint, start
+from gpnerf_core.jobs import checkpoint_config, claim_run_folder, job, launch_from_checkpoint, plan_resume, start
 from gpnerf_core.training.checkpoint import evaluation_weights
 from gpnerf_core.training.finetuning import finetune_weights
 from gpnerf_core.validation import check_data
@@ -46,8 +48,7 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             "finetune needs dataset.scenes=[<scene>, ...]: the scenes to fine-tune on (their held-out frames are "
             "evaluated, never trained on)"
         )
-    if cfg.train.resume:
-        raise ConfigError("finetune starts from checkpoint=...; train.resume is for continuing a run (use run)")
+    plan = plan_resume(cfg, dist)  # train.resume: an interrupted fine-tuning's own checkpoint (or auto)
     total = int(cfg.train.steps)
     points = curve_points(total, int(cfg.finetune.points))
     with open_dict(cfg):
@@ -61,11 +62,11 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     reinitialised = finetune_weights(
         components.model, start_weights, checkpoint, state["config"], OmegaConf.to_yaml(cfg, resolve=True)
     )
-    folder, record = claim_run_folder(cfg, dist, resuming=False)
+    folder, record = claim_run_folder(cfg, dist, resuming=plan.resuming, replace_leftovers=plan.replace_leftovers)
     run_dir = folder.path
     with folder:
         if dist.is_main:
-            for note in notes:
+            for note in (*notes, *plan.notes):
                 print(f"note: {note}", file=sys.stderr)
             if reinitialised:
                 old_classes = int(start_weights[reinitialised[0]].shape[0])
@@ -78,9 +79,11 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
                   f"evaluating at steps {', '.join(map(str, points))}", file=sys.stderr)
         trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record)
         started = time.perf_counter()
-        curve = []
+        curve = _curve_so_far(run_dir, trainer.step) if plan.resuming else []
         evaluation: dict[str, Any] = {}
         for point in points:
+            if any(entry["step"] == point for entry in curve) and point < total:
+                continue  # evaluated before the interruption
             if point > trainer.step:
                 with open_dict(cfg):
                     cfg.train.steps = point
@@ -89,8 +92,9 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             held_out = evaluation["eval"].get("train_heldout", {})
             entry = {"step": trainer.step, "train_seconds": round(trainer.elapsed, 2)}
             entry.update({key: held_out[key] for key in CURVE_KEYS if key in held_out})
-            curve.append(entry)
+            curve = [*(e for e in curve if e["step"] != entry["step"]), entry]
             if dist.is_main:
+                atomic_write_json(run_dir / CURVE_FILE, curve)
                 shown = ", ".join(f"{k} {v:.3f}" for k, v in entry.items() if k in CURVE_KEYS and v is not None)
                 print(f"finetune step {trainer.step}: {shown}", file=sys.stderr)
         with open_dict(cfg):
@@ -121,4 +125,20 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             atomic_write_json(run_dir / "metrics.json", metrics)
             print_summary(metrics, run_dir)
     return metrics
+
+
+CURVE_FILE = "finetune_curve.json"
+"""The curve's points evaluated so far, rewritten after each: a resumed fine-tuning keeps them."""
+
+
+def _curve_so_far(run_dir: Path, step: int) -> list[dict[str, Any]]:
+    """The points an interrupted fine-tuning evaluated up to ``step`` (the checkpoint it resumes from)."""
+    path = run_dir / CURVE_FILE
+    if not path.is_file():
+        return []
+    try:
+        saved = json.loads(path.read_text())
+    except ValueError:
+        raise DataError(f"{path}: not a fine-tuning curve (damaged JSON); delete it to evaluate those points again") from None
+    return [entry for entry in saved if isinstance(entry, dict) and int(entry.get("step", -1)) <= step]
 

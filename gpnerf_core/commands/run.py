@@ -19,7 +19,7 @@ from gpnerf_core.device import machine_info
 from gpnerf_core.distributed import Distributed
 from gpnerf_core.evaluation.curves import curve_entry, eval_scalars
 from gpnerf_core.io import atomic_write_json
-from gpnerf_core.jobs import claim_run_folder, job, launch, start
+from gpnerf_core.jobs import claim_run_folder, job, launch, plan_resume, start
 from gpnerf_core.validation import check_data
 
 
@@ -38,19 +38,20 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
 
     start(cfg)
     check_global_batch(int(cfg.train.targets_per_step), dist.world_size)
-    resuming = bool(cfg.train.resume)
+    plan = plan_resume(cfg, dist)
+    resuming = plan.resuming
     components = build_components(cfg)
     check_data(cfg, components, training=True)
     if cfg.model.init and not resuming:
         report = init_weights(components.model, Path(cfg.model.init), strict=bool(cfg.model.init_strict))
         if dist.is_main:
             print(report, file=sys.stderr)
-    folder, record = claim_run_folder(cfg, dist, resuming=resuming)
+    folder, record = claim_run_folder(cfg, dist, resuming=resuming, replace_leftovers=plan.replace_leftovers)
     run_dir = folder.path
     with folder:
         trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record)
         if dist.is_main:
-            for note in trainer.notes:
+            for note in (*plan.notes, *trainer.notes):
                 print(f"note: {note}", file=sys.stderr)
             if dist.enabled:
                 print(

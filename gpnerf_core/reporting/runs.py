@@ -250,8 +250,13 @@ def with_parameter_count(row: RunRow) -> RunRow:
     checkpoint = (row.metrics.get("train") or {}).get("checkpoint")
     if not checkpoint or not Path(checkpoint).is_file():
         return row
-    import torch
+    from gpnerf_core.errors import DataError
+    from gpnerf_core.training.checkpoint import read_torch_file
 
-    state = torch.load(checkpoint, map_location="cpu", weights_only=False).get("model", {})
+    try:  # weights only: a report never runs code from a file it reads
+        state = read_torch_file(Path(checkpoint))
+    except DataError:
+        return row
+    state = state.get("model", {}) if isinstance(state, dict) else {}
     total = sum(t.numel() for t in state.values() if hasattr(t, "numel"))
     return RunRow(row.folder, row.config, {**row.metrics, "parameters": {"total": total}}, row.error)

@@ -84,7 +84,8 @@ def models_from_paths(paths: Sequence[Path]) -> list[ModelUnderTest]:
                 continue
             checkpoint = _run_checkpoint(row.folder, row.metrics)
             if checkpoint is None:
-                print(f"stress: skipping {row.folder}: no checkpoint (an eval folder, not a run)", file=sys.stderr)
+                print(f"stress: skipping {row.folder}: no checkpoint in {row.folder / 'checkpoints'} (an eval "
+                      "folder, or a copy without its checkpoints)", file=sys.stderr)
                 continue
             rows.append(row)
             checkpoints[row.folder] = checkpoint
@@ -101,11 +102,17 @@ def models_from_paths(paths: Sequence[Path]) -> list[ModelUnderTest]:
 
 
 def _run_checkpoint(folder: Path, metrics: dict[str, Any]) -> Path | None:
+    """The run's final checkpoint inside ``folder``: the one ``metrics.json`` names if the folder holds it, else its
+    newest. A copied folder's ``metrics.json`` names the original's file, which is never taken in its place."""
+    from gpnerf_core.training.resume import run_checkpoints
+
     recorded = (metrics.get("train") or {}).get("checkpoint")
-    if recorded and Path(recorded).is_file():
-        return Path(recorded)
-    found = sorted((folder / "checkpoints").glob("step_*.pt"))
-    return found[-1] if found else None
+    if recorded:
+        own = folder / "checkpoints" / Path(str(recorded)).name
+        if own.is_file():
+            return own
+    found = run_checkpoints(folder)
+    return found[-1][1] if found else None
 
 
 def choose_cases(names: Sequence[str] | None) -> list[StressCase]:

@@ -6,6 +6,10 @@ the components used (kind, name, provider, version), the software versions, and 
 (``class_names``, ``ignore_index``: what ``eval``, ``render`` and ``finetune`` use on a dataset without a class list;
 absent from checkpoints written before they were stored, which still load). It is loaded with
 ``torch.load(weights_only=True)``: nothing in it is unpickled as code.
+
+Every checkpoint also carries ``content_sha256``, a hash of everything else in it (``content_digest``), checked on every
+load: torch's zip reader does not check the CRCs of the tensors it reads, so a flipped byte inside a weight would
+otherwise load, evaluate and resume without a word. Checkpoints written before the hash was stored load unchecked.
 """
 
 from __future__ import annotations
@@ -99,7 +103,49 @@ def save_checkpoint(
         "class_names": None if classes is None else [str(name) for name in classes.names],
         "ignore_index": None if classes is None else int(classes.ignore_index),
     }
+    state["content_sha256"] = content_digest(state)
     return atomic_torch_save(path, state)
+
+
+DIGEST_KEY = "content_sha256"
+
+
+def content_digest(state: Mapping[str, Any]) -> str:
+    """sha256 of a checkpoint dictionary without its ``content_sha256``: tensors by dtype, shape and bytes, other values
+    by type and ``repr``, dictionaries in key order (sorted by ``repr``), so a reloaded dictionary hashes the same."""
+    digest = hashlib.sha256()
+    _digest_value(digest, {key: value for key, value in state.items() if key != DIGEST_KEY})
+    return digest.hexdigest()
+
+
+def _digest_value(digest: Any, value: Any) -> None:
+    if isinstance(value, torch.Tensor):
+        flat = value.detach().to("cpu").contiguous().reshape(-1)
+        digest.update(f"tensor:{flat.dtype}:{tuple(value.shape)}:".encode())
+        digest.update(flat.view(torch.uint8).numpy().tobytes() if flat.numel() else b"")
+    elif isinstance(value, Mapping):
+        digest.update(f"dict:{len(value)}:".encode())
+        for key in sorted(value, key=repr):
+            digest.update(f"{key!r}=".encode())
+            _digest_value(digest, value[key])
+    elif isinstance(value, (list, tuple)):  # a tuple may come back as a list: hash both alike
+        digest.update(f"list:{len(value)}:".encode())
+        for item in value:
+            _digest_value(digest, item)
+    else:
+        digest.update(f"{type(value).__name__}:{value!r};".encode())
+
+
+def verify_content(state: Mapping[str, Any], path: str | Path) -> None:
+    """Raise DataError naming ``path`` when the checkpoint's contents differ from the hash written with them."""
+    stored = state.get(DIGEST_KEY)
+    if stored is None:
+        return
+    if content_digest(state) != stored:
+        raise DataError(
+            f"checkpoint {path} is damaged: its contents do not match the content_sha256 written with it "
+            "(changed or corrupted bytes); use an earlier checkpoint of the run"
+        )
 
 
 def stored_classes(state: Mapping[str, Any], path: str | Path) -> tuple[tuple[str, ...], int] | None:
@@ -130,6 +176,7 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
             f"checkpoint {path} has format {state['format']!r}; this gpnerf-core reads format {FORMAT_VERSION} "
             "(it was written by another version: evaluate it with that version, or retrain)"
         )
+    verify_content(state, path)
     return state
 
 

@@ -34,6 +34,7 @@ from gpnerf_core.training.checkpoint import (
 )
 from gpnerf_core.training.interrupt import StopRequest, TrainingInterrupted
 from gpnerf_core.training.loggers import ScalarLogger
+from gpnerf_core.training.resume import checkpoint_path, prune_checkpoints
 from gpnerf_core.training.sampler import StepSampler
 from gpnerf_core.training.schedule import lr_factor
 from gpnerf_core.training.weight_average import WeightAverage
@@ -359,8 +360,8 @@ class Trainer:
         rng_states = self.dist.all_gather_object(self._rng_state())
         if not self.dist.is_main:
             return None
-        return save_checkpoint(
-            self.run_dir / "checkpoints" / f"step_{self.step:07d}.pt",
+        path = save_checkpoint(
+            checkpoint_path(self.run_dir, self.step),
             record=self.record,
             model=self.model,
             optimizer=self.optimizer,
@@ -372,6 +373,8 @@ class Trainer:
             elapsed=elapsed,
             weight_average=self.average.state_dict() if self.average is not None else None,
         )
+        prune_checkpoints(self.run_dir, int(self.cfg.train.keep_checkpoints))
+        return path
 
     def _resume(self, path: Path) -> None:
         if not path.is_file():

@@ -112,3 +112,99 @@ def test_a_loss_set_that_leaves_modules_unused_trains_under_ddp(workspace):
     assert result.returncode == 0, result.stderr[-3000:]
     assert "unused" not in result.stderr
     assert json.loads((out / "metrics.json").read_text())["train"]["steps"] == 2
+
+
+def free_port():
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def children(pid):
+    """Pids whose parent is ``pid`` (Linux /proc)."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as handle:
+                    fields = handle.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid:
+                found.append(int(entry))
+    return found
+
+
+def rank_of(pid):
+    try:
+        with open(f"/proc/{pid}/environ", "rb") as handle:
+            variables = dict(v.split(b"=", 1) for v in handle.read().split(b"\0") if b"=" in v)
+    except OSError:
+        return None
+    return int(variables[b"RANK"]) if b"RANK" in variables else None
+
+
+def evaluated(folder):
+    metrics = json.loads((folder / "metrics.json").read_text())
+    return {split: {k: v for k, v in values.items() if k != "timing"} for split, values in metrics["eval"].items()}
+
+
+def test_a_killed_rank_restarts_the_group_which_resumes_and_ends_as_an_uninterrupted_run(runs, workspace):
+    """torchrun --max-restarts=1 + train.resume=auto: SIGKILL rank 1 after the first checkpoint; the agent restarts
+    both workers, they resume from the newest checkpoint, and the run ends exactly as the uninterrupted one."""
+    import signal
+    import time
+
+    _, uninterrupted, _ = runs
+    out = workspace / "elastic"
+    env = dict(os.environ, GPNERF_CACHE=str(workspace / "cache"), GPNERF_DISABLE_PLUGIN_AUTOLOAD="1",
+               OMP_NUM_THREADS="1")
+    agent = subprocess.Popen(
+        [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "--max-restarts=1",
+         "--monitor-interval=0.2", "-m", "gpnerf_core", "run", *TINY, "train.checkpoint_every=1",
+         "train.resume=auto", f"out_dir={out}"],
+        cwd=workspace, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 300
+    killed = None
+    while killed is None and time.monotonic() < deadline and agent.poll() is None:
+        if (out / "checkpoints" / "step_0000001.pt").exists():
+            killed = next((pid for pid in children(agent.pid) if rank_of(pid) == 1), None)
+            if killed is not None:
+                os.kill(killed, signal.SIGKILL)
+        time.sleep(0.02)
+    stdout, stderr = agent.communicate(timeout=300)
+    assert killed is not None, stderr[-3000:]
+    assert agent.returncode == 0, stderr[-3000:]
+    assert "train.resume=auto: resuming from" in stderr, stderr[-3000:]
+    assert evaluated(out) == evaluated(uninterrupted)
+    final = torch.load(out / "checkpoints" / "step_0000003.pt", weights_only=True)
+    reference = torch.load(uninterrupted / "checkpoints" / "step_0000003.pt", weights_only=True)
+    assert all(torch.equal(final["model"][k], v) for k, v in reference["model"].items())
+    assert [h["loss"] for h in final["history"]] == [h["loss"] for h in reference["history"]]
+
+
+def test_two_nodes_on_one_machine_train_as_two_processes_on_one(runs, workspace):
+    """Two torchrun agents (--nnodes=2, c10d rendezvous on localhost), one process each, equal one agent with two."""
+    _, one_node, _ = runs
+    out, port = workspace / "two_nodes", free_port()
+    env = dict(os.environ, GPNERF_CACHE=str(workspace / "cache"), GPNERF_DISABLE_PLUGIN_AUTOLOAD="1",
+               OMP_NUM_THREADS="1")
+    agents = [
+        subprocess.Popen(
+            [sys.executable, "-m", "torch.distributed.run", "--nnodes=2", f"--node-rank={node}", "--nproc-per-node=1",
+             "--rdzv-backend=c10d", f"--rdzv-endpoint=127.0.0.1:{port}", "--rdzv-id=two-nodes", "-m", "gpnerf_core",
+             "run", *TINY, f"out_dir={out}"],
+            cwd=workspace, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        for node in (0, 1)
+    ]
+    results = [agent.communicate(timeout=300) for agent in agents]
+    assert [agent.returncode for agent in agents] == [0, 0], results[0][1][-2000:] + results[1][1][-2000:]
+    train = json.loads((out / "metrics.json").read_text())["train"]
+    assert train["world_size"] == 2 and train["targets_per_rank"] == 1
+    two = torch.load(out / "checkpoints" / "step_0000003.pt", weights_only=True)
+    one = torch.load(one_node / "checkpoints" / "step_0000003.pt", weights_only=True)
+    for key, value in one["model"].items():
+        torch.testing.assert_close(two["model"][key], value, rtol=1e-6, atol=1e-7, msg=key)
+    assert evaluated(out).keys() == evaluated(one_node).keys()

@@ -61,6 +61,21 @@ def test_signal_writes_a_checkpoint_and_prints_the_resume_command(tmp_path, sig,
     assert not (out / ".gpnerf.lock").exists() and not (out / "metrics.json").exists()
     if sig == signal.SIGINT:
         resume_and_finish(line, checkpoints[-1], out, cache)
+    else:
+        auto_resume_and_finish(checkpoints[-1], out, cache)
+
+
+def auto_resume_and_finish(checkpoint, out, cache):
+    """The same command with ``train.resume=auto`` (what a restarted job runs) continues from the newest checkpoint."""
+    step = int(checkpoint.stem.split("_")[1])
+    result = subprocess.run([sys.executable, "-m", "gpnerf_core", "run", *TINY, f"train.steps={step + 1}",
+                             f"out_dir={out}", "train.resume=auto"], env=environment(cache), capture_output=True,
+                            text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert f"note: train.resume=auto: resuming from {checkpoint}" in result.stderr
+    assert json.loads((out / "metrics.json").read_text())["train"]["steps"] == step + 1
+    history = json.loads((out / "training_curves.json").read_text())
+    assert [int(h["step"]) for h in history] == list(range(1, step + 2))
 
 
 def resume_and_finish(line, checkpoint, out, cache):
