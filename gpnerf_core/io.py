@@ -21,9 +21,10 @@ from typing import IO, Any
 import numpy as np
 import torch
 
-from gpnerf_core.errors import NonFiniteError
+from gpnerf_core.errors import ConfigError, NonFiniteError
 
 __all__ = [
+    "check_output_folder",
     "atomic_open",
     "atomic_save_png",
     "atomic_torch_save",
@@ -183,3 +184,19 @@ def atomic_torch_save(path: str | os.PathLike[str], obj: Any) -> Path:
         torch.save(obj, handle)
     return Path(path)
 
+
+def check_output_folder(path: str | os.PathLike[str], option: str) -> None:
+    """Refuse, before any work, an output folder that cannot be made or written: one line naming ``option`` and why.
+
+    Nothing is created: the nearest existing ancestor must be a writable folder (or ``path`` itself one).
+    """
+    target = Path(path)
+    if target.exists() and not target.is_dir():
+        raise ConfigError(f"{option} {target}: expected a folder, found a file")
+    ancestor = target
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise ConfigError(f"{option} {target}: {ancestor} is a file, so no folder can be made under it")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise ConfigError(f"{option} {target}: {ancestor} is not writable")

@@ -50,7 +50,7 @@ from gpnerf_core.training.checkpoint import (
     read_checkpoint,
 )
 from gpnerf_core.training.interrupt import TrainingInterrupted
-from gpnerf_core.training.resume import newest_intact_checkpoint, run_checkpoints
+from gpnerf_core.training.resume import newest_intact_checkpoint
 from gpnerf_core.validation import check_data, validate_config
 
 FAILED_SWEEP_JOBS: list[str] = []
@@ -117,11 +117,21 @@ def check_component_choices(argv: list[str], registry: Any) -> None:
 def precheck(argv: list[str]) -> None:
     """Compose and validate the config before Hydra starts (and creates the run folder), so a bad override or value
     is one line and exit code 2. Sweeps (``-m``) and Hydra's own flags are left to Hydra; every job validates too."""
-    from gpnerf_core.config import compose
-
     if any(argument.startswith("-") for argument in argv):
         return
     overrides = [a for a in argv if not a.lstrip("+~").startswith(("hydra.", "hydra/")) or is_search_path(a)]
+    cfg = compose_checked(overrides)
+    if cfg.out_dir:
+        check_writable_folder(Path(cfg.out_dir))
+
+
+def compose_checked(overrides: list[str]) -> DictConfig:
+    """The config ``overrides`` compose, validated; an unknown component, an override Hydra cannot apply and a value
+    the schema refuses are each one ``GpnerfError`` (for ``precheck`` and the commands that are not Hydra jobs)."""
+    from gpnerf_core.config import compose
+    from gpnerf_core.registry import get_registry
+
+    check_component_choices(overrides, get_registry())
     try:
         cfg = compose(overrides)
     except GpnerfError:
@@ -129,8 +139,7 @@ def precheck(argv: list[str]) -> None:
     except Exception as exc:
         raise ConfigError(hydra_message(exc)) from None
     validate_config(cfg)
-    if cfg.out_dir:
-        check_writable_folder(Path(cfg.out_dir))
+    return cfg
 
 
 def check_writable_folder(path: Path) -> None:

@@ -9,12 +9,13 @@ perception head. ``predict`` renders whole views for evaluation and rendering.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Mapping
 
 import torch
 from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint as activation_checkpoint
 
-from gpnerf_core.errors import ConfigError, PluginError
+from gpnerf_core.errors import ConfigError, NonFiniteError, PluginError
 from gpnerf_core.fusion import cells_of_pixels, fuse_rendered, gather_cells
 from gpnerf_core.geometry import (
     Projector,
@@ -59,6 +60,21 @@ class Prediction:
     semantic: Tensor | None
     logits: Tensor | None
     stride: int
+
+    def check_finite(self, names: Mapping[str, str], where: str) -> None:
+        """Raise NonFiniteError when an output holds NaN or Inf, naming the component that made it first.
+
+        Args:
+            names: the configured component names by kind (``field_aggregator``, ``ray_aggregator``, ``head``).
+            where: the view, for the message (``scene 'x' frame 3``).
+        """
+        rendering = f"field aggregator {names.get('field_aggregator')!r} / ray aggregator {names.get('ray_aggregator')!r}"
+        parts = (("colour", self.rgb, rendering), ("depth", self.depth, rendering),
+                 ("semantic map", self.semantic, f"semantic field (the attention of the {rendering})"),
+                 ("logits", self.logits, f"head {names.get('head')!r}"))
+        for output, value, owner in parts:
+            if value is not None and not bool(torch.isfinite(value).all()):
+                raise NonFiniteError(f"{where}: the {owner} gave NaN or Inf ({output}); nothing was scored")
 
 
 class GeneralizableNeRF(nn.Module):

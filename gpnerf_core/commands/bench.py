@@ -16,13 +16,13 @@ from typing import Any
 
 from gpnerf_core.bench.machine import matmul_peak_gflops
 from gpnerf_core.bench.measure import run_measurement
-from gpnerf_core.bench.sizes import VARIANTS, get_size, variant_overrides
+from gpnerf_core.bench.sizes import SIZES, VARIANTS, get_size, variant_overrides
 from gpnerf_core.config import compose
 from gpnerf_core.device import resolve_device
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.io import atomic_write_json
+from gpnerf_core.jobs import compose_checked
 from gpnerf_core.run_folder import RunFolder
-from gpnerf_core.validation import validate_config
 
 OWN_KEYS = ("size", "repeats", "warmup", "out_dir", "phases")
 PHASES = ("train", "render")
@@ -52,6 +52,8 @@ def _count(own: dict[str, str], key: str, default: int, minimum: int) -> int:
 def main(argv: list[str]) -> int:
     own, overrides = _parse(argv)
     names = [n.strip() for n in own.get("size", "demo").split(",") if n.strip()]
+    if not names:
+        raise ConfigError(f"bench size={own['size']!r}: expected one or more of {', '.join(SIZES)} (comma-separated)")
     sizes = [get_size(name) for name in names]
     warmup, repeats = _count(own, "warmup", 1, 0), _count(own, "repeats", 3, 1)
     phases = [p.strip() for p in own.get("phases", ",".join(PHASES)).split(",") if p.strip()]
@@ -59,7 +61,7 @@ def main(argv: list[str]) -> int:
         raise ConfigError(f"bench phases={own['phases']!r}: expected some of {', '.join(PHASES)}")
     for size in sizes:  # refuse bad overrides before measuring anything
         for variant in VARIANTS:
-            validate_config(compose(variant_overrides(size, variant, overrides)))
+            compose_checked(variant_overrides(size, variant, overrides))
     device = resolve_device(compose(variant_overrides(sizes[0], "gpnerf", overrides)).device)
     out_dir = Path(own.get("out_dir") or Path("outputs") / "bench" / time.strftime("%Y-%m-%d_%H-%M-%S"))
     with RunFolder(out_dir) as folder:

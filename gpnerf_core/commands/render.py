@@ -35,6 +35,7 @@ def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from tqdm import tqdm
 
     from gpnerf_core.evaluation import visualize as vis
+    from gpnerf_core.evaluation.evaluator import component_names
     from gpnerf_core.evaluation.instances import slot_predictions
     from gpnerf_core.frames import FrameCache
     from gpnerf_core.io import atomic_write_json
@@ -79,6 +80,7 @@ def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             )
             prediction = model.predict(camera, sources, stride=int(cfg.eval.render_stride),
                                        chunk_rays=int(cfg.eval.chunk_rays), features=features)
+            prediction.check_finite(component_names(cfg), f"render frame {len(pictures)} of {name!r}")
             s = prediction.stride
             rgb = (prediction.rgb.clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8)
             tiles = [np.kron(rgb, np.ones((s, s, 1), dtype=np.uint8)),

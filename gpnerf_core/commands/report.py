@@ -5,8 +5,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.arguments import ArgumentParser
+from gpnerf_core.errors import DataError
+from gpnerf_core.io import check_output_folder
 from gpnerf_core.reporting.runs import (
     find_runs,
     format_table,
@@ -24,8 +25,8 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--chart", type=Path, metavar="DIR",
                         help="also draw accuracy against cost (speed_accuracy.png, .csv, pareto.txt in DIR)")
     args = parser.parse_args(argv)
-    if args.chart is not None and args.chart.exists() and not args.chart.is_dir():
-        raise ConfigError(f"--chart {args.chart}: expected a folder, found a file")
+    if args.chart is not None:
+        check_output_folder(args.chart, "--chart")
     rows = find_runs(args.paths)
     if not rows:
         raise DataError(f"no run folders (metrics.json + config.yaml) under {', '.join(map(str, args.paths))}")

@@ -23,6 +23,7 @@ from gpnerf_core.build import build_components
 from gpnerf_core.config import compose
 from gpnerf_core.errors import ConfigError, GpnerfError
 from gpnerf_core.io import atomic_write_json
+from gpnerf_core.jobs import compose_checked
 from gpnerf_core.overrides import RUN_SPECIFIC_KEYS, override_key
 from gpnerf_core.run_folder import LOCK_NAME, RunFolder
 from gpnerf_core.sizing.costs import StaticCost, static_cost
@@ -40,7 +41,7 @@ from gpnerf_core.sizing.search import (
     refuse_unreachable_budgets,
 )
 from gpnerf_core.sizing.trials import train_trial, with_bounds, with_changes
-from gpnerf_core.validation import check_data, validate_config
+from gpnerf_core.validation import check_data
 
 OUTPUTS = ("size.md", "size.json", "scene.json", "speed_accuracy.png", "speed_accuracy.csv", "pareto.txt",
            "experiment", "runs", "request.json")
@@ -57,8 +58,7 @@ def main(argv: list[str]) -> int:
             raise ConfigError(f"size: {argument!r} names a run's files; the sizing folder is size.out=<folder>")
         if argument.startswith("-"):
             raise ConfigError(f"size: {argument!r}: size takes Hydra overrides and size.<option>=<value>, not flags")
-    cfg = compose(overrides)
-    validate_config(cfg)
+    cfg = compose_checked(overrides)
     metric, tolerance = resolve_metric(options, cfg.get("head") is not None)
     steps = options.steps or max(1, int(cfg.train.steps) // 2)
     out = Path(options.out or Path("outputs") / "size" / time.strftime("%Y-%m-%d_%H-%M-%S"))
@@ -68,7 +68,18 @@ def main(argv: list[str]) -> int:
         folder.claim(resuming=True, overwrite=False)
         _check_request(out, request, options.overwrite)
         atomic_write_json(out / "request.json", request)
-        return _size(cfg, overrides, options, metric, tolerance, steps, out)
+        try:
+            return _size(cfg, overrides, options, metric, tolerance, steps, out)
+        except GpnerfError as exc:
+            if not isinstance(exc, SizeFailed) and not (out / "runs").exists():
+                _forget_request(out)  # refused before any trial: a corrected request may use the folder
+            raise
+
+
+def _forget_request(out: Path) -> None:
+    """Remove what a sizing refused before its first trial wrote (its request and the scene measurement)."""
+    for name in ("request.json", "scene.json"):
+        (out / name).unlink(missing_ok=True)
 
 
 def _check_request(out: Path, request: dict[str, Any], overwrite: bool) -> None:

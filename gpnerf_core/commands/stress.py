@@ -5,13 +5,16 @@ from __future__ import annotations
 
 import argparse
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
-from gpnerf_core.errors import ConfigError, NonFiniteError
 from gpnerf_core.arguments import ArgumentParser
+from gpnerf_core.errors import ConfigError, NonFiniteError
+from gpnerf_core.io import check_output_folder
+from gpnerf_core.signals import Terminated, interruption
 
 
 def parser() -> argparse.ArgumentParser:
@@ -21,7 +24,7 @@ def parser() -> argparse.ArgumentParser:
                     "seed are one method (mean +- std).",
     )
     p.add_argument("paths", nargs="*", type=Path, help="run folders, folders of runs (sweeps) or .pt checkpoints")
-    p.add_argument("--cases", default="", help="comma-separated case names (default: all; --list shows them)")
+    p.add_argument("--cases", default=None, help="comma-separated case names (default: all; --list shows them)")
     p.add_argument("--quick", action="store_true",
                    help="the most severe level of each case on 1 held-out view per scene (a smoke test)")
     p.add_argument("--views-per-scene", type=int, default=None,
@@ -73,12 +76,42 @@ def merged_outcomes(folders: list[Path]) -> tuple[list[Any], list[dict[str, Any]
     return outcomes, models
 
 
+def case_names(text: str | None) -> list[str] | None:
+    """``--cases a,b`` as names; None (all cases) when the option was not given. An empty list is refused."""
+    if text is None:
+        return None
+    names = [c.strip() for c in text.split(",") if c.strip()]
+    if not names:
+        raise ConfigError(f"--cases {text!r}: expected comma-separated case names (leave --cases out for all of them; "
+                          "--list shows them)")
+    return names
+
+
+def write_results(out: Path, outcomes: list[Any], models: list[Any], args: argparse.Namespace, views: int,
+                  started: float, interrupted: str | None = None) -> tuple[Any, str]:
+    """stress.md, stress.csv and stress.json in ``out`` (each written atomically); the summary and its table."""
+    from gpnerf_core.io import atomic_write_json, atomic_write_text
+    from gpnerf_core.stress.summary import StressSummary
+
+    summary = StressSummary(outcomes)
+    out.mkdir(parents=True, exist_ok=True)
+    table = summary.markdown()
+    atomic_write_text(out / "stress.md", table)
+    atomic_write_text(out / "stress.csv", summary.csv())
+    atomic_write_json(out / "stress.json", summary.as_json() | {
+        "quick": args.quick, "views_per_scene": views, "seconds": round(time.perf_counter() - started, 1),
+        "interrupted": interrupted,
+        "models": models if args.merge else [
+            {"name": m.name, "method": m.method, "seed": m.seed, "checkpoint": str(m.checkpoint)} for m in models
+        ],
+    })
+    return summary, table
+
+
 def main(argv: list[str]) -> int:
     import torch
 
-    from gpnerf_core.io import atomic_write_json, atomic_write_text
     from gpnerf_core.stress.runner import QUICK_VIEWS_PER_SCENE, choose_cases, models_from_paths, run_suite
-    from gpnerf_core.stress.summary import StressSummary
 
     args = parser().parse_args(argv)
     if args.list:
@@ -88,8 +121,7 @@ def main(argv: list[str]) -> int:
         raise ConfigError("gpnerf_core stress: expected run folders or checkpoints to stress (--list shows the cases)")
     if args.out is None:
         raise ConfigError("gpnerf_core stress: --out DIR is required (where stress.md, .csv, .json and plots go)")
-    if args.out.exists() and not args.out.is_dir():
-        raise ConfigError(f"--out {args.out}: expected a folder, found a file")
+    check_output_folder(args.out, "--out")
     if args.out.is_dir() and any((args.out / name).exists() for name in OUTPUTS) and not args.overwrite:
         raise ConfigError(f"--out {args.out} already holds a stress suite's results; use another folder or --overwrite")
     views = args.views_per_scene if args.views_per_scene is not None else (QUICK_VIEWS_PER_SCENE if args.quick else 0)
@@ -104,26 +136,23 @@ def main(argv: list[str]) -> int:
         outcomes, models = merged_outcomes(args.paths)
         cases = sorted({o.case for o in outcomes if o.case != "clean"})
     else:
-        cases = choose_cases([c.strip() for c in args.cases.split(",") if c.strip()])
+        cases = choose_cases(case_names(args.cases))
         models = models_from_paths(args.paths)
         device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
         scratch = Path(tempfile.mkdtemp(prefix="gpnerf_stress_"))
+        outcomes = []
         try:
-            outcomes = run_suite(models, cases, quick=args.quick, views_per_scene=views, scratch=scratch,
-                                 device=device)
+            run_suite(models, cases, quick=args.quick, views_per_scene=views, scratch=scratch, device=device,
+                      outcomes=outcomes)
+        except (KeyboardInterrupt, Terminated) as exc:
+            if outcomes:  # keep what finished: a rerun of the same suite reads it with --merge
+                write_results(args.out, outcomes, models, args, views, started, interrupted=interruption(exc)[0])
+                print(f"stress: interrupted; the {len(outcomes)} evaluation(s) that finished are in {args.out} "
+                      "(stress.json, marked interrupted)", file=sys.stderr)
+            raise
         finally:
             shutil.rmtree(scratch, ignore_errors=True)
-    summary = StressSummary(outcomes)
-    args.out.mkdir(parents=True, exist_ok=True)
-    table = summary.markdown()
-    atomic_write_text(args.out / "stress.md", table)
-    atomic_write_text(args.out / "stress.csv", summary.csv())
-    atomic_write_json(args.out / "stress.json", summary.as_json() | {
-        "quick": args.quick, "views_per_scene": views, "seconds": round(time.perf_counter() - started, 1),
-        "models": models if args.merge else [
-            {"name": m.name, "method": m.method, "seed": m.seed, "checkpoint": str(m.checkpoint)} for m in models
-        ],
-    })
+    summary, table = write_results(args.out, outcomes, models, args, views, started)
     plots = summary.draw(args.out)
     print(table)
     print(f"stress: {len(models)} model(s), {len(cases)} case(s) in {time.perf_counter() - started:.0f} s; "

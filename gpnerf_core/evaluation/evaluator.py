@@ -205,6 +205,7 @@ def _evaluate_view(
         stride=int(cfg.eval.render_stride),
         chunk_rays=int(cfg.eval.chunk_rays),
     )
+    prediction.check_finite(component_names(cfg), f"scene {scene.name!r} frame {index}")
     instance_head = predicts_instances(components)
     classes = None
     if prediction.logits is not None and not instance_head:
@@ -469,3 +470,9 @@ def _label_parts(values: dict[str, Any]) -> list[str]:
 
 def _fmt(value: Any, digits: int = 3) -> str:
     return "n/a" if value is None else f"{value:.{digits}f}"
+
+
+def component_names(cfg: Any) -> dict[str, str]:
+    """The configured name of each model component kind present in ``cfg`` (for messages)."""
+    kinds = ("feature_extractor", "field_aggregator", "ray_aggregator", "head")
+    return {kind: str(cfg[kind].name) for kind in kinds if cfg.get(kind) is not None and "name" in cfg[kind]}

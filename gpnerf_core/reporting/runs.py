@@ -147,10 +147,48 @@ def find_runs(paths: list[Path]) -> list[RunRow]:
             try:
                 metrics = json.loads(metrics_file.read_text())
                 config = yaml.safe_load(config_file.read_text())
-            except (json.JSONDecodeError, yaml.YAMLError) as exc:
+            except (json.JSONDecodeError, yaml.YAMLError, UnicodeDecodeError) as exc:
                 raise DataError(f"{metrics_file}: could not be parsed ({type(exc).__name__})") from None
+            problem = metrics_shape_problem(metrics) or (
+                None if isinstance(config, dict) else f"{config_file.name} holds a {type(config).__name__}")
+            if problem is not None:
+                raise DataError(f"{metrics_file}: not a gpnerf-core run's metrics ({problem}); expected what run, eval "
+                                "or finetune writes")
             rows.append(RunRow(folder, config, metrics))
     return sorted(rows, key=lambda row: str(row.folder))
+
+
+NUMBER_OR_NONE = (int, float, type(None))
+
+
+def metrics_shape_problem(metrics: Any) -> str | None:
+    """What makes ``metrics`` unlike a run's ``metrics.json`` in the parts ``report`` reads, or None: an object whose
+    ``eval`` maps splits to objects of metrics (numbers, or nested objects and lists), ``train`` an object whose
+    ``steps`` and ``seconds`` are numbers, and ``eval_curve`` a list of objects with a numeric ``step``."""
+    if not isinstance(metrics, dict):
+        return f"it holds a {type(metrics).__name__}, not an object"
+    evaluated = metrics.get("eval", {})
+    if not isinstance(evaluated, dict):
+        return f"'eval' is a {type(evaluated).__name__}"
+    for split, values in evaluated.items():
+        if not isinstance(values, dict):
+            return f"'eval.{split}' is a {type(values).__name__}"
+        for key, value in values.items():
+            if "/" in key and not isinstance(value, (*NUMBER_OR_NONE, dict, list, str)):
+                return f"'eval.{split}.{key}' is a {type(value).__name__}"
+            if "/" in key and isinstance(value, str) and not key.endswith("reason"):
+                return f"'eval.{split}.{key}' is text, not a number"
+    train = metrics.get("train", {})
+    if not isinstance(train, dict):
+        return f"'train' is a {type(train).__name__}"
+    for key in ("steps", "seconds", "rays_per_second"):
+        if not isinstance(train.get(key), NUMBER_OR_NONE) or isinstance(train.get(key), bool):
+            return f"'train.{key}' is a {type(train.get(key)).__name__}, not a number"
+    curve = metrics.get("eval_curve")
+    if curve is not None and (not isinstance(curve, list) or not all(
+            isinstance(e, dict) and isinstance(e.get("step"), (int, float)) for e in curve)):
+        return "'eval_curve' is not a list of objects with a numeric step"
+    return None
 
 
 def group_runs(rows: list[RunRow]) -> list[RowGroup]:

@@ -218,10 +218,15 @@ def _seed(*parts: Any) -> int:
 
 def run_suite(
     models: list[ModelUnderTest], cases: list[StressCase], *, quick: bool, views_per_scene: int, scratch: Path,
-    device: torch.device,
+    device: torch.device, outcomes: list[Outcome] | None = None,
 ) -> list[Outcome]:
-    """Every model under the clean condition and every chosen level of every case, with progress on stderr."""
-    outcomes: list[Outcome] = []
+    """Every model under the clean condition and every chosen level of every case, with progress on stderr.
+
+    Args:
+        outcomes: the list each finished evaluation is appended to as it ends (so an interrupted suite's caller still
+            holds them); a new one when None.
+    """
+    outcomes = [] if outcomes is None else outcomes
     for model in models:
         evaluator = _Evaluator(model, views_per_scene, device)
         started = time.perf_counter()

@@ -1,0 +1,31 @@
+"""A model whose outputs hold NaN or Inf is stopped with an error naming the component, never scored."""
+
+import pytest
+import torch
+
+from gpnerf_core.build import build_components
+from gpnerf_core.config import compose
+from gpnerf_core.distributed import Distributed
+from gpnerf_core.errors import NonFiniteError
+from gpnerf_core.evaluation.evaluator import evaluate
+from gpnerf_core.frames import FrameCache
+from pipeline_check import TINY_MODEL, TINY_SCENES
+
+
+@pytest.mark.parametrize("poisoned, named", [
+    ("head", r"the head 'unet' gave NaN or Inf \(logits\)"),
+    ("ray", r"ray aggregator 'gnt_ray' gave NaN or Inf \(colour\)"),
+])
+def test_non_finite_outputs_stop_evaluation_naming_the_component(tmp_path, poisoned, named):
+    cfg = compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES, f"dataset.root={tmp_path / 'scenes'}",
+                   "eval.splits=[unseen]", "eval.save_images=0"])
+    components = build_components(cfg)
+    module = components.model.head if poisoned == "head" else components.model.ray
+    with torch.no_grad():
+        last = [p for p in module.parameters() if p.dim() >= 1][-1]
+        last.fill_(float("nan") if poisoned == "head" else float("inf"))
+    components.model.eval()
+    frames = FrameCache(components.dataset, torch.device("cpu"))
+    with pytest.raises(NonFiniteError, match=r"scene '\w+' frame \d+: .*" + named):
+        evaluate(cfg, components, frames, tmp_path / "run", Distributed.single())
+    assert not (tmp_path / "run" / "metrics.json").exists()
