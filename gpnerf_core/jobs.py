@@ -402,7 +402,7 @@ def claim_run_folder(
     if dist.is_main:
         try:
             overwrite = bool(cfg.overwrite) or replace_leftovers
-            outcome = ("ok", folder.claim(resuming=resuming, overwrite=overwrite))
+            outcome = ("ok", folder.claim(resuming=resuming, overwrite=overwrite, inputs=command_inputs(cfg)))
         except GpnerfError as exc:
             outcome = ("error", str(exc))
     outcome = dist.broadcast_object(outcome)
@@ -418,6 +418,12 @@ def claim_run_folder(
             folder.release()
             raise
     return folder, record
+
+
+def command_inputs(cfg: DictConfig) -> list[Path]:
+    """Files the job reads that a run folder may hold: ``checkpoint``, ``train.resume``, ``model.init``."""
+    values = [cfg.get("checkpoint"), OmegaConf.select(cfg, "train.resume"), OmegaConf.select(cfg, "model.init")]
+    return [Path(str(v)) for v in values if v and str(v) != "auto"]
 
 
 def run_record(cfg: DictConfig) -> RunRecord:

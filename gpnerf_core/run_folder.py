@@ -15,6 +15,7 @@ import socket
 import sys
 import time
 from pathlib import Path
+from typing import Sequence
 
 from gpnerf_core.errors import GpnerfError
 
@@ -52,8 +53,12 @@ class RunFolder:
         self.lock_path = self.path / LOCK_NAME
         self._held = False
 
-    def claim(self, *, resuming: bool, overwrite: bool) -> list[str]:
+    def claim(self, *, resuming: bool, overwrite: bool, inputs: Sequence[Path] = ()) -> list[str]:
         """Create and lock the folder; returns notes to print (a stale lock taken over, a run replaced).
+
+        Args:
+            inputs: files the command reads (its checkpoint, the one it resumes from): ``overwrite`` is refused when it
+                would delete one of them.
 
         Raises:
             RunFolderError: another live run holds it; it holds a run and neither ``resuming`` nor ``overwrite``;
@@ -74,15 +79,23 @@ class RunFolder:
             if others and not resuming:
                 foreign = [name for name in others if name not in RUN_FILES + RUN_FOLDERS]
                 if not overwrite:
+                    has_checkpoint = any((self.path / "checkpoints").glob("step_*.pt"))
+                    advice = ("resume its run with train.resume=auto (or =<checkpoint>)" if has_checkpoint
+                              else "it holds no checkpoint to resume from")
                     raise RunFolderError(
                         f"run folder {self.path} is not empty ({', '.join(others[:4])}"
-                        f"{', ...' if len(others) > 4 else ''}): resume its run with train.resume=<checkpoint>, "
-                        "replace it with overwrite=true, or choose another out_dir"
+                        f"{', ...' if len(others) > 4 else ''}): {advice}; replace it with overwrite=true, or "
+                        "choose another out_dir"
                     )
                 if foreign:
                     raise RunFolderError(
                         f"run folder {self.path} holds files no run writes (first: {foreign[0]!r}); "
                         "overwrite=true only replaces a previous run's files: choose another out_dir"
+                    )
+                read = next((p for p in inputs if self._would_remove(p)), None)
+                if read is not None:
+                    raise RunFolderError(
+                        f"overwrite=true would delete {read}, which this command reads; write to another out_dir"
                     )
                 self._remove_run_files()
                 notes.append(f"overwrite=true: removed the previous run's files from {self.path}")
@@ -157,6 +170,15 @@ class RunFolder:
             return False
         return False
 
+    def _would_remove(self, path: Path) -> bool:
+        """True when ``path`` is (or lies inside) one of the run files ``overwrite`` deletes."""
+        try:
+            resolved = Path(path).resolve()
+        except OSError:
+            return False
+        removed = [(self.path / name).resolve() for name in (*RUN_FILES, *RUN_FOLDERS)]
+        return any(resolved == target or target in resolved.parents for target in removed)
+
     def _remove_run_files(self) -> None:
         for name in RUN_FILES:
             (self.path / name).unlink(missing_ok=True)
@@ -164,18 +186,27 @@ class RunFolder:
             shutil.rmtree(self.path / name, ignore_errors=True)
 
 
+LEFTOVERS = ("scalars.csv", "training_curves.json", "training_curves.png", "tensorboard", "images")
+"""What a run that failed before its first checkpoint may have written besides the setup files."""
+
+
 def remove_untrained_run(path: Path) -> None:
-    """Delete a run folder that holds only what is written before training (a refused run) and its lock-free
-    remains; a folder holding anything else is left untouched."""
+    """Delete what a run that failed before its first checkpoint left in ``path`` (the setup files, the logs opened
+    before training, the folder itself once empty). A folder holding anything else (a checkpoint, metrics, files no
+    run writes) or locked by a live run is left untouched."""
+    path = Path(path)
     try:
-        entries = list(Path(path).iterdir())
+        entries = list(path.iterdir())
     except OSError:
         return
-    if any(entry.name not in SETUP_FILES for entry in entries):
+    if (path / LOCK_NAME).exists() or any(entry.name not in (*SETUP_FILES, *LEFTOVERS) for entry in entries):
         return
     for entry in entries:
-        entry.unlink(missing_ok=True)
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry, ignore_errors=True)
+        else:
+            entry.unlink(missing_ok=True)
     try:
-        Path(path).rmdir()
+        path.rmdir()
     except OSError:
         pass

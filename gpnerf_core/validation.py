@@ -131,6 +131,9 @@ def _refuse_unknown_keys(node: DictConfig, schema: type, prefix: str) -> None:
 def check_data(cfg: DictConfig, components: Components, *, training: bool = True) -> None:
     """Check the dataset's files (at ``dataset.validate``) and that every scene offers enough source views."""
     dataset = components.dataset
+    configured = (cfg.dataset.get("height"), cfg.dataset.get("width"))
+    if all(isinstance(side, int) and side > 0 for side in configured):  # before any scene is loaded (or rendered)
+        check_image_size(cfg, components, *configured, f"dataset.height x dataset.width = {configured[0]}x{configured[1]}")
     splits = ["train"] if training else []
     splits += [s for s in cfg.eval.splits if s not in splits]
     scenes = list(dict.fromkeys(name for split in splits for name in dataset.scenes(split)))
@@ -149,6 +152,7 @@ def check_data(cfg: DictConfig, components: Components, *, training: bool = True
     training_scenes = set(dataset.scenes("train")) if training else set()
     for name in scenes:
         scene = dataset.load_scene(name)
+        check_image_size(cfg, components, scene.height, scene.width, f"scene {name!r} ({scene.height}x{scene.width})")
         train = set(scene.train_frames)
         offered = len(train) - 1 if name in training_scenes or train & set(scene.eval_frames) else len(train)
         if offered < views:
@@ -156,6 +160,18 @@ def check_data(cfg: DictConfig, components: Components, *, training: bool = True
                 f"model.num_source_views={views} but scene {name!r} offers {offered} source views per target "
                 f"({len(train)} training frames, never the target itself); expected model.num_source_views <= {offered}"
             )
+
+
+def check_image_size(cfg: DictConfig, components: Components, height: int, width: int, where: str) -> None:
+    """The extractor can encode ``height`` x ``width`` images and a non-zero ``eval.render_stride`` divides both."""
+    try:
+        components.model.extractor.check_image_size(int(height), int(width))
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+    stride = int(cfg.eval.render_stride)
+    if stride and (height % stride or width % stride):
+        raise ConfigError(f"eval.render_stride={stride} does not divide the image size of {where}; expected a "
+                          "divisor of both sides (0 = the semantic map's stride)")
 
 
 def _require_labels(cfg: DictConfig, components: Components, training: bool) -> None:

@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from gpnerf_core.run_folder import LOCK_NAME, RunFolder, RunFolderError
+from gpnerf_core.run_folder import LOCK_NAME, RunFolder, RunFolderError, remove_untrained_run
 
 
 def test_claim_writes_a_lock_naming_the_holder_and_release_removes_it(tmp_path):
@@ -53,7 +53,7 @@ def test_a_finished_run_is_refused_unless_resuming_or_overwriting(tmp_path):
     (run / "checkpoints").mkdir(parents=True)
     (run / "checkpoints" / "step_0000001.pt").write_bytes(b"x")
     (run / "metrics.json").write_text("{}")
-    with pytest.raises(RunFolderError, match="is not empty .*train.resume=<checkpoint>.*overwrite=true"):
+    with pytest.raises(RunFolderError, match="is not empty .*train.resume=auto .*overwrite=true"):
         RunFolder(run).claim(resuming=False, overwrite=False)
     assert not (run / LOCK_NAME).exists()  # a refused claim leaves no lock behind
     with RunFolder(run) as folder:
@@ -83,3 +83,38 @@ def test_a_run_that_never_trained_does_not_block_its_folder(tmp_path):
         (tmp_path / name).write_text("x")
     with RunFolder(tmp_path) as folder:
         assert folder.claim(resuming=False, overwrite=False) == []
+
+
+def test_overwrite_never_deletes_what_the_command_reads(tmp_path):
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    checkpoint = run / "checkpoints" / "step_0000001.pt"
+    checkpoint.write_bytes(b"x")
+    (run / "metrics.json").write_text("{}")
+    with pytest.raises(RunFolderError, match=r"overwrite=true would delete .*step_0000001\.pt, which this command reads"):
+        RunFolder(run).claim(resuming=False, overwrite=True, inputs=[checkpoint])
+    assert checkpoint.read_bytes() == b"x" and (run / "metrics.json").exists()
+
+
+def test_a_folder_without_checkpoints_is_refused_without_advice_to_resume(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "scalars.csv").write_text("step\n")
+    with pytest.raises(RunFolderError, match="it holds no checkpoint to resume from; replace it with overwrite=true"):
+        RunFolder(run).claim(resuming=False, overwrite=False)
+
+
+def test_what_a_run_failing_before_its_first_checkpoint_left_is_removed_unless_locked_or_trained(tmp_path):
+    failed = tmp_path / "failed"
+    (failed / "tensorboard").mkdir(parents=True)
+    for name in ("config.yaml", "overrides.yaml", "scalars.csv"):
+        (failed / name).write_text("x")
+    remove_untrained_run(failed)
+    assert not failed.exists()
+    for name, extra in (("trained", "checkpoints"), ("locked", LOCK_NAME), ("foreign", "notes.txt")):
+        folder = tmp_path / name
+        folder.mkdir()
+        (folder / "scalars.csv").write_text("x")
+        (folder / extra).mkdir() if extra == "checkpoints" else (folder / extra).write_text("x")
+        remove_untrained_run(folder)
+        assert (folder / "scalars.csv").exists(), name

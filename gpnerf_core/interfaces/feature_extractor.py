@@ -32,6 +32,10 @@ class FeatureExtractor(ImportsWeights, nn.Module, ABC):
         """Number of equal channel blocks (pyramid levels, finest first) in the semantic map."""
         return 0
 
+    def check_image_size(self, height: int, width: int) -> None:
+        """Raise ``ConfigError`` (one line, naming the size and what is expected) when images of ``height`` x
+        ``width`` cannot be encoded; called before training or evaluation starts. By default any size can."""
+
     @abstractmethod
     def forward(self, images: Tensor) -> FeatureMaps:
         """Encode ``[N, 3, H, W]`` float images in [0, 1]; H and W must be divisible by 16."""

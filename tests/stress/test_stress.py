@@ -86,7 +86,7 @@ def test_a_case_giving_non_finite_metrics_fails_the_suite_after_writing_it(train
     with pytest.raises(NonFiniteError, match=expected):
         main([str(trained / "run"), "--cases", "poisoned_images", "--quick", "--out", str(out)])
     outcome = json.loads((out / "stress.json").read_text())["outcomes"][1]
-    assert outcome["case"] == "poisoned_images" and "contains NaN or Inf" in outcome["error"]
+    assert outcome["case"] == "poisoned_images" and "gave NaN or Inf (colour)" in outcome["error"]
     assert "| NOT FINITE |" in (out / "stress.md").read_text() and outcome["non_finite"]
 
 

@@ -99,11 +99,8 @@ class ResUNetFPN(FeatureExtractor):
             {f"backbone.{key.removeprefix('module.')}": (f"feature_net.{key}", value) for key, value in state.items()}
         )
 
-    def forward(self, images: Tensor) -> FeatureMaps:
-        """Encode ``[N, 3, H, W]`` images in [0, 1] (H, W multiples of 4, at least 32)."""
-        if images.dim() != 4 or images.shape[1] != 3:
-            raise ConfigError(f"feature extractor input has shape {tuple(images.shape)}; expected [N, 3, H, W]")
-        height, width = (int(side) for side in images.shape[-2:])
+    def check_image_size(self, height: int, width: int) -> None:
+        """H and W multiples of 4, at least 32."""
         # Reflect padding needs at least 2 cells at the coarsest tap, hence the 32-pixel minimum.
         if height % _MAP_STRIDE or width % _MAP_STRIDE or min(height, width) < 2 * _STRIDE:
             raise ConfigError(
@@ -111,6 +108,13 @@ class ResUNetFPN(FeatureExtractor):
                 f"which the resunet_fpn extractor needs (its maps have 1/{_MAP_STRIDE} and 1/2 of the image's cells); "
                 "resize or crop the images"
             )
+
+    def forward(self, images: Tensor) -> FeatureMaps:
+        """Encode ``[N, 3, H, W]`` images in [0, 1] (H, W multiples of 4, at least 32)."""
+        if images.dim() != 4 or images.shape[1] != 3:
+            raise ConfigError(f"feature extractor input has shape {tuple(images.shape)}; expected [N, 3, H, W]")
+        height, width = (int(side) for side in images.shape[-2:])
+        self.check_image_size(height, width)
         pad_bottom, pad_right = -height % _STRIDE, -width % _STRIDE
         if pad_bottom or pad_right:
             images = F.pad(images, (0, pad_right, 0, pad_bottom), mode="replicate")
