@@ -55,7 +55,7 @@ def check_scene_files(dataset: CheckedDataset, scenes: Sequence[str], level: str
         except GpnerfError as exc:
             problems.append(str(exc))
             continue
-        rigid = _rigid_problems(name, scene)
+        rigid = _rigid_problems(name, scene) or _far_away_problems(name, scene)
         problems += rigid
         if not rigid:
             try:
@@ -114,6 +114,20 @@ def _rigid_problems(name: str, scene: Scene) -> list[str]:
     return problems
 
 
+FAR_AWAY = 1e4
+"""A camera centre more than this many times ``far`` from the median centre of its scene is refused: no ray of it can
+reach what the other cameras see (a pose in other units, or a corrupt value; float32 points there lose all precision)."""
+
+
+def _far_away_problems(name: str, scene: Scene) -> list[str]:
+    centres = scene.c2w[:, :3, 3].double()
+    distances = (centres - centres.median(dim=0).values).norm(dim=-1)
+    limit = FAR_AWAY * float(scene.far)
+    return [f"scene {name!r} frame {index}: camera centre {float(distances[index]):.3g} m from the scene's median "
+            f"centre, more than {FAR_AWAY:g} x far = {limit:.3g} m; expected poses in the units of near/far"
+            for index in range(len(centres)) if float(distances[index]) > limit]
+
+
 def _frame_problems(dataset: CheckedDataset, scene: Scene, index: int) -> list[str]:
     where = f"scene {scene.name!r} frame {index}"
     try:
@@ -126,6 +140,10 @@ def _frame_problems(dataset: CheckedDataset, scene: Scene, index: int) -> list[s
         problems.append(f"{where}: colours outside [0, 1] or not finite; expected RGB in [0, 1]")
     if not torch.isfinite(frame.depth).all() or frame.depth.min() < 0:
         problems.append(f"{where}: depth negative or not finite; expected metres >= 0 (0 = unknown)")
+    elif bool((frame.depth > 0).any()) and float(frame.depth[frame.depth > 0].min()) > float(scene.far):
+        problems.append(f"{where}: every known depth is beyond far={float(scene.far):g} (nearest "
+                        f"{float(frame.depth[frame.depth > 0].min()):.3g}); expected depth in the units of the poses and "
+                        "near/far")
     labels = frame.semantic
     bad = (labels != dataset.ignore_index) & ((labels < 0) | (labels >= dataset.num_classes))
     if bool(bad.any()):

@@ -25,6 +25,8 @@ def resolve_device(name: str, local_rank: int = 0, world_size: int = 1) -> torch
         device = torch.device(name)
     except RuntimeError:
         raise ConfigError(f"device={name!r} is not a torch device; expected auto, cpu or cuda[:N]") from None
+    if device.type not in ("cpu", "cuda"):
+        raise ConfigError(f"device={name!r}: gpnerf-core runs on cpu or cuda; expected auto, cpu or cuda[:N]")
     if device.type == "cuda":
         if not torch.cuda.is_available():
             raise ConfigError(f"device={name!r} but CUDA is not available; use device=cpu or device=auto")

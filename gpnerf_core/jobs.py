@@ -37,7 +37,7 @@ from gpnerf_core.build import build_components, checkpoint_classes
 from gpnerf_core.distributed import Distributed, init_distributed
 from gpnerf_core.errors import ConfigError, DataError, GpnerfError
 from gpnerf_core.io import atomic_write_json, atomic_write_text
-from gpnerf_core.overrides import RUN_SPECIFIC_KEYS, is_search_path, merge_overrides, override_key
+from gpnerf_core.overrides import RUN_SPECIFIC_KEYS, is_search_path, merge_overrides, override_key, quoted_for_hydra
 from gpnerf_core.signals import Terminated, interruption
 from gpnerf_core.run_folder import RunFolder, RunFolderError, remove_untrained_run
 from gpnerf_core.training.checkpoint import (
@@ -73,6 +73,7 @@ def launch(task: Callable[[DictConfig], Any], argv: list[str], prog: str) -> int
     from gpnerf_core.config import config_dir, register_schema
     from gpnerf_core.registry import get_registry
 
+    argv = [quoted_for_hydra(argument) for argument in argv]
     check_component_choices(argv, get_registry())
     register_schema()
     precheck(argv)
@@ -308,8 +309,8 @@ def _refuse_shared_out_dir(cfg: DictConfig) -> None:
     """Under ``-m`` every job would write one fixed ``out_dir``: refuse unless it depends on the job."""
     if not in_sweep() or not cfg.out_dir:
         return
-    typed = [o for o in task_overrides() if override_key(o) == "out_dir"]
-    if not typed or "${" not in typed[-1]:
+    raw = OmegaConf.to_container(cfg, resolve=False).get("out_dir")  # the interpolation as typed, before resolving
+    if "${" not in str(raw):
         raise ConfigError(
             f"out_dir={cfg.out_dir} with -m: every job of the sweep would write that one folder; leave out_dir "
             "unset (jobs go under hydra.sweep.dir) or make it depend on the job, e.g. 'out_dir=runs/${hydra:job.num}'"

@@ -34,3 +34,15 @@ def merge_overrides(stored: list[str], given: list[str]) -> list[str]:
     kept = [o for o in stored if override_key(o) not in user_keys and override_key(o) not in RUN_SPECIFIC_KEYS]
     adjusted = [f"+{o}" if override_key(o) in added and not o.startswith(("+", "~")) else o for o in overrides]
     return [*flags, *kept, *adjusted]
+
+
+def quoted_for_hydra(override: str) -> str:
+    """``key=value`` with a value Hydra's override grammar cannot read unquoted (a path with non-ASCII letters or
+    spaces) put in single quotes; every other argument unchanged (flags, lists, interpolations, quoted values)."""
+    key, sep, value = override.partition("=")
+    if not sep or key.startswith("-") or not value or value[0] in "'\"[{" or "${" in value:
+        return override
+    if value.isascii() and " " not in value:
+        return override
+    escaped = value.replace("\\", "\\\\").replace("'", "\\'")
+    return f"{key}='{escaped}'"

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import sys
 import typing
 from typing import Any, Callable
@@ -56,6 +57,8 @@ MAX_THREADS = 1024
 COUNT = "an integer >= 1"
 COUNT0 = "an integer >= 0"
 RULES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
+    ("device", lambda v: isinstance(v, str) and re.fullmatch(r"auto|cpu|cuda(:\d+)?", v) is not None,
+     "auto, cpu or cuda[:N]"),
     ("seed", lambda v: _count(0)(v) and v <= MAX_SEED, f"an integer in [0, {MAX_SEED}]"),
     ("threads", lambda v: _count(0)(v) and v <= MAX_THREADS, f"an integer in [0, {MAX_THREADS}] (0 = torch's default)"),
     ("train.steps", _count(1), COUNT),
@@ -147,12 +150,17 @@ def check_data(cfg: DictConfig, components: Components, *, training: bool = True
     for note in pose_warnings(dataset, scenes, level):  # outlier, isolated or turned-away cameras: train, but say so
         print(f"note: {note}", file=sys.stderr)
     _require_labels(cfg, components, training)
+    _require_trained_head(cfg, components, training)
     _require_instances(cfg, components, scenes, training)
     views = int(cfg.model.num_source_views)
     training_scenes = set(dataset.scenes("train")) if training else set()
     for name in scenes:
         scene = dataset.load_scene(name)
         check_image_size(cfg, components, scene.height, scene.width, f"scene {name!r} ({scene.height}x{scene.width})")
+        pixels = scene.height * scene.width
+        if name in training_scenes and int(cfg.train.rays) > pixels:
+            raise ConfigError(f"train.rays={int(cfg.train.rays)} exceeds the {pixels} pixels of an image of scene "
+                              f"{name!r} ({scene.height}x{scene.width}); expected at most {pixels} rays per target view")
         train = set(scene.train_frames)
         offered = len(train) - 1 if name in training_scenes or train & set(scene.eval_frames) else len(train)
         if offered < views:
@@ -172,6 +180,21 @@ def check_image_size(cfg: DictConfig, components: Components, height: int, width
     if stride and (height % stride or width % stride):
         raise ConfigError(f"eval.render_stride={stride} does not divide the image size of {where}; expected a "
                           "divisor of both sides (0 = the semantic map's stride)")
+
+
+def _require_trained_head(cfg: DictConfig, components: Components, training: bool) -> None:
+    """A head trained from scratch needs a loss set that renders semantics (``LossSet.needs_semantics``): otherwise no
+    term reaches it and its evaluation would score an untrained head. A head that starts trained (``finetune``'s
+    checkpoint, ``model.init``) may be kept fixed."""
+    head, loss = components.model.head, components.loss
+    if not training or head is None or loss is None or loss.needs_semantics:
+        return
+    if cfg.get("checkpoint") or cfg.model.get("init"):
+        return
+    raise ConfigError(
+        f"head {cfg.head.name!r} is trained by no term of loss {cfg.loss.name!r} (it renders no semantics), so its "
+        "scores would be an untrained head's; use a loss set with semantic terms (e.g. +loss=dgs) or drop +head"
+    )
 
 
 def _require_labels(cfg: DictConfig, components: Components, training: bool) -> None:

@@ -278,3 +278,28 @@ def test_bounds_from_the_sparse_points_of_ply_file_path(embedded_scene, tmp_path
     (capture / "transforms.json").write_text(json.dumps(transforms))
     with pytest.raises(DataError, match="missing.ply: unreadable point cloud"):
         load(capture)
+
+
+def _eight_bit_depth(t):
+    path = Path(t["_folder"]) / t["frames"][2]["depth_file_path"]
+    Image.fromarray(np.full((48, 64), 200, dtype=np.uint8)).save(path)
+
+
+def _camera_far_away(t):
+    t["frames"][5]["transform_matrix"][0][3] = 1e30
+
+
+def _depth_beyond_far(t):
+    path = Path(t["_folder"]) / t["frames"][1]["depth_file_path"]
+    Image.fromarray(np.full((48, 64), 60000, dtype=np.uint16)).save(path)  # 60 m, far beyond the room
+
+
+@pytest.mark.parametrize("change, level, message", [
+    (_eight_bit_depth, "full", "depth stored in 8 bits (at most 255 units); expected a 16-bit PNG"),
+    (_camera_far_away, "quick", "frame 5: camera centre 1e+30 m from the scene's median centre, more than 10000 x far = 8e+04 m"),
+    (_depth_beyond_far, "full", "frame 1: every known depth is beyond far="),
+])
+def test_data_that_loads_but_cannot_be_right_is_refused_by_the_checks(capture, tmp_path, change, level, message):
+    dataset = CaptureScenes(root=str(_copy(capture, tmp_path, change)), height=48, width=64, near=0.1, far=8.0)
+    problems = dataset.check_files(dataset.scenes("train"), level)
+    assert any(message in problem for problem in problems), problems

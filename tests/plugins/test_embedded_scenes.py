@@ -26,6 +26,7 @@ from gpnerf_plugins.datasets.embedded import (
     generate,
 )
 from gpnerf_plugins.datasets.embedded import generation as generate_module
+from gpnerf_plugins.datasets.embedded.generation import check_params, ensure_generated
 from gpnerf_plugins.datasets.embedded.dataset import EmbeddedScenes, EmbeddedScenesConfig
 from gpnerf_plugins.datasets.replica.layout import ReplicaSequence
 
@@ -305,3 +306,15 @@ def test_scene_lists_choose_among_the_generated_layouts():
     with pytest.raises(ConfigError, match=r"dataset.scenes has 'kitchen'; the embedded set generates layout_00, "
                                           r"layout_01, unseen_00"):
         EmbeddedScenes(num_train_scenes=2, scenes=["kitchen"])
+
+
+def test_a_damaged_cached_set_is_set_aside_and_rendered_again(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("GPNERF_CACHE", str(tmp_path / "cache"))
+    params = SceneSetParams(**{**TINY, "frames_per_scene": 2})
+    folder = ensure_generated(params)
+    (folder / "classes.json").write_text("{ not json")
+    again = ensure_generated(params)
+    assert again == folder and check_params(folder, params)["parameters"] == params.as_dict()
+    aside = [p for p in folder.parent.iterdir() if p.name.startswith(f"{folder.name}.damaged-")]
+    assert len(aside) == 1 and (aside[0] / "classes.json").read_text() == "{ not json"
+    assert "is damaged" in capsys.readouterr().err

@@ -386,6 +386,9 @@ class _FrameReader:
         if stored.ndim != 2 or not (np.issubdtype(stored.dtype, np.integer) or np.issubdtype(stored.dtype, np.floating)):
             raise DataError(f"{frame.depth}: depth of shape {list(stored.shape)} and type {stored.dtype}; expected a "
                             "single-channel 16-bit PNG or a 2-D .npy")
+        if stored.dtype == np.uint8:
+            raise DataError(f"{frame.depth}: depth stored in 8 bits (at most 255 units); expected a 16-bit PNG or a "
+                            ".npy of depths")
         depth = stored.astype(np.float32) * np.float32(self.depth_scale)
         if not np.isfinite(depth).all() or (depth < 0).any():
             raise DataError(f"{frame.depth}: depth negative or not finite; expected depths >= 0 (0 = unknown)")

@@ -88,11 +88,17 @@ def read_rgb_png(path: Path) -> np.ndarray:
     return image[..., :3].astype(np.float32) / 255.0
 
 
-def read_integer_png(path: Path, what: str) -> np.ndarray:
-    """A single-channel integer PNG of ``what`` (named in the error) as int64 ``[H, W]``."""
+EIGHT_BIT_DEPTH = "an 8-bit PNG (at most 255 units: 0.255 m in millimetres); expected a 16-bit depth PNG"
+"""Why an 8-bit depth PNG is refused: its values cannot hold depth in the units depth PNGs use."""
+
+
+def read_integer_png(path: Path, what: str, *, depth: bool = False) -> np.ndarray:
+    """A single-channel integer PNG of ``what`` (named in the error) as int64 ``[H, W]``; ``depth``: refuse 8 bits."""
     image = read_png(path)
     if not is_integer_map(image):
         raise DataError(f"{path}: {describe(image)}; expected a single-channel integer PNG of {what}")
+    if depth and image.dtype == np.uint8:
+        raise DataError(f"{path}: {EIGHT_BIT_DEPTH}")
     return image.astype(np.int64)
 
 

@@ -9,14 +9,16 @@ import json
 import logging
 import os
 import shutil
+import sys
 import tempfile
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.errors import ConfigError, DataError, GpnerfError
 from gpnerf_plugins.datasets.embedded.catalog import BACKGROUND_INSTANCE, CLASS_NAMES, IGNORE_INDEX
 from gpnerf_plugins.datasets.embedded.layout import sample_layout
 from gpnerf_plugins.datasets.embedded.render import RoomRenderer, unit_extents
@@ -254,6 +256,16 @@ def ensure_generated(params: SceneSetParams, root: Path | None = None) -> Path:
             be empty or hold a set generated with the same parameters.
     """
     target = cache_folder(params) if root is None else Path(root)
+    if root is None and target.exists():
+        try:
+            check_params(target, params)
+            return target
+        except GpnerfError as exc:  # the cache is derived data: set the damaged copy aside and render it again
+            aside = target.with_name(f"{target.name}.damaged-{time.strftime('%Y%m%d-%H%M%S')}")
+            target.rename(aside)
+            print(f"note: the cached scene set {target} is damaged ({exc}); moved it to {aside} and rendering the "
+                  "scenes again", file=sys.stderr)
+            return generate(params, target)
     if (target / CLASSES_FILE).is_file():
         check_params(target, params)
         return target

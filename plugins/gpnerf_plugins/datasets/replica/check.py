@@ -113,6 +113,9 @@ class _Walk:
             expected = "an 8-bit RGB or RGBA PNG" if kind == RGB_DIR else "a single-channel integer PNG"
             self.problem(path, frame, expected, describe(image))
             return None
+        if kind == DEPTH_DIR and image.dtype == np.uint8:
+            self.problem(path, frame, "a 16-bit depth PNG", "an 8-bit PNG (at most 0.255 m in millimetres)")
+            return None
         if size is not None and image.shape[:2] != size:
             expected = f"a {size[0]}x{size[1]} (HxW) image like the rgb frames"
             self.problem(path, frame, expected, f"{image.shape[0]}x{image.shape[1]}")

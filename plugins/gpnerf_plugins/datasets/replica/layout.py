@@ -248,7 +248,7 @@ class ReplicaSequence:
             raise DataError(f"{self.path}: frame index {index} out of range; expected 0..{self.num_frames - 1}")
         files, h, w = self.files[index], self.height, self.width
         rgb = resize_rgb(read_rgb_png(files.rgb), h, w)
-        depth = resize_nearest(read_integer_png(files.depth, "depth in millimetres"), h, w)
+        depth = resize_nearest(read_integer_png(files.depth, "depth in millimetres", depth=True), h, w)
         if files.semantic is None:
             semantic = np.full((h, w), self.ignore_index, dtype=np.int64)
         else:

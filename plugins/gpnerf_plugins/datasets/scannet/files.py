@@ -210,7 +210,10 @@ def read_integer_image(path: Path, frame: str | None, kind: str) -> np.ndarray:
     image = decode_image(path, frame, f"{kind} PNG")
     if image.mode not in INTEGER_MODES:
         raise LayoutError(path, f"a single-channel integer {kind} PNG", f"mode {image.mode}", frame)
-    return np.asarray(image).astype(np.int64)
+    array = np.asarray(image)
+    if kind == "depth" and array.dtype == np.uint8:
+        raise LayoutError(path, "a 16-bit depth PNG (millimetres)", "an 8-bit PNG (at most 0.255 m)", frame)
+    return array.astype(np.int64)
 
 
 def aspect_mismatch(size: tuple[int, int], reference: tuple[int, int], tolerance: float = 0.02) -> bool:
