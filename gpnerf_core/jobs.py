@@ -23,14 +23,17 @@ Commands that are not Hydra jobs (``report``, ``stress``, ``size``, ``bench``) p
 
 from __future__ import annotations
 
+import json
 import os
 import shlex
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
 import torch
+from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from gpnerf_core.build import build_components, checkpoint_classes
@@ -80,9 +83,10 @@ def launch(task: Callable[[DictConfig], Any], argv: list[str], prog: str) -> int
     sys.argv = [prog, *argv]
     FAILED_SWEEP_JOBS.clear()
     hydra.main(version_base="1.3", config_path=config_dir(), config_name="config")(task)()
-    if FAILED_SWEEP_JOBS:
-        print(f"error: {len(FAILED_SWEEP_JOBS)} job(s) of the sweep failed ({ERROR_FILE} in each): "
-              f"{', '.join(FAILED_SWEEP_JOBS)}", file=sys.stderr)
+    failed = list(dict.fromkeys(FAILED_SWEEP_JOBS))
+    if failed:
+        print(f"error: {len(failed)} job(s) of the sweep failed ({ERROR_FILE} in each): {', '.join(failed)}",
+              file=sys.stderr)
         return 2
     return 0
 
@@ -236,6 +240,30 @@ def guarded(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
     return wrapper
 
 
+class SweepFailures(Callback):
+    """Hydra callback (``hydra.callbacks`` in ``conf/config.yaml``): after a ``-m`` sweep, the jobs that failed are
+    found by the ``error.json`` they wrote under the sweep folder during this sweep, whatever launcher ran them (in
+    this process, or pickled into other processes by submitit), and added to ``FAILED_SWEEP_JOBS``."""
+
+    def __init__(self) -> None:
+        self.started = time.time()
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self.started = time.time()
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        folder = Path(str(config.hydra.sweep.dir))
+        for marker in sorted(folder.rglob(ERROR_FILE)) if folder.is_dir() else []:
+            if marker.stat().st_mtime < self.started - 1:
+                continue
+            try:
+                failed = str(json.loads(marker.read_text()).get("run_folder") or marker.parent)
+            except (OSError, ValueError, AttributeError):
+                failed = str(marker.parent)
+            if failed not in FAILED_SWEEP_JOBS:
+                FAILED_SWEEP_JOBS.append(failed)
+
+
 def lost_peer(exc: BaseException) -> bool:
     """True for the error a collective raises when another process of the group died (gloo/NCCL)."""
     backend_error = getattr(torch.distributed, "DistBackendError", ())
@@ -259,7 +287,12 @@ def record_sweep_failure(cfg: DictConfig, message: str) -> bool:
     try:
         folder = run_dir(cfg)
         folder.mkdir(parents=True, exist_ok=True)
-        atomic_write_json(folder / ERROR_FILE, {"error": message, "overrides": list(task_overrides())})
+        record = {"error": message, "overrides": list(task_overrides())}
+        atomic_write_json(folder / ERROR_FILE, record)
+        hydra = hydra_config()
+        job_dir = Path(hydra.runtime.output_dir) if hydra is not None else folder
+        if job_dir.resolve() != folder.resolve():  # the sweep's own folder of this job: SweepFailures looks there
+            atomic_write_json(job_dir / ERROR_FILE, record | {"run_folder": str(folder)})
         if not (folder / "config.yaml").exists():
             atomic_write_text(folder / "config.yaml", OmegaConf.to_yaml(cfg, resolve=False))
     except (GpnerfError, OSError, ValueError):
