@@ -61,6 +61,12 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # an environment fault a command did not name itself: a full disk, a permission
+        if os.environ.get("GPNERF_DEBUG"):
+            raise
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 2
     except (KeyboardInterrupt, Terminated) as exc:
         name, code = interruption(exc)
         print(f"interrupted ({name}): {command} stopped; what it had finished and written stays", file=sys.stderr)

@@ -181,8 +181,34 @@ def atomic_save_png(path: str | os.PathLike[str], array: np.ndarray) -> Path:
 def atomic_torch_save(path: str | os.PathLike[str], obj: Any) -> Path:
     """``torch.save(obj)`` to ``path`` atomically (a checkpoint is never left half-written); returns the path."""
     with atomic_open(path, "wb") as handle:
-        torch.save(obj, handle)
+        writer = _WriteErrors(handle)
+        try:
+            torch.save(obj, writer)
+        except (RuntimeError, OSError):
+            error = writer.error  # a full disk: torch re-raises it bare, or as a RuntimeError about stream positions
+            if error is None:
+                raise
+            raise OSError(error.errno, error.strerror or str(error), str(path)) from None
     return Path(path)
+
+
+class _WriteErrors:
+    """A binary file that remembers the ``OSError`` its ``write`` raised (ENOSPC, EIO), which ``torch.save`` would
+    otherwise report as a RuntimeError about stream positions."""
+
+    def __init__(self, handle: IO[bytes]) -> None:
+        self.handle = handle
+        self.error: OSError | None = None
+
+    def write(self, data: Any) -> int:
+        try:
+            return self.handle.write(data)
+        except OSError as exc:
+            self.error = exc
+            raise
+
+    def flush(self) -> None:
+        self.handle.flush()
 
 
 def check_output_folder(path: str | os.PathLike[str], option: str) -> None:

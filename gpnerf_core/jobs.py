@@ -128,6 +128,8 @@ def precheck(argv: list[str]) -> None:
     cfg = compose_checked(overrides)
     if cfg.out_dir:
         check_writable_folder(Path(cfg.out_dir))
+    else:
+        check_default_output_root(Path("outputs"))
 
 
 def compose_checked(overrides: list[str]) -> DictConfig:
@@ -145,6 +147,21 @@ def compose_checked(overrides: list[str]) -> DictConfig:
         raise ConfigError(hydra_message(exc)) from None
     validate_config(cfg)
     return cfg
+
+
+def check_default_output_root(root: Path) -> None:
+    """Without ``out_dir`` Hydra makes the run folder under ``root`` in the working folder, with a traceback where it
+    cannot: try it first (a folder made and removed at once), as one line."""
+    import tempfile
+
+    parent = root if root.is_dir() else root.parent
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".gpnerf-write-test-", dir=parent))
+    except OSError as exc:
+        raise ConfigError(
+            f"out_dir is not set and runs go to {root.resolve()}, where no folder can be made ({exc.strerror or exc}); "
+            "set out_dir=<a writable folder>"
+        ) from None
 
 
 def check_writable_folder(path: Path) -> None:

@@ -151,6 +151,9 @@ class Registry:
         failed = [p for p in self.problems if p.component is None]
         if failed:
             message += "; plugins that failed to load: " + "; ".join(str(p) for p in failed)
+        if self.disabled:
+            message += (f"; disabled plugins (GPNERF_DISABLE_PLUGINS / GPNERF_DISABLE_PLUGIN_AUTOLOAD), which may "
+                        f"provide it: {', '.join(self.disabled)}")
         raise ConfigError(message)
 
     def build(self, kind: str, node: Mapping[str, Any], **runtime: Any) -> Any:
@@ -281,6 +284,9 @@ class LoadedPlugins:
             self.problems.append(PluginProblem(info, f"{type(exc).__name__}: {one_line(exc)}"))
             return False
         self.plugins[info.name] = info
+        for name in unmarked_hooks(self.manager, plugin):
+            self.problems.append(PluginProblem(
+                info, f"{name} is not marked with @hookimpl (from gpnerf_core import hookimpl), so pluggy ignores it"))
         return True
 
     def check_hooks(self) -> None:
@@ -298,6 +304,13 @@ class LoadedPlugins:
                     PluginProblem(info, f"implements a hook gpnerf-core does not define ({one_line(exc)}); "
                                         f"known hooks: {known}")
                 )
+
+
+def unmarked_hooks(manager: pluggy.PluginManager, plugin: object) -> list[str]:
+    """Functions of ``plugin`` named like a gpnerf hook that carry no ``@hookimpl`` mark (silently skipped by pluggy)."""
+    names = [name for name in dir(plugin) if name.startswith(f"{hookspecs.PROJECT_NAME}_")]
+    return [name for name in names
+            if callable(getattr(plugin, name, None)) and manager.parse_hookimpl_opts(plugin, name) is None]
 
 
 def make_plugin_manager(

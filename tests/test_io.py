@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import contextlib
 import os
 import struct
 import zlib
@@ -107,6 +108,35 @@ def test_torch_save_round_trip_and_unpicklable_object(tmp_path):
     with pytest.raises(Exception):
         gio.atomic_torch_save(bad, {"w": torch.zeros(3), "f": lambda: 0})
     assert os.listdir(target.parent) == ["model.pt"]
+
+
+def test_a_full_disk_during_torch_save_is_an_oserror_naming_the_file(tmp_path, monkeypatch):
+    """torch's zip writer reports a failed write as a RuntimeError about stream positions; the OSError is kept."""
+    import errno
+
+    real_open = gio.atomic_open
+
+    class FullDisk:
+        def __init__(self, handle):
+            self.handle = handle
+
+        def write(self, data):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def flush(self):
+            self.handle.flush()
+
+    @contextlib.contextmanager
+    def full_disk_open(path, mode="wb", encoding=None):
+        with real_open(path, mode, encoding) as handle:
+            yield FullDisk(handle)
+
+    monkeypatch.setattr(gio, "atomic_open", full_disk_open)
+    target = tmp_path / "step_0000001.pt"
+    with pytest.raises(OSError) as error:
+        gio.atomic_torch_save(target, {"w": torch.zeros(100_000)})
+    assert error.value.errno == errno.ENOSPC and error.value.filename == str(target)
+    assert os.listdir(tmp_path) == []
 
 
 def _decode_png(data: bytes) -> tuple[tuple[int, ...], np.ndarray]:

@@ -241,6 +241,21 @@ def test_autoload_can_be_disabled(tmp_path, monkeypatch):
     assert registry.disabled == ["every entry point (GPNERF_DISABLE_PLUGIN_AUTOLOAD is set)"]
 
 
-def test_blocked_builtin_is_absent():
+def test_blocked_builtin_is_absent_and_named_when_its_component_is_asked_for():
     registry = collect(make_plugin_manager(autoload=False, blocked=("gpnerf_plugins.heads.plugin",)))
     assert registry.names("head") == [] and registry.disabled == ["gpnerf_plugins.heads.plugin"]
+    with pytest.raises(ConfigError, match=r"unknown head 'unet'.*disabled plugins .*: gpnerf_plugins\.heads\.plugin"):
+        registry.get("head", "unet")
+
+
+def test_a_hook_without_hookimpl_is_reported_not_silently_ignored():
+    module = types.ModuleType("unmarked_plugin")
+
+    def gpnerf_register_heads():  # no @hookimpl: pluggy would skip it without a word
+        return []
+
+    module.gpnerf_register_heads = gpnerf_register_heads
+    registry = registry_with(module, head_plugin())
+    assert registry.names("head") == ["tiny"]
+    [problem] = registry.problems
+    assert "gpnerf_register_heads is not marked with @hookimpl" in problem.reason

@@ -56,16 +56,25 @@ class RunRow:
     """A sweep job that failed: its ``error.json`` message (no metrics)."""
 
     def switches(self) -> tuple[bool, bool, bool, bool] | None:
-        """Table 4's switches, for the paper's method only (``PAPER_HEADS`` x ``PAPER_LOSS_SETS``), else None."""
+        """Table 4's switches (joint attention, S.D, gradient block, D.G) of any run whose loss config carries them
+        (a built-in loss set, or a third-party one with ``sd_weight`` / ``dgs_weight``), whatever its head; else None."""
         loss = self.config.get("loss") or {}
-        head = self.config.get("head") or {}
-        if loss.get("name") not in PAPER_LOSS_SETS or head.get("name") not in PAPER_HEADS:
+        if loss.get("name") not in PAPER_LOSS_SETS and not {"sd_weight", "dgs_weight"} & set(loss):
             return None
-        joint = bool(self.config["model"]["semantic_field"]["joint_attention"])
+        semantic_field = ((self.config.get("model") or {}).get("semantic_field") or {})
+        joint = bool(semantic_field.get("joint_attention", True))
         sd = float(loss.get("sd_weight", 0)) > 0
         dgs = float(loss.get("dgs_weight", 0)) > 0
         block = bool(loss.get("teacher_stop_grad", False)) and (sd or dgs)
         return joint, sd, block, dgs
+
+    def paper_switches(self) -> tuple[bool, bool, bool, bool] | None:
+        """``switches`` for the paper's method only (``PAPER_HEADS`` x ``PAPER_LOSS_SETS``): what gets a Table 4 ID."""
+        loss = self.config.get("loss") or {}
+        head = self.config.get("head") or {}
+        if loss.get("name") not in PAPER_LOSS_SETS or head.get("name") not in PAPER_HEADS:
+            return None
+        return self.switches()
 
     def method_key(self) -> str:
         """The config without the keys that do not change what the run computes (the seed among them). A key of the
@@ -230,7 +239,7 @@ def format_table(rows: list[RunRow]) -> str:
             lines.append(f"| {group.label} | " + f"failed: {first.error}".replace("|", "/") + " |" + " |" * (width - 2))
             continue
         switches = first.switches()
-        paper = PAPER_TABLE4.get(switches) if switches else None
+        paper = PAPER_TABLE4.get(first.paper_switches()) if first.paper_switches() else None
         flags = ["yes" if s else "no" for s in switches] if switches else ["-"] * 4
         head = (first.config.get("head") or {}).get("name", "-")
         loss = (first.config.get("loss") or {}).get("name", "-")
@@ -272,7 +281,7 @@ def method_labels(groups: list[RowGroup]) -> list[str]:
         first = group.runs[0]
         head = (first.config.get("head") or {}).get("name", "no head")
         loss = (first.config.get("loss") or {}).get("name", "no loss")
-        switches = first.switches()
+        switches = first.paper_switches()
         paper = PAPER_TABLE4.get(switches) if switches else None
         described.append(f"{head} + {loss}" + (f" (Table 4 ID {paper[0]})" if paper else ""))
     return [

@@ -88,7 +88,8 @@ def plugin_checks(
     Args:
         targets: an entry-point name, a distribution name, a plugin module or a module path, or a list of them.
         configs: ``{"kind/name": {field: value}}`` config fields that replace the dataclass defaults for the checks
-            (e.g. small widths); every key must name one of the targets' components.
+            (e.g. small widths); every key must name one of the targets' components (unless the targets had
+            registration problems: then their failing "registration" checks are the report, not a KeyError).
     """
     loaded = load_targets(targets)
     checks = [_problem_check(problem) for problem in loaded.problems]
@@ -97,7 +98,7 @@ def plugin_checks(
     configs = dict(configs or {})
     keys = {f"{entry.kind}/{entry.spec.name}" for entry in loaded.components}
     unknown = sorted(set(configs) - keys)
-    if unknown:
+    if unknown and not loaded.problems:  # with problems, their failing checks say why the component is missing
         raise KeyError(f"configs names {unknown[0]!r}, which is not a component of {', '.join(loaded.plugins)}; "
                        f"its components: {', '.join(sorted(keys)) or 'none'}")
     for entry in loaded.components:

@@ -157,3 +157,30 @@ def test_chart_labels_name_the_method_and_tell_apart_two_variants_of_one():
         groups = group_runs(find_runs([root]))
         labels = sorted(method_labels(groups))
     assert labels == ["mine + focal", "unet + dgs (Table 4 ID 5) [cosine]", "unet + dgs (Table 4 ID 5) [main]"]
+
+
+def test_a_third_party_head_shows_its_table4_switches_but_no_paper_number(tmp_path):
+    from gpnerf_core.reporting.runs import RunRow
+
+    config = {"head": {"name": "fancy_head"}, "model": {"semantic_field": {"joint_attention": True}},
+              "loss": {"name": "dgs", "sd_weight": 1.0, "dgs_weight": 0.5, "teacher_stop_grad": True}, "seed": 0}
+    metrics = {"eval": {"unseen": {"miou/image_mean_present": 0.5}}, "train": {"steps": 2, "seconds": 1.0}}
+    row = RunRow(tmp_path / "fancy", config, metrics)
+    assert row.switches() == (True, True, True, True) and row.paper_switches() is None
+    line = format_table([row]).splitlines()[2]
+    assert "| fancy_head | dgs | yes | yes | yes | yes |" in line
+    assert line.rstrip().endswith("| - | - | - |")  # no Table 4 ID or paper numbers beside a third-party head
+
+
+@pytest.mark.parametrize("metrics, problem", [
+    ([1, 2], "it holds a list, not an object"),
+    ({"eval": "x"}, "'eval' is a str"),
+    ({"eval": {"unseen": {"miou/image_mean_present": "high"}}}, "'eval.unseen.miou/image_mean_present' is text"),
+    ({"train": {"steps": "many"}}, "'train.steps' is a str, not a number"),
+])
+def test_a_metrics_file_of_another_shape_is_one_line_naming_it(tmp_path, metrics, problem):
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "config.yaml").write_text("seed: 0\n")
+    (tmp_path / "run" / "metrics.json").write_text(json.dumps(metrics))
+    with pytest.raises(DataError, match=r"metrics.json: not a gpnerf-core run's metrics \(" + problem.replace("(", r"\(")):
+        find_runs([tmp_path])

@@ -169,6 +169,12 @@ def test_a_factory_the_pipeline_cannot_call_fails_registration():
     assert "cannot be called with the config fields and the pipeline's arguments" in result.message
 
 
+def test_configs_for_a_component_that_failed_registration_report_the_failure_not_a_key_error():
+    module = plugin("head", ("narrow", TakesNoRuntime, config("narrow")))
+    [result] = check_plugin(module, configs={"head/narrow": {"channels": 2}}, raise_on_failure=False)
+    assert result.check == "registration" and "cannot be called with the config fields" in result.message
+
+
 def test_a_plugin_without_components_fails_registration():
     [result] = check_plugin(types.ModuleType("empty_plugin"), raise_on_failure=False)
     assert result.check == "registration" and "registers no components" in result.message
