@@ -1,6 +1,10 @@
 """Sizing: the scene measurement's geometry, the knobs' levels, the descent and the budgets, and ``size`` end to end."""
 
 import json
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -226,6 +230,43 @@ def test_a_budget_no_reachable_configuration_meets_is_refused_before_training(tm
     line = result.stderr.strip().splitlines()[-1]
     assert line.startswith("error: size.max_parameters=1000: no configuration the search can reach meets it")
     assert not (tmp_path / "out" / "runs").exists()
+    assert not (tmp_path / "out" / "request.json").exists()  # so the corrected request may use the folder
+
+
+def test_sigterm_stops_the_sizing_and_the_trial_it_is_training(tmp_path):
+    import signal
+    import time
+
+    env = dict(os.environ, GPNERF_CACHE=str(tmp_path / "cache"), GPNERF_DISABLE_PLUGIN_AUTOLOAD="1")
+    process = subprocess.Popen([sys.executable, "-m", "gpnerf_core", "size", *SIZE, "size.steps=100000",
+                                f"size.out={tmp_path / 'out'}"], cwd=tmp_path, env=env,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    trials = []
+    deadline = time.monotonic() + 300
+    while not trials and time.monotonic() < deadline and process.poll() is None:
+        trials = [pid for pid in _children(process.pid)]
+        time.sleep(0.2)
+    assert trials, "no trial started"
+    time.sleep(1.0)
+    process.send_signal(signal.SIGTERM)
+    stderr = process.communicate(timeout=120)[1]
+    assert process.returncode == 143 and "Traceback" not in stderr, stderr[-2000:]
+    assert stderr.strip().splitlines()[-1].startswith("interrupted (SIGTERM): size stopped")
+    time.sleep(0.5)
+    assert not [pid for pid in trials if Path(f"/proc/{pid}").exists()], "a trial outlived the sizing"
+
+
+def _children(pid):
+    found = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                fields = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid and fields[0] != "Z":
+                found.append(int(entry))
+    return found
 
 
 def test_a_level_that_cannot_be_built_is_passed_over_not_ending_its_knob():

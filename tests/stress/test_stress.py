@@ -254,3 +254,37 @@ def test_merge_of_a_folder_without_results_is_one_line(tmp_path):
     with pytest.raises(DataError, match=r"--merge .*empty: no stress.json \(expected the --out folder"):
         main(["--merge", str(tmp_path / "empty"), "--out", str(tmp_path / "out")])
     assert not (tmp_path / "out").exists()
+
+
+def test_an_interrupted_suite_keeps_what_finished_and_a_copied_run_is_never_evaluated_with_another_checkpoint(trained):
+    import os
+    import shutil
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    copy = trained / "copied_run"
+    shutil.copytree(trained / "run", copy, ignore=shutil.ignore_patterns("checkpoints"))
+    skipped = gpnerf("stress", str(copy), "--quick", "--out", str(trained / "copied"), cwd=trained)
+    assert skipped.returncode == 2 and "no checkpoint in" in skipped.stderr  # not the original's checkpoint
+
+    out = trained / "interrupted"
+    env = dict(os.environ, GPNERF_CACHE=str(trained / "cache"), GPNERF_DISABLE_PLUGIN_AUTOLOAD="1")
+    process = subprocess.Popen(
+        [sys.executable, "-m", "gpnerf_core", "stress", str(trained / "run"), "--quick", "--threads", "1",
+         "--out", str(out)], cwd=trained, env=env, stderr=subprocess.PIPE, text=True)
+    lines = []
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline:
+        line = process.stderr.readline()
+        lines.append(line)
+        if line.startswith("stress: run ") and " clean" not in line:  # the clean condition and one level finished
+            break
+    process.send_signal(signal.SIGTERM)
+    rest = process.communicate(timeout=120)[1]
+    assert process.returncode == 143, "".join(lines) + rest
+    assert rest.strip().splitlines()[-1].startswith("interrupted (SIGTERM): stress stopped")
+    assert "Traceback" not in rest
+    saved = json.loads((out / "stress.json").read_text())
+    assert saved["interrupted"] == "SIGTERM" and len(saved["outcomes"]) >= 2
