@@ -134,7 +134,7 @@ def _refuse_unknown_keys(node: DictConfig, schema: type, prefix: str) -> None:
 def check_data(cfg: DictConfig, components: Components, *, training: bool = True) -> None:
     """Check the dataset's files (at ``dataset.validate``) and that every scene offers enough source views."""
     dataset = components.dataset
-    configured = (cfg.dataset.get("height"), cfg.dataset.get("width"))
+    configured = (OmegaConf.select(cfg, "dataset.height"), OmegaConf.select(cfg, "dataset.width"))
     if all(isinstance(side, int) and side > 0 for side in configured):  # before any scene is loaded (or rendered)
         check_image_size(cfg, components, *configured, f"dataset.height x dataset.width = {configured[0]}x{configured[1]}")
     splits = ["train"] if training else []
@@ -158,7 +158,7 @@ def check_data(cfg: DictConfig, components: Components, *, training: bool = True
         scene = dataset.load_scene(name)
         check_image_size(cfg, components, scene.height, scene.width, f"scene {name!r} ({scene.height}x{scene.width})")
         pixels = scene.height * scene.width
-        if name in training_scenes and int(cfg.train.rays) > pixels:
+        if name in training_scenes and int(OmegaConf.select(cfg, "train.rays", default=0)) > pixels:
             raise ConfigError(f"train.rays={int(cfg.train.rays)} exceeds the {pixels} pixels of an image of scene "
                               f"{name!r} ({scene.height}x{scene.width}); expected at most {pixels} rays per target view")
         train = set(scene.train_frames)
@@ -172,11 +172,13 @@ def check_data(cfg: DictConfig, components: Components, *, training: bool = True
 
 def check_image_size(cfg: DictConfig, components: Components, height: int, width: int, where: str) -> None:
     """The extractor can encode ``height`` x ``width`` images and a non-zero ``eval.render_stride`` divides both."""
+    extractor = getattr(components.model, "extractor", None)
     try:
-        components.model.extractor.check_image_size(int(height), int(width))
+        if extractor is not None:
+            extractor.check_image_size(int(height), int(width))
     except ConfigError as exc:
         raise ConfigError(f"{where}: {exc}") from None
-    stride = int(cfg.eval.render_stride)
+    stride = int(OmegaConf.select(cfg, "eval.render_stride", default=0))
     if stride and (height % stride or width % stride):
         raise ConfigError(f"eval.render_stride={stride} does not divide the image size of {where}; expected a "
                           "divisor of both sides (0 = the semantic map's stride)")

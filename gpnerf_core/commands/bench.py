@@ -1,11 +1,14 @@
 """``python -m gpnerf_core bench [size=demo|small|paper[,...]] [repeats=3] [warmup=1] [phases=train,render]
-[out_dir=...] [overrides]``.
+[sweep=rays|views|samples|image] [out_dir=...] [overrides]``.
 
 For each size, the GP-NeRF model and its GNT-only anchor (same backbone, rays and samples; no FPN, semantic field or
 head) are measured in fresh processes: a training step (median and minimum over ``repeats`` after ``warmup``, peak
 memory, matmul/convolution flops) and the rendering of a whole held-out view. The machine's matmul peak is measured in
 the same run. A table goes to stdout, everything to ``<out_dir>/bench.json``. A measurement that runs out of memory is
 reported with the peak it reached and the others still run.
+
+``bench sweep=rays|views|samples|image [size=demo]`` measures one size over a range of one quantity instead
+(``gpnerf_core.bench.sweeps``): ``sweep_<name>.csv``, ``.png`` (log-log, the fitted slope of each cost) and ``.json``.
 """
 
 from __future__ import annotations
@@ -17,14 +20,16 @@ from typing import Any
 from gpnerf_core.bench.machine import matmul_peak_gflops
 from gpnerf_core.bench.measure import run_measurement
 from gpnerf_core.bench.sizes import SIZES, VARIANTS, get_size, variant_overrides
+from gpnerf_core.bench.sweeps import Sweep, get_sweep, rows_of, slopes
+from gpnerf_core.bench.sweeps import draw as draw_sweep
 from gpnerf_core.config import compose
-from gpnerf_core.device import resolve_device
+from gpnerf_core.device import machine_info, resolve_device
 from gpnerf_core.errors import ConfigError
-from gpnerf_core.io import atomic_write_json
+from gpnerf_core.io import atomic_write_json, atomic_write_text
 from gpnerf_core.jobs import compose_checked
 from gpnerf_core.run_folder import RunFolder
 
-OWN_KEYS = ("size", "repeats", "warmup", "out_dir", "phases")
+OWN_KEYS = ("size", "repeats", "warmup", "out_dir", "phases", "sweep")
 PHASES = ("train", "render")
 
 
@@ -59,6 +64,10 @@ def main(argv: list[str]) -> int:
     phases = [p.strip() for p in own.get("phases", ",".join(PHASES)).split(",") if p.strip()]
     if not phases or any(p not in PHASES for p in phases):
         raise ConfigError(f"bench phases={own['phases']!r}: expected some of {', '.join(PHASES)}")
+    if "sweep" in own:
+        if len(sizes) != 1:
+            raise ConfigError(f"bench sweep={own['sweep']}: one size at a time, got size={own.get('size')}")
+        return run_sweep(get_sweep(own["sweep"]), sizes[0], overrides, warmup, repeats, own.get("out_dir"))
     for size in sizes:  # refuse bad overrides before measuring anything
         for variant in VARIANTS:
             compose_checked(variant_overrides(size, variant, overrides))
@@ -88,6 +97,45 @@ def main(argv: list[str]) -> int:
         print(f"bench.json: {(out_dir / 'bench.json').resolve()}")
     failed = [s for s, e in report["sizes"].items() for v in VARIANTS for p in phases if "error" in e[v][p]]
     return 1 if failed else 0
+
+
+def run_sweep(sweep: Sweep, size: Any, overrides: list[str], warmup: int, repeats: int, out: str | None) -> int:
+    """``bench sweep=<name>``: every point of ``sweep`` for both variants; ``sweep_<name>.csv``, ``.png``, ``.json``."""
+    import csv
+    import io
+
+    points = {variant: [variant_overrides(size, variant, [*overrides, *extra]) for _, extra in sweep.points]
+              for variant in VARIANTS}
+    for variant_points in points.values():  # refuse bad overrides before measuring anything
+        for point in variant_points:
+            compose_checked(point)
+    device = resolve_device(compose(points["gpnerf"][0]).device)
+    out_dir = Path(out or Path("outputs") / "bench" / f"sweep_{sweep.name}_{time.strftime('%Y-%m-%d_%H-%M-%S')}")
+    with RunFolder(out_dir) as folder:
+        folder.claim(resuming=False, overwrite=False)
+        measured: dict[str, list[dict[str, Any]]] = {variant: [] for variant in VARIANTS}
+        for variant in VARIANTS:
+            for (x, _), point in zip(sweep.points, points[variant]):
+                print(f"measuring {sweep.name}={x:g} {variant} ({', '.join(sweep.phases)}) ...", flush=True)
+                measured[variant].append({phase: run_measurement(point, phase, warmup, repeats)
+                                          for phase in sweep.phases})
+        rows = rows_of(sweep, measured)
+        fitted = slopes(sweep, rows)
+        buffer = io.StringIO()
+        writer = csv.DictWriter(buffer, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+        atomic_write_text(out_dir / f"sweep_{sweep.name}.csv", buffer.getvalue())
+        atomic_write_json(out_dir / f"sweep_{sweep.name}.json", {
+            "sweep": sweep.name, "size": size.name, "device": str(device), "overrides": overrides,
+            "warmup": warmup, "repeats": repeats, "machine": machine_info(), "measured": measured, "slopes": fitted})
+        draw_sweep(sweep, rows, out_dir / f"sweep_{sweep.name}.png")
+        print(buffer.getvalue().rstrip())
+        for variant, costs in fitted.items():
+            shown = ", ".join(f"{title} {slope:.2f}" for title, slope in costs.items() if slope is not None)
+            print(f"slope of log(cost) against log({sweep.label}), {variant}: {shown}")
+        print(f"sweep_{sweep.name}.csv, .png, .json: {out_dir.resolve()}")
+    return 1 if any(row["error"] for row in rows) else 0
 
 
 def _ratios(entry: dict[str, Any]) -> dict[str, float | None]:
