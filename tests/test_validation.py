@@ -46,6 +46,7 @@ BAD_VALUES = [
     ("threads=-2", "threads=-2: expected an integer in [0, 1024]"),
     ("threads=100000", "threads=100000: expected an integer in [0, 1024]"),
     ("train.keep_checkpoints=-1", "train.keep_checkpoints=-1: expected an integer >= 0"),
+    ("device=meta", "device='meta': expected auto, cpu or cuda[:N]"),
     ("train.precision=fp16", "train.precision='fp16': expected one of fp32, bf16"),
     ("train.loggers=[csv,wandb]", "train.loggers contains 'wandb'; known loggers: csv, tensorboard"),
     ("+train.stpes=10", "unknown config key 'train.stpes'; TrainConfig has:"),
@@ -77,6 +78,21 @@ def test_more_source_views_than_a_scene_offers_is_refused_naming_the_scene(tmp_p
                    "model.num_source_views=4"])
     with pytest.raises(ConfigError, match=r"model.num_source_views=4 but scene 'layout_00' offers 3 source views"):
         check_data(cfg, build_components(cfg))
+
+
+@pytest.mark.parametrize("override, message", [
+    ("loss=rgb", "head 'unet' is trained by no term of loss 'rgb' (it renders no semantics)"),
+    ("train.rays=2000", "train.rays=2000 exceeds the 1536 pixels of an image of scene 'layout_00' (32x48)"),
+    ("eval.render_stride=3", "eval.render_stride=3 does not divide the image size of dataset.height x dataset.width"),
+    ("dataset.width=13", "dataset.height x dataset.width = 32x13: image size 32x13 (HxW) is not a multiple of 4"),
+])
+def test_what_would_fail_or_mislead_later_is_refused_before_training(tmp_path, override, message):
+    cfg = compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES, f"dataset.root={tmp_path / 'set'}", override])
+    with pytest.raises(ConfigError) as error:
+        check_data(cfg, build_components(cfg))
+    assert message in str(error.value) and "\n" not in str(error.value)
+    if override.startswith("dataset.width"):
+        assert not (tmp_path / "set").exists()  # refused before the scenes were rendered
 
 
 def _tiny(tmp_path, *extra):

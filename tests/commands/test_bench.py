@@ -5,6 +5,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 TINY = [
     "dataset.height=32", "dataset.width=48", "dataset.frames_per_scene=6", "dataset.eval_every=3",
     "feature_extractor.widths=[8,8,8,16]", "feature_extractor.fpn_channels=4", "field_aggregator.width=16",
@@ -63,3 +65,33 @@ def test_profile_prints_the_step_and_its_operators(tmp_path):
     unknown = profile("variant=rgb", cwd=tmp_path)
     assert unknown.returncode == 2
     assert unknown.stderr.strip() == "error: variant='rgb' is unknown; known variants: gpnerf, gnt_only"
+
+
+def test_sweep_slopes_rows_and_chart(tmp_path):
+    """The fitted slope is the log-log least-squares slope; rows carry every cost; the chart is a PNG."""
+    from gpnerf_core.bench.sweeps import SWEEPS, draw, fitted_slope, rows_of, slopes
+
+    assert fitted_slope([64, 128, 256], [1.0, 2.0, 4.0]) == pytest.approx(1.0)
+    assert fitted_slope([2, 4, 8], [3.0, 12.0, 48.0]) == pytest.approx(2.0)
+    assert fitted_slope([2], [1.0]) is None and fitted_slope([2, 4], [0.0, 1.0]) is None
+    sweep = SWEEPS["views"]
+    measured = {
+        variant: [{"train": {"seconds_min": 0.1 * x * scale, "peak_memory_mb": 100.0 + x},
+                   "render": {"seconds_min": 0.2 * x * scale, "peak_memory_mb": 50.0}} for x, _ in sweep.points]
+        for variant, scale in (("gpnerf", 2.0), ("gnt_only", 1.0))
+    }
+    measured["gnt_only"][1]["render"] = {"error": "out of memory"}
+    rows = rows_of(sweep, measured)
+    assert len(rows) == 2 * len(sweep.points) and rows[0]["training step (s)"] == pytest.approx(0.4)
+    assert rows[len(sweep.points) + 1]["rendering a view (s)"] is None and "out of memory" in rows[6]["error"]
+    fitted = slopes(sweep, rows)
+    assert fitted["gpnerf"]["training step (s)"] == pytest.approx(1.0)
+    assert fitted["gnt_only"]["rendering peak memory (MiB)"] == pytest.approx(0.0, abs=1e-9)
+    draw(sweep, rows, tmp_path / "sweep.png")
+    assert (tmp_path / "sweep.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_an_unknown_sweep_lists_the_known_ones(tmp_path):
+    result = bench("sweep=pixels", cwd=tmp_path)
+    assert result.returncode == 2
+    assert result.stderr.strip() == "error: bench sweep='pixels' is unknown; known sweeps: rays, views, samples, image"
