@@ -16,7 +16,13 @@ else
   version=$("$PY" -c 'import sys; print(f"cp{sys.version_info.major}{sys.version_info.minor}")')
   wheels=$(ls gpu_check/wheels/*.whl | grep -E "py3-none|${version}" )
   "$PY" -m pip install --quiet --no-index --no-deps $wheels
-  "$PY" -m pip install --quiet --no-index --no-deps --no-build-isolation -e .
+  if ! "$PY" -m pip install --quiet --no-index --no-deps --no-build-isolation -e . ; then
+    # no setuptools/wheel able to build it offline: put the source folders on the path instead
+    site=$("$PY" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
+    mkdir -p /tmp/gpnerf-conf-link && ln -sfn "$PWD/conf" /tmp/gpnerf-conf-link/gpnerf_conf
+    printf '%s\n%s\n%s\n' "$PWD" "$PWD/plugins" /tmp/gpnerf-conf-link > "$site/gpnerf-source.pth"
+    echo "gpnerf-core on the path from $PWD (editable install not possible offline)"
+  fi
 fi
 "$PY" -c "import torch, gpnerf_core; print(f'torch {torch.__version__}, cuda {torch.cuda.is_available()}, gpnerf-core {gpnerf_core.__version__}')"
 exec "$PY" gpu_check/checks.py "$OUT"
