@@ -111,6 +111,7 @@ def slopes(sweep: Sweep, rows: list[dict[str, Any]]) -> dict[str, dict[str, floa
 def draw(sweep: Sweep, rows: list[dict[str, Any]], path: Path) -> None:
     """One PNG: a log-log panel per cost, GP-NeRF and GNT-only, the fitted slope in the legend."""
     import matplotlib
+    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -130,6 +131,9 @@ def draw(sweep: Sweep, rows: list[dict[str, Any]], path: Path) -> None:
             axis.plot([p[0] for p in points], [p[1] for p in points], marker, label=label)
         axis.set_xscale("log")
         axis.set_yscale("log")
+        xs = [point[0] for point in sweep.points]  # ticks at the measured values: log ranges this short get none
+        axis.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
+        axis.set_xticks(xs, [f"{x:g}" for x in xs], fontsize=8)
         axis.set_xlabel(sweep.label)
         axis.set_title(title, fontsize=10)
         axis.grid(True, which="both", alpha=0.3)
