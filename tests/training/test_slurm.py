@@ -10,16 +10,13 @@ from pathlib import Path
 
 import pytest
 
+from pipeline_check import TINY_CLI
+
 pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
 
 REPO = Path(__file__).resolve().parents[2]
-TINY = [
-    "+head=unet", "+loss=dgs", "dataset.num_train_scenes=1", "dataset.num_unseen_scenes=1",
-    "dataset.frames_per_scene=6", "dataset.eval_every=3", "dataset.height=32", "dataset.width=48",
-    "feature_extractor.widths=[8,8,8,16]", "feature_extractor.fpn_channels=4", "field_aggregator.width=16",
-    "field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2", "model.num_source_views=2",
-    "train.steps=2", "train.log_every=1", "eval.save_images=0", "eval.max_views_per_scene=1", "threads=1",
-]
+TINY = ["+head=unet", "+loss=dgs", *[o for o in TINY_CLI if not o.startswith("train.rays=")],
+        "dataset.num_unseen_scenes=1", "train.steps=2", "train.log_every=1", "eval.max_views_per_scene=1"]
 
 
 def environment(workspace, **extra):
