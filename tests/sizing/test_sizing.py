@@ -18,7 +18,7 @@ from gpnerf_core.sizing.options import parse_size_options, resolve_metric
 from gpnerf_core.sizing.scene import _seen_by, measure_scenes
 from gpnerf_core.sizing.search import Trial, choose, descend, describe, knob_order
 from gpnerf_core.types import Frame
-from pipeline_check import TINY_CLI, TINY_MODEL, TINY_SCENES, gpnerf
+from pipeline_check import TINY_CLI, TINY_MODEL, TINY_SCENES, child_pids, gpnerf
 
 # ---- the scene measurement -----------------------------------------------------------------------------------
 
@@ -244,7 +244,7 @@ def test_sigterm_stops_the_sizing_and_the_trial_it_is_training(tmp_path):
     trials = []
     deadline = time.monotonic() + 300
     while not trials and time.monotonic() < deadline and process.poll() is None:
-        trials = [pid for pid in _children(process.pid)]
+        trials = child_pids(process.pid)
         time.sleep(0.2)
     assert trials, "no trial started"
     time.sleep(1.0)
@@ -255,18 +255,6 @@ def test_sigterm_stops_the_sizing_and_the_trial_it_is_training(tmp_path):
     time.sleep(0.5)
     assert not [pid for pid in trials if Path(f"/proc/{pid}").exists()], "a trial outlived the sizing"
 
-
-def _children(pid):
-    found = []
-    for entry in os.listdir("/proc"):
-        if entry.isdigit():
-            try:
-                fields = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            if int(fields[1]) == pid and fields[0] != "Z":
-                found.append(int(entry))
-    return found
 
 
 def test_a_level_that_cannot_be_built_is_passed_over_not_ending_its_knob():

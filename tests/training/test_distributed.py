@@ -9,6 +9,8 @@ import sys
 import pytest
 import torch
 
+from pipeline_check import child_pids
+
 TINY = [
     "+head=unet", "+loss=dgs", "dataset.num_train_scenes=2", "dataset.num_unseen_scenes=1",
     "dataset.frames_per_scene=6", "dataset.eval_every=3", "dataset.height=32", "dataset.width=48",
@@ -122,21 +124,6 @@ def free_port():
         return sock.getsockname()[1]
 
 
-def children(pid):
-    """Pids whose parent is ``pid`` (Linux /proc)."""
-    found = []
-    for entry in os.listdir("/proc"):
-        if entry.isdigit():
-            try:
-                with open(f"/proc/{entry}/stat") as handle:
-                    fields = handle.read().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            if int(fields[1]) == pid:
-                found.append(int(entry))
-    return found
-
-
 def rank_of(pid):
     try:
         with open(f"/proc/{pid}/environ", "rb") as handle:
@@ -170,7 +157,7 @@ def test_a_killed_rank_restarts_the_group_which_resumes_and_ends_as_an_uninterru
     killed = None
     while killed is None and time.monotonic() < deadline and agent.poll() is None:
         if (out / "checkpoints" / "step_0000001.pt").exists():
-            killed = next((pid for pid in children(agent.pid) if rank_of(pid) == 1), None)
+            killed = next((pid for pid in child_pids(agent.pid) if rank_of(pid) == 1), None)
             if killed is not None:
                 os.kill(killed, signal.SIGKILL)
         time.sleep(0.02)
