@@ -85,7 +85,8 @@ def test_a_photo_folder_becomes_a_capture_near_the_true_poses(orbit, tmp_path, c
 
 def test_a_video_becomes_a_capture_near_the_true_poses(orbit, tmp_path, capsys):
     video = write_video([orbit / "rgb" / f"rgb_{i}.png" for i in range(24)], tmp_path / "walk.mp4")
-    code, out, err = prepare(capsys, video, "--out", tmp_path / "scene", "--frames", 24, "--max-size", 0)
+    # one thread: pycolmap seeded but multi-threaded registered 12 of 24 frames once in CI (usually 21+)
+    code, out, err = prepare(capsys, video, "--out", tmp_path / "scene", "--frames", 24, "--max-size", 0, "--threads", 1)
     assert code == 0, err
     transforms, scores = scores_against_truth(tmp_path / "scene", true_poses(orbit), int)
     summary = transforms["gpnerf_summary"]
