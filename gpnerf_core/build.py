@@ -126,7 +126,19 @@ def build_model(cfg: Any, num_classes: int, registry: Registry | None = None) ->
         detach_source_semantics=cfg.model.detach_source_semantics,
         fuse_rendered=cfg.train.fuse_rendered,
         checkpoint_blocks=cfg.model.checkpoint_blocks,
+        channels_last_maps=cfg.model.channels_last_maps,
+        compile_backend=checked_compile_backend(cfg.model.compile_backend) if cfg.model.compile else None,
     )
+
+
+def checked_compile_backend(backend: str) -> str:
+    """``backend`` if ``torch.compile`` knows it; otherwise a ConfigError naming the key and the known ones."""
+    import torch._dynamo
+
+    known = sorted(torch._dynamo.list_backends(exclude_tags=()))
+    if backend not in known:
+        raise ConfigError(f"model.compile_backend={backend!r} is not a torch.compile backend; known: {', '.join(known)}")
+    return backend
 
 
 def model_classes(

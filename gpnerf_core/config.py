@@ -36,6 +36,14 @@ class ModelConfig:
     semantic_field: SemanticFieldConfig = field(default_factory=SemanticFieldConfig)
     checkpoint_blocks: bool = False
     """Activation checkpointing of the transformer blocks: recompute them in the backward pass (less memory)."""
+    channels_last_maps: bool = True
+    """Copy the detached source semantic maps channels-last where each is sampled at more points than it has pixels:
+    ``grid_sample`` then reads each sample's channels contiguously (the same float32 values, about 2.7x faster at
+    512 channels)."""
+    compile: bool = False
+    """``torch.compile`` the transformer block pairs and the semantic attention sums (compiled on first use)."""
+    compile_backend: str = "inductor"
+    """The ``torch.compile`` backend when ``compile`` is true (inductor: C++ on CPU, Triton on CUDA)."""
     init: Optional[str] = None
     """Start from these weights: an official GNT checkpoint (``net_coarse`` + ``feature_net``) or a gpnerf-core
     checkpoint (its model weights only: the weight average where the run kept one). Ignored when resuming."""

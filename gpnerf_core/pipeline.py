@@ -23,6 +23,7 @@ from gpnerf_core.geometry import (
     pixel_grid,
     points_along_rays,
     rays_through_pixels,
+    sampling_layout,
     stratified_inverse_depths,
 )
 from gpnerf_core.interfaces import FeatureExtractor, FieldAggregator, PerceptionHead, RayAggregator
@@ -93,6 +94,10 @@ class GeneralizableNeRF(nn.Module):
         checkpoint_blocks: recompute each transformer block pair in the backward pass instead of keeping its
             activations (activation checkpointing; less memory, more compute), and sample the source semantic
             maps again in backward instead of keeping them.
+        channels_last_maps: hold the detached source semantic maps channels-last while they are sampled
+            (``geometry.projection.sampling_layout``: the same values, faster ``grid_sample``).
+        compile_backend: ``torch.compile`` the block pairs and the semantic attention sums with this backend
+            (None: eager). Compiled on first use, again for each new shape (coarse and fine passes, last chunk).
     """
 
     def __init__(
@@ -108,6 +113,8 @@ class GeneralizableNeRF(nn.Module):
         detach_source_semantics: bool,
         fuse_rendered: bool,
         checkpoint_blocks: bool,
+        channels_last_maps: bool = True,
+        compile_backend: str | None = None,
     ) -> None:
         super().__init__()
         if field.num_blocks != ray.num_blocks:
@@ -128,7 +135,15 @@ class GeneralizableNeRF(nn.Module):
         self.detach_source_semantics = detach_source_semantics
         self.fuse_rendered = fuse_rendered
         self.checkpoint_blocks = checkpoint_blocks
+        self.channels_last_maps = channels_last_maps
         self.projector = Projector()
+        self.compile_backend = compile_backend
+        # Unbound (called with self), so a copy of the module never runs the original's blocks.
+        self._pair = type(self)._block_pair
+        if compile_backend is not None:
+            self._pair = torch.compile(type(self)._block_pair, backend=compile_backend)
+            if semantic is not None:
+                semantic.compile_sums(compile_backend)
 
     @property
     def has_semantics(self) -> bool:
@@ -180,7 +195,8 @@ class GeneralizableNeRF(nn.Module):
         if self.detach_source_semantics and source_maps.semantic is not None:
             # No loss trains the extractor through the sources' semantic maps: drop their graph now, so backward
             # never runs the FPN over the sources and its activations are freed before the transformers run.
-            source_maps = FeatureMaps(radiance=source_maps.radiance, semantic=source_maps.semantic.detach())
+            semantic_maps = self._for_sampling(source_maps.semantic.detach(), int(view.pixels.shape[0]))
+            source_maps = FeatureMaps(radiance=source_maps.radiance, semantic=semantic_maps)
         teacher = self.encode(view.image[None]).semantic if semantics else None
         # 2. Rays through the chosen pixels: radiance and semantic fields, coarse then fine.
         camera = view.camera
@@ -245,6 +261,9 @@ class GeneralizableNeRF(nn.Module):
         height, width = camera.image_size
         if height % stride or width % stride:
             raise ConfigError(f"image size {height}x{width} is not divisible by eval.render_stride={stride}")
+        if features.semantic is not None and not features.semantic.requires_grad:
+            maps = self._for_sampling(features.semantic, (height // stride) * (width // stride))
+            features = FeatureMaps(radiance=features.radiance, semantic=maps)
         pixels = pixel_grid(height, width, stride, device=camera.c2w.device)
         rays = rays_through_pixels(pixels, camera.intrinsics, camera.c2w, camera.near, camera.far)
         rgb, depth, semantic = [], [], []
@@ -354,10 +373,10 @@ class GeneralizableNeRF(nn.Module):
         for index in range(self.field.num_blocks):
             if recompute:
                 field_out, last = activation_checkpoint(
-                    self._block_pair, index, tokens, context, use_reentrant=False
+                    self._pair, self, index, tokens, context, use_reentrant=False
                 )
             else:
-                field_out, last = self._block_pair(index, tokens, context)
+                field_out, last = self._pair(self, index, tokens, context)
             tokens = last.tokens
             if attention is not None:
                 self.semantic.add_block(attention, field_out.view_attention, last.ray_attention)
@@ -376,6 +395,15 @@ class GeneralizableNeRF(nn.Module):
             semantic=semantic,
             sample_semantic=sample_semantic,
         )
+
+    def _for_sampling(self, maps: Tensor, rays: int) -> Tensor:
+        """``maps`` channels-last (``sampling_layout``) when each view will be sampled at more points (``rays`` x all
+        samples per ray) than the maps hold pixels: below that the copy costs more than it saves (measured:
+        ``docs/benchmarks.md``, channels-last)."""
+        samples = rays * (self.coarse_samples + self.fine_samples)
+        if self.channels_last_maps and samples >= maps.shape[-2] * maps.shape[-1]:
+            return sampling_layout(maps)
+        return maps
 
     def _block_pair(self, index: int, tokens: Tensor, context: object) -> tuple[FieldBlockOutput, RayBlockOutput]:
         """Field block ``index`` then ray block ``index`` (GNT interleaves them)."""

@@ -132,6 +132,13 @@ class AttentionSums:
         return self
 
 
+def weight_term(view: Tensor, ray: Tensor, per_head: int) -> Tensor:
+    """One block's share of W: ``view [R, S, V, A] * mean_queries(ray [R, H, S, S])`` expanded to A channels."""
+    column_mean = ray.mean(dim=2)  # [R, H, S]: how much each sample contributes, averaged over queries
+    per_channel = column_mean.repeat_interleave(per_head, dim=1).transpose(1, 2)  # [R, S, A]
+    return view * per_channel[:, :, None, :]
+
+
 class SemanticFieldRenderer(nn.Module):
     """Renders per-ray (and optionally per-sample) semantic features from reused attention.
 
@@ -179,15 +186,17 @@ class SemanticFieldRenderer(nn.Module):
         with torch.no_grad():
             self.adaptor.weight.copy_(torch.eye(semantic_dim) / num_blocks)
             self.adaptor.bias.zero_()
+        self._weight_term = weight_term
+
+    def compile_sums(self, backend: str) -> None:
+        """``torch.compile`` the per-block attention product (``add_block``) with ``backend``."""
+        self._weight_term = torch.compile(weight_term, backend=backend)
 
     def add_block(self, total: AttentionSums, view: Tensor, ray: Tensor) -> None:
         """Add one block's view ``[R, S, V, A]`` and ray ``[R, H, S, S]`` attention to ``total`` (in place)."""
         if not self.joint_attention:
             view, ray = view.detach(), ray.detach()
-        per_head = self.attention_channels // self.ray_heads
-        column_mean = ray.mean(dim=2)  # [R, H, S]: how much each sample contributes, averaged over queries
-        per_channel = column_mean.repeat_interleave(per_head, dim=1).transpose(1, 2)  # [R, S, A]
-        term = view * per_channel[:, :, None, :]
+        term = self._weight_term(view, ray, self.attention_channels // self.ray_heads)
         total.weights = term if total.weights is None else total.weights.add_(term)
         if total.with_samples:
             # The attention itself is saved for its own backward: never accumulate into it.

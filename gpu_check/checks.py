@@ -40,11 +40,15 @@ STEPS = [
                          "out_dir={out}/bench_fp32"]),
     ("bench_bf16", 150, [sys.executable, "-m", "gpnerf_core", "bench", *BENCH, f"device={DEVICE}",
                          "train.precision=bf16", "out_dir={out}/bench_bf16"]),
+    ("bench_compiled", 180, [sys.executable, "-m", "gpnerf_core", "bench", *BENCH, f"device={DEVICE}",
+                             "model.compile=true", *(["model.compile_backend=aot_eager"] if DRY else []),
+                             "out_dir={out}/bench_compiled"]),
     ("torchrun_nccl", 90, [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=1",
                            "-m", "gpnerf_core", "run", "+head=unet", "+loss=dgs", *TINY, f"device={DEVICE}",
                            "out_dir={out}/torchrun"]),
 ]
-"""(name, seconds allowed, command): about 13.5 minutes at most, about 5 expected on an H200."""
+"""(name, seconds allowed, command): about 16.5 minutes at most, about 7 expected on an H200 (compilation with
+Triton included in the compiled bench's warm-up)."""
 
 
 def machine() -> dict[str, object]:

@@ -1,7 +1,7 @@
 """Camera geometry: rays, samples along rays, projection into source views."""
 
 from gpnerf_core.geometry.poses import EXPECTED_RIGID, rigid_transform_problem
-from gpnerf_core.geometry.projection import Projector, project_points
+from gpnerf_core.geometry.projection import Projector, project_points, sampling_layout
 from gpnerf_core.geometry.rays import pixel_grid, rays_through_pixels
 from gpnerf_core.geometry.sampling import importance_depths, points_along_rays, stratified_inverse_depths
 
@@ -14,5 +14,6 @@ __all__ = [
     "project_points",
     "rays_through_pixels",
     "rigid_transform_problem",
+    "sampling_layout",
     "stratified_inverse_depths",
 ]

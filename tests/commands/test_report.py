@@ -115,6 +115,7 @@ def test_report_chart_writes_png_csv_and_the_fronts(tmp_path):
     front = "mIoU held-out vs training time: unet + ce (Table 4 ID 2), unet + dgs (Table 4 ID 5)"
     assert front in done.stdout
     assert (tmp_path / "chart" / "speed_accuracy.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not (tmp_path / "chart" / "headline.png").exists()  # no run measured the seconds per frame
     rows = (tmp_path / "chart" / "speed_accuracy.csv").read_text().splitlines()
     assert rows[0].startswith("method,seeds,n,mIoU held-out (per-image mIoU) mean,mIoU held-out std")
     full = next(row for row in rows if row.startswith("unet + dgs (Table 4 ID 5),"))
@@ -156,7 +157,37 @@ def test_chart_labels_name_the_method_and_tell_apart_two_variants_of_one():
         write_run(root / "mine", {"name": "focal"}, True, 0.4, head="mine")
         groups = group_runs(find_runs([root]))
         labels = sorted(method_labels(groups))
-    assert labels == ["mine + focal", "unet + dgs (Table 4 ID 5) [cosine]", "unet + dgs (Table 4 ID 5) [main]"]
+    assert labels == ["mine + focal", "unet + dgs (Table 4 ID 5) [lr_schedule=cosine]",
+                      "unet + dgs (Table 4 ID 5) [lr_schedule=exponential]"]
+
+
+def test_chart_labels_name_the_size_first_and_stay_unique(tmp_path):
+    """Two sizes of one method: the legend names the model keys that differ (not the folders); a third variant that
+    shares the first keys shown gets the key that tells it apart."""
+    from gpnerf_core.reporting.runs import find_runs, group_runs, method_labels
+
+    dgs = {"name": "dgs", "sd_weight": 0.25, "dgs_weight": 0.25, "teacher_stop_grad": True}
+    variants = {
+        "default": {"field_aggregator": {"num_blocks": 4}, "dataset": {"near": 0.2}},
+        "sized": {"model": {"fine_samples": 0, "num_source_views": 3}, "field_aggregator": {"num_blocks": 2},
+                  "dataset": {"near": 0.59}, "train": {"rays": 64}},
+        "sized_lr": {"model": {"fine_samples": 0, "num_source_views": 3}, "field_aggregator": {"num_blocks": 2},
+                     "dataset": {"near": 0.59}, "train": {"rays": 64, "lr_schedule": "cosine"}},
+    }
+    for name, changes in variants.items():
+        write_run(tmp_path / name, dgs, True, 0.6)
+        config = yaml.safe_load((tmp_path / name / "config.yaml").read_text())
+        for section, values in changes.items():
+            config.setdefault(section, {}).update(values)
+        (tmp_path / name / "config.yaml").write_text(yaml.safe_dump(config))
+    groups = group_runs(find_runs([tmp_path]))
+    labels = dict(zip((g.runs[0].folder.name for g in groups), method_labels(groups)))
+    assert labels["sized"] == ("unet + dgs (Table 4 ID 5) [fine_samples=0, num_source_views=3, num_blocks=2, "
+                               "near=0.59, lr_schedule=exponential, +1 more]")
+    assert labels["sized_lr"].endswith("near=0.59, lr_schedule=cosine, +1 more]")
+    assert labels["default"] == ("unet + dgs (Table 4 ID 5) [fine_samples=16, num_source_views=10, num_blocks=4, "
+                                 "near=0.2, +2 more]")
+    assert len(set(labels.values())) == 3 and not any(name in label for name, label in labels.items())
 
 
 def test_a_third_party_head_shows_its_table4_switches_but_no_paper_number(tmp_path):
@@ -184,3 +215,20 @@ def test_a_metrics_file_of_another_shape_is_one_line_naming_it(tmp_path, metrics
     (tmp_path / "run" / "metrics.json").write_text(json.dumps(metrics))
     with pytest.raises(DataError, match=r"metrics.json: not a gpnerf-core run's metrics \(" + problem.replace("(", r"\(")):
         find_runs([tmp_path])
+
+
+def test_the_headline_panel_leads_the_chart_and_is_drawn_alone_too(tmp_path):
+    from PIL import Image
+
+    from gpnerf_core.reporting.speed_accuracy import Method, Point, draw
+
+    def method(label, miou, seconds_per_frame):
+        return Method(label, [0, 1], {"mIoU held-out": Point(miou, 0.01, 2), "rendering": Point(seconds_per_frame, 0.1, 2),
+                                      "parameters": Point(2.5, 0, 2)}, {})
+
+    fronts = draw([method("GP-NeRF", 0.77, 2.4), method("GP-NeRF sized", 0.76, 0.8), method("worse", 0.6, 3.0)],
+                  tmp_path)
+    assert fronts["mIoU held-out vs rendering"] == ["GP-NeRF sized", "GP-NeRF"]
+    alone = Image.open(tmp_path / "headline.png")
+    chart = Image.open(tmp_path / "speed_accuracy.png")
+    assert alone.size[0] >= 700 and chart.size[1] > alone.size[1]  # the grid (1 x 2 panels) below the headline

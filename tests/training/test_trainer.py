@@ -200,6 +200,82 @@ def test_activation_checkpointing_gives_the_same_loss_and_gradients(tmp_path):
         torch.testing.assert_close(grads_a[name], grads_b[name], rtol=1e-5, atol=1e-7, msg=name)
 
 
+def _loss_and_gradients(trainer):
+    batch = trainer.sampler.next_batch()
+    terms = trainer._loss_terms(batch, trainer.model(batch, semantics=True, sample_semantics=True))
+    sum(terms.values()).backward()
+    return terms, {n: p.grad.clone() for n, p in trainer.model.named_parameters() if p.grad is not None}
+
+
+def test_channels_last_source_maps_give_bitwise_the_same_step_and_rendering(tmp_path):
+    """The layout only changes how ``grid_sample`` reads the maps: float32 loss, gradients and a rendered view are
+    identical. The maps are copied channels-last only where each is sampled at more points than it has pixels (the
+    tiny maps: 16 x 24 = 384; a step of 48 rays x 8 samples reaches it, one of 16 rays does not; a whole view does)."""
+    from gpnerf_core.geometry.projection import Projector
+
+    seen = []
+    original = Projector.__call__
+
+    def recording(self, samples, origins, sources, features, *, with_semantic):
+        if with_semantic:
+            seen.append(features.semantic.is_contiguous(memory_format=torch.channels_last))
+        return original(self, samples, origins, sources, features, with_semantic=with_semantic)
+
+    results, renders, layouts = {}, {}, {}
+    Projector.__call__ = recording
+    try:
+        for flag, rays in (("false", 48), ("true", 48), ("true", 16)):
+            torch.manual_seed(0)
+            cfg = tiny_cfg(tmp_path, f"model.channels_last_maps={flag}", f"train.rays={rays}")
+            trainer = make_trainer(cfg, tmp_path / f"{flag}_{rays}")
+            seen.clear()
+            results[flag, rays] = _loss_and_gradients(trainer)
+            training = set(seen)
+            seen.clear()
+            view = trainer.sampler.next_batch().views[0]
+            trainer.model.eval()
+            with torch.inference_mode():
+                renders[flag, rays] = trainer.model.predict(view.camera, view.sources, stride=0, chunk_rays=50)
+            layouts[flag, rays] = (training, set(seen))
+    finally:
+        Projector.__call__ = original
+    assert layouts == {("false", 48): ({False}, {False}), ("true", 48): ({True}, {True}), ("true", 16): ({False}, {True})}
+    (terms_a, grads_a), (terms_b, grads_b) = results["false", 48], results["true", 48]
+    assert terms_a.keys() == terms_b.keys() and grads_a.keys() == grads_b.keys()
+    for name in terms_a:
+        assert torch.equal(terms_a[name], terms_b[name]), name
+    for name in grads_a:
+        assert torch.equal(grads_a[name], grads_b[name]), name
+    for field in ("rgb", "depth", "semantic", "logits"):
+        assert torch.equal(getattr(renders["false", 48], field), getattr(renders["true", 48], field)), field
+
+
+def test_compiled_blocks_give_the_eager_loss_and_gradients(tmp_path):
+    """``model.compile``: the traced block pairs and attention sums compute the eager step. ``aot_eager`` traces
+    through dynamo and AOT autograd like inductor but skips code generation (inductor's C++ build takes a minute
+    here); inductor itself is measured by ``bench`` (docs/benchmarks.md)."""
+    import torch._dynamo
+
+    results = []
+    for overrides in (("model.compile=false",), ("model.compile=true", "model.compile_backend=aot_eager")):
+        torch.manual_seed(0)
+        torch._dynamo.reset()
+        trainer = make_trainer(tiny_cfg(tmp_path, *overrides), tmp_path / overrides[0])
+        results.append(_loss_and_gradients(trainer))
+    torch._dynamo.reset()
+    (terms_a, grads_a), (terms_b, grads_b) = results
+    assert terms_a.keys() == terms_b.keys() and grads_a.keys() == grads_b.keys()
+    for name in terms_a:
+        torch.testing.assert_close(terms_a[name], terms_b[name], rtol=1e-5, atol=1e-6, msg=name)
+    for name in grads_a:
+        torch.testing.assert_close(grads_a[name], grads_b[name], rtol=1e-4, atol=1e-6, msg=name)
+
+
+def test_an_unknown_compile_backend_is_one_line_naming_the_key(tmp_path):
+    with pytest.raises(ConfigError, match=r"model\.compile_backend='nonsense'.*known"):
+        make_trainer(tiny_cfg(tmp_path, "model.compile=true", "model.compile_backend=nonsense"), tmp_path / "bad")
+
+
 def _straightforward_terms(trainer, view):
     """The step computed the plain way: one extractor pass over sources and target together, nothing skipped."""
     from gpnerf_core.fusion import cells_of_pixels, fuse_rendered, gather_cells

@@ -1,0 +1,153 @@
+"""A/B of engine options inside one process: the variants alternate over training steps of one model, so both see
+the same machine state (load, caches, frequency), which two processes one after the other do not.
+
+    python -m gpnerf_core.bench.ab [size=small] [rounds=4] [options=channels_last,compile] [threads=2] [overrides...]
+
+Prints per variant the minimum and median step seconds and the ratio of medians to the first variant; ``compile``
+reports its compile time (the first steps of each new shape) apart from the steps timed. The options:
+
+- ``channels_last``: ``model.channels_last_maps`` false against true (the same float32 values; the model attribute
+  is switched between steps).
+- ``compile``: the eager block pairs against ``torch.compile`` d ones (inductor).
+- ``dropout``: ``F.dropout`` against the transformers' word-based mask (the module functions are switched; the
+  ``small`` and ``paper`` sizes train with dropout 0.1, ``demo`` with none).
+"""
+
+from __future__ import annotations
+
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+from gpnerf_core.bench.sizes import get_size, variant_overrides
+from gpnerf_core.build import build_components
+from gpnerf_core.config import compose
+from gpnerf_core.device import resolve_device
+from gpnerf_core.distributed import Distributed
+from gpnerf_core.errors import ConfigError
+from gpnerf_core.training.checkpoint import RunRecord
+from gpnerf_core.training.trainer import Trainer
+
+Variant = Callable[[Trainer], None]
+"""Puts the trainer's model into one variant (called before each of its steps)."""
+
+
+def channels_last_variants() -> dict[str, Variant]:
+    def layout(flag: bool) -> Variant:
+        return lambda trainer: setattr(trainer.model, "channels_last_maps", flag)
+
+    return {"NCHW maps": layout(False), "channels-last maps": layout(True)}
+
+
+def compile_variants(backend: str = "inductor") -> dict[str, Variant]:
+    from gpnerf_core.pipeline import GeneralizableNeRF
+
+    compiled = torch.compile(GeneralizableNeRF._block_pair, backend=backend)
+
+    def use(pair: Callable) -> Variant:
+        return lambda trainer: setattr(trainer.model, "_pair", pair)
+
+    return {"eager": use(GeneralizableNeRF._block_pair), f"compiled ({backend})": use(compiled)}
+
+
+def dropout_variants() -> dict[str, Variant]:
+    """``F.dropout`` (a Bernoulli draw per element) against the word-based mask the transformers use."""
+    import torch.nn.functional as F
+
+    import gpnerf_plugins.transformers.common as common
+    import gpnerf_plugins.transformers.ray_transformer as ray_transformer
+    import gpnerf_plugins.transformers.view_transformer as view_transformer
+
+    word_dropout = common.maybe_dropout
+
+    def bernoulli_dropout(x: torch.Tensor, p: float, training: bool) -> torch.Tensor:
+        return F.dropout(x, p, training=True) if training and p > 0 else x
+
+    def use(dropout: Callable) -> Variant:
+        def apply(trainer: Trainer) -> None:
+            common.maybe_dropout = ray_transformer.maybe_dropout = view_transformer.maybe_dropout = dropout
+        return apply
+
+    return {"F.dropout": use(bernoulli_dropout), "word mask": use(word_dropout)}
+
+
+OPTIONS: dict[str, Callable[[], dict[str, Variant]]] = {
+    "channels_last": channels_last_variants,
+    "compile": compile_variants,
+    "dropout": dropout_variants,
+}
+
+
+def make_trainer(size: str, overrides: list[str], folder: Path) -> Trainer:
+    """A trainer of the bench ``size``'s GP-NeRF (``overrides`` last), writing nothing outside ``folder``."""
+    cfg = compose(variant_overrides(get_size(size), "gpnerf", overrides))
+    trainer = Trainer(cfg, build_components(cfg), dist=Distributed.single(resolve_device(cfg.device)), run_dir=folder,
+                      record=RunRecord(config_yaml="", overrides=(), components={}))
+    trainer.model.train()
+    return trainer
+
+
+def alternate(trainer: Trainer, variants: dict[str, Variant], rounds: int) -> tuple[dict[str, list[float]], dict[str, float]]:
+    """Step seconds per variant over ``rounds`` alternations, after warm-up steps whose seconds (compilation,
+    allocator growth) are returned apart: two per variant, so the coarse and fine shapes have both been seen."""
+    warm_up = {}
+    for name, variant in variants.items():
+        started = time.perf_counter()
+        for _ in range(2):
+            variant(trainer)
+            trainer.train_step()
+        warm_up[name] = time.perf_counter() - started
+    times: dict[str, list[float]] = {name: [] for name in variants}
+    for _ in range(rounds):
+        for name, variant in variants.items():
+            variant(trainer)
+            started = time.perf_counter()
+            trainer.train_step()
+            times[name].append(time.perf_counter() - started)
+    return times, warm_up
+
+
+def report(times: dict[str, list[float]], warm_up: dict[str, float]) -> list[str]:
+    first = statistics.median(next(iter(times.values())))
+    lines = []
+    for name, values in times.items():
+        median = statistics.median(values)
+        lines.append(f"  {name}: step min {min(values):.3f} s, median {median:.3f} s, x{median / first:.2f} of the "
+                     f"first; warm-up (2 steps, compilation included) {warm_up[name]:.1f} s")
+    return lines
+
+
+def main(argv: list[str]) -> int:
+    settings = {"size": "small", "rounds": "4", "options": "channels_last,compile", "threads": "2"}
+    overrides = []
+    for argument in argv:
+        key, _, value = argument.partition("=")
+        if key in settings:
+            settings[key] = value
+        else:
+            overrides.append(argument)
+    options = [o for o in settings["options"].split(",") if o]
+    unknown = [o for o in options if o not in OPTIONS]
+    if unknown or not options:
+        raise ConfigError(f"options={settings['options']!r}: expected a comma-separated list of {', '.join(OPTIONS)}")
+    torch.set_num_threads(int(settings["threads"]))
+    with tempfile.TemporaryDirectory() as folder:
+        trainer = make_trainer(settings["size"], overrides, Path(folder))
+        cfg = trainer.cfg
+        print(f"bench.ab size={settings['size']}: {cfg.train.rays} rays, {cfg.model.coarse_samples}+"
+              f"{cfg.model.fine_samples} samples, {cfg.model.num_source_views} views, {torch.get_num_threads()} threads, "
+              f"{settings['rounds']} rounds, torch {torch.__version__}")
+        for option in options:
+            times, warm_up = alternate(trainer, OPTIONS[option](), int(settings["rounds"]))
+            print(f"{option}:")
+            print("\n".join(report(times, warm_up)), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
