@@ -78,6 +78,16 @@ class Prediction:
                 raise NonFiniteError(f"{where}: the {owner} gave NaN or Inf ({output}); nothing was scored")
 
 
+def compiled_block_pair(backend: str, num_blocks: int):
+    """``torch.compile`` d ``GeneralizableNeRF._block_pair``. Each block index (its own modules) and each pass's
+    shapes (coarse, fine, a last chunk) is a graph of its own, so dynamo's per-function recompile limit (8) would
+    leave the later blocks eager: it is raised to 6 graphs per block."""
+    import torch._dynamo
+
+    torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 6 * num_blocks)
+    return torch.compile(GeneralizableNeRF._block_pair, backend=backend)
+
+
 class GeneralizableNeRF(nn.Module):
     """Extractor -> projector -> field aggregator <-> ray aggregator -> semantic field -> fused map -> head.
 
@@ -141,7 +151,7 @@ class GeneralizableNeRF(nn.Module):
         # Unbound (called with self), so a copy of the module never runs the original's blocks.
         self._pair = type(self)._block_pair
         if compile_backend is not None:
-            self._pair = torch.compile(type(self)._block_pair, backend=compile_backend)
+            self._pair = compiled_block_pair(compile_backend, field.num_blocks)
             if semantic is not None:
                 semantic.compile_sums(compile_backend)
 

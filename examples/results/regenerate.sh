@@ -7,7 +7,7 @@
 #   stress    the stress suite of IDs 1 and 5 (3 seeds each), one process per method, merged
 #   instance  the instance head on layout_00 x seeds 0-2, and the connected-components baseline on ID 5's runs
 #   finetune  ID 5's three runs fine-tuned on the unseen layout (300 steps)
-#   report    the tables (report.md) and the charts (chart/, chart_methods/)
+#   report    the tables (report_*.md, summary.md: examples/results/summarize.py) and the charts (chart/, chart_methods/)
 # Every training run uses threads=1 and two run at a time (the throughput of two cores: 1.5x that of one
 # two-thread run after another). A run whose metrics.json exists is skipped, an interrupted one resumes from
 # its newest intact checkpoint (train.resume=auto), so the script can be rerun after a stop. Timings of runs that
@@ -79,6 +79,7 @@ for stage in $STAGES; do
       "$PYTHON" -m gpnerf_core report "$RUNS"/id?_s? "$RUNS"/instance_l0_s? --chart "$WORK/chart" > "$WORK/report_chart.md"
       "$PYTHON" -m gpnerf_core report "$RUNS"/id5_s? "$RUNS"/label_rendering_s? "$RUNS"/sized_s? "$RUNS"/gnt_s? \
         --chart "$WORK/chart_methods" > "$WORK/report_methods.md"
+      "$PYTHON" "$(dirname "$0")/summarize.py" "$WORK" > "$WORK/summary.md"
       if [[ -d "$WORK/stress/id1" && -d "$WORK/stress/id5" ]]; then
         "$PYTHON" -m gpnerf_core stress --merge "$WORK/stress/id1" "$WORK/stress/id5" --overwrite --out "$WORK/stress/merged"
       fi ;;

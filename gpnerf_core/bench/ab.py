@@ -1,9 +1,10 @@
 """A/B of engine options inside one process: the variants alternate over training steps of one model, so both see
 the same machine state (load, caches, frequency), which two processes one after the other do not.
 
-    python -m gpnerf_core.bench.ab [size=small] [rounds=4] [options=channels_last,compile] [threads=2] [overrides...]
+    python -m gpnerf_core.bench.ab [size=small] [rounds=4] [options=channels_last,compile] [threads=2]
+        [phase=train|render] [overrides...]
 
-Prints per variant the minimum and median step seconds and the ratio of medians to the first variant; ``compile``
+Prints per variant the minimum and median seconds of a training step (or of rendering one view, ``phase=render``) and the ratio of medians to the first variant; ``compile``
 reports its compile time (the first steps of each new shape) apart from the steps timed. The options:
 
 - ``channels_last``: ``model.channels_last_maps`` false against true (the same float32 values; the model attribute
@@ -45,14 +46,23 @@ def channels_last_variants() -> dict[str, Variant]:
 
 
 def compile_variants(backend: str = "inductor") -> dict[str, Variant]:
-    from gpnerf_core.pipeline import GeneralizableNeRF
+    from gpnerf_core.pipeline import GeneralizableNeRF, compiled_block_pair
+    from gpnerf_core.semantic_field import weight_term
 
-    compiled = torch.compile(GeneralizableNeRF._block_pair, backend=backend)
+    compiled: dict[str, Callable] = {}
 
-    def use(pair: Callable) -> Variant:
-        return lambda trainer: setattr(trainer.model, "_pair", pair)
+    def use(on: bool) -> Variant:
+        def apply(trainer: Trainer) -> None:
+            model = trainer.model
+            if on and not compiled:
+                compiled["pair"] = compiled_block_pair(backend, model.field.num_blocks)
+                compiled["sums"] = torch.compile(weight_term, backend=backend)
+            model._pair = compiled["pair"] if on else GeneralizableNeRF._block_pair
+            if model.semantic is not None:
+                model.semantic._weight_term = compiled["sums"] if on else weight_term
+        return apply
 
-    return {"eager": use(GeneralizableNeRF._block_pair), f"compiled ({backend})": use(compiled)}
+    return {"eager": use(False), f"compiled ({backend})": use(True)}
 
 
 def dropout_variants() -> dict[str, Variant]:
@@ -92,22 +102,45 @@ def make_trainer(size: str, overrides: list[str], folder: Path) -> Trainer:
     return trainer
 
 
-def alternate(trainer: Trainer, variants: dict[str, Variant], rounds: int) -> tuple[dict[str, list[float]], dict[str, float]]:
-    """Step seconds per variant over ``rounds`` alternations, after warm-up steps whose seconds (compilation,
-    allocator growth) are returned apart: two per variant, so the coarse and fine shapes have both been seen."""
+def phase_step(trainer: Trainer, phase: str) -> Callable[[], None]:
+    """One unit of ``phase``: a training step, or (``render``) the prediction of one held-out view in eval mode
+    (``eval.render_stride`` and ``eval.chunk_rays`` as configured), its sources encoded each time as ``bench`` does."""
+    if phase == "train":
+        def train() -> None:
+            trainer.model.train()
+            trainer.train_step()
+        return train
+    if phase == "render":
+        view = trainer.sampler.next_batch().views[0]
+        eval_cfg = trainer.cfg.eval
+
+        def render() -> None:
+            trainer.model.eval()
+            trainer.model.predict(view.camera, view.sources, stride=int(eval_cfg.render_stride),
+                                  chunk_rays=int(eval_cfg.chunk_rays))
+        return render
+    raise ConfigError(f"phase={phase!r}: expected train or render")
+
+
+def alternate(trainer: Trainer, variants: dict[str, Variant], rounds: int,
+              phase: str = "train") -> tuple[dict[str, list[float]], dict[str, float]]:
+    """Seconds per ``phase`` unit per variant over ``rounds`` alternations, after warm-up units whose seconds
+    (compilation, allocator growth) are returned apart: two per variant, so the coarse and fine shapes have both
+    been seen."""
+    step = phase_step(trainer, phase)
     warm_up = {}
     for name, variant in variants.items():
         started = time.perf_counter()
         for _ in range(2):
             variant(trainer)
-            trainer.train_step()
+            step()
         warm_up[name] = time.perf_counter() - started
     times: dict[str, list[float]] = {name: [] for name in variants}
     for _ in range(rounds):
         for name, variant in variants.items():
             variant(trainer)
             started = time.perf_counter()
-            trainer.train_step()
+            step()
             times[name].append(time.perf_counter() - started)
     return times, warm_up
 
@@ -117,13 +150,13 @@ def report(times: dict[str, list[float]], warm_up: dict[str, float]) -> list[str
     lines = []
     for name, values in times.items():
         median = statistics.median(values)
-        lines.append(f"  {name}: step min {min(values):.3f} s, median {median:.3f} s, x{median / first:.2f} of the "
-                     f"first; warm-up (2 steps, compilation included) {warm_up[name]:.1f} s")
+        lines.append(f"  {name}: min {min(values):.3f} s, median {median:.3f} s, x{median / first:.2f} of the "
+                     f"first; warm-up (2, compilation included) {warm_up[name]:.1f} s")
     return lines
 
 
 def main(argv: list[str]) -> int:
-    settings = {"size": "small", "rounds": "4", "options": "channels_last,compile", "threads": "2"}
+    settings = {"size": "small", "rounds": "4", "options": "channels_last,compile", "threads": "2", "phase": "train"}
     overrides = []
     for argument in argv:
         key, _, value = argument.partition("=")
@@ -139,11 +172,11 @@ def main(argv: list[str]) -> int:
     with tempfile.TemporaryDirectory() as folder:
         trainer = make_trainer(settings["size"], overrides, Path(folder))
         cfg = trainer.cfg
-        print(f"bench.ab size={settings['size']}: {cfg.train.rays} rays, {cfg.model.coarse_samples}+"
+        print(f"bench.ab size={settings['size']} phase={settings['phase']}: {cfg.train.rays} rays, {cfg.model.coarse_samples}+"
               f"{cfg.model.fine_samples} samples, {cfg.model.num_source_views} views, {torch.get_num_threads()} threads, "
               f"{settings['rounds']} rounds, torch {torch.__version__}")
         for option in options:
-            times, warm_up = alternate(trainer, OPTIONS[option](), int(settings["rounds"]))
+            times, warm_up = alternate(trainer, OPTIONS[option](), int(settings["rounds"]), settings["phase"])
             print(f"{option}:")
             print("\n".join(report(times, warm_up)), flush=True)
     return 0

@@ -1,0 +1,179 @@
+"""The tables of docs/results.md from the run folders ``regenerate.sh`` wrote (reads ``metrics.json`` only):
+
+    python examples/results/summarize.py [WORK, default /tmp/gpnerf-results] > WORK/summary.md
+
+Sections: Table 4 (per seed, mean +- sample std, the orderings that hold beyond the seed spread), the methods of the
+speed-accuracy chart, the instance head against the connected-components baseline, fine-tuning. A missing run is
+named, never skipped silently.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+SEEDS = (0, 1, 2)
+HELD, UNSEEN = "train_heldout", "unseen"
+MIOU = "miou/image_mean_present"
+
+
+def load(runs: Path, name: str) -> dict[str, Any] | None:
+    path = runs / name / "metrics.json"
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def mean_std(values: list[float], scale: float = 1.0, digits: int = 2) -> str:
+    if not values:
+        return "not run"
+    values = [v * scale for v in values]
+    if len(values) == 1:
+        return f"{values[0]:.{digits}f} (n=1)"
+    return f"{statistics.fmean(values):.{digits}f} +- {statistics.stdev(values):.{digits}f}"
+
+
+def column(runs: list[dict[str, Any]], read: Callable[[dict[str, Any]], Any]) -> list[float]:
+    return [float(v) for run in runs if (v := read(run)) is not None]
+
+
+def split(name: str, key: str) -> Callable[[dict[str, Any]], Any]:
+    return lambda m: m["eval"].get(name, {}).get(key)
+
+
+def timing(key: str) -> Callable[[dict[str, Any]], Any]:
+    return lambda m: m["eval"].get(HELD, m["eval"].get(UNSEEN, {})).get("timing", {}).get(key)
+
+
+def table4(runs: Path) -> list[str]:
+    lines = ["## Table 4 (IDs 1-5, seeds 0-2)", "",
+             "| ID | held-out mIoU x100 (seeds 0, 1, 2) | mean +- std | unseen mIoU x100 (seeds 0, 1, 2) | mean +- std "
+             "| PSNR held-out | train s | missing |", "|---|---|---|---|---|---|---|---|"]
+    per_id: dict[int, dict[int, dict[str, Any]]] = {}
+    for table_id in range(1, 6):
+        found = {s: m for s in SEEDS if (m := load(runs, f"id{table_id}_s{s}")) is not None}
+        per_id[table_id] = found
+        ms = [found[s] for s in SEEDS if s in found]
+        held = [100 * m["eval"][HELD][MIOU] for m in ms]
+        unseen = [100 * m["eval"][UNSEEN][MIOU] for m in ms]
+        missing = ", ".join(f"seed {s}" for s in SEEDS if s not in found) or ""
+        lines.append(f"| {table_id} | {', '.join(f'{v:.2f}' for v in held)} | {mean_std(held)} | "
+                     f"{', '.join(f'{v:.2f}' for v in unseen)} | {mean_std(unseen)} | "
+                     f"{mean_std(column(ms, split(HELD, 'psnr/clamped')))} | "
+                     f"{mean_std(column(ms, lambda m: m['train']['seconds']), digits=0)} | {missing} |")
+    lines += ["", "Orderings (a difference taken seed by seed holds when it has one sign at every seed and a mean above "
+              "twice its standard error, sd / sqrt(n)):", "",
+              "| step | held-out: per seed; mean | holds? | unseen: per seed; mean | holds? |", "|---|---|---|---|---|"]
+    steps = (("joint attention (ID 1 -> 2)", 1, 2), ("S.D without the block (ID 2 -> 3)", 2, 3),
+             ("the gradient block (ID 3 -> 4)", 3, 4), ("D.G on top (ID 4 -> 5)", 4, 5))
+    for title, a, b in steps:
+        cells = []
+        for name in (HELD, UNSEEN):
+            seeds = [s for s in SEEDS if s in per_id[a] and s in per_id[b]]
+            diffs = [100 * (per_id[b][s]["eval"][name][MIOU] - per_id[a][s]["eval"][name][MIOU]) for s in seeds]
+            cells += [f"{', '.join(f'{d:+.1f}' for d in diffs)}; **{statistics.fmean(diffs):+.1f}**"
+                      if diffs else "not run", holds(diffs)]
+        lines.append(f"| {title} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def holds(diffs: list[float]) -> str:
+    if len(diffs) < 2:
+        return "n/a"
+    one_sign = all(d > 0 for d in diffs) or all(d < 0 for d in diffs)
+    mean, error = statistics.fmean(diffs), statistics.stdev(diffs) / math.sqrt(len(diffs))
+    if one_sign and abs(mean) > 2 * error:
+        return "yes"
+    return "no (one sign, within 2 se)" if one_sign else "no (signs differ)"
+
+
+METHODS = (("GP-NeRF (U-Net head, S.D + D.G: Table 4 ID 5, the main job)", "id5"),
+           ("GP-NeRF sized (bounds 0.59 / 5.70 m, 2 blocks, no fine samples, 3 views)", "sized"),
+           ("per-pixel head + cross-entropy (`baselines/label_rendering`)", "label_rendering"),
+           ("GNT alone (`baselines/gnt`: RGB only)", "gnt"))
+
+
+def methods(runs: Path) -> list[str]:
+    lines = ["## Methods (seeds 0-2)", "",
+             "| method | mIoU held-out | mIoU unseen | PSNR held-out | params (M) | train s | rays/s | s/frame | peak MB "
+             "| missing |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for title, prefix in METHODS:
+        found = {s: m for s in SEEDS if (m := load(runs, f"{prefix}_s{s}")) is not None}
+        ms = list(found.values())
+        missing = ", ".join(f"seed {s}" for s in SEEDS if s not in found)
+        lines.append(
+            f"| {title} | {mean_std(column(ms, split(HELD, MIOU)), digits=3)} | "
+            f"{mean_std(column(ms, split(UNSEEN, MIOU)), digits=3)} | {mean_std(column(ms, split(HELD, 'psnr/clamped')))} | "
+            f"{mean_std(column(ms, lambda m: m.get('parameters', {}).get('total', 0) / 1e6), digits=3)} | "
+            f"{mean_std(column(ms, lambda m: m['train']['seconds']), digits=0)} | "
+            f"{mean_std(column(ms, lambda m: m['train']['rays_per_second']), digits=0)} | "
+            f"{mean_std(column(ms, timing('seconds_per_frame')))} | {mean_std(column(ms, timing('peak_memory_mb')), digits=0)} "
+            f"| {missing} |")
+    return lines
+
+
+INSTANCE_KEYS = ("instance/ap_matched@0.75", "instance/ap_matched@0.5", "instance/coco_mask_ap",
+                 "instance/coco_mask_ap50", "instance/coco_mask_ap75")
+
+
+def instance(runs: Path) -> list[str]:
+    lines = ["## Instance head on layout_00 (seeds 0-2) and the connected-components baseline", "",
+             "| model | seed | AP@0.75 (matched) | AP@0.5 (matched) | COCO AP | COCO AP50 | COCO AP75 | train s |",
+             "|---|---|---|---|---|---|---|---|"]
+    for label, prefix, read in (("instance head", "instance_l0", lambda e: e),
+                                ("connected components on ID 5's classes", "cc_l0_id5",
+                                 lambda e: e.get("baseline_connected_components", {}))):
+        values: dict[str, list[float]] = {key: [] for key in INSTANCE_KEYS}
+        for seed in SEEDS:
+            metrics = load(runs, f"{prefix}_s{seed}")
+            if metrics is None:
+                lines.append(f"| {label} | {seed} | not run |||||||")
+                continue
+            found = read(metrics["eval"].get(HELD, {}))
+            cells = []
+            for key in INSTANCE_KEYS:
+                value = found.get(key)
+                cells.append("-" if value is None else f"{value:.3f}")
+                if value is not None:
+                    values[key].append(float(value))
+            seconds = metrics.get("train", {}).get("seconds")
+            lines.append(f"| {label} | {seed} | " + " | ".join(cells) + f" | {'' if seconds is None else round(seconds)} |")
+        lines.append(f"| {label} | mean +- std | " + " | ".join(mean_std(values[k], digits=3) for k in INSTANCE_KEYS)
+                     + " | |")
+    return lines
+
+
+def finetune(runs: Path) -> list[str]:
+    lines = ["## Fine-tuning ID 5 on the unseen layout (300 steps)", "",
+             "| seed | per-image mIoU at steps ... (its 6 held-out frames) | PSNR at the last step | train s |",
+             "|---|---|---|---|"]
+    for seed in SEEDS:
+        metrics = load(runs, f"finetune_id5_s{seed}")
+        if metrics is None:
+            lines.append(f"| {seed} | not run | | |")
+            continue
+        curve = sorted(metrics["finetune"]["curve"], key=lambda entry: entry["step"])
+        shown = ", ".join(f"{e['step']}: {e[MIOU]:.3f}" for e in curve if e.get(MIOU) is not None)
+        lines.append(f"| {seed} | {shown} | {curve[-1].get('psnr/clamped', float('nan')):.2f} | "
+                     f"{metrics['train']['seconds']:.0f} |")
+    return lines
+
+
+def main(work: Path) -> int:
+    runs = work / "runs"
+    if not runs.is_dir():
+        print(f"{runs}: no such folder; expected the WORK folder of examples/results/regenerate.sh", file=sys.stderr)
+        return 2
+    provenance = work / "provenance.txt"
+    print("# Summary of", work, "\n")
+    if provenance.is_file():
+        print("```\n" + provenance.read_text().strip() + "\n```\n")
+    for section in (table4, methods, instance, finetune):
+        print("\n".join(section(runs)) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(Path(sys.argv[1] if len(sys.argv) > 1 else "/tmp/gpnerf-results")))
