@@ -8,11 +8,13 @@
 #   instance  the instance head on layout_00 x seeds 0-2, and the connected-components baseline on ID 5's runs
 #   finetune  ID 5's three runs fine-tuned on the unseen layout (300 steps)
 #   report    the tables (report_*.md, summary.md: examples/results/summarize.py) and the charts (chart/, chart_methods/)
-# Every training run uses threads=1 and two run at a time (the throughput of two cores: 1.5x that of one
-# two-thread run after another). A run whose metrics.json exists is skipped, an interrupted one resumes from
-# its newest intact checkpoint (train.resume=auto), so the script can be rerun after a stop. Timings of runs that
-# share the cores are comparable with each other, not with a run alone. WORK must not contain spaces. Figures: docs/results.md; machine and
-# commit: WORK/provenance.txt. About 2.5 h on the 2-core CI machine type.
+# Every training run uses threads=1 and two run at a time (on this machine type 1.0-1.6x the throughput of one
+# two-thread run after another, measured on two days). A finished job leaves WORK/done/<name> and is skipped when the
+# script runs again (create the marker to skip a job, delete it to redo one); an interrupted training run starts
+# again (train.resume=auto: a run keeps only its final checkpoint, and a folder without one is replaced).
+# Timings of runs that share the cores are comparable with each other, not with a run alone. WORK must not contain
+# spaces. Figures: docs/results.md; machine and commit: WORK/provenance.txt. About 4 h on the 2-core CI machine type
+# (2026-12-02: a Table 4 run took 800-850 s of training, two at a time).
 set -euo pipefail
 PYTHON=${PYTHON:-python}
 WORK=${1:-/tmp/gpnerf-results}
