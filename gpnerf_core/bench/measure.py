@@ -61,12 +61,16 @@ def _synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def _timed(run: Callable[[], Any], device: torch.device, warmup: int, repeats: int, progress: Path) -> list[float]:
-    """Seconds of each of ``repeats`` runs after ``warmup`` runs; the peak memory goes to ``progress`` after each."""
+def _timed(run: Callable[[], Any], device: torch.device, warmup: int, repeats: int,
+           progress: Path) -> tuple[list[float], float]:
+    """Seconds of each of ``repeats`` runs after ``warmup`` runs, and the warm-up's seconds (``model.compile``
+    compiles there); the peak memory goes to ``progress`` after each."""
     progress.write_text(json.dumps({"done": 0, "peak_memory_mb": peak_memory_mb(device)}))
+    started = time.perf_counter()
     for _ in range(warmup):
         run()
     _synchronize(device)
+    warmup_seconds = time.perf_counter() - started
     seconds = []
     for index in range(repeats):
         started = time.perf_counter()
@@ -74,7 +78,7 @@ def _timed(run: Callable[[], Any], device: torch.device, warmup: int, repeats: i
         _synchronize(device)
         seconds.append(time.perf_counter() - started)
         progress.write_text(json.dumps({"done": index + 1, "peak_memory_mb": peak_memory_mb(device)}))
-    return seconds
+    return seconds, warmup_seconds
 
 
 def count_flops(run: Callable[[], Any]) -> int:
@@ -108,17 +112,18 @@ def measure(spec: dict[str, Any]) -> dict[str, Any]:
             torch.cuda.reset_peak_memory_stats(device)
         if spec["phase"] == "train":
             model.train()
-            seconds = _timed(trainer.train_step, device, spec["warmup"], spec["repeats"], progress)
+            seconds, warmup_seconds = _timed(trainer.train_step, device, spec["warmup"], spec["repeats"], progress)
             rays = int(cfg.train.rays) * int(cfg.train.targets_per_step)
             result.update(rays=rays, flops=count_flops(trainer.train_step))
         else:
             model.eval()
             render = view_renderer(cfg, model, trainer.frames, trainer.sampler.selector, trainer.sampler.scene_names[0])
-            seconds = _timed(render, device, spec["warmup"], spec["repeats"], progress)
+            seconds, warmup_seconds = _timed(render, device, spec["warmup"], spec["repeats"], progress)
             prediction = render()
             result.update(rays=int(prediction.rgb.shape[0] * prediction.rgb.shape[1]), flops=count_flops(render))
     result.update(
         seconds=seconds,
+        warmup_seconds=round(warmup_seconds, 3),
         seconds_median=statistics.median(seconds),
         seconds_min=min(seconds),
         peak_memory_mb=peak_memory_mb(device),

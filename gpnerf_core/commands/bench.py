@@ -89,7 +89,10 @@ def main(argv: list[str]) -> int:
                         entry[variant][phase] = {"skipped": True}
                         continue
                     print(f"measuring {size.name} {variant} {phase} ...", flush=True)
-                    entry[variant][phase] = run_measurement(variant_args, phase, warmup, repeats)
+                    entry[variant][phase] = result = run_measurement(variant_args, phase, warmup, repeats)
+                    if result.get("warmup_seconds") is not None and warmup:
+                        print(f"  warm-up ({warmup}, compilation included under model.compile): "
+                              f"{result['warmup_seconds']:.1f} s", flush=True)
             entry["ratios"] = _ratios(entry)
             report["sizes"][size.name] = entry
             atomic_write_json(out_dir / "bench.json", report)
