@@ -77,10 +77,13 @@ for stage in $STAGES; do
       for s in 0 1 2; do job "finetune_id5_s$s" finetune "checkpoint=$RUNS/id5_s$s/$CKPT" "'dataset.scenes=[unseen_00]'" \
         train.steps=300 finetune.points=4 eval.save_images=0 threads=1 "out_dir=$RUNS/finetune_id5_s$s"; done | run_queue ;;
     report)
-      "$PYTHON" -m gpnerf_core report "$RUNS"/id?_s? > "$WORK/report_table4.md"
-      "$PYTHON" -m gpnerf_core report "$RUNS"/id?_s? "$RUNS"/instance_l0_s? --chart "$WORK/chart" > "$WORK/report_chart.md"
-      "$PYTHON" -m gpnerf_core report "$RUNS"/id5_s? "$RUNS"/label_rendering_s? "$RUNS"/sized_s? "$RUNS"/gnt_s? \
-        --chart "$WORK/chart_methods" > "$WORK/report_methods.md"
+      existing() { local path; for path in "$@"; do [[ -f "$path/metrics.json" ]] && echo "$path"; done; return 0; }
+      mapfile -t table4_runs < <(existing "$RUNS"/id?_s?)
+      mapfile -t instance_runs < <(existing "$RUNS"/instance_l0_s?)
+      mapfile -t method_runs < <(existing "$RUNS"/id5_s? "$RUNS"/label_rendering_s? "$RUNS"/sized_s? "$RUNS"/gnt_s?)
+      "$PYTHON" -m gpnerf_core report "${table4_runs[@]}" > "$WORK/report_table4.md"
+      "$PYTHON" -m gpnerf_core report "${table4_runs[@]}" "${instance_runs[@]}" --chart "$WORK/chart" > "$WORK/report_chart.md"
+      "$PYTHON" -m gpnerf_core report "${method_runs[@]}" --chart "$WORK/chart_methods" > "$WORK/report_methods.md"
       "$PYTHON" "$(dirname "$0")/summarize.py" "$WORK" > "$WORK/summary.md"
       if [[ -d "$WORK/stress/id1" && -d "$WORK/stress/id5" ]]; then
         "$PYTHON" -m gpnerf_core stress --merge "$WORK/stress/id1" "$WORK/stress/id5" --overwrite --out "$WORK/stress/merged"
