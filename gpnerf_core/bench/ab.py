@@ -10,8 +10,8 @@ reports its compile time (the first steps of each new shape) apart from the step
 - ``channels_last``: ``model.channels_last_maps`` false against true (the same float32 values; the model attribute
   is switched between steps).
 - ``compile``: the eager block pairs against ``torch.compile`` d ones (inductor).
-- ``dropout``: ``F.dropout`` against the transformers' word-based mask (the module functions are switched; the
-  ``small`` and ``paper`` sizes train with dropout 0.1, ``demo`` with none).
+
+The transformers' dropout (a plugin's internals) has its own script on top of ``alternate``: examples/ab_dropout.py.
 """
 
 from __future__ import annotations
@@ -65,31 +65,9 @@ def compile_variants(backend: str = "inductor") -> dict[str, Variant]:
     return {"eager": use(False), f"compiled ({backend})": use(True)}
 
 
-def dropout_variants() -> dict[str, Variant]:
-    """``F.dropout`` (a Bernoulli draw per element) against the word-based mask the transformers use."""
-    import torch.nn.functional as F
-
-    import gpnerf_plugins.transformers.common as common
-    import gpnerf_plugins.transformers.ray_transformer as ray_transformer
-    import gpnerf_plugins.transformers.view_transformer as view_transformer
-
-    word_dropout = common.maybe_dropout
-
-    def bernoulli_dropout(x: torch.Tensor, p: float, training: bool) -> torch.Tensor:
-        return F.dropout(x, p, training=True) if training and p > 0 else x
-
-    def use(dropout: Callable) -> Variant:
-        def apply(trainer: Trainer) -> None:
-            common.maybe_dropout = ray_transformer.maybe_dropout = view_transformer.maybe_dropout = dropout
-        return apply
-
-    return {"F.dropout": use(bernoulli_dropout), "word mask": use(word_dropout)}
-
-
 OPTIONS: dict[str, Callable[[], dict[str, Variant]]] = {
     "channels_last": channels_last_variants,
     "compile": compile_variants,
-    "dropout": dropout_variants,
 }
 
 
