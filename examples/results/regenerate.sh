@@ -14,7 +14,7 @@
 # again (train.resume=auto: a run keeps only its final checkpoint, and a folder without one is replaced).
 # Timings of runs that share the cores are comparable with each other, not with a run alone. WORK must not contain
 # spaces. Figures: docs/results.md; machine and commit: WORK/provenance.txt. About 4 h on the 2-core CI machine type
-# (2026-12-02: a Table 4 run took 800-850 s of training, two at a time).
+# (2026-12-02: a Table 4 run's training took 560-820 s, two at a time).
 set -euo pipefail
 PYTHON=${PYTHON:-python}
 WORK=${1:-/tmp/gpnerf-results}
