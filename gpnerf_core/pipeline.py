@@ -8,6 +8,7 @@ perception head. ``predict`` renders whole views for evaluation and rendering.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Mapping
 
@@ -78,10 +79,12 @@ class Prediction:
                 raise NonFiniteError(f"{where}: the {owner} gave NaN or Inf ({output}); nothing was scored")
 
 
+@functools.lru_cache(maxsize=None)
 def compiled_block_pair(backend: str, num_blocks: int):
     """``torch.compile`` d ``GeneralizableNeRF._block_pair``. Each block index (its own modules) and each pass's
     shapes (coarse, fine, a last chunk) is a graph of its own, so dynamo's per-function recompile limit (8) would
-    leave the later blocks eager: it is raised to 6 graphs per block."""
+    leave the later blocks eager: it is raised to 6 graphs per block. One wrapper per backend, so switching back and
+    forth reuses the graphs."""
     import torch._dynamo
 
     torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 6 * num_blocks)
@@ -147,13 +150,7 @@ class GeneralizableNeRF(nn.Module):
         self.checkpoint_blocks = checkpoint_blocks
         self.channels_last_maps = channels_last_maps
         self.projector = Projector()
-        self.compile_backend = compile_backend
-        # Unbound (called with self), so a copy of the module never runs the original's blocks.
-        self._pair = type(self)._block_pair
-        if compile_backend is not None:
-            self._pair = compiled_block_pair(compile_backend, field.num_blocks)
-            if semantic is not None:
-                semantic.compile_sums(compile_backend)
+        self.use_compiled(compile_backend)
 
     @property
     def has_semantics(self) -> bool:
@@ -405,6 +402,14 @@ class GeneralizableNeRF(nn.Module):
             semantic=semantic,
             sample_semantic=sample_semantic,
         )
+
+    def use_compiled(self, backend: str | None) -> None:
+        """Run the block pairs and the semantic attention sums ``torch.compile`` d with ``backend`` (None: eager)."""
+        self.compile_backend = backend
+        # Unbound (called with self), so a copy of the module never runs the original's blocks.
+        self._pair = type(self)._block_pair if backend is None else compiled_block_pair(backend, self.field.num_blocks)
+        if self.semantic is not None:
+            self.semantic.compile_sums(backend)
 
     def _for_sampling(self, maps: Tensor, rays: int) -> Tensor:
         """``maps`` channels-last (``sampling_layout``) when each view will be sampled at more points (``rays`` x all

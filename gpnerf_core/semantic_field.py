@@ -19,6 +19,7 @@ features are sampled, weighted and summed, and never all held at once; backward 
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -139,6 +140,12 @@ def weight_term(view: Tensor, ray: Tensor, per_head: int) -> Tensor:
     return view * per_channel[:, :, None, :]
 
 
+@functools.lru_cache(maxsize=None)
+def compiled_weight_term(backend: str):
+    """``weight_term`` compiled with ``backend``, one wrapper per backend."""
+    return torch.compile(weight_term, backend=backend)
+
+
 class SemanticFieldRenderer(nn.Module):
     """Renders per-ray (and optionally per-sample) semantic features from reused attention.
 
@@ -188,9 +195,9 @@ class SemanticFieldRenderer(nn.Module):
             self.adaptor.bias.zero_()
         self._weight_term = weight_term
 
-    def compile_sums(self, backend: str) -> None:
-        """``torch.compile`` the per-block attention product (``add_block``) with ``backend``."""
-        self._weight_term = torch.compile(weight_term, backend=backend)
+    def compile_sums(self, backend: str | None) -> None:
+        """``torch.compile`` the per-block attention product (``add_block``) with ``backend`` (None: eager)."""
+        self._weight_term = weight_term if backend is None else compiled_weight_term(backend)
 
     def add_block(self, total: AttentionSums, view: Tensor, ray: Tensor) -> None:
         """Add one block's view ``[R, S, V, A]`` and ray ``[R, H, S, S]`` attention to ``total`` (in place)."""

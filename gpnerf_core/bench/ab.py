@@ -46,21 +46,8 @@ def channels_last_variants() -> dict[str, Variant]:
 
 
 def compile_variants(backend: str = "inductor") -> dict[str, Variant]:
-    from gpnerf_core.pipeline import GeneralizableNeRF, compiled_block_pair
-    from gpnerf_core.semantic_field import weight_term
-
-    compiled: dict[str, Callable] = {}
-
     def use(on: bool) -> Variant:
-        def apply(trainer: Trainer) -> None:
-            model = trainer.model
-            if on and not compiled:
-                compiled["pair"] = compiled_block_pair(backend, model.field.num_blocks)
-                compiled["sums"] = torch.compile(weight_term, backend=backend)
-            model._pair = compiled["pair"] if on else GeneralizableNeRF._block_pair
-            if model.semantic is not None:
-                model.semantic._weight_term = compiled["sums"] if on else weight_term
-        return apply
+        return lambda trainer: trainer.model.use_compiled(backend if on else None)
 
     return {"eager": use(False), f"compiled ({backend})": use(True)}
 
