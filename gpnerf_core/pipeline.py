@@ -28,6 +28,7 @@ from gpnerf_core.geometry import (
     stratified_inverse_depths,
 )
 from gpnerf_core.interfaces import FeatureExtractor, FieldAggregator, PerceptionHead, RayAggregator
+from gpnerf_core.profiling import stage
 from gpnerf_core.semantic_field import AttentionSums, SemanticFieldRenderer
 from gpnerf_core.types import (
     FeatureMaps,
@@ -198,13 +199,15 @@ class GeneralizableNeRF(nn.Module):
         """The training pass of one target view (see ``forward``)."""
         sources = view.sources
         # 1. Multi-scale features of the source views; the target's own semantic map is the teacher.
-        source_maps = self.encode(sources.rgb)
-        if self.detach_source_semantics and source_maps.semantic is not None:
-            # No loss trains the extractor through the sources' semantic maps: drop their graph now, so backward
-            # never runs the FPN over the sources and its activations are freed before the transformers run.
-            semantic_maps = self._for_sampling(source_maps.semantic.detach(), int(view.pixels.shape[0]))
-            source_maps = FeatureMaps(radiance=source_maps.radiance, semantic=semantic_maps)
-        teacher = self.encode(view.image[None]).semantic if semantics else None
+        with stage("encode sources"):
+            source_maps = self.encode(sources.rgb)
+            if self.detach_source_semantics and source_maps.semantic is not None:
+                # No loss trains the extractor through the sources' semantic maps: drop their graph now, so backward
+                # never runs the FPN over the sources and its activations are freed before the transformers run.
+                semantic_maps = self._for_sampling(source_maps.semantic.detach(), int(view.pixels.shape[0]))
+                source_maps = FeatureMaps(radiance=source_maps.radiance, semantic=semantic_maps)
+        with stage("encode target (teacher)"):
+            teacher = self.encode(view.image[None]).semantic if semantics else None
         # 2. Rays through the chosen pixels: radiance and semantic fields, coarse then fine.
         camera = view.camera
         rays = rays_through_pixels(view.pixels, camera.intrinsics, camera.c2w, camera.near, camera.far)
@@ -223,18 +226,19 @@ class GeneralizableNeRF(nn.Module):
         if not semantics:
             return ViewOutput(coarse=coarse, fine=fine)
         # 3. The fused map: rendered features replace the teacher's features in the cells the rays hit.
-        cells = cells_of_pixels(view.pixels, camera.image_size, tuple(teacher.shape[-2:]))
-        last = fine if fine is not None else coarse
-        head_input = fuse_rendered(teacher, last.semantic, cells) if self.fuse_rendered else teacher
-        # 4. The context-aware perception head on the whole map.
-        return ViewOutput(
-            coarse=coarse,
-            fine=fine,
-            teacher_map=teacher,
-            teacher_at_rays=gather_cells(teacher, cells),
-            head_input=head_input,
-            logits=self.decode(head_input, camera.image_size).logits,
-        )
+        with stage("fusion + head"):
+            cells = cells_of_pixels(view.pixels, camera.image_size, tuple(teacher.shape[-2:]))
+            last = fine if fine is not None else coarse
+            head_input = fuse_rendered(teacher, last.semantic, cells) if self.fuse_rendered else teacher
+            # 4. The context-aware perception head on the whole map.
+            return ViewOutput(
+                coarse=coarse,
+                fine=fine,
+                teacher_map=teacher,
+                teacher_at_rays=gather_cells(teacher, cells),
+                head_input=head_input,
+                logits=self.decode(head_input, camera.image_size).logits,
+            )
 
     # ---- whole views (evaluation, rendering) ---------------------------------------------------------------------
 
@@ -372,28 +376,34 @@ class GeneralizableNeRF(nn.Module):
         with_semantic = with_semantic and self.semantic is not None and features.semantic is not None
         if with_semantic and self.detach_source_semantics:
             features = FeatureMaps(radiance=features.radiance, semantic=features.semantic.detach())
-        projected = self.projector(samples, rays.origins, sources, features, with_semantic=with_semantic)
-        tokens, context = self.field.begin(projected, samples, rays)
+        with stage("projection"):
+            projected = self.projector(samples, rays.origins, sources, features, with_semantic=with_semantic)
         recompute = self.checkpoint_blocks and torch.is_grad_enabled()
         attention = AttentionSums(with_samples=with_sample_semantic) if with_semantic else None
         last = None
+        with stage("transformers"):
+            tokens, context = self.field.begin(projected, samples, rays)
         for index in range(self.field.num_blocks):
-            if recompute:
-                field_out, last = activation_checkpoint(
-                    self._pair, self, index, tokens, context, use_reentrant=False
-                )
-            else:
-                field_out, last = self._pair(self, index, tokens, context)
-            tokens = last.tokens
+            with stage("transformers"):
+                if recompute:
+                    field_out, last = activation_checkpoint(
+                        self._pair, self, index, tokens, context, use_reentrant=False
+                    )
+                else:
+                    field_out, last = self._pair(self, index, tokens, context)
+                tokens = last.tokens
             if attention is not None:
-                self.semantic.add_block(attention, field_out.view_attention, last.ray_attention)
-        readout = self.ray.readout(tokens, last)
-        depth = (readout.weights * samples.depths).sum(dim=-1)
+                with stage("semantic field"):
+                    self.semantic.add_block(attention, field_out.view_attention, last.ray_attention)
+        with stage("transformers"):
+            readout = self.ray.readout(tokens, last)
+            depth = (readout.weights * samples.depths).sum(dim=-1)
         semantic = sample_semantic = None
         if attention is not None:
-            semantic, sample_semantic = self.semantic.render(
-                projected.semantic, attention, recompute_samples=self.checkpoint_blocks
-            )
+            with stage("semantic field"):
+                semantic, sample_semantic = self.semantic.render(
+                    projected.semantic, attention, recompute_samples=self.checkpoint_blocks
+                )
         return RenderedRays(
             rgb=readout.rgb,
             weights=readout.weights,

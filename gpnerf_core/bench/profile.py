@@ -1,10 +1,13 @@
-"""Where one training step's time goes: torch.profiler's operators, grouped by input shape.
+"""Where one training step's time goes: torch.profiler's operators, grouped by input shape, and the engine's stages.
 
-    python -m gpnerf_core.bench.profile [size=paper] [variant=gpnerf|gnt_only] [rows=30] [overrides like run's]
+    python -m gpnerf_core.bench.profile [size=paper] [variant=gpnerf|gnt_only|both] [rows=30] [overrides like run's]
 
-Builds the ``bench`` size's model (the GP-NeRF variant or its GNT-only anchor), runs one warm-up step, profiles the
-next one and prints the step time and the operators with the most self time. The profiler adds overhead: read the
-shares, not the absolute step time (``bench`` measures that).
+Builds the ``bench`` size's model (the GP-NeRF variant, its GNT-only anchor, or both one after the other), runs one
+warm-up step, profiles the next one and prints the step time, the operators with the most self time, and the step
+by stage (``gpnerf_core.profiling``: encoding, projection, transformers, semantic field, head, loss, optimizer; each
+stage's forward and the backward of what its forward made). With ``variant=both`` the two stage tables are printed
+side by side: the semantic overhead stage by stage. The profiler adds overhead: read the shares, not the absolute
+step time (``bench`` measures that). Stage times are CPU time on the calling thread (on CUDA: launch time).
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from gpnerf_core.config import compose
 from gpnerf_core.device import resolve_device
 from gpnerf_core.distributed import Distributed
 from gpnerf_core.errors import ConfigError
+from gpnerf_core.profiling import StageTime, stage_table, stage_times
 from gpnerf_core.training.checkpoint import RunRecord
 from gpnerf_core.training.trainer import Trainer
 from gpnerf_core.validation import validate_config
@@ -31,8 +35,8 @@ from gpnerf_core.validation import validate_config
 OWN_KEYS = ("size", "variant", "rows")
 
 
-def profile_step(overrides: list[str], rows: int) -> str:
-    """The step time and the profiler's table of one training step after one warm-up step."""
+def profile_step(overrides: list[str], rows: int) -> tuple[str, dict[str, StageTime]]:
+    """The step time and the profiler's table of one training step after one warm-up step, and its stage times."""
     cfg = compose(overrides)
     validate_config(cfg)
     if cfg.threads:
@@ -55,7 +59,8 @@ def profile_step(overrides: list[str], rows: int) -> str:
     table = profiler.key_averages(group_by_input_shape=True).table(
         sort_by=sort, row_limit=rows, max_name_column_width=32, max_shapes_column_width=80
     )
-    return f"one profiled training step: {seconds:.2f} s on {device} ({torch.get_num_threads()} threads)\n{table}"
+    text = f"one profiled training step: {seconds:.2f} s on {device} ({torch.get_num_threads()} threads)\n{table}"
+    return text, stage_times(profiler.events())
 
 
 def main(argv: list[str]) -> int:
@@ -66,10 +71,15 @@ def main(argv: list[str]) -> int:
     try:
         size = get_size(own.get("size", "paper"))
         variant = own.get("variant", "gpnerf")
-        if variant not in VARIANTS:
-            raise ConfigError(f"variant={variant!r} is unknown; known variants: {', '.join(VARIANTS)}")
+        if variant not in (*VARIANTS, "both"):
+            raise ConfigError(f"variant={variant!r} is unknown; known variants: {', '.join(VARIANTS)}, both")
         rows = int(own.get("rows", 30))
-        print(profile_step(variant_overrides(size, variant, overrides), rows))
+        stages = {}
+        for name in VARIANTS if variant == "both" else (variant,):
+            text, stages[name] = profile_step(variant_overrides(size, name, overrides), rows)
+            print(f"== {name}\n{text}" if variant == "both" else text)
+        print(f"\none profiled step by stage (size={size.name}; each stage's forward, and the backward of what it made):")
+        print(stage_table(stages))
     except (ConfigError, ValueError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

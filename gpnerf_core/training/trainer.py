@@ -25,6 +25,7 @@ from gpnerf_core.device import autocast, check_precision, peak_memory_mb
 from gpnerf_core.distributed import Distributed
 from gpnerf_core.errors import ConfigError, DataError, NonFiniteError
 from gpnerf_core.frames import FrameCache
+from gpnerf_core.profiling import stage
 from gpnerf_core.training.checkpoint import (
     RunRecord,
     check_resume_config,
@@ -200,24 +201,27 @@ class Trainer:
             ``(terms, rays, stop_signal)``: the weighted loss terms of this process (detached), the rays it
             rendered, and the signal every process agreed to stop on (None: go on).
         """
-        batch = self.sampler.next_batch()
+        with stage("sample batch"):
+            batch = self.sampler.next_batch()
         with autocast(self.device, self.cfg.train.precision):
             output = self.wrapped(
                 batch, semantics=self.loss.needs_semantics, sample_semantics=self.loss.needs_sample_semantics
             )
-            terms = self._loss_terms(batch, output)
+            with stage("loss"):
+                terms = self._loss_terms(batch, output)
         stop_signal = self._check_and_agree(terms, batch, stop)
         total: Tensor = sum(terms.values())
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
-        clip = self.cfg.train.grad_clip
-        grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), clip if clip > 0 else math.inf)
-        if not torch.isfinite(grad_norm):
-            raise NonFiniteError(f"step {self.step}: gradient norm is {grad_norm.item()}; training stopped")
-        self.optimizer.step()
-        self.scheduler.step()
-        if self.average is not None:
-            self.average.update(self.model)
+        with stage("optimizer"):
+            clip = self.cfg.train.grad_clip
+            grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), clip if clip > 0 else math.inf)
+            if not torch.isfinite(grad_norm):
+                raise NonFiniteError(f"step {self.step}: gradient norm is {grad_norm.item()}; training stopped")
+            self.optimizer.step()
+            self.scheduler.step()
+            if self.average is not None:
+                self.average.update(self.model)
         self.last_grad_norm = grad_norm.detach()
         detached = {name: value.detach() for name, value in terms.items()} | {"loss": total.detach()}
         return detached, batch.num_rays, stop_signal

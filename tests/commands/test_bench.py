@@ -6,6 +6,7 @@ import subprocess
 import sys
 
 import pytest
+import torch
 
 TINY = [
     "dataset.height=32", "dataset.width=48", "dataset.frames_per_scene=6", "dataset.eval_every=3",
@@ -56,15 +57,40 @@ def profile(*args, cwd):
                           capture_output=True, text=True, timeout=600)
 
 
-def test_profile_prints_the_step_and_its_operators(tmp_path):
+def test_profile_prints_the_step_its_operators_and_its_stages(tmp_path):
     result = profile("size=demo", "variant=gpnerf", "rows=5", *TINY, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     assert result.stdout.startswith("one profiled training step: ")
-    table = [line for line in result.stdout.splitlines()[1:] if line.strip() and not line.startswith("---")]
-    assert len(table) == 1 + 5 + 1 and "aten::" in result.stdout  # header, five operators, the total
+    operators, by_stage = result.stdout.split("\none profiled step by stage")
+    table = [line for line in operators.splitlines()[1:] if line.strip() and not line.startswith("---")]
+    assert len(table) == 1 + 5 + 1 and "aten::" in operators  # header, five operators, the total
+    stages = {line.split("|")[0].strip(): line for line in by_stage.splitlines()[3:]}
+    for name in ("encode sources", "encode target (teacher)", "transformers", "semantic field", "fusion + head",
+                 "loss", "optimizer", "all"):
+        assert name in stages, by_stage
+    forward, backward, total = (float(x) for x in stages["transformers"].split("|")[1].split()[:5:2])
+    assert backward > 0 and total == pytest.approx(forward + backward, abs=2e-3)
     unknown = profile("variant=rgb", cwd=tmp_path)
     assert unknown.returncode == 2
-    assert unknown.stderr.strip() == "error: variant='rgb' is unknown; known variants: gpnerf, gnt_only"
+    assert unknown.stderr.strip() == "error: variant='rgb' is unknown; known variants: gpnerf, gnt_only, both"
+
+
+def test_stage_times_charge_backward_to_the_stage_whose_forward_made_it():
+    from torch.profiler import profile as torch_profile
+
+    from gpnerf_core.profiling import GRADIENT_ACCUMULATION, stage, stage_times
+
+    weights = torch.randn(256, 256, requires_grad=True)
+    with torch_profile() as profiler:
+        with stage("heavy"):
+            hidden = torch.tanh(torch.randn(512, 256) @ weights @ weights)
+        with stage("light"):
+            loss = hidden.sum()
+        loss.backward()
+    times = stage_times(profiler.events())
+    assert set(times) >= {"heavy", "light", GRADIENT_ACCUMULATION}
+    assert times["heavy"].backward > 0 and times["heavy"].backward > times["light"].backward
+    assert times["light"].forward > 0 and times["heavy"].forward > times["light"].forward
 
 
 def test_sweep_slopes_rows_and_chart(tmp_path):
