@@ -1,0 +1,66 @@
+"""examples/results/regenerate.sh's queue, run with a stand-in for Python that records each job instead of training."""
+
+import subprocess
+from pathlib import Path
+
+SCRIPT = Path(__file__).resolve().parents[1] / "examples" / "results" / "regenerate.sh"
+
+# Stands in for `python`: `-c` (the provenance line) prints a line; `-m gpnerf_core <command> ... out_dir=<run>`
+# logs "start/end <run name>" to $JOURNAL and fails for the run named in $FAIL.
+STAND_IN = r"""#!/usr/bin/env bash
+[[ $1 == -c ]] && { echo "stand-in 0.0"; exit 0; }
+name=unknown
+for argument in "$@"; do
+  case $argument in out_dir=*) name=${argument##*/} ;; --out) next=out ;; *) [[ ${next:-} == out ]] && name=stress_${argument##*/}; next= ;; esac
+done
+echo "start $name" >> "$JOURNAL"; sleep 0.2; echo "end $name" >> "$JOURNAL"
+[[ $name == "${FAIL:-}" ]] && exit 3
+exit 0
+"""
+
+
+def regenerate(tmp_path, stages, fail=""):
+    tmp_path.mkdir(exist_ok=True)
+    python = tmp_path / "python"
+    python.write_text(STAND_IN)
+    python.chmod(0o755)
+    journal = tmp_path / "journal.txt"
+    env = {"PATH": "/usr/bin:/bin", "PYTHON": str(python), "JOURNAL": str(journal), "FAIL": fail, "POLL_SECONDS": "0.1"}
+    result = subprocess.run(["bash", str(SCRIPT), str(tmp_path / "work"), stages], env=env, capture_output=True,
+                            text=True, timeout=120)
+    lines = journal.read_text().splitlines() if journal.exists() else []
+    return result, lines
+
+
+def test_one_queue_runs_every_stage_and_a_job_starts_after_the_runs_it_needs(tmp_path):
+    result, journal = regenerate(tmp_path, "finetune stress table4")
+    assert result.returncode == 0, result.stderr
+    done = sorted(p.name for p in (tmp_path / "work" / "done").iterdir())
+    assert len(done) == 15 + 2 + 3 and "stress_id5" in done and "finetune_id5_s2" in done
+    for dependent, needs in (("finetune_id5_s1", ["id5_s1"]), ("stress_id5", ["id5_s0", "id5_s1", "id5_s2"])):
+        assert all(journal.index(f"end {need}") < journal.index(f"start {dependent}") for need in needs)
+    # Jobs that need nothing go first: every Table 4 run starts before any stress or fine-tuning job.
+    first_dependent = min(journal.index(f"start {name}") for name in ("stress_id1", "stress_id5", "finetune_id5_s0"))
+    assert max(journal.index(f"start id{i}_s{s}") for i in range(1, 6) for s in range(3)) < first_dependent
+
+    again, journal_again = regenerate(tmp_path, "finetune stress table4")
+    assert again.returncode == 0 and journal_again == journal  # everything done: nothing runs again
+    assert again.stdout.count("skip ") == 20
+
+
+def test_a_failed_run_fails_what_needs_it_and_stops_before_the_report(tmp_path):
+    result, journal = regenerate(tmp_path, "table4 finetune report", fail="id5_s1")
+    assert result.returncode == 1
+    assert "FAILED id5_s1" in result.stderr and "FAILED finetune_id5_s1: it needs id5_s1" in result.stderr
+    assert "start finetune_id5_s1" not in journal and "end finetune_id5_s2" in journal  # the others went on
+    assert "no report" in result.stderr and not (tmp_path / "work" / "report_table4.md").exists()
+    needing_what_was_not_asked_for, _ = regenerate(tmp_path / "other", "stress")
+    assert needing_what_was_not_asked_for.returncode == 1
+    assert "stress_id1: it needs id1_s0, which failed or is neither done nor in the stages asked for" in (
+        needing_what_was_not_asked_for.stderr)
+
+
+def test_an_unknown_stage_is_one_line_listing_the_known(tmp_path):
+    result, journal = regenerate(tmp_path, "table4 tabel5")
+    assert result.returncode == 2 and journal == []
+    assert result.stderr == "unknown stage 'tabel5' (known: table4 methods stress instance finetune report)\n"
