@@ -142,10 +142,11 @@ def run_sweep(sweep: Sweep, size: Any, overrides: list[str], warmup: int, repeat
 
 
 def _ratios(entry: dict[str, Any]) -> dict[str, float | None]:
-    """GP-NeRF over GNT-only: training step time and memory; rendering rays/s per sample evaluated.
+    """GP-NeRF over GNT-only: training step time, memory and FLOPs; rendering rays/s per sample evaluated.
 
     Times use each variant's fastest repetition: on a shared machine the minimum is the figure least disturbed by
-    other work (both median and minimum are in ``bench.json``).
+    other work (both median and minimum are in ``bench.json``). The FLOP ratio (matmuls and convolutions, forward and
+    backward) is what the step-time ratio comes to where both variants run at the same FLOP/s.
     """
     def value(variant: str, phase: str, key: str) -> float | None:
         return entry[variant][phase].get(key)
@@ -161,6 +162,7 @@ def _ratios(entry: dict[str, Any]) -> dict[str, float | None]:
     return {
         "train_step_time": ratio(value("gpnerf", "train", "seconds_min"), value("gnt_only", "train", "seconds_min")),
         "train_peak_memory": ratio(value("gpnerf", "train", "peak_memory_mb"), value("gnt_only", "train", "peak_memory_mb")),
+        "train_flops": ratio(value("gpnerf", "train", "flops"), value("gnt_only", "train", "flops")),
         "render_samples_per_second": ratio(rays_per_sample_second("gpnerf"), rays_per_sample_second("gnt_only")),
     }
 
@@ -176,7 +178,8 @@ def format_table(report: dict[str, Any]) -> str:
             rows.append((name, variant, *_train_cells(train, peak), *_render_cells(render)))
         ratios = entry["ratios"]
         rows.append((name, "GP-NeRF / GNT-only (min)", "", _x(ratios["train_step_time"]),
-                     _x(ratios["train_peak_memory"]), "", "", _x(ratios["render_samples_per_second"]), "", ""))
+                     _x(ratios["train_peak_memory"]), _x(ratios["train_flops"]), "",
+                     _x(ratios["render_samples_per_second"]), "", ""))
     widths = [max(len(str(row[i])) for row in rows) for i in range(len(header))]
     return "\n".join("  ".join(str(cell).rjust(widths[i]) for i, cell in enumerate(row)) for row in rows)
 

@@ -36,7 +36,8 @@ def test_bench_measures_both_variants_and_writes_bench_json(tmp_path):
     assert {"head", "semantic"} <= set(demo["gpnerf"]["train"]["parameters"])
     assert not {"head", "semantic"} & set(demo["gnt_only"]["train"]["parameters"])
     assert demo["gpnerf"]["train"]["flops"] > demo["gnt_only"]["train"]["flops"]
-    assert set(demo["ratios"]) == {"train_step_time", "train_peak_memory", "render_samples_per_second"}
+    assert set(demo["ratios"]) == {"train_step_time", "train_peak_memory", "train_flops", "render_samples_per_second"}
+    assert demo["ratios"]["train_flops"] == demo["gpnerf"]["train"]["flops"] / demo["gnt_only"]["train"]["flops"]
     assert "GP-NeRF / GNT-only (min)" in result.stdout
 
 
