@@ -226,7 +226,7 @@ class GeneralizableNeRF(nn.Module):
         if not semantics:
             return ViewOutput(coarse=coarse, fine=fine)
         # 3. The fused map: rendered features replace the teacher's features in the cells the rays hit.
-        with stage("fusion + head"):
+        with stage("head"):
             cells = cells_of_pixels(view.pixels, camera.image_size, tuple(teacher.shape[-2:]))
             last = fine if fine is not None else coarse
             head_input = fuse_rendered(teacher, last.semantic, cells) if self.fuse_rendered else teacher
@@ -266,15 +266,16 @@ class GeneralizableNeRF(nn.Module):
         Source features are computed once and reused for every chunk; per-sample semantic features are never
         materialised.
         """
-        if features is None:
-            features = self.encode(sources.rgb)
-        stride = stride or self.semantic_stride(features, camera.height)
-        height, width = camera.image_size
-        if height % stride or width % stride:
-            raise ConfigError(f"image size {height}x{width} is not divisible by eval.render_stride={stride}")
-        if features.semantic is not None and not features.semantic.requires_grad:
-            maps = self._for_sampling(features.semantic, (height // stride) * (width // stride))
-            features = FeatureMaps(radiance=features.radiance, semantic=maps)
+        with stage("encode sources"):
+            if features is None:
+                features = self.encode(sources.rgb)
+            stride = stride or self.semantic_stride(features, camera.height)
+            height, width = camera.image_size
+            if height % stride or width % stride:
+                raise ConfigError(f"image size {height}x{width} is not divisible by eval.render_stride={stride}")
+            if features.semantic is not None and not features.semantic.requires_grad:
+                maps = self._for_sampling(features.semantic, (height // stride) * (width // stride))
+                features = FeatureMaps(radiance=features.radiance, semantic=maps)
         pixels = pixel_grid(height, width, stride, device=camera.c2w.device)
         rays = rays_through_pixels(pixels, camera.intrinsics, camera.c2w, camera.near, camera.far)
         rgb, depth, semantic = [], [], []
@@ -293,7 +294,8 @@ class GeneralizableNeRF(nn.Module):
                 semantic.append(last.semantic)
         h, w = height // stride, width // stride
         semantic_map = torch.cat(semantic).T.reshape(-1, h, w) if semantic else None
-        logits = self.decode(semantic_map[None], camera.image_size).logits if semantic_map is not None else None
+        with stage("head"):
+            logits = self.decode(semantic_map[None], camera.image_size).logits if semantic_map is not None else None
         return Prediction(
             rgb=torch.cat(rgb).reshape(h, w, 3),
             depth=torch.cat(depth).reshape(h, w),

@@ -1,11 +1,13 @@
 """Where one training step's time goes: torch.profiler's operators, grouped by input shape, and the engine's stages.
 
-    python -m gpnerf_core.bench.profile [size=paper] [variant=gpnerf|gnt_only|both] [rows=30] [overrides like run's]
+    python -m gpnerf_core.bench.profile [size=paper] [variant=gpnerf|gnt_only|both] [phase=train|render] [rows=30]
+        [overrides like run's]
 
 Builds the ``bench`` size's model (the GP-NeRF variant, its GNT-only anchor, or both one after the other), runs one
 warm-up step, profiles the next one and prints the step time, the operators with the most self time, and the step
 by stage (``gpnerf_core.profiling``: encoding, projection, transformers, semantic field, head, loss, optimizer; each
-stage's forward and the backward of what its forward made). With ``variant=both`` the two stage tables are printed
+stage's forward and the backward of what its forward made). ``phase=render`` profiles the rendering of one held-out
+view instead (``predict`` at ``eval.render_stride``, sources encoded each time, as ``bench`` renders). With ``variant=both`` the two stage tables are printed
 side by side: the semantic overhead stage by stage. The profiler adds overhead: read the shares, not the absolute
 step time (``bench`` measures that). Stage times are CPU time on the calling thread (on CUDA: launch time).
 """
@@ -20,6 +22,7 @@ from pathlib import Path
 import torch
 from torch.profiler import ProfilerActivity, profile
 
+from gpnerf_core.bench.ab import phase_step
 from gpnerf_core.bench.sizes import VARIANTS, variant_overrides
 from gpnerf_core.bench.sizes import get_size
 from gpnerf_core.build import build_components
@@ -32,11 +35,12 @@ from gpnerf_core.training.checkpoint import RunRecord
 from gpnerf_core.training.trainer import Trainer
 from gpnerf_core.validation import validate_config
 
-OWN_KEYS = ("size", "variant", "rows")
+OWN_KEYS = ("size", "variant", "phase", "rows")
 
 
-def profile_step(overrides: list[str], rows: int) -> tuple[str, dict[str, StageTime]]:
-    """The step time and the profiler's table of one training step after one warm-up step, and its stage times."""
+def profile_step(overrides: list[str], rows: int, phase: str = "train") -> tuple[str, dict[str, StageTime]]:
+    """The time and the profiler's table of one training step (or rendered view, ``phase=render``) after one
+    warm-up, and its stage times."""
     cfg = compose(overrides)
     validate_config(cfg)
     if cfg.threads:
@@ -47,11 +51,11 @@ def profile_step(overrides: list[str], rows: int) -> tuple[str, dict[str, StageT
     with tempfile.TemporaryDirectory() as folder:
         record = RunRecord(config_yaml="", overrides=(), components={})
         trainer = Trainer(cfg, build_components(cfg), dist=Distributed.single(device), run_dir=Path(folder), record=record)
-        trainer.model.train()
-        trainer.train_step()
+        step = phase_step(trainer, phase)
+        step()
         with profile(activities=activities, record_shapes=True) as profiler:
             started = time.perf_counter()
-            trainer.train_step()
+            step()
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
             seconds = time.perf_counter() - started
@@ -59,7 +63,8 @@ def profile_step(overrides: list[str], rows: int) -> tuple[str, dict[str, StageT
     table = profiler.key_averages(group_by_input_shape=True).table(
         sort_by=sort, row_limit=rows, max_name_column_width=32, max_shapes_column_width=80
     )
-    text = f"one profiled training step: {seconds:.2f} s on {device} ({torch.get_num_threads()} threads)\n{table}"
+    what = "training step" if phase == "train" else "rendered view"
+    text = f"one profiled {what}: {seconds:.2f} s on {device} ({torch.get_num_threads()} threads)\n{table}"
     return text, stage_times(profiler.events())
 
 
@@ -74,11 +79,15 @@ def main(argv: list[str]) -> int:
         if variant not in (*VARIANTS, "both"):
             raise ConfigError(f"variant={variant!r} is unknown; known variants: {', '.join(VARIANTS)}, both")
         rows = int(own.get("rows", 30))
+        phase = own.get("phase", "train")
+        if phase not in ("train", "render"):
+            raise ConfigError(f"phase={phase!r} is unknown; known phases: train, render")
         stages = {}
         for name in VARIANTS if variant == "both" else (variant,):
-            text, stages[name] = profile_step(variant_overrides(size, name, overrides), rows)
+            text, stages[name] = profile_step(variant_overrides(size, name, overrides), rows, phase)
             print(f"== {name}\n{text}" if variant == "both" else text)
-        print(f"\none profiled step by stage (size={size.name}; each stage's forward, and the backward of what it made):")
+        what = "step" if phase == "train" else "rendered view"
+        print(f"\none profiled {what} by stage (size={size.name}; each stage's forward, and the backward of what it made):")
         print(stage_table(stages))
     except (ConfigError, ValueError) as error:
         print(f"error: {error}", file=sys.stderr)

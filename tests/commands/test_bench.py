@@ -66,11 +66,17 @@ def test_profile_prints_the_step_its_operators_and_its_stages(tmp_path):
     table = [line for line in operators.splitlines()[1:] if line.strip() and not line.startswith("---")]
     assert len(table) == 1 + 5 + 1 and "aten::" in operators  # header, five operators, the total
     stages = {line.split("|")[0].strip(): line for line in by_stage.splitlines()[3:]}
-    for name in ("encode sources", "encode target (teacher)", "transformers", "semantic field", "fusion + head",
+    for name in ("encode sources", "encode target (teacher)", "transformers", "semantic field", "head",
                  "loss", "optimizer", "all"):
         assert name in stages, by_stage
     forward, backward, total = (float(x) for x in stages["transformers"].split("|")[1].split()[:5:2])
     assert backward > 0 and total == pytest.approx(forward + backward, abs=2e-3)
+    render = profile("size=demo", "variant=gpnerf", "phase=render", "rows=3", *TINY, cwd=tmp_path)
+    assert render.returncode == 0, render.stderr
+    assert render.stdout.startswith("one profiled rendered view: ")
+    stages = {line.split("|")[0].strip(): line for line in render.stdout.split("by stage")[1].splitlines()[3:]}
+    assert {"encode sources", "projection", "transformers", "semantic field", "head"} <= set(stages)
+    assert "optimizer" not in stages and float(stages["transformers"].split("|")[1].split()[2]) == 0.0  # no backward
     unknown = profile("variant=rgb", cwd=tmp_path)
     assert unknown.returncode == 2
     assert unknown.stderr.strip() == "error: variant='rgb' is unknown; known variants: gpnerf, gnt_only, both"
