@@ -62,13 +62,15 @@ def stage_times(events: Iterable) -> dict[str, StageTime]:
         (parameters' gradient accumulation, work outside any stage) are under ``GRADIENT_ACCUMULATION`` and
         ``OUTSIDE``.
     """
-    events = list(events)
-    made_by: dict[int, str] = {}
+    events = sorted(events, key=lambda event: event.time_range.start)
+    # (forward thread, sequence number) -> stage; numbers are per thread. An operator that makes no autograd node
+    # records the number the next node will take, so the last operator recording a number is the one that made it.
+    made_by: dict[tuple[int, int], str] = {}
     for event in events:
         if event.sequence_nr >= 0:
             kind, owner = _owner(event)
             if kind == "forward":
-                made_by.setdefault(event.sequence_nr, owner.name[len(STAGE_PREFIX):])
+                made_by[(event.thread, event.sequence_nr)] = owner.name[len(STAGE_PREFIX):]
     times: dict[str, StageTime] = {}
     for event in events:
         kind, owner = _owner(event)
@@ -77,7 +79,8 @@ def stage_times(events: Iterable) -> dict[str, StageTime]:
             times.setdefault(owner.name[len(STAGE_PREFIX):], StageTime()).forward += seconds
         elif kind == "backward":
             default = GRADIENT_ACCUMULATION if "AccumulateGrad" in owner.name else OUTSIDE
-            times.setdefault(made_by.get(owner.sequence_nr, default), StageTime()).backward += seconds
+            maker = made_by.get((owner.fwd_thread, owner.sequence_nr), default)
+            times.setdefault(maker, StageTime()).backward += seconds
         else:
             times.setdefault(OUTSIDE, StageTime()).forward += seconds
     return times

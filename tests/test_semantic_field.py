@@ -136,3 +136,23 @@ def test_streamed_rendering_mixes_bf16_attention_with_fp32_maps():
     assert torch.allclose(rendered.float(), dense.float(), atol=5e-2)
     (rendered.float().sum() + per_sample.float().sum()).backward()
     assert view[0].grad.dtype == torch.bfloat16 and ray[0].grad.dtype == torch.bfloat16
+
+
+def test_streamed_rendering_reads_each_view_s_weights_contiguously(monkeypatch):
+    """The per-view products read the weights as contiguous [A, 1, R, S] slices: a permuted view of [R, S, V, A]
+    (what ``.to(dtype, memory_format=...)`` returns when the dtype matches) made a rendered view 5x slower there."""
+    from gpnerf_core.semantic_field import StreamedRendering
+
+    rays, samples, views, channels, attention = 4, 6, 3, 16, 8
+    seen = []
+    vecdot = torch.linalg.vecdot
+
+    def recording(x, y, *, dim=-1):
+        seen.append(y.squeeze(1).is_contiguous())
+        return vecdot(x, y, dim=dim)
+
+    monkeypatch.setattr(torch.linalg, "vecdot", recording)
+    weights = torch.rand(rays, samples, views, attention)
+    StreamedRendering.apply(weights, None, sampled_maps(rays, samples, views, channels, dtype=torch.float32),
+                            channels // attention, True)
+    assert seen == [True] * views

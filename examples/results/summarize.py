@@ -118,30 +118,49 @@ INSTANCE_KEYS = ("instance/ap_matched@0.75", "instance/ap_matched@0.5", "instanc
                  "instance/coco_mask_ap50", "instance/coco_mask_ap75")
 
 
+def instance_value(found: dict[str, Any], key: str) -> float | None:
+    """``found[key]``; ``instance/ap_matched@t`` also from the per-threshold dict ``instance/ap_matched`` (``{"0.5": ...}``)."""
+    if key in found:
+        return found[key]
+    name, _, threshold = key.partition("@")
+    return found.get(name, {}).get(threshold) if threshold else None
+
+
 def instance(runs: Path) -> list[str]:
     lines = ["## Instance head on layout_00 (seeds 0-2) and the connected-components baseline", "",
-             "| model | seed | AP@0.75 (matched) | AP@0.5 (matched) | COCO AP | COCO AP50 | COCO AP75 | train s |",
-             "|---|---|---|---|---|---|---|---|"]
+             "| model | seed | AP@0.75 (matched) | AP@0.5 (matched) | COCO AP | COCO AP50 | COCO AP75 "
+             "| 2D reference AP@0.75 / COCO AP | train s |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for label, prefix, read in (("instance head", "instance_l0", lambda e: e),
                                 ("connected components on ID 5's classes", "cc_l0_id5",
                                  lambda e: e.get("baseline_connected_components", {}))):
         values: dict[str, list[float]] = {key: [] for key in INSTANCE_KEYS}
+        reference: list[tuple[float, float]] = []
         for seed in SEEDS:
             metrics = load(runs, f"{prefix}_s{seed}")
             if metrics is None:
-                lines.append(f"| {label} | {seed} | not run |||||||")
+                lines.append(f"| {label} | {seed} | not run ||||||||")
                 continue
             found = read(metrics["eval"].get(HELD, {}))
             cells = []
             for key in INSTANCE_KEYS:
-                value = found.get(key)
+                value = instance_value(found, key)
                 cells.append("-" if value is None else f"{value:.3f}")
                 if value is not None:
                     values[key].append(float(value))
+            teacher = found.get("teacher_2d", {})
+            ap, coco = instance_value(teacher, INSTANCE_KEYS[0]), teacher.get("instance/coco_mask_ap")
+            if ap is not None and coco is not None:
+                reference.append((float(ap), float(coco)))
+                cells.append(f"{ap:.3f} / {coco:.3f}")
+            else:
+                cells.append("-")
             seconds = metrics.get("train", {}).get("seconds")
             lines.append(f"| {label} | {seed} | " + " | ".join(cells) + f" | {'' if seconds is None else round(seconds)} |")
+        shown_reference = (f"{mean_std([a for a, _ in reference], digits=3)} / {mean_std([c for _, c in reference], digits=3)}"
+                           if reference else "")
         lines.append(f"| {label} | mean +- std | " + " | ".join(mean_std(values[k], digits=3) for k in INSTANCE_KEYS)
-                     + " | |")
+                     + f" | {shown_reference} | |")
     return lines
 
 
