@@ -13,7 +13,7 @@ import os
 import sys
 
 from gpnerf_core.errors import GpnerfError
-from gpnerf_core.signals import Terminated, interruption, sigterm_raises
+from gpnerf_core.signals import Terminated, interrupted_by, interruption, sigterm_raises
 
 USAGE = """usage: python -m gpnerf_core <command> [options]
 
@@ -56,18 +56,23 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with sigterm_raises():
             return importlib.import_module(f"gpnerf_core.commands.{command}").main(rest)
-    except GpnerfError as exc:
-        if os.environ.get("GPNERF_DEBUG"):
-            raise
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except OSError as exc:  # an environment fault a command did not name itself: a full disk, a permission
-        if os.environ.get("GPNERF_DEBUG"):
-            raise
-        where = f"{exc.filename}: " if exc.filename else ""
-        print(f"error: {where}{exc.strerror or exc}", file=sys.stderr)
-        return 2
     except (KeyboardInterrupt, Terminated) as exc:
-        name, code = interruption(exc)
-        print(f"interrupted ({name}): {command} stopped; what it had finished and written stays", file=sys.stderr)
-        return code
+        return _interrupted(command, exc)
+    except Exception as exc:
+        stop = interrupted_by(exc)
+        if stop is not None:  # a library turned the interruption into an error of its own while unwinding
+            return _interrupted(command, stop)
+        if os.environ.get("GPNERF_DEBUG") or not isinstance(exc, (GpnerfError, OSError)):
+            raise
+        if isinstance(exc, GpnerfError):
+            print(f"error: {exc}", file=sys.stderr)
+        else:  # an environment fault a command did not name itself: a full disk, a permission
+            where = f"{exc.filename}: " if exc.filename else ""
+            print(f"error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 2
+
+
+def _interrupted(command: str, exc: BaseException) -> int:
+    name, code = interruption(exc)
+    print(f"interrupted ({name}): {command} stopped; what it had finished and written stays", file=sys.stderr)
+    return code

@@ -41,7 +41,7 @@ from gpnerf_core.distributed import Distributed, init_distributed
 from gpnerf_core.errors import ConfigError, DataError, GpnerfError
 from gpnerf_core.io import atomic_write_json, atomic_write_text
 from gpnerf_core.overrides import RUN_SPECIFIC_KEYS, is_search_path, merge_overrides, override_key, quoted_for_hydra
-from gpnerf_core.signals import Terminated, interruption
+from gpnerf_core.signals import Terminated, interrupted_by, interruption
 from gpnerf_core.run_folder import RunFolder, RunFolderError, remove_untrained_run
 from gpnerf_core.training.checkpoint import (
     MODEL_SECTIONS,
@@ -250,6 +250,13 @@ def guarded(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
             sys.exit(stop.exit_code)
         except (KeyboardInterrupt, Terminated) as exc:
             name, code = interruption(exc)
+            print(f"interrupted ({name}) outside the training loop; files already written stay", file=sys.stderr)
+            sys.exit(code)
+        except Exception as exc:  # a library's own error raised while an interruption unwound through it
+            stop = interrupted_by(exc)
+            if stop is None:
+                raise
+            name, code = interruption(stop)
             print(f"interrupted ({name}) outside the training loop; files already written stay", file=sys.stderr)
             sys.exit(code)
 

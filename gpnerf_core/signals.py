@@ -39,6 +39,21 @@ def sigterm_raises() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+def interrupted_by(exc: BaseException | None) -> BaseException | None:
+    """The ``KeyboardInterrupt`` or ``Terminated`` that ``exc`` is, or that it replaced while unwinding, else None.
+
+    A library's cleanup can raise an error of its own while the interruption unwinds through it (OmegaConf's
+    ``flag_override`` did, on a half-built node), leaving the interruption only as the new error's ``__context__``.
+    """
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, (KeyboardInterrupt, Terminated)):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
 def interruption(exc: BaseException) -> tuple[str, int]:
     """``(signal name, exit code)`` of a ``KeyboardInterrupt`` (SIGINT, 130) or ``Terminated`` (SIGTERM, 143)."""
     if isinstance(exc, Terminated):

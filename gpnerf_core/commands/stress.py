@@ -14,7 +14,7 @@ from typing import Any
 from gpnerf_core.arguments import ArgumentParser
 from gpnerf_core.errors import ConfigError, NonFiniteError
 from gpnerf_core.io import check_output_folder
-from gpnerf_core.signals import Terminated, interruption
+from gpnerf_core.signals import interrupted_by, interruption
 
 
 def parser() -> argparse.ArgumentParser:
@@ -144,9 +144,10 @@ def main(argv: list[str]) -> int:
         try:
             run_suite(models, cases, quick=args.quick, views_per_scene=views, scratch=scratch, device=device,
                       outcomes=outcomes)
-        except (KeyboardInterrupt, Terminated) as exc:
-            if outcomes:  # keep what finished: a rerun of the same suite reads it with --merge
-                write_results(args.out, outcomes, models, args, views, started, interrupted=interruption(exc)[0])
+        except BaseException as exc:
+            stop = interrupted_by(exc)
+            if stop is not None and outcomes:  # keep what finished: a rerun of the same suite reads it with --merge
+                write_results(args.out, outcomes, models, args, views, started, interrupted=interruption(stop)[0])
                 print(f"stress: interrupted; the {len(outcomes)} evaluation(s) that finished are in {args.out} "
                       "(stress.json, marked interrupted)", file=sys.stderr)
             raise

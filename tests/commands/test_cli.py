@@ -1,4 +1,5 @@
 import json
+import sys
 
 import pytest
 
@@ -52,3 +53,39 @@ def test_eval_requires_checkpoint(capsys):
 def test_plugins_takes_no_arguments(argv, capsys):
     assert main(argv) == 2
     assert "takes no arguments" in capsys.readouterr().err
+
+
+def test_an_interruption_a_library_turned_into_its_own_error_still_stops_as_an_interruption(monkeypatch, capsys):
+    """SIGTERM landing inside OmegaConf's node construction left only an AttributeError whose context was the
+    interruption (seen once in CI): the command must still stop as interrupted (143, one line), not with a traceback."""
+    import types
+
+    from gpnerf_core import cli
+    from gpnerf_core.signals import Terminated, interrupted_by
+
+    def main(argv):
+        try:
+            raise Terminated()
+        except Terminated:
+            raise AttributeError("'NoneType' object has no attribute '_invalidate_flags_cache'")
+
+    monkeypatch.setitem(sys.modules, "gpnerf_core.commands.report", types.SimpleNamespace(main=main))
+    assert cli.main(["report"]) == 143
+    assert capsys.readouterr().err == "interrupted (SIGTERM): report stopped; what it had finished and written stays\n"
+
+    plain = ValueError("no interruption here")
+    assert interrupted_by(plain) is None and interrupted_by(None) is None
+    try:
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as stop:
+            raise RuntimeError("cleanup failed") from stop
+    except RuntimeError as wrapped:
+        assert isinstance(interrupted_by(wrapped), KeyboardInterrupt)
+
+    def broken(argv):
+        raise AttributeError("a real bug")
+
+    monkeypatch.setitem(sys.modules, "gpnerf_core.commands.report", types.SimpleNamespace(main=broken))
+    with pytest.raises(AttributeError, match="a real bug"):
+        cli.main(["report"])
