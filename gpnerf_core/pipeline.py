@@ -206,8 +206,10 @@ class GeneralizableNeRF(nn.Module):
                 # never runs the FPN over the sources and its activations are freed before the transformers run.
                 semantic_maps = self._for_sampling(source_maps.semantic.detach(), int(view.pixels.shape[0]))
                 source_maps = FeatureMaps(radiance=source_maps.radiance, semantic=semantic_maps)
-        with stage("encode target (teacher)"):
-            teacher = self.encode(view.image[None]).semantic if semantics else None
+        teacher = None
+        if semantics:
+            with stage("encode target (teacher)"):
+                teacher = self.encode(view.image[None]).semantic
         # 2. Rays through the chosen pixels: radiance and semantic fields, coarse then fine.
         camera = view.camera
         rays = rays_through_pixels(view.pixels, camera.intrinsics, camera.c2w, camera.near, camera.far)

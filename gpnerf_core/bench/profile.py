@@ -7,8 +7,8 @@ Builds the ``bench`` size's model (the GP-NeRF variant, its GNT-only anchor, or 
 warm-up step, profiles the next one and prints the step time, the operators with the most self time, and the step
 by stage (``gpnerf_core.profiling``: encoding, projection, transformers, semantic field, head, loss, optimizer; each
 stage's forward and the backward of what its forward made). ``phase=render`` profiles the rendering of one held-out
-view instead (``predict`` at ``eval.render_stride``, sources encoded each time, as ``bench`` renders). With ``variant=both`` the two stage tables are printed
-side by side: the semantic overhead stage by stage. The profiler adds overhead: read the shares, not the absolute
+view instead (``predict`` at ``eval.render_stride``, sources encoded each time, as ``bench`` renders). With
+``variant=both`` the two stage tables are printed side by side: the semantic overhead stage by stage. The profiler adds overhead: read the shares, not the absolute
 step time (``bench`` measures that). Stage times are CPU time on the calling thread (on CUDA: launch time).
 """
 
