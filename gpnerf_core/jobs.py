@@ -248,11 +248,8 @@ def guarded(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
                     file=sys.stderr,
                 )
             sys.exit(stop.exit_code)
-        except (KeyboardInterrupt, Terminated) as exc:
-            name, code = interruption(exc)
-            print(f"interrupted ({name}) outside the training loop; files already written stay", file=sys.stderr)
-            sys.exit(code)
-        except Exception as exc:  # a library's own error raised while an interruption unwound through it
+        except (KeyboardInterrupt, Terminated, Exception) as exc:
+            # An Exception here may be a library's own error raised while an interruption unwound through it.
             stop = interrupted_by(exc)
             if stop is None:
                 raise

@@ -65,15 +65,13 @@ def stage_times(events: Iterable) -> dict[str, StageTime]:
     events = sorted(events, key=lambda event: event.time_range.start)
     # (forward thread, sequence number) -> stage; numbers are per thread. An operator that makes no autograd node
     # records the number the next node will take, so the last operator recording a number is the one that made it.
+    owners = [_owner(event) for event in events]
     made_by: dict[tuple[int, int], str] = {}
-    for event in events:
-        if event.sequence_nr >= 0:
-            kind, owner = _owner(event)
-            if kind == "forward":
-                made_by[(event.thread, event.sequence_nr)] = owner.name[len(STAGE_PREFIX):]
+    for event, (kind, owner) in zip(events, owners):
+        if event.sequence_nr >= 0 and kind == "forward":
+            made_by[(event.thread, event.sequence_nr)] = owner.name[len(STAGE_PREFIX):]
     times: dict[str, StageTime] = {}
-    for event in events:
-        kind, owner = _owner(event)
+    for event, (kind, owner) in zip(events, owners):
         seconds = event.self_cpu_time_total / 1e6
         if kind == "forward":
             times.setdefault(owner.name[len(STAGE_PREFIX):], StageTime()).forward += seconds
