@@ -1,6 +1,6 @@
 """A/B of the transformers' dropout in one process: ``F.dropout`` (a Bernoulli draw per element) against the word-based
 mask the ``gpnerf_plugins`` transformers use, alternated over training steps of one model
-(``gpnerf_core.bench.ab.alternate``). The ``small`` and ``paper`` sizes train with dropout 0.1, ``demo`` with none.
+(``gpnerf_core.alternate``). The ``small`` and ``paper`` sizes train with dropout 0.1, ``demo`` with none.
 
     python examples/ab_dropout.py [size=small] [rounds=4] [threads=2] [overrides...]
 """
@@ -15,7 +15,7 @@ import torch.nn.functional as F
 import gpnerf_plugins.transformers.common as common
 import gpnerf_plugins.transformers.ray_transformer as ray_transformer
 import gpnerf_plugins.transformers.view_transformer as view_transformer
-from gpnerf_core.bench.ab import alternate, make_trainer, report
+from gpnerf_core import alternate, make_trainer, timing_lines
 
 
 def bernoulli_dropout(x: torch.Tensor, p: float, training: bool) -> torch.Tensor:
@@ -38,7 +38,7 @@ def main(argv: list[str]) -> None:
         trainer = make_trainer(settings["size"], overrides, Path(folder))
         times, warm_up = alternate(trainer, variants, int(settings["rounds"]))
     print(f"dropout A/B, size={settings['size']}, {torch.get_num_threads()} threads:")
-    print("\n".join(report(times, warm_up)))
+    print("\n".join(timing_lines(times, warm_up)))
 
 
 if __name__ == "__main__":

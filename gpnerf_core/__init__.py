@@ -1,32 +1,117 @@
-"""gpnerf-core: perception heads on generalizable NeRFs, assembled from pluggy plugins and Hydra configs."""
+"""gpnerf-core: perception heads on generalizable NeRFs, assembled from pluggy plugins and Hydra configs.
 
-from gpnerf_core.hookspecs import hookimpl
-from gpnerf_core.interfaces import (
-    FeatureExtractor,
-    FieldAggregator,
-    LossSet,
-    PerceptionHead,
-    RayAggregator,
-    SceneDataset,
-    StressCase,
-    ViewSelector,
-)
-from gpnerf_core.registry import get_registry
-from gpnerf_core.specs import ComponentSpec, DataTool
+This module is the public import surface: what plugins, examples, notebooks and scripts import, re-exported from the
+engine's packages in one place (as ``pytest`` re-exports ``_pytest``). Everything else is the engine's own and may move;
+``docs/architecture.md`` lists the packages. A name is imported on first use, so ``import gpnerf_core`` stays cheap.
 
-__version__ = "0.1.0"
+    from gpnerf_core import ComponentSpec, PerceptionHead, HeadOutput, ConfigError, hookimpl
+"""
 
-__all__ = [
-    "ComponentSpec",
-    "DataTool",
-    "FeatureExtractor",
-    "FieldAggregator",
-    "LossSet",
-    "PerceptionHead",
-    "RayAggregator",
-    "SceneDataset",
-    "StressCase",
-    "ViewSelector",
-    "get_registry",
-    "hookimpl",
-]
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+from gpnerf_core.runtime.versions import __version__
+
+_PUBLIC: dict[str, tuple[str, ...]] = {
+    # registering plugins
+    "gpnerf_core.registry.hookspecs": ("hookimpl",),
+    "gpnerf_core.registry.specs": ("ComponentSpec", "DataTool"),
+    "gpnerf_core.registry.components": ("get_registry",),
+    # the interfaces a component implements
+    "gpnerf_core.data.dataset": ("SPLITS", "SceneDataset"),
+    "gpnerf_core.interfaces": (
+        "FeatureExtractor", "FieldAggregator", "ImportedWeights", "ImportsWeights", "LossSet",
+        "PerceptionHead", "RayAggregator", "StressCase", "ViewSelector",
+    ),
+    "gpnerf_core.interfaces.stress": ("ChooseSources",),
+    # the records passed between stages
+    "gpnerf_core.types": (
+        "FeatureMaps", "FieldBlockOutput", "Frame", "HeadOutput", "LossInputs", "ProjectedFeatures", "RayBatch",
+        "RayBlockOutput", "RayReadout", "RaySamples", "RenderedRays", "SampledMaps", "Scene", "SourceViews",
+        "StepBatch", "StepOutput", "TargetCamera", "TargetView", "ViewOutput",
+    ),
+    # one-line errors
+    "gpnerf_core.errors": ("ConfigError", "DataError", "GpnerfError", "NonFiniteError", "PluginError"),
+    # geometry and checks a dataset or data tool uses
+    "gpnerf_core.geometry": ("EXPECTED_RIGID", "rigid_transform_problem"),
+    "gpnerf_core.geometry.pose_sanity": ("check_poses",),
+    "gpnerf_core.data.checks": ("check_scene_files", "check_validation_level"),
+    "gpnerf_core.config.arguments": ("ArgumentParser",),
+    "gpnerf_core.runtime.io": ("atomic_write_json",),
+    "gpnerf_core.evaluation.instances": ("hungarian", "instance_masks"),
+    # composing and building from a script or notebook
+    "gpnerf_core.config.compose": ("compose",),
+    "gpnerf_core.model.build": ("build_components",),
+    # in-process A/B timing of a variant (examples/ab_dropout.py)
+    "gpnerf_core.tools.bench.ab": ("alternate", "make_trainer", "timing_lines"),
+}
+"""Module -> the public names it provides."""
+
+_WHERE = {name: module for module, names in _PUBLIC.items() for name in names}
+
+__all__ = sorted([*_WHERE, "__version__"])
+
+
+def __getattr__(name: str) -> Any:
+    module = _WHERE.get(name)
+    if module is None:
+        raise AttributeError(f"module 'gpnerf_core' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return __all__
+
+
+if TYPE_CHECKING:  # the same names, for type checkers and readers
+    from gpnerf_core.config.arguments import ArgumentParser
+    from gpnerf_core.config.compose import compose
+    from gpnerf_core.data.checks import check_scene_files, check_validation_level
+    from gpnerf_core.errors import ConfigError, DataError, GpnerfError, NonFiniteError, PluginError
+    from gpnerf_core.evaluation.instances import hungarian, instance_masks
+    from gpnerf_core.geometry import EXPECTED_RIGID, rigid_transform_problem
+    from gpnerf_core.geometry.pose_sanity import check_poses
+    from gpnerf_core.data.dataset import SPLITS, SceneDataset
+    from gpnerf_core.interfaces import (
+        FeatureExtractor,
+        FieldAggregator,
+        ImportedWeights,
+        ImportsWeights,
+        LossSet,
+        PerceptionHead,
+        RayAggregator,
+        StressCase,
+        ViewSelector,
+    )
+    from gpnerf_core.interfaces.stress import ChooseSources
+    from gpnerf_core.model.build import build_components
+    from gpnerf_core.registry.components import get_registry
+    from gpnerf_core.registry.hookspecs import hookimpl
+    from gpnerf_core.registry.specs import ComponentSpec, DataTool
+    from gpnerf_core.runtime.io import atomic_write_json
+    from gpnerf_core.tools.bench.ab import alternate, make_trainer, timing_lines
+    from gpnerf_core.types import (
+        FeatureMaps,
+        FieldBlockOutput,
+        Frame,
+        HeadOutput,
+        LossInputs,
+        ProjectedFeatures,
+        RayBatch,
+        RayBlockOutput,
+        RayReadout,
+        RaySamples,
+        RenderedRays,
+        SampledMaps,
+        Scene,
+        SourceViews,
+        StepBatch,
+        StepOutput,
+        TargetCamera,
+        TargetView,
+        ViewOutput,
+    )

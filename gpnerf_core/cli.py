@@ -13,7 +13,7 @@ import os
 import sys
 
 from gpnerf_core.errors import GpnerfError
-from gpnerf_core.signals import Terminated, interrupted_by, interruption, sigterm_raises
+from gpnerf_core.runtime.signals import Terminated, interrupted_by, interruption, sigterm_raises
 
 USAGE = """usage: python -m gpnerf_core <command> [options]
 

@@ -24,8 +24,8 @@ sys.path.insert(0, "gpu_check")
 from checks import SCENE_SETS  # noqa: E402
 
 import gpnerf_plugins.datasets.embedded.generation as generation
-from gpnerf_core.build import build_components
-from gpnerf_core.config import compose
+from gpnerf_core.model.build import build_components
+from gpnerf_core.config.compose import compose
 
 cache = Path("gpu_check/cache/embedded_scenes")
 cache.mkdir(parents=True, exist_ok=True)

@@ -9,11 +9,11 @@ from pathlib import Path
 
 import torch
 
-from gpnerf_core.build import build_components
-from gpnerf_core.config import compose
-from gpnerf_core.distributed import Distributed
+from gpnerf_core.model.build import build_components
+from gpnerf_core.config.compose import compose
+from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.evaluation.evaluator import evaluate
-from gpnerf_core.training.checkpoint import RunRecord
+from gpnerf_core.model.checkpoint import RunRecord
 from gpnerf_core.training.trainer import Trainer
 
 TINY_MODEL = [

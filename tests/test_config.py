@@ -5,9 +5,10 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf.errors import ConfigKeyError
 
-from gpnerf_core.config import config_dir
-from gpnerf_core.config import register_schema
-from gpnerf_core.registry import KINDS, get_registry
+from gpnerf_core.config.compose import config_dir
+from gpnerf_core.config.compose import register_schema
+from gpnerf_core.registry.components import get_registry
+from gpnerf_core.registry.kinds import KINDS
 
 EXPERIMENTS = sorted(
     str(p.relative_to(Path(config_dir()) / "experiment").with_suffix(""))
@@ -63,7 +64,7 @@ def test_every_experiment_composes(registry, experiment):
 
 
 def test_baselines_share_the_backbone_and_differ_in_the_semantic_path(registry):
-    from gpnerf_core.build import build_model
+    from gpnerf_core.model.build import build_model
 
     models = {}
     for name in ("gnt", "label_rendering", "gpnerf_unet"):

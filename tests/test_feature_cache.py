@@ -6,11 +6,11 @@ from __future__ import annotations
 import pytest
 import torch
 
-from gpnerf_core.build import build_components
-from gpnerf_core.config import compose
+from gpnerf_core.model.build import build_components
+from gpnerf_core.config.compose import compose
 from gpnerf_core.errors import ConfigError
-from gpnerf_core.feature_cache import SourceFeatureCache
-from gpnerf_core.frames import FrameCache, choose_sources
+from gpnerf_core.model.feature_cache import SourceFeatureCache
+from gpnerf_core.data.frames import FrameCache, choose_sources
 from pipeline_check import TINY_MODEL, TINY_SCENES
 
 

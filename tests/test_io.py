@@ -13,7 +13,7 @@ import pytest
 import torch
 from PIL import Image
 
-from gpnerf_core import io as gio
+from gpnerf_core.runtime import io as gio
 from gpnerf_core.errors import NonFiniteError
 
 

@@ -1,7 +1,11 @@
 """The package stays layered (docs/architecture.md): no import circles, and no import from a lower layer to a higher
-one (the engine never imports a tool, the jobs, a command or the CLI; a command never imports another command)."""
+one (the model never imports the engine, a tool, a command or the CLI; a command never imports another command); the
+built-in plugins, the examples and the docs import only the public surface (``gpnerf_core``, and the contract kit
+``gpnerf_core.testing`` in a plugin's tests)."""
 
 import ast
+import re
+from pathlib import Path
 
 import pytest
 
@@ -53,21 +57,24 @@ def test_the_reader_sees_late_relative_and_type_checking_imports(tmp_path):
     assert circles(graph) == [["gpnerf_core.geometry", "gpnerf_core.types"]]
 
 
-def test_a_command_importing_another_command_or_the_engine_importing_a_command_is_named():
+def test_a_command_importing_another_command_or_the_model_importing_a_command_is_named():
     modules, graph = import_graph()
     bad = dict(graph)
-    bad["gpnerf_core.pipeline"] = graph["gpnerf_core.pipeline"] | {"gpnerf_core.commands.run"}
+    bad["gpnerf_core.model.build"] = graph["gpnerf_core.model.build"] | {"gpnerf_core.commands.run"}
     bad["gpnerf_core.commands.eval"] = graph["gpnerf_core.commands.eval"] | {"gpnerf_core.commands.run"}
+    bad["gpnerf_plugins.heads.unet"] = graph["gpnerf_plugins.heads.unet"] | {"gpnerf_core.types"}
     problems = broken_rules(modules, bad)
-    assert "gpnerf_core/pipeline.py (engine) imports gpnerf_core/commands/run.py (commands)" in problems
+    assert "gpnerf_core/model/build.py (model) imports gpnerf_core/commands/run.py (commands)" in problems
     assert "gpnerf_core/commands/eval.py (commands) imports gpnerf_core/commands/run.py (commands)" in problems
-    assert len(problems) == 2
+    assert "plugins/gpnerf_plugins/heads/unet.py (plugins) imports gpnerf_core/types.py (foundation)" in problems
+    assert len(problems) == 3
 
 
 @pytest.mark.parametrize("module,layer", [
-    ("gpnerf_core.types", "engine"), ("gpnerf_core.training.trainer", "engine"), ("gpnerf_plugins.heads.unet", "plugins"),
-    ("gpnerf_core.stress.runner", "tools"), ("gpnerf_core.jobs", "jobs"), ("gpnerf_core.commands.run", "commands"),
-    ("gpnerf_core.cli", "cli"),
+    ("gpnerf_core.types", "foundation"), ("gpnerf_core.runtime.io", "foundation"), ("gpnerf_core.data.frames", "data"),
+    ("gpnerf_core.training.trainer", "training"), ("gpnerf_plugins.heads.unet", "plugins"),
+    ("gpnerf_core.tools.stress.runner", "tools"), ("gpnerf_core.engine.jobs", "engine"),
+    ("gpnerf_core.commands.run", "commands"), ("gpnerf_core.cli", "cli"), ("gpnerf_core", "api"),
 ])
 def test_layer_of(module, layer):
     assert layer_of(module) == layer
@@ -83,3 +90,27 @@ def test_every_command_is_a_module_with_main():
         assert module is not None, f"no gpnerf_core/commands/{command}.py"
         mains = [n for n in ast.parse(module.path.read_text()).body if isinstance(n, ast.FunctionDef) and n.name == "main"]
         assert mains and [a.arg for a in mains[0].args.args] == ["argv"], f"{command}: expected main(argv)"
+
+
+ROOT = Path(__file__).resolve().parents[1]
+PRIVATE_IMPORT = re.compile(r"^\s*(?:from|import) (gpnerf_core\.[\w.]+)", re.M)
+
+
+@pytest.mark.parametrize("folder", ["examples", "docs"])
+def test_examples_and_docs_import_only_the_public_surface(folder):
+    """What a user copies imports ``gpnerf_core`` (or the contract kit, ``gpnerf_core.testing``), never an engine
+    module that may move."""
+    found = []
+    for path in sorted((ROOT / folder).rglob("*")):
+        if path.suffix not in (".py", ".md") or not path.is_file():
+            continue
+        for module in PRIVATE_IMPORT.findall(path.read_text()):
+            if not module.startswith("gpnerf_core.testing"):
+                found.append(f"{path.relative_to(ROOT)}: {module}")
+    assert found == []
+
+
+def test_the_package_root_holds_only_a_handful_of_modules():
+    """Everything else lives in a package that says what it is (docs/architecture.md)."""
+    root = sorted(p.name for p in (ROOT / "gpnerf_core").glob("*.py"))
+    assert root == ["__init__.py", "__main__.py", "cli.py", "errors.py", "types.py"]

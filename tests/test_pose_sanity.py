@@ -1,4 +1,4 @@
-"""Pose sanity (gpnerf_core.pose_sanity) on synthetic rigs, on the embedded scenes' real cameras, and where it is
+"""Pose sanity (gpnerf_core.geometry.pose_sanity) on synthetic rigs, on the embedded scenes' real cameras, and where it is
 reported: ``dataset.validate`` (refusals and notes) and ``data check``."""
 
 from __future__ import annotations
@@ -12,10 +12,10 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from gpnerf_core.data_checks import pose_warnings
+from gpnerf_core.data.checks import pose_warnings
 from gpnerf_core.errors import DataError
-from gpnerf_core.pose_sanity import ISOLATED, LOOKING_AWAY, OUTLIER, SCALE, check_poses
-from gpnerf_core.validation import check_data
+from gpnerf_core.geometry.pose_sanity import ISOLATED, LOOKING_AWAY, OUTLIER, SCALE, check_poses
+from gpnerf_core.engine.validation import check_data
 from gpnerf_plugins.datasets import tools
 from gpnerf_plugins.datasets.embedded.dataset import EmbeddedScenes
 from gpnerf_plugins.datasets.replica.dataset import ReplicaScenes

@@ -7,7 +7,9 @@ import torch
 
 from gpnerf_core import ComponentSpec, PerceptionHead, hookimpl
 from gpnerf_core.errors import ConfigError, PluginError
-from gpnerf_core.registry import BUILTIN_PLUGINS, KINDS, PluginInfo, collect, make_plugin_manager
+from gpnerf_core.registry.plugins import BUILTIN_PLUGINS, PluginInfo, make_plugin_manager
+from gpnerf_core.registry.components import collect
+from gpnerf_core.registry.kinds import KINDS
 from gpnerf_core.types import HeadOutput
 
 

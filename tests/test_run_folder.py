@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from gpnerf_core.run_folder import LOCK_NAME, RunFolder, RunFolderError, remove_untrained_run
+from gpnerf_core.runtime.run_folder import LOCK_NAME, RunFolder, RunFolderError, remove_untrained_run
 
 
 def test_claim_writes_a_lock_naming_the_holder_and_release_removes_it(tmp_path):

@@ -6,13 +6,13 @@ import shutil
 import pytest
 import torch
 
-from gpnerf_core.build import build_components
-from gpnerf_core.config import compose
-from gpnerf_core.data_checks import check_scene_files
+from gpnerf_core.model.build import build_components
+from gpnerf_core.config.compose import compose
+from gpnerf_core.data.checks import check_scene_files
 from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_core.interfaces import SceneDataset
+from gpnerf_core.data.dataset import SceneDataset
 from gpnerf_core.types import Frame, Scene
-from gpnerf_core.validation import check_data, validate_config
+from gpnerf_core.engine.validation import check_data, validate_config
 from pipeline_check import TINY_MODEL, TINY_SCENES
 
 BAD_VALUES = [

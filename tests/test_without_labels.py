@@ -6,14 +6,15 @@ import pytest
 import torch
 from omegaconf import OmegaConf, open_dict
 
-from gpnerf_core.build import ClassList, build_components
-from gpnerf_core.config import compose
-from gpnerf_core.distributed import Distributed
+from gpnerf_core.model.build import ClassList, build_components
+from gpnerf_core.config.compose import compose
+from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_core.jobs import model_from_checkpoint
-from gpnerf_core.registry import BUILTIN_PLUGINS, collect, make_plugin_manager
-from gpnerf_core.training.checkpoint import read_checkpoint, stored_classes
-from gpnerf_core.validation import check_data
+from gpnerf_core.engine.jobs import model_from_checkpoint
+from gpnerf_core.registry.plugins import BUILTIN_PLUGINS, make_plugin_manager
+from gpnerf_core.registry.components import collect
+from gpnerf_core.model.checkpoint import read_checkpoint, stored_classes
+from gpnerf_core.engine.validation import check_data
 from gpnerf_plugins.datasets.embedded import CLASS_NAMES, IGNORE_INDEX
 from pipeline_check import TINY_MODEL, TINY_SCENES, make_trainer
 

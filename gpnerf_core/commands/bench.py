@@ -8,7 +8,7 @@ the same run. A table goes to stdout, everything to ``<out_dir>/bench.json``. A 
 reported with the peak it reached and the others still run.
 
 ``bench sweep=rays|views|samples|image [size=demo]`` measures one size over a range of one quantity instead
-(``gpnerf_core.bench.sweeps``): ``sweep_<name>.csv``, ``.png`` (log-log, the fitted slope of each cost) and ``.json``.
+(``gpnerf_core.tools.bench.sweeps``): ``sweep_<name>.csv``, ``.png`` (log-log, the fitted slope of each cost) and ``.json``.
 """
 
 from __future__ import annotations
@@ -17,17 +17,17 @@ import time
 from pathlib import Path
 from typing import Any
 
-from gpnerf_core.bench.machine import matmul_peak_gflops
-from gpnerf_core.bench.measure import run_measurement
-from gpnerf_core.bench.sizes import SIZES, VARIANTS, get_size, variant_overrides
-from gpnerf_core.bench.sweeps import Sweep, get_sweep, rows_of, slopes
-from gpnerf_core.bench.sweeps import draw as draw_sweep
-from gpnerf_core.config import compose
-from gpnerf_core.device import machine_info, resolve_device
+from gpnerf_core.tools.bench.machine import matmul_peak_gflops
+from gpnerf_core.tools.bench.measure import run_measurement
+from gpnerf_core.tools.bench.sizes import SIZES, VARIANTS, get_size, variant_overrides
+from gpnerf_core.tools.bench.sweeps import Sweep, get_sweep, rows_of, slopes
+from gpnerf_core.tools.bench.sweeps import draw as draw_sweep
+from gpnerf_core.config.compose import compose
+from gpnerf_core.runtime.device import machine_info, resolve_device
 from gpnerf_core.errors import ConfigError
-from gpnerf_core.io import atomic_write_json, atomic_write_text
-from gpnerf_core.jobs import compose_checked
-from gpnerf_core.run_folder import RunFolder
+from gpnerf_core.runtime.io import atomic_write_json, atomic_write_text
+from gpnerf_core.engine.jobs import compose_checked
+from gpnerf_core.runtime.run_folder import RunFolder
 
 OWN_KEYS = ("size", "repeats", "warmup", "out_dir", "phases", "sweep")
 PHASES = ("train", "render")

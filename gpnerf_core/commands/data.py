@@ -4,7 +4,7 @@ ScanNet, make the embedded scenes, ...); ``data`` alone lists them."""
 from __future__ import annotations
 
 from gpnerf_core.errors import GpnerfError
-from gpnerf_core.registry import get_registry
+from gpnerf_core.registry.components import get_registry
 
 
 def main(argv: list[str]) -> int:

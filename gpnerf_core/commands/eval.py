@@ -8,11 +8,11 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from gpnerf_core.device import machine_info
-from gpnerf_core.distributed import Distributed
-from gpnerf_core.io import atomic_write_json
-from gpnerf_core.jobs import claim_run_folder, job, launch_from_checkpoint, model_from_checkpoint
-from gpnerf_core.training.checkpoint import config_differences, format_differences
+from gpnerf_core.runtime.device import machine_info
+from gpnerf_core.runtime.distributed import Distributed
+from gpnerf_core.runtime.io import atomic_write_json
+from gpnerf_core.engine.jobs import claim_run_folder, job, launch_from_checkpoint, model_from_checkpoint
+from gpnerf_core.model.checkpoint import config_differences, format_differences
 
 
 def main(argv: list[str]) -> int:
@@ -22,7 +22,7 @@ def main(argv: list[str]) -> int:
 @job
 def eval_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.evaluation.evaluator import evaluate, print_summary
-    from gpnerf_core.frames import FrameCache
+    from gpnerf_core.data.frames import FrameCache
 
     loaded = model_from_checkpoint(cfg, dist, "eval", check_scenes=True)
     checkpoint, state, notes, components, which = (

@@ -20,16 +20,16 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from gpnerf_core.build import build_components, checkpoint_classes
-from gpnerf_core.device import machine_info
-from gpnerf_core.distributed import Distributed
+from gpnerf_core.model.build import build_components, checkpoint_classes
+from gpnerf_core.runtime.device import machine_info
+from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.evaluation.curves import CURVE_KEYS, curve_points
-from gpnerf_core.io import atomic_write_json
-from gpnerf_core.jobs import checkpoint_config, claim_run_folder, job, launch_from_checkpoint, plan_resume, start
-from gpnerf_core.training.checkpoint import evaluation_weights
-from gpnerf_core.training.finetuning import finetune_weights
-from gpnerf_core.validation import check_data
+from gpnerf_core.runtime.io import atomic_write_json
+from gpnerf_core.engine.jobs import checkpoint_config, claim_run_folder, job, launch_from_checkpoint, plan_resume, start
+from gpnerf_core.model.checkpoint import evaluation_weights
+from gpnerf_core.model.finetuning import finetune_weights
+from gpnerf_core.engine.validation import check_data
 
 
 def main(argv: list[str]) -> int:

@@ -18,11 +18,11 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig
 
-from gpnerf_core.distributed import Distributed
+from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError
-from gpnerf_core.feature_cache import SourceFeatureCache
+from gpnerf_core.model.feature_cache import SourceFeatureCache
 from gpnerf_core.geometry.trajectories import trajectory
-from gpnerf_core.jobs import claim_run_folder, job, launch_from_checkpoint, model_from_checkpoint
+from gpnerf_core.engine.jobs import claim_run_folder, job, launch_from_checkpoint, model_from_checkpoint
 
 
 def main(argv: list[str]) -> int:
@@ -37,8 +37,8 @@ def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.evaluation import visualize as vis
     from gpnerf_core.evaluation.evaluator import component_names
     from gpnerf_core.evaluation.instances import slot_predictions
-    from gpnerf_core.frames import FrameCache
-    from gpnerf_core.io import atomic_write_json
+    from gpnerf_core.data.frames import FrameCache
+    from gpnerf_core.runtime.io import atomic_write_json
     from gpnerf_core.types import TargetCamera
 
     loaded = model_from_checkpoint(cfg, dist, "render", check_scenes=False)

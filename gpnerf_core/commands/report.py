@@ -1,14 +1,14 @@
 """``python -m gpnerf_core report <folders> [--chart DIR]``: one table from many run folders (a sweep, an ablation,
-seeds) beside the paper's Table 4, and optionally the accuracy-against-cost chart (``gpnerf_core.reporting``)."""
+seeds) beside the paper's Table 4, and optionally the accuracy-against-cost chart (``gpnerf_core.tools.reporting``)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from gpnerf_core.arguments import ArgumentParser
+from gpnerf_core.config.arguments import ArgumentParser
 from gpnerf_core.errors import DataError
-from gpnerf_core.io import check_output_folder
-from gpnerf_core.reporting.runs import (
+from gpnerf_core.runtime.io import check_output_folder
+from gpnerf_core.tools.reporting.runs import (
     find_runs,
     format_table,
     fronts_possible,
@@ -16,7 +16,7 @@ from gpnerf_core.reporting.runs import (
     method_labels,
     with_parameter_count,
 )
-from gpnerf_core.reporting.speed_accuracy import draw, methods_from_groups
+from gpnerf_core.tools.reporting.speed_accuracy import draw, methods_from_groups
 
 
 def main(argv: list[str]) -> int:

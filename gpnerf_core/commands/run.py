@@ -14,13 +14,13 @@ from typing import Any
 
 from omegaconf import DictConfig, open_dict
 
-from gpnerf_core.build import build_components
-from gpnerf_core.device import machine_info
-from gpnerf_core.distributed import Distributed
+from gpnerf_core.model.build import build_components
+from gpnerf_core.runtime.device import machine_info
+from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.evaluation.curves import curve_entry, eval_scalars
-from gpnerf_core.io import atomic_write_json
-from gpnerf_core.jobs import claim_run_folder, job, launch, plan_resume, start
-from gpnerf_core.validation import check_data
+from gpnerf_core.runtime.io import atomic_write_json
+from gpnerf_core.engine.jobs import claim_run_folder, job, launch, plan_resume, start
+from gpnerf_core.engine.validation import check_data
 
 
 def main(argv: list[str]) -> int:
@@ -31,7 +31,7 @@ def main(argv: list[str]) -> int:
 def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.evaluation.evaluator import evaluate, print_summary
     from gpnerf_core.evaluation.visualize import plot_training_curves
-    from gpnerf_core.training.init_weights import init_weights
+    from gpnerf_core.model.init_weights import init_weights
     from gpnerf_core.training.loggers import make_loggers
     from gpnerf_core.training.sampler import check_global_batch
     from gpnerf_core.training.trainer import Trainer

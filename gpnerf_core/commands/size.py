@@ -19,19 +19,19 @@ import time
 from pathlib import Path
 from typing import Any
 
-from gpnerf_core.build import build_components
-from gpnerf_core.config import compose
+from gpnerf_core.model.build import build_components
+from gpnerf_core.config.compose import compose
 from gpnerf_core.errors import ConfigError, GpnerfError
-from gpnerf_core.io import atomic_write_json
-from gpnerf_core.jobs import compose_checked
-from gpnerf_core.overrides import RUN_SPECIFIC_KEYS, override_key
-from gpnerf_core.run_folder import LOCK_NAME, RunFolder
-from gpnerf_core.sizing.costs import StaticCost, static_cost
-from gpnerf_core.sizing.knobs import knob_levels, label_of
-from gpnerf_core.sizing.options import SizeOptions, parse_size_options, resolve_metric
-from gpnerf_core.sizing.report import describe_scene, draw_trials, sized_command, write_experiment, write_report
-from gpnerf_core.sizing.scene import measure_scenes
-from gpnerf_core.sizing.search import (
+from gpnerf_core.runtime.io import atomic_write_json
+from gpnerf_core.engine.jobs import compose_checked
+from gpnerf_core.config.overrides import RUN_SPECIFIC_KEYS, override_key
+from gpnerf_core.runtime.run_folder import LOCK_NAME, RunFolder
+from gpnerf_core.tools.sizing.costs import StaticCost, static_cost
+from gpnerf_core.tools.sizing.knobs import knob_levels, label_of
+from gpnerf_core.tools.sizing.options import SizeOptions, parse_size_options, resolve_metric
+from gpnerf_core.tools.sizing.report import describe_scene, draw_trials, sized_command, write_experiment, write_report
+from gpnerf_core.tools.sizing.scene import measure_scenes
+from gpnerf_core.tools.sizing.search import (
     ReferenceFailed,
     Trial,
     choose,
@@ -40,8 +40,8 @@ from gpnerf_core.sizing.search import (
     knob_order,
     refuse_unreachable_budgets,
 )
-from gpnerf_core.sizing.trials import train_trial, with_bounds, with_changes
-from gpnerf_core.validation import check_data
+from gpnerf_core.tools.sizing.trials import train_trial, with_bounds, with_changes
+from gpnerf_core.engine.validation import check_data
 
 OUTPUTS = ("size.md", "size.json", "scene.json", "speed_accuracy.png", "speed_accuracy.csv", "pareto.txt",
            "experiment", "runs", "request.json")

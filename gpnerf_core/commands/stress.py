@@ -1,5 +1,5 @@
 """``python -m gpnerf_core stress <runs or checkpoints> [--cases a,b] [--quick] --out DIR``: evaluate trained models
-under graded conditions (the cases and their runner live in ``gpnerf_core.stress``)."""
+under graded conditions (the cases and their runner live in ``gpnerf_core.tools.stress``)."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from gpnerf_core.arguments import ArgumentParser
+from gpnerf_core.config.arguments import ArgumentParser
 from gpnerf_core.errors import ConfigError, NonFiniteError
-from gpnerf_core.io import check_output_folder
-from gpnerf_core.signals import interrupted_by, interruption
+from gpnerf_core.runtime.io import check_output_folder
+from gpnerf_core.runtime.signals import interrupted_by, interruption
 
 
 def parser() -> argparse.ArgumentParser:
@@ -39,7 +39,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def list_cases() -> str:
-    from gpnerf_core.registry import get_registry
+    from gpnerf_core.registry.components import get_registry
 
     lines = []
     for name, (case, provider) in get_registry().stress_cases.items():
@@ -57,7 +57,7 @@ def merged_outcomes(folders: list[Path]) -> tuple[list[Any], list[dict[str, Any]
     import math
 
     from gpnerf_core.errors import DataError
-    from gpnerf_core.stress.runner import Outcome
+    from gpnerf_core.tools.stress.runner import Outcome
 
     outcomes, models = [], []
     for folder in folders:
@@ -90,8 +90,8 @@ def case_names(text: str | None) -> list[str] | None:
 def write_results(out: Path, outcomes: list[Any], models: list[Any], args: argparse.Namespace, views: int,
                   started: float, interrupted: str | None = None) -> tuple[Any, str]:
     """stress.md, stress.csv and stress.json in ``out`` (each written atomically); the summary and its table."""
-    from gpnerf_core.io import atomic_write_json, atomic_write_text
-    from gpnerf_core.stress.summary import StressSummary
+    from gpnerf_core.runtime.io import atomic_write_json, atomic_write_text
+    from gpnerf_core.tools.stress.summary import StressSummary
 
     summary = StressSummary(outcomes)
     out.mkdir(parents=True, exist_ok=True)
@@ -111,7 +111,7 @@ def write_results(out: Path, outcomes: list[Any], models: list[Any], args: argpa
 def main(argv: list[str]) -> int:
     import torch
 
-    from gpnerf_core.stress.runner import QUICK_VIEWS_PER_SCENE, choose_cases, models_from_paths, run_suite
+    from gpnerf_core.tools.stress.runner import QUICK_VIEWS_PER_SCENE, choose_cases, models_from_paths, run_suite
 
     args = parser().parse_args(argv)
     if args.list:

@@ -1,6 +1,6 @@
 """``python -m gpnerf_core view checkpoint=<.pt> [dataset and scene overrides] [view.port=8080] [view.host=127.0.0.1]``.
 
-Serves an interactive web viewer of a trained model (``gpnerf_core.viewer``): the scene's cameras and depth points,
+Serves an interactive web viewer of a trained model (``gpnerf_core.tools.viewer``): the scene's cameras and depth points,
 and the model's novel view for the browser's camera (RGB, depth, semantic classes or instances, PCA of the rendered
 features), rendered progressively. Binds 127.0.0.1 unless ``view.host`` says otherwise; prints the URL; serves until
 Ctrl-C or SIGTERM. Writes nothing: the folder Hydra creates for the job is removed again when it stays empty.
@@ -15,9 +15,9 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from gpnerf_core.distributed import Distributed
+from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError, GpnerfError
-from gpnerf_core.jobs import job, launch_from_checkpoint, model_from_checkpoint, run_dir
+from gpnerf_core.engine.jobs import job, launch_from_checkpoint, model_from_checkpoint, run_dir
 
 
 def main(argv: list[str]) -> int:
@@ -26,10 +26,10 @@ def main(argv: list[str]) -> int:
 
 @job
 def view_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
-    from gpnerf_core.feature_cache import SourceFeatureCache
-    from gpnerf_core.frames import FrameCache
-    from gpnerf_core.viewer.server import ViewerOptions, ViewerServer, check_port_free, serve_until_stopped
-    from gpnerf_core.viewer.renderer import SceneRenderer
+    from gpnerf_core.model.feature_cache import SourceFeatureCache
+    from gpnerf_core.data.frames import FrameCache
+    from gpnerf_core.tools.viewer.server import ViewerOptions, ViewerServer, check_port_free, serve_until_stopped
+    from gpnerf_core.tools.viewer.renderer import SceneRenderer
 
     try:
         _remove_empty_job_folder(cfg)

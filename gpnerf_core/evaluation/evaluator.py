@@ -22,16 +22,16 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from gpnerf_core.build import Components
-from gpnerf_core.device import peak_memory_mb
-from gpnerf_core.distributed import Distributed
+from gpnerf_core.model.build import Components
+from gpnerf_core.runtime.device import peak_memory_mb
+from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.evaluation import instances as I
 from gpnerf_core.evaluation import metrics as M
 from gpnerf_core.evaluation import visualize as vis
-from gpnerf_core.frames import FrameCache, choose_sources
-from gpnerf_core.io import atomic_save_png
-from gpnerf_core.pipeline import Prediction
+from gpnerf_core.data.frames import FrameCache, choose_sources
+from gpnerf_core.runtime.io import atomic_save_png
+from gpnerf_core.model.pipeline import Prediction
 from gpnerf_core.types import Frame, Scene, SourceViews
 
 SourcesFor = Callable[[Scene, int], SourceViews]

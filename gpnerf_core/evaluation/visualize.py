@@ -1,7 +1,7 @@
 """Pictures a run writes: label colour maps, error maps, depth, PCA of features, panels and training curves.
 
 Everything returns ``uint8`` numpy arrays and touches no file, except :func:`save_image` and
-:func:`plot_training_curves`, which write atomically through :mod:`gpnerf_core.io`.
+:func:`plot_training_curves`, which write atomically through :mod:`gpnerf_core.runtime.io`.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from matplotlib.figure import Figure
 from PIL import Image, ImageDraw, ImageFont
 from torch import Tensor
 
-from gpnerf_core.io import atomic_save_png, atomic_write_bytes
+from gpnerf_core.runtime.io import atomic_save_png, atomic_write_bytes
 
 CORRECT_COLOUR = (40, 170, 70)
 """Error-map colour of a correctly labelled pixel (green)."""

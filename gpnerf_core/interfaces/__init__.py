@@ -1,6 +1,5 @@
 """Abstract interfaces of every pluggable component kind."""
 
-from gpnerf_core.interfaces.dataset import SPLITS, SceneDataset
 from gpnerf_core.interfaces.feature_extractor import FeatureExtractor
 from gpnerf_core.interfaces.field_aggregator import FieldAggregator
 from gpnerf_core.interfaces.head import PerceptionHead
@@ -11,7 +10,6 @@ from gpnerf_core.interfaces.view_selector import ViewSelector
 from gpnerf_core.interfaces.weights import ImportedWeights, ImportsWeights
 
 __all__ = [
-    "SPLITS",
     "FeatureExtractor",
     "FieldAggregator",
     "ImportedWeights",
@@ -19,7 +17,6 @@ __all__ = [
     "LossSet",
     "PerceptionHead",
     "RayAggregator",
-    "SceneDataset",
     "StressCase",
     "ViewSelector",
 ]

@@ -6,7 +6,7 @@ import functools
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping, Sequence
 
-from gpnerf_core.registry import PluginInfo, PluginProblem
+from gpnerf_core.registry.plugins import PluginInfo, PluginProblem
 from gpnerf_core.testing.checks import CHECKS, RUNTIME, CheckFailed, CheckSkipped, Subject
 from gpnerf_core.testing.checks.common import component_label
 from gpnerf_core.testing.checks.stress import CHECKS as STRESS_CHECKS

@@ -12,19 +12,17 @@ from dataclasses import dataclass
 from types import ModuleType
 from typing import Any, Sequence, Union
 
-from gpnerf_core.registry import (
+from gpnerf_core.registry.plugins import (
     BUILTIN_PLUGINS,
     ENTRY_POINT_GROUP,
-    KINDS,
     PluginInfo,
     PluginProblem,
-    RegisteredComponent,
-    Registry,
-    collect,
     import_problem,
     make_plugin_manager,
     normalize_distribution,
 )
+from gpnerf_core.registry.components import RegisteredComponent, Registry, collect
+from gpnerf_core.registry.kinds import KINDS
 
 Target = Union[str, ModuleType]
 

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Mapping, Protocol
 
 from gpnerf_core.errors import ConfigError
-from gpnerf_core.io import atomic_open
+from gpnerf_core.runtime.io import atomic_open
 
 KNOWN_LOGGERS = ("csv", "tensorboard")
 

@@ -12,7 +12,7 @@ import re
 from pathlib import Path
 
 from gpnerf_core.errors import DataError
-from gpnerf_core.training.checkpoint import read_checkpoint
+from gpnerf_core.model.checkpoint import read_checkpoint
 
 CHECKPOINT_NAME = re.compile(r"^step_(\d+)\.pt$")
 CHECKPOINT_FOLDER = "checkpoints"

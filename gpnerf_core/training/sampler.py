@@ -7,7 +7,7 @@ from typing import Any, Sequence
 import torch
 
 from gpnerf_core.errors import ConfigError
-from gpnerf_core.frames import FrameCache, choose_sources
+from gpnerf_core.data.frames import FrameCache, choose_sources
 from gpnerf_core.interfaces import ViewSelector
 from gpnerf_core.types import StepBatch, TargetView
 

@@ -20,19 +20,13 @@ import torch
 from torch import Tensor
 from torch.nn.parallel import DistributedDataParallel
 
-from gpnerf_core.build import Components
-from gpnerf_core.device import autocast, check_precision, peak_memory_mb
-from gpnerf_core.distributed import Distributed
+from gpnerf_core.model.build import Components
+from gpnerf_core.runtime.device import autocast, check_precision, peak_memory_mb
+from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError, DataError, NonFiniteError
-from gpnerf_core.frames import FrameCache
-from gpnerf_core.profiling import stage
-from gpnerf_core.training.checkpoint import (
-    RunRecord,
-    check_resume_config,
-    load_weights,
-    read_checkpoint,
-    save_checkpoint,
-)
+from gpnerf_core.data.frames import FrameCache
+from gpnerf_core.runtime.profiling import stage
+from gpnerf_core.model.checkpoint import RunRecord, check_resume_config, load_weights, read_checkpoint, save_checkpoint
 from gpnerf_core.training.interrupt import StopRequest, TrainingInterrupted
 from gpnerf_core.training.loggers import ScalarLogger
 from gpnerf_core.training.resume import checkpoint_path, prune_checkpoints

@@ -49,7 +49,7 @@ class WeightAverage:
 
     def load_state_dict(self, state: Mapping[str, Any], source: str) -> None:
         """Restore an average written by ``state_dict``; ``source`` names the file in errors."""
-        from gpnerf_core.training.checkpoint import check_shapes
+        from gpnerf_core.model.checkpoint import check_shapes
 
         weights = state["weights"]
         if set(weights) != set(self.average):

@@ -54,7 +54,7 @@ def test_bench_bad_input_is_one_line(tmp_path):
 
 def profile(*args, cwd):
     env = dict(os.environ, GPNERF_DISABLE_PLUGIN_AUTOLOAD="1", GPNERF_CACHE=str(cwd / "cache"))
-    return subprocess.run([sys.executable, "-m", "gpnerf_core.bench.profile", *args], cwd=cwd, env=env,
+    return subprocess.run([sys.executable, "-m", "gpnerf_core.tools.bench.profile", *args], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=600)
 
 
@@ -85,7 +85,7 @@ def test_profile_prints_the_step_its_operators_and_its_stages(tmp_path):
 def test_stage_times_charge_backward_to_the_stage_whose_forward_made_it():
     from torch.profiler import profile as torch_profile
 
-    from gpnerf_core.profiling import GRADIENT_ACCUMULATION, stage, stage_times
+    from gpnerf_core.runtime.profiling import GRADIENT_ACCUMULATION, stage, stage_times
 
     weights = torch.randn(256, 256, requires_grad=True)
     with torch_profile() as profiler:
@@ -102,7 +102,7 @@ def test_stage_times_charge_backward_to_the_stage_whose_forward_made_it():
 
 def test_sweep_slopes_rows_and_chart(tmp_path):
     """The fitted slope is the log-log least-squares slope; rows carry every cost; the chart is a PNG."""
-    from gpnerf_core.bench.sweeps import SWEEPS, draw, fitted_slope, rows_of, slopes
+    from gpnerf_core.tools.bench.sweeps import SWEEPS, draw, fitted_slope, rows_of, slopes
 
     assert fitted_slope([64, 128, 256], [1.0, 2.0, 4.0]) == pytest.approx(1.0)
     assert fitted_slope([2, 4, 8], [3.0, 12.0, 48.0]) == pytest.approx(2.0)

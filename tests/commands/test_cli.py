@@ -61,7 +61,7 @@ def test_an_interruption_a_library_turned_into_its_own_error_still_stops_as_an_i
     import types
 
     from gpnerf_core import cli
-    from gpnerf_core.signals import Terminated, interrupted_by
+    from gpnerf_core.runtime.signals import Terminated, interrupted_by
 
     def main(argv):
         try:

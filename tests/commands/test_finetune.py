@@ -6,11 +6,11 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from gpnerf_core.build import build_model
-from gpnerf_core.config import compose
+from gpnerf_core.model.build import build_model
+from gpnerf_core.config.compose import compose
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.evaluation.curves import curve_points
-from gpnerf_core.training.finetuning import finetune_weights
+from gpnerf_core.model.finetuning import finetune_weights
 from pipeline_check import TINY_CLI as TINY, gpnerf
 
 def test_curve_points_run_from_zero_to_the_last_step():

@@ -4,7 +4,7 @@ import pytest
 import yaml
 
 from gpnerf_core.errors import DataError
-from gpnerf_core.reporting.runs import find_runs, format_table
+from gpnerf_core.tools.reporting.runs import find_runs, format_table
 
 
 def write_run(folder, loss, joint, miou, seed=0, head="unet"):
@@ -80,7 +80,7 @@ def test_a_schema_key_a_run_predates_counts_as_its_default(tmp_path):
 
 
 def test_the_pareto_front_keeps_the_methods_nothing_beats_on_both_axes():
-    from gpnerf_core.reporting.speed_accuracy import ACCURACY, COSTS, Method, Point, pareto_front
+    from gpnerf_core.tools.reporting.speed_accuracy import ACCURACY, COSTS, Method, Point, pareto_front
 
     miou, seconds, throughput = ACCURACY[0], COSTS[0], COSTS[1]
 
@@ -141,7 +141,7 @@ def test_report_chart_refuses_a_file_and_runs_with_nothing_to_draw(tmp_path):
 
 
 def test_chart_labels_name_the_method_and_tell_apart_two_variants_of_one():
-    from gpnerf_core.reporting.runs import find_runs, group_runs, method_labels
+    from gpnerf_core.tools.reporting.runs import find_runs, group_runs, method_labels
 
     import tempfile
     from pathlib import Path
@@ -164,7 +164,7 @@ def test_chart_labels_name_the_method_and_tell_apart_two_variants_of_one():
 def test_chart_labels_name_the_size_first_and_stay_unique(tmp_path):
     """Two sizes of one method: the legend names the model keys that differ (not the folders); a third variant that
     shares the first keys shown gets the key that tells it apart."""
-    from gpnerf_core.reporting.runs import find_runs, group_runs, method_labels
+    from gpnerf_core.tools.reporting.runs import find_runs, group_runs, method_labels
 
     dgs = {"name": "dgs", "sd_weight": 0.25, "dgs_weight": 0.25, "teacher_stop_grad": True}
     variants = {
@@ -191,7 +191,7 @@ def test_chart_labels_name_the_size_first_and_stay_unique(tmp_path):
 
 
 def test_a_third_party_head_shows_its_table4_switches_but_no_paper_number(tmp_path):
-    from gpnerf_core.reporting.runs import RunRow
+    from gpnerf_core.tools.reporting.runs import RunRow
 
     config = {"head": {"name": "fancy_head"}, "model": {"semantic_field": {"joint_attention": True}},
               "loss": {"name": "dgs", "sd_weight": 1.0, "dgs_weight": 0.5, "teacher_stop_grad": True}, "seed": 0}
@@ -220,7 +220,7 @@ def test_a_metrics_file_of_another_shape_is_one_line_naming_it(tmp_path, metrics
 def test_the_headline_panel_leads_the_chart_and_is_drawn_alone_too(tmp_path):
     from PIL import Image
 
-    from gpnerf_core.reporting.speed_accuracy import Method, Point, draw
+    from gpnerf_core.tools.reporting.speed_accuracy import Method, Point, draw
 
     def method(label, miou, seconds_per_frame):
         return Method(label, [0, 1], {"mIoU held-out": Point(miou, 0.01, 2), "rendering": Point(seconds_per_frame, 0.1, 2),

@@ -17,7 +17,7 @@ import pytest
 import torch
 
 from gpnerf_core.commands import report
-from gpnerf_core.overrides import merge_overrides
+from gpnerf_core.config.overrides import merge_overrides
 from gpnerf_plugins.datasets.embedded import CLASS_NAMES
 from pipeline_check import TINY_CLI
 from unlabelled_scenes import install

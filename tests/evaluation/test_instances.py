@@ -10,8 +10,8 @@ import pytest
 import torch
 from PIL import Image
 
-from gpnerf_core.build import build_components
-from gpnerf_core.config import compose
+from gpnerf_core.model.build import build_components
+from gpnerf_core.config.compose import compose
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.evaluation import instances as I
 from gpnerf_core.evaluation.visualize import colorize_instances

@@ -3,12 +3,12 @@
 import pytest
 import torch
 
-from gpnerf_core.build import build_components
-from gpnerf_core.config import compose
-from gpnerf_core.distributed import Distributed
+from gpnerf_core.model.build import build_components
+from gpnerf_core.config.compose import compose
+from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import NonFiniteError
 from gpnerf_core.evaluation.evaluator import evaluate
-from gpnerf_core.frames import FrameCache
+from gpnerf_core.data.frames import FrameCache
 from pipeline_check import TINY_MODEL, TINY_SCENES
 
 

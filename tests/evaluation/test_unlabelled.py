@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 import torch
 
-from gpnerf_core.build import build_components
-from gpnerf_core.config import compose
-from gpnerf_core.distributed import Distributed
+from gpnerf_core.model.build import build_components
+from gpnerf_core.config.compose import compose
+from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.evaluation import instances as I
 from gpnerf_core.evaluation import metrics as M
 from gpnerf_core.evaluation.evaluator import ViewRecord, evaluate, print_summary, summarize
 from gpnerf_core.evaluation.visualize import class_legend, label_palette
-from gpnerf_core.frames import FrameCache
+from gpnerf_core.data.frames import FrameCache
 from pipeline_check import TINY_MODEL, TINY_SCENES
 from unlabelled_scenes import UnlabelledScenes
 

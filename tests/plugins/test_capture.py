@@ -149,7 +149,7 @@ def test_size_scale_and_masks(embedded_scene, capture, tmp_path):
     assert torch.equal(frame.semantic[:, 32:], truth.semantic[:, 32:])
     assert torch.equal(frame.valid, torch.from_numpy(mask > 0))
     # training draws its rays only through the pixels the mask keeps
-    from gpnerf_core.frames import FrameCache
+    from gpnerf_core.data.frames import FrameCache
     from gpnerf_core.training.sampler import StepSampler
     from gpnerf_plugins.view_selectors.nearest import NearestViews
 

@@ -3,7 +3,8 @@
 One test item per component and check, at small sizes so the whole file stays fast.
 """
 
-from gpnerf_core.registry import BUILTIN_PLUGINS, KINDS
+from gpnerf_core.registry.plugins import BUILTIN_PLUGINS
+from gpnerf_core.registry.kinds import KINDS
 from gpnerf_core.testing import contract_checks, plugin_checks
 
 pytest_plugins = ["gpnerf_core.testing.pytest_plugin"]

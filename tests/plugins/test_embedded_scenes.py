@@ -14,7 +14,8 @@ import torch
 from PIL import Image
 
 from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_core.registry import collect, make_plugin_manager
+from gpnerf_core.registry.components import collect
+from gpnerf_core.registry.plugins import make_plugin_manager
 from gpnerf_core.types import Frame
 from gpnerf_plugins.datasets.embedded import (
     CLASS_NAMES,

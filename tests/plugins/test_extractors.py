@@ -10,7 +10,8 @@ import torch.nn.functional as F
 from omegaconf import OmegaConf
 
 from gpnerf_core.errors import ConfigError
-from gpnerf_core.registry import collect, make_plugin_manager
+from gpnerf_core.registry.components import collect
+from gpnerf_core.registry.plugins import make_plugin_manager
 from gpnerf_plugins.extractors.extractor import ResUNetFPN, ResUNetFPNConfig
 from gpnerf_plugins.extractors.fpn import concat_levels
 

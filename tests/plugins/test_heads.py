@@ -7,7 +7,8 @@ import torch
 from omegaconf import OmegaConf
 
 from gpnerf_core.errors import ConfigError
-from gpnerf_core.registry import collect, make_plugin_manager
+from gpnerf_core.registry.components import collect
+from gpnerf_core.registry.plugins import make_plugin_manager
 from gpnerf_plugins.extractors.fpn import concat_levels
 from gpnerf_plugins.heads.per_pixel import PerPixelHead, PerPixelHeadConfig
 from gpnerf_plugins.heads.unet import ConvGNReLU, UNetHead, UNetHeadConfig, split_levels

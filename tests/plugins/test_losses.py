@@ -11,7 +11,8 @@ import torch.nn.functional as F
 from omegaconf import OmegaConf
 
 from gpnerf_core.errors import ConfigError
-from gpnerf_core.registry import collect, make_plugin_manager
+from gpnerf_core.registry.components import collect
+from gpnerf_core.registry.plugins import make_plugin_manager
 from gpnerf_core.types import LossInputs, RaySamples, RenderedRays
 from gpnerf_plugins.losses.sets import (
     CeLossConfig,

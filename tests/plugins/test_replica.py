@@ -223,7 +223,8 @@ def test_configs_are_structured_and_match_the_constructors():
 
 
 def test_a_registry_builds_both_datasets_from_config_nodes(replica_root):
-    from gpnerf_core.registry import ComponentSpec, PluginInfo, Registry
+    from gpnerf_core.registry.components import ComponentSpec, Registry
+    from gpnerf_core.registry.plugins import PluginInfo
 
     registry = Registry()
     for name, cls, config in (

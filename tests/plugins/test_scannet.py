@@ -541,9 +541,9 @@ def test_scannet_trains_and_evaluates_through_the_unchanged_pipeline(root, tmp_p
 
 
 def test_instance_head_trains_and_evaluates_on_scannet_instance_maps(tmp_path):
-    from gpnerf_core.build import build_components
-    from gpnerf_core.config import compose
-    from gpnerf_core.distributed import Distributed
+    from gpnerf_core.model.build import build_components
+    from gpnerf_core.config.compose import compose
+    from gpnerf_core.runtime.distributed import Distributed
     from gpnerf_core.evaluation.evaluator import evaluate
     from pipeline_check import TINY_MODEL, make_trainer
 

@@ -10,7 +10,8 @@ from torch import nn
 
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.interfaces import FieldAggregator, RayAggregator
-from gpnerf_core.registry import collect, make_plugin_manager
+from gpnerf_core.registry.components import collect
+from gpnerf_core.registry.plugins import make_plugin_manager
 from gpnerf_core.types import ProjectedFeatures, RayBatch, RaySamples
 from gpnerf_plugins.transformers import (
     GNTRayTransformer,

@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from gpnerf_core.errors import ConfigError, DataError, NonFiniteError
-from gpnerf_core.registry import collect, make_plugin_manager
+from gpnerf_core.registry.components import collect
+from gpnerf_core.registry.plugins import make_plugin_manager
 from gpnerf_plugins.view_selectors.nearest import NearestViews, NearestViewsConfig
 
 

@@ -9,14 +9,14 @@ from pathlib import Path
 import pytest
 import torch
 
-from gpnerf_core.build import build_components
-from gpnerf_core.config import compose
+from gpnerf_core.model.build import build_components
+from gpnerf_core.config.compose import compose
 from gpnerf_core.errors import ConfigError
-from gpnerf_core.sizing.costs import StaticCost
-from gpnerf_core.sizing.knobs import knob_levels
-from gpnerf_core.sizing.options import parse_size_options, resolve_metric
-from gpnerf_core.sizing.scene import _seen_by, measure_scenes
-from gpnerf_core.sizing.search import Trial, choose, descend, describe, knob_order
+from gpnerf_core.tools.sizing.costs import StaticCost
+from gpnerf_core.tools.sizing.knobs import knob_levels
+from gpnerf_core.tools.sizing.options import parse_size_options, resolve_metric
+from gpnerf_core.tools.sizing.scene import _seen_by, measure_scenes
+from gpnerf_core.tools.sizing.search import Trial, choose, descend, describe, knob_order
 from gpnerf_core.types import Frame
 from pipeline_check import TINY_CLI, TINY_MODEL, TINY_SCENES, child_pids, gpnerf
 
@@ -137,7 +137,7 @@ def test_the_descent_keeps_levels_within_tolerance_and_builds_on_them():
 
 
 def test_a_failed_trial_ends_its_knob_and_a_failed_reference_raises():
-    from gpnerf_core.sizing.search import ReferenceFailed
+    from gpnerf_core.tools.sizing.search import ReferenceFailed
 
     trials = descend(LEVELS, list(LEVELS), _cost, _trainer({"the reference": 0.7}), tolerance=0.02)
     assert [t.name for t in trials] == ["reference", "coarse samples 18", "transformer width 24"]

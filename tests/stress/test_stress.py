@@ -7,14 +7,15 @@ from dataclasses import replace
 import pytest
 import torch
 
-from gpnerf_core.build import build_components
-from gpnerf_core.config import compose
+from gpnerf_core.model.build import build_components
+from gpnerf_core.config.compose import compose
 from gpnerf_core.errors import NonFiniteError
-from gpnerf_core.frames import FrameCache
+from gpnerf_core.data.frames import FrameCache
 from gpnerf_core.interfaces import StressCase
-from gpnerf_core.registry import PluginInfo, collect, get_registry, make_plugin_manager
-from gpnerf_core.stress.runner import Outcome
-from gpnerf_core.stress.summary import StressSummary
+from gpnerf_core.registry.plugins import PluginInfo, make_plugin_manager
+from gpnerf_core.registry.components import collect, get_registry
+from gpnerf_core.tools.stress.runner import Outcome
+from gpnerf_core.tools.stress.summary import StressSummary
 from gpnerf_core import hookimpl
 from gpnerf_plugins.stress.geometry_cases import Baseline, OneWrongCamera, random_rotations
 from gpnerf_plugins.stress.image_cases import Blur, Exposure, GaussianNoise, Jpeg, blur

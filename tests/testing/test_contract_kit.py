@@ -25,7 +25,7 @@ from gpnerf_core import (
     hookimpl,
 )
 from gpnerf_core.errors import ConfigError
-from gpnerf_core.registry import KINDS, RUNTIME_ARGUMENTS
+from gpnerf_core.registry.kinds import KINDS
 from gpnerf_core.testing import CHECKS, ContractError, check_plugin, plugin_checks
 from gpnerf_core.testing.checks import RUNTIME
 from gpnerf_core.types import FeatureMaps, FieldBlockOutput, HeadOutput, RayBlockOutput, RayReadout
@@ -40,7 +40,7 @@ def plugin(kind, *specs, module_name="kit_test_plugin"):
     def register():
         return [ComponentSpec(name, factory, config) for name, factory, config in specs]
 
-    setattr(module, KINDS[kind], hookimpl(register))
+    setattr(module, KINDS[kind].hook, hookimpl(register))
     return module
 
 
@@ -472,7 +472,7 @@ def test_a_dataset_that_needs_files_skips_its_class_check():
 
 
 def test_the_kit_passes_the_pipelines_runtime_arguments():
-    assert {kind: tuple(RUNTIME[kind]) for kind in KINDS} == RUNTIME_ARGUMENTS
+    assert {kind: tuple(RUNTIME[kind]) for kind in KINDS} == {k: v.runtime_arguments for k, v in KINDS.items()}
     assert set(CHECKS) == set(KINDS)
 
 

@@ -8,11 +8,11 @@ make a meta tensor and fail as soon as it met a real one. With a GPU present the
 import pytest
 import torch
 
-from gpnerf_core.build import build_components
-from gpnerf_core.config import compose
-from gpnerf_core.distributed import Distributed
+from gpnerf_core.model.build import build_components
+from gpnerf_core.config.compose import compose
+from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.evaluation.evaluator import evaluate
-from gpnerf_core.frames import choose_sources
+from gpnerf_core.data.frames import choose_sources
 from pipeline_check import TINY_MODEL, TINY_SCENES, make_trainer
 
 

@@ -3,10 +3,10 @@
 import pytest
 import torch
 
-from gpnerf_core.build import build_model
-from gpnerf_core.config import compose
+from gpnerf_core.model.build import build_model
+from gpnerf_core.config.compose import compose
 from gpnerf_core.errors import DataError
-from gpnerf_core.training.init_weights import init_weights
+from gpnerf_core.model.init_weights import init_weights
 from pipeline_check import TINY_MODEL
 
 

@@ -8,8 +8,8 @@ and at least 85% of the head's per-pixel classes unchanged. bfloat16 keeps 8 man
 import pytest
 import torch
 
-from gpnerf_core.config import compose
-from gpnerf_core.device import autocast
+from gpnerf_core.config.compose import compose
+from gpnerf_core.runtime.device import autocast
 from gpnerf_core.errors import ConfigError
 from pipeline_check import make_trainer
 

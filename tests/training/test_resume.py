@@ -7,11 +7,11 @@ import pytest
 import torch
 from omegaconf import open_dict
 
-from gpnerf_core.config import compose
-from gpnerf_core.distributed import Distributed
+from gpnerf_core.config.compose import compose
+from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_core.jobs import plan_resume
-from gpnerf_core.training.checkpoint import content_digest, read_checkpoint
+from gpnerf_core.engine.jobs import plan_resume
+from gpnerf_core.model.checkpoint import content_digest, read_checkpoint
 from gpnerf_core.training.resume import newest_intact_checkpoint, run_checkpoints
 from pipeline_check import TINY_MODEL, TINY_SCENES, make_trainer
 

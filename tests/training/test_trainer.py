@@ -5,11 +5,11 @@ from pathlib import Path
 import pytest
 import torch
 
-from gpnerf_core.build import build_components
-from gpnerf_core.config import compose
+from gpnerf_core.model.build import build_components
+from gpnerf_core.config.compose import compose
 from gpnerf_core.errors import ConfigError, DataError, NonFiniteError
 from gpnerf_core.interfaces import LossSet
-from gpnerf_core.training.checkpoint import read_checkpoint
+from gpnerf_core.model.checkpoint import read_checkpoint
 from gpnerf_core.training.trainer import loss_inputs
 from gpnerf_core.types import StepBatch
 from pipeline_check import TINY_MODEL, TINY_SCENES, make_trainer
@@ -282,7 +282,7 @@ def test_an_unknown_compile_backend_is_one_line_naming_the_key(tmp_path):
 
 def _straightforward_terms(trainer, view):
     """The step computed the plain way: one extractor pass over sources and target together, nothing skipped."""
-    from gpnerf_core.fusion import cells_of_pixels, fuse_rendered, gather_cells
+    from gpnerf_core.model.fusion import cells_of_pixels, fuse_rendered, gather_cells
     from gpnerf_core.geometry import rays_through_pixels
     from gpnerf_core.types import FeatureMaps, ViewOutput
 

@@ -5,9 +5,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from gpnerf_core.config import compose
+from gpnerf_core.config.compose import compose
 from gpnerf_core.errors import ConfigError
-from gpnerf_core.training.checkpoint import evaluation_weights, read_checkpoint
+from gpnerf_core.model.checkpoint import evaluation_weights, read_checkpoint
 from gpnerf_core.training.weight_average import WeightAverage
 from pipeline_check import TINY_MODEL, TINY_SCENES, make_trainer
 

@@ -3,11 +3,11 @@
 import pytest
 import torch
 
-from gpnerf_core.build import build_components
-from gpnerf_core.config import compose
-from gpnerf_core.frames import FrameCache
-from gpnerf_core.viewer.camera import vertical_fov, viser_pose
-from gpnerf_core.viewer.renderer import SceneRenderer, ViewRequest
+from gpnerf_core.model.build import build_components
+from gpnerf_core.config.compose import compose
+from gpnerf_core.data.frames import FrameCache
+from gpnerf_core.tools.viewer.camera import vertical_fov, viser_pose
+from gpnerf_core.tools.viewer.renderer import SceneRenderer, ViewRequest
 from pipeline_check import TINY_MODEL, TINY_SCENES
 
 

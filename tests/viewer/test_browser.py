@@ -18,7 +18,7 @@ import pytest
 from PIL import Image
 from websockets.sync.client import connect
 
-from gpnerf_core.viewer.server import ViewerOptions, ViewerServer
+from gpnerf_core.tools.viewer.server import ViewerOptions, ViewerServer
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 pytestmark = pytest.mark.skipif(

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from gpnerf_core.viewer.camera import (
+from gpnerf_core.tools.viewer.camera import (
     rotation_from_wxyz,
     vertical_fov,
     view_from_viser,

@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from gpnerf_core.errors import DataError
-from gpnerf_core.feature_cache import SourceFeatureCache
-from gpnerf_core.frames import FrameCache
-from gpnerf_core.viewer.renderer import ProgressiveRenderer, SceneRenderer, ViewRequest, highlight_class
-from gpnerf_core.viewer.server import ViewerOptions, ViewerServer
+from gpnerf_core.model.feature_cache import SourceFeatureCache
+from gpnerf_core.data.frames import FrameCache
+from gpnerf_core.tools.viewer.renderer import ProgressiveRenderer, SceneRenderer, ViewRequest, highlight_class
+from gpnerf_core.tools.viewer.server import ViewerOptions, ViewerServer
 
 
 def test_a_camera_at_a_frame_is_that_frame_rendered_as_evaluation_does_and_compared_with_it(tiny, at_frame):

@@ -14,7 +14,7 @@ from viser import _messages
 from websockets.sync.client import connect
 
 from gpnerf_core.errors import ConfigError
-from gpnerf_core.viewer.server import ViewerOptions, ViewerServer, check_port_free, depth_points
+from gpnerf_core.tools.viewer.server import ViewerOptions, ViewerServer, check_port_free, depth_points
 
 OPTIONS = dict(host="127.0.0.1", port=0, scene="layout_00", scenes=("unseen_00", "layout_00"), stride=2,
                preview_stride=8, source_views=2, class_names=("floor", "wall"))

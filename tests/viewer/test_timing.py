@@ -1,6 +1,6 @@
-"""``python -m gpnerf_core.viewer.timing``: the preview and full-frame seconds docs/viewer.md reports."""
+"""``python -m gpnerf_core.tools.viewer.timing``: the preview and full-frame seconds docs/viewer.md reports."""
 
-from gpnerf_core.viewer.timing import measure
+from gpnerf_core.tools.viewer.timing import measure
 from pipeline_check import TINY_MODEL, TINY_SCENES
 
 

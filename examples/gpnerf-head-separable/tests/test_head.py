@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from gpnerf_core.errors import ConfigError
+from gpnerf_core import ConfigError
 from gpnerf_head_separable.head import SeparableHead
 
 SIZES = dict(in_dim=16, in_levels=4, num_outputs=5, channels=8, kernel_size=3, norm_groups=2)

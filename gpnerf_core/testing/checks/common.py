@@ -11,8 +11,8 @@ import torch
 from omegaconf import OmegaConf
 from torch import Tensor, nn
 
-from gpnerf_core.registry import RegisteredComponent, Registry
-from gpnerf_core.registry import one_line
+from gpnerf_core.registry.components import RegisteredComponent, Registry
+from gpnerf_core.registry.plugins import one_line
 
 Outputs = dict[str, Tensor]
 """Named output tensors of one call of a component (``logits``, ``block 0 view_attention``, ...)."""
@@ -35,7 +35,7 @@ class Subject:
         entry: the registry's record (spec, provider, version).
         registry: the registry it came from (builds it the way the pipeline does).
         config: config fields that replace the dataclass defaults (small sizes for a fast check).
-        runtime: the keyword arguments the pipeline would pass (``RUNTIME_ARGUMENTS``), at the kit's sizes.
+        runtime: the keyword arguments the pipeline would pass (``ComponentKind.runtime_arguments``), at the kit's sizes.
     """
 
     kind: str

@@ -11,7 +11,7 @@ from typing import Any, Callable
 import torch
 
 from gpnerf_core.interfaces import StressCase
-from gpnerf_core.registry import stress_case_problem
+from gpnerf_core.registry.components import stress_case_problem
 from gpnerf_core.testing.checks.common import call, expect
 from gpnerf_core.testing.inputs import cameras, generator
 from gpnerf_core.types import Scene, SourceViews

@@ -5,8 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable
 
-from gpnerf_core.arguments import ArgumentParser
-from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core import ArgumentParser, ConfigError, DataError
 from gpnerf_plugins.datasets.common.layout_check import LayoutReport
 from gpnerf_plugins.datasets.common.pose_report import RayRange
 

@@ -8,9 +8,7 @@ from typing import Any, Mapping, Sequence
 import torch.nn.functional as F
 from torch import Tensor
 
-from gpnerf_core.errors import ConfigError
-from gpnerf_core.interfaces import FeatureExtractor, ImportedWeights
-from gpnerf_core.types import FeatureMaps
+from gpnerf_core import ConfigError, FeatureExtractor, FeatureMaps, ImportedWeights
 from gpnerf_plugins.extractors.fpn import FPN, concat_levels
 from gpnerf_plugins.extractors.resunet import ResUNet
 

@@ -7,9 +7,7 @@ from abc import abstractmethod
 import torch.nn.functional as F
 from torch import Tensor
 
-from gpnerf_core.errors import ConfigError
-from gpnerf_core.interfaces import PerceptionHead
-from gpnerf_core.types import HeadOutput
+from gpnerf_core import ConfigError, HeadOutput, PerceptionHead
 
 
 class ResizingHead(PerceptionHead):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from gpnerf_core.errors import ConfigError
+from gpnerf_core import ConfigError
 from gpnerf_plugins.heads.unet import UNetHead
 
 

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 from torch import Tensor, nn
 
-from gpnerf_core.errors import ConfigError
+from gpnerf_core import ConfigError
 from gpnerf_plugins.heads.base import ResizingHead
 
 

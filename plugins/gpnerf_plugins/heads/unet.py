@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from gpnerf_core.errors import ConfigError
+from gpnerf_core import ConfigError
 from gpnerf_plugins.heads.base import ResizingHead
 
 DECODERS = ("unet", "semantic_fpn")

@@ -13,9 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from gpnerf_core.errors import ConfigError
-from gpnerf_core.evaluation.instances import hungarian, instance_masks
-from gpnerf_core.types import LossInputs
+from gpnerf_core import ConfigError, LossInputs, hungarian, instance_masks
 from gpnerf_plugins.losses.sets import LossSetConfig, WeightedLossSet
 
 LOG_ONE_MINUS_FLOOR = 1e-7

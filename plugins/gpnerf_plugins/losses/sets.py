@@ -25,9 +25,7 @@ from typing import Mapping
 
 from torch import Tensor
 
-from gpnerf_core.errors import ConfigError
-from gpnerf_core.interfaces import LossSet
-from gpnerf_core.types import LossInputs
+from gpnerf_core import ConfigError, LossInputs, LossSet
 from gpnerf_plugins.losses.terms import (
     centre_from_depth,
     centre_from_weights,

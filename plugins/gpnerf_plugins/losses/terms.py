@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from gpnerf_core.errors import ConfigError
+from gpnerf_core import ConfigError
 
 
 def rgb_mse(pred: Tensor, target: Tensor) -> Tensor:

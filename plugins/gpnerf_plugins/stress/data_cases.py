@@ -4,8 +4,7 @@ from __future__ import annotations
 
 from typing import Any, Sequence
 
-from gpnerf_core.interfaces import StressCase
-from gpnerf_core.types import Scene
+from gpnerf_core import Scene, StressCase
 
 
 class Textureless(StressCase):

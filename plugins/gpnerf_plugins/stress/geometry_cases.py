@@ -9,9 +9,7 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor
 
-from gpnerf_core.interfaces import StressCase
-from gpnerf_core.interfaces.stress import ChooseSources
-from gpnerf_core.types import Scene, SourceViews
+from gpnerf_core import ChooseSources, Scene, SourceViews, StressCase
 
 
 def source_candidates(scene: Scene, target: int) -> list[int]:

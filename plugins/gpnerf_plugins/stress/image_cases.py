@@ -9,8 +9,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from gpnerf_core.interfaces import StressCase
-from gpnerf_core.types import SourceViews
+from gpnerf_core import SourceViews, StressCase
 
 
 class GaussianNoise(StressCase):

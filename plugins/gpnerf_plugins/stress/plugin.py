@@ -1,7 +1,6 @@
 """Registers the built-in stress cases."""
 
-from gpnerf_core import hookimpl
-from gpnerf_core.interfaces import StressCase
+from gpnerf_core import StressCase, hookimpl
 from gpnerf_plugins.stress.data_cases import Textureless, UnseenScenes
 from gpnerf_plugins.stress.geometry_cases import (
     Baseline,

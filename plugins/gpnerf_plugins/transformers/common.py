@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from gpnerf_core.errors import ConfigError
+from gpnerf_core import ConfigError
 
 # GNT's mask value. float16 cannot hold it, so ``masking_value`` clamps it to the dtype's range.
 MASK_VALUE = -1e9

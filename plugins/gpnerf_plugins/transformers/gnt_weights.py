@@ -11,7 +11,7 @@ from typing import Any, Mapping
 
 from torch import Tensor
 
-from gpnerf_core.interfaces import ImportedWeights
+from gpnerf_core import ImportedWeights
 
 # GNT checkpoint prefix -> (target, prefix in our module). GNT renamed its block lists between versions:
 # ``view_crosstrans``/``view_selftrans`` (released checkpoints, GP-NeRF) and ``view_trans``/``ray_trans``.

@@ -15,9 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_core.interfaces import ImportedWeights, RayAggregator
-from gpnerf_core.types import RayBlockOutput, RayReadout
+from gpnerf_core import ConfigError, DataError, ImportedWeights, RayAggregator, RayBlockOutput, RayReadout
 from gpnerf_plugins.transformers.common import FeedForward, check_dropout, check_positive, maybe_dropout
 from gpnerf_plugins.transformers.gnt_weights import import_gnt_transformer
 

@@ -18,9 +18,16 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_core.interfaces import FieldAggregator, ImportedWeights
-from gpnerf_core.types import FieldBlockOutput, ProjectedFeatures, RayBatch, RaySamples
+from gpnerf_core import (
+    ConfigError,
+    DataError,
+    FieldAggregator,
+    FieldBlockOutput,
+    ImportedWeights,
+    ProjectedFeatures,
+    RayBatch,
+    RaySamples,
+)
 from gpnerf_plugins.transformers.common import (
     FeedForward,
     check_dropout,

@@ -8,8 +8,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from gpnerf_core.errors import ConfigError, DataError, NonFiniteError
-from gpnerf_core.interfaces import ViewSelector
+from gpnerf_core import ConfigError, DataError, NonFiniteError, ViewSelector
 
 
 @dataclass

@@ -7,9 +7,7 @@ from dataclasses import dataclass
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from gpnerf_core import PerceptionHead
-from gpnerf_core.errors import ConfigError
-from gpnerf_core.types import HeadOutput
+from gpnerf_core import ConfigError, HeadOutput, PerceptionHead
 
 
 @dataclass

@@ -12,9 +12,7 @@ from dataclasses import dataclass
 import torch.nn.functional as F
 from torch import Tensor
 
-from gpnerf_core import LossSet, get_registry
-from gpnerf_core.errors import ConfigError
-from gpnerf_core.types import LossInputs
+from gpnerf_core import ConfigError, LossInputs, LossSet, get_registry
 
 
 @dataclass

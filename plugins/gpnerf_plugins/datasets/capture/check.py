@@ -4,8 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from gpnerf_core.data_checks import check_scene_files
-from gpnerf_core.errors import GpnerfError
+from gpnerf_core import GpnerfError, check_scene_files
 from gpnerf_plugins.datasets.capture.dataset import CaptureScenes
 from gpnerf_plugins.datasets.capture.transforms import TRANSFORMS_FILE
 from gpnerf_plugins.datasets.common.layout_check import LayoutReport, Problem

@@ -36,9 +36,7 @@ import numpy as np
 from PIL import Image
 from tqdm import tqdm
 
-from gpnerf_core.arguments import ArgumentParser
-from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_core.io import atomic_write_json
+from gpnerf_core import ArgumentParser, ConfigError, DataError, atomic_write_json
 from gpnerf_plugins.datasets.capture.staging import check_destination, staged
 from gpnerf_plugins.datasets.common.image_io import decode_image, image_size, one_line_error
 

@@ -16,10 +16,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from gpnerf_core.data_checks import check_validation_level
-from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_core.interfaces import SPLITS, SceneDataset
-from gpnerf_core.types import Frame, Scene
+from gpnerf_core import SPLITS, ConfigError, DataError, Frame, Scene, SceneDataset, check_validation_level
 from gpnerf_plugins.datasets.base import DatasetConfig
 from gpnerf_plugins.datasets.capture.transforms import TRANSFORMS_FILE, CaptureFile, CaptureFrame, read_transforms
 from gpnerf_plugins.datasets.capture.undistort import Undistorter

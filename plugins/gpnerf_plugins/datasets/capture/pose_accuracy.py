@@ -29,7 +29,7 @@ import numpy as np
 from scipy.spatial.distance import pdist
 from scipy.spatial.transform import Rotation
 
-from gpnerf_core.errors import DataError
+from gpnerf_core import DataError
 from gpnerf_plugins.datasets.capture.colmap_import import TRANSFORMS_FILE, load_pycolmap
 from gpnerf_plugins.datasets.capture.prepare import build_parser, prepare_capture
 from gpnerf_plugins.datasets.embedded import HFOV_DEG, SEQUENCE, SceneSetParams, ensure_generated

@@ -31,8 +31,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from gpnerf_core.arguments import ArgumentParser
-from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core import ArgumentParser, ConfigError, DataError
 from gpnerf_plugins.datasets.capture import video_frames
 from gpnerf_plugins.datasets.capture.colmap_import import (
     NEAR_FAR_RULE,

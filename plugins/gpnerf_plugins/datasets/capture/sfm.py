@@ -21,7 +21,7 @@ from typing import Any, Callable
 
 from tqdm import tqdm
 
-from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core import ConfigError, DataError
 from gpnerf_plugins.datasets.capture.colmap_import import load_pycolmap
 from gpnerf_plugins.datasets.common.image_io import one_line_error
 

@@ -14,7 +14,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from gpnerf_core.errors import DataError
+from gpnerf_core import DataError
 
 
 def check_destination(out: Path, *, overwrite: bool, inputs: Sequence[Path] = ()) -> Path:

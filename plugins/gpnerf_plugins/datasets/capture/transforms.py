@@ -27,8 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from gpnerf_core.errors import DataError
-from gpnerf_core.geometry import EXPECTED_RIGID, rigid_transform_problem
+from gpnerf_core import EXPECTED_RIGID, DataError, rigid_transform_problem
 from gpnerf_plugins.datasets.common.image_io import image_size
 
 TRANSFORMS_FILE = "transforms.json"

@@ -17,7 +17,7 @@ from PIL import Image
 from scipy import ndimage
 from tqdm import tqdm
 
-from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core import ConfigError, DataError
 from gpnerf_plugins.datasets.capture.colmap_import import IMAGE_SUFFIXES, natural_key
 from gpnerf_plugins.datasets.common.image_io import decode_image, image_size, one_line_error
 

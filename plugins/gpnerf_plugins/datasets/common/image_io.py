@@ -14,7 +14,7 @@ from PIL import Image
 from skimage import io as skio
 from skimage.transform import resize as sk_resize
 
-from gpnerf_core.errors import DataError
+from gpnerf_core import DataError
 
 
 def one_line_error(exc: BaseException) -> str:

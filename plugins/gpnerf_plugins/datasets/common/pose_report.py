@@ -1,4 +1,4 @@
-"""Pose sanity in a layout checker's report: what ``gpnerf_core.pose_sanity`` finds in one scene's cameras."""
+"""Pose sanity in a layout checker's report: what ``gpnerf_core.geometry.pose_sanity`` finds in one scene's cameras."""
 
 from __future__ import annotations
 
@@ -9,8 +9,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from gpnerf_core.errors import GpnerfError
-from gpnerf_core.pose_sanity import check_poses
+from gpnerf_core import GpnerfError, check_poses
 from gpnerf_plugins.datasets.common.layout_check import LayoutReport, Problem
 
 

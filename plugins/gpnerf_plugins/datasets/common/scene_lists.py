@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Sequence
 
-from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core import ConfigError, DataError
 
 SHOWN = 12  # folder names listed in a missing-scene error
 

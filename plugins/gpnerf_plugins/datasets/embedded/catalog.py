@@ -7,7 +7,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from gpnerf_core.errors import DataError
+from gpnerf_core import DataError
 
 CLASS_NAMES: tuple[str, ...] = (
     "floor",

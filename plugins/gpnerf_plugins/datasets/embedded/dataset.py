@@ -11,10 +11,7 @@ from typing import Sequence
 
 import numpy as np
 
-from gpnerf_core.data_checks import check_scene_files, check_validation_level
-from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_core.interfaces import SPLITS, SceneDataset
-from gpnerf_core.types import Scene
+from gpnerf_core import SPLITS, ConfigError, DataError, Scene, SceneDataset, check_scene_files, check_validation_level
 from gpnerf_plugins.datasets.base import DatasetConfig
 from gpnerf_plugins.datasets.common.paths import from_launch_dir
 from gpnerf_plugins.datasets.common.scene_lists import chosen_scenes, disjoint_unseen

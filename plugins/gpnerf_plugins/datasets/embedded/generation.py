@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from gpnerf_core.errors import ConfigError, DataError, GpnerfError
+from gpnerf_core import ConfigError, DataError, GpnerfError
 from gpnerf_plugins.datasets.embedded.catalog import BACKGROUND_INSTANCE, CLASS_NAMES, IGNORE_INDEX
 from gpnerf_plugins.datasets.embedded.layout import sample_layout
 from gpnerf_plugins.datasets.embedded.render import RoomRenderer, unit_extents

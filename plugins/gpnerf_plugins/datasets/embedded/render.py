@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gpnerf_core.errors import DataError
+from gpnerf_core import DataError
 from gpnerf_plugins.datasets.embedded.catalog import (
     ASSETS,
     BACKGROUND_INSTANCE,

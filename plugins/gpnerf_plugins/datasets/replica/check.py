@@ -2,7 +2,7 @@
 
 They walk every scene (and sequence), decode every file and report each problem with its file, frame, what the
 layout expects and what was found, instead of stopping at the first one as the loaders do. Given the ray range, they
-also report each sequence's pose findings (``gpnerf_core.pose_sanity``) with the frame numbers.
+also report each sequence's pose findings (``gpnerf_core.geometry.pose_sanity``) with the frame numbers.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gpnerf_core.geometry import EXPECTED_RIGID, rigid_transform_problem
+from gpnerf_core import EXPECTED_RIGID, rigid_transform_problem
 from gpnerf_plugins.datasets.common.image_io import ImageError, describe, is_integer_map, is_rgb8, one_line_error, read_png
 from gpnerf_plugins.datasets.common.layout_check import LayoutReport, Problem
 from gpnerf_plugins.datasets.common.pose_report import RayRange, report_poses

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gpnerf_core.errors import DataError
+from gpnerf_core import DataError
 
 IGNORE_INDEX = 255
 """Label value of pixels whose raw id is not one of the 51 valid ids."""

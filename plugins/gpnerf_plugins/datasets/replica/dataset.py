@@ -27,10 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-from gpnerf_core.data_checks import check_validation_level
-from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_core.interfaces import SPLITS, SceneDataset
-from gpnerf_core.types import Frame, Scene
+from gpnerf_core import SPLITS, ConfigError, DataError, Frame, Scene, SceneDataset, check_validation_level
 from gpnerf_plugins.datasets.base import DatasetConfig
 from gpnerf_plugins.datasets.common.paths import from_launch_dir
 from gpnerf_plugins.datasets.common.scene_lists import chosen_scenes, disjoint_unseen, missing_scene

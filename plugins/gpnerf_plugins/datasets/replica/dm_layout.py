@@ -19,7 +19,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from gpnerf_core.errors import DataError
+from gpnerf_core import DataError
 from gpnerf_plugins.datasets.replica.layout import RGB_DIR, ReplicaSequence
 
 

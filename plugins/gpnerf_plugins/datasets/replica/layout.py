@@ -25,9 +25,7 @@ from typing import Callable, Sequence, Union
 import numpy as np
 import torch
 
-from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_core.geometry import EXPECTED_RIGID, rigid_transform_problem
-from gpnerf_core.types import Frame, Scene
+from gpnerf_core import EXPECTED_RIGID, ConfigError, DataError, Frame, Scene, rigid_transform_problem
 from gpnerf_plugins.datasets.common.image_io import (
     image_size,
     read_integer_png,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from importlib import resources
 
-from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core import ConfigError, DataError
 
 SPLITS_PACKAGE = "gpnerf_plugins.datasets"
 SPLITS_FOLDER = "splits"

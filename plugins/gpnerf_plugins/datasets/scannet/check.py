@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from gpnerf_core.errors import DataError
+from gpnerf_core import DataError
 from gpnerf_plugins.datasets.common.image_io import one_line_error
 from gpnerf_plugins.datasets.common.layout_check import LayoutReport
 from gpnerf_plugins.datasets.common.pose_report import RayRange, report_poses
@@ -215,7 +215,7 @@ def check_scannet_layout(
     ``histogram_every``-th frame of each scene are decoded for the class histogram (20 classes + ignore). A scene
     whose ``instance-filt/`` lacks a frame's PNG is a problem; a scene without the folder is fine. Invalid poses
     and label ids the tsv lacks are notes, not problems: the loader handles them. With ``rays``, the frames with a
-    valid pose get pose sanity (``gpnerf_core.pose_sanity``, colour intrinsics at the colour size): a scale that
+    valid pose get pose sanity (``gpnerf_core.geometry.pose_sanity``, colour intrinsics at the colour size): a scale that
     refuses is a problem, other findings are notes naming the frame.
 
     Args:

@@ -11,10 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
-from gpnerf_core.data_checks import check_validation_level
-from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_core.interfaces import SPLITS, SceneDataset
-from gpnerf_core.types import Scene
+from gpnerf_core import SPLITS, ConfigError, DataError, Scene, SceneDataset, check_validation_level
 from gpnerf_plugins.datasets.base import DatasetConfig
 from gpnerf_plugins.datasets.scannet.check import check_scannet_layout
 from gpnerf_plugins.datasets.scannet.files import SCENE_NAME

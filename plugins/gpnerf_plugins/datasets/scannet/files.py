@@ -24,8 +24,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from gpnerf_core.errors import DataError
-from gpnerf_core.geometry import EXPECTED_RIGID, rigid_transform_problem
+from gpnerf_core import EXPECTED_RIGID, DataError, rigid_transform_problem
 from gpnerf_plugins.datasets.common import image_io
 from gpnerf_plugins.datasets.common.image_io import ImageError
 from gpnerf_plugins.datasets.common.layout_check import Problem

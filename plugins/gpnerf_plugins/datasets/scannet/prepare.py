@@ -23,8 +23,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from gpnerf_core.arguments import ArgumentParser
-from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core import ArgumentParser, ConfigError, DataError
 from gpnerf_plugins.datasets.scannet.files import (
     COLOR_DIR,
     DEPTH_DIR,

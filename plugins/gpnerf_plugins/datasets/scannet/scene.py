@@ -25,8 +25,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from gpnerf_core.errors import ConfigError
-from gpnerf_core.types import Frame, Scene
+from gpnerf_core import ConfigError, Frame, Scene
 from gpnerf_plugins.datasets.common.cameras import scale_intrinsics
 from gpnerf_plugins.datasets.common.image_io import resize_nearest
 from gpnerf_plugins.datasets.scannet.files import (

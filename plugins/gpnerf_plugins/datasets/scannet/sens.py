@@ -38,7 +38,7 @@ from typing import BinaryIO, Iterator
 
 import numpy as np
 
-from gpnerf_core.errors import DataError
+from gpnerf_core import DataError
 
 SENS_VERSION = 4
 COLOR_COMPRESSION = {-1: "unknown", 0: "raw", 1: "png", 2: "jpeg"}

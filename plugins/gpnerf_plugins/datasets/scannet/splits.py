@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from importlib import resources
 
-from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core import ConfigError, DataError
 from gpnerf_plugins.datasets.scannet.files import SCENE_NAME
 
 SPLIT_FILES = {"train": "scannet_train.txt", "test": "scannet_test.txt", "val": "scannet_val.txt"}

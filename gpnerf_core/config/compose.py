@@ -1,0 +1,46 @@
+"""The primary config composed without running it, and what Hydra needs to compose it (the config folder, the schema,
+the run-folder resolver)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from gpnerf_core.config.schema import RootConfig
+
+
+def config_dir() -> str:
+    """The folder of the primary config (``conf/``, installed as the package ``gpnerf_conf``)."""
+    import gpnerf_conf
+
+    return str(Path(gpnerf_conf.__file__).resolve().parent)
+
+
+def run_dir_resolver(out_dir: str, default: str) -> str:
+    """``hydra.run.dir``: ``out_dir`` when set, else Hydra's dated default, so nothing lands under ``outputs/``."""
+    return out_dir or default
+
+
+def register_schema() -> None:
+    """Store the schema in Hydra's ConfigStore and register the resolvers ``conf/config.yaml`` uses."""
+    from hydra.core.config_store import ConfigStore
+    from omegaconf import OmegaConf
+
+    ConfigStore.instance().store(name="gpnerf_schema", node=RootConfig)
+    OmegaConf.register_new_resolver("gpnerf_run_dir", run_dir_resolver, replace=True)
+
+
+def compose(overrides: list[str] | tuple[str, ...] = ()) -> Any:
+    """The config ``python -m gpnerf_core run <overrides>`` would run, composed without running it.
+
+    For notebooks, tests and scripts: ``compose(["+head=unet", "+loss=dgs", "train.steps=10"])``.
+    """
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    from gpnerf_core.registry.components import get_registry
+
+    get_registry()
+    register_schema()
+    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
+        return hydra_compose(config_name="config", overrides=list(overrides))

@@ -1,0 +1,204 @@
+"""Schema of the primary config: every key outside the component groups, typed and documented.
+
+Stored in Hydra's ConfigStore as ``gpnerf_schema`` and listed first in ``conf/config.yaml``'s defaults, so a
+misspelled key (``train.step=10``) fails at composition with the key named.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from omegaconf import MISSING
+
+
+@dataclass
+class SemanticFieldConfig:
+    enabled: bool = True
+    """Render the semantic-embedding field (off = GNT alone)."""
+    joint_attention: bool = True
+    """Semantic losses also train the transformers' attention (Table 4: False = frozen attention, ID 1)."""
+    adaptor_relu: bool = False
+    """ReLU after the 512->512 adaptor, as the released code (its teacher is signed, so off by default)."""
+
+
+@dataclass
+class ModelConfig:
+    coarse_samples: int = 48
+    """Stratified samples per ray (inverse-depth spacing)."""
+    fine_samples: int = 16
+    """Importance samples added for the fine pass (0 = single pass)."""
+    num_source_views: int = 10
+    """Source views per target."""
+    detach_source_semantics: bool = True
+    """Rendered-feature losses do not train the extractor through the source views (released code)."""
+    semantic_field: SemanticFieldConfig = field(default_factory=SemanticFieldConfig)
+    checkpoint_blocks: bool = False
+    """Activation checkpointing of the transformer blocks: recompute them in the backward pass (less memory)."""
+    channels_last_maps: bool = True
+    """Copy the detached source semantic maps channels-last where each is sampled at more points than it has pixels:
+    ``grid_sample`` then reads each sample's channels contiguously (the same float32 values, about 2.7x faster at
+    512 channels)."""
+    compile: bool = False
+    """``torch.compile`` the transformer block pairs and the semantic attention sums (compiled on first use)."""
+    compile_backend: str = "inductor"
+    """The ``torch.compile`` backend when ``compile`` is true (inductor: C++ on CPU, Triton on CUDA)."""
+    init: Optional[str] = None
+    """Start from these weights: an official GNT checkpoint (``net_coarse`` + ``feature_net``) or a gpnerf-core
+    checkpoint (its model weights only: the weight average where the run kept one). Ignored when resuming."""
+    init_strict: bool = True
+    """Refuse an init checkpoint holding keys no component maps (False: load the rest and list them)."""
+
+
+@dataclass
+class LearningRates:
+    feature_extractor: float = 5e-3
+    """Encoder, radiance decoder and FPN (paper: 5e-3)."""
+    transformer: float = 1e-5
+    """Field and ray aggregators and the semantic adaptor (paper: 1e-5, fine-tuning GNT weights)."""
+    head: float = 5e-5
+    """Perception head (paper: 5e-5)."""
+
+
+@dataclass
+class TrainConfig:
+    steps: int = 200_000
+    """Optimizer steps (one target view each)."""
+    rays: int = 512
+    """Rays per target view per step (a step renders ``rays x targets_per_step`` rays over all processes)."""
+    targets_per_step: int = 1
+    """Target views per step over all processes (the global batch; the paper: 1 per GPU). Under torchrun the
+    world size must divide it; each process takes its share."""
+    lr: LearningRates = field(default_factory=LearningRates)
+    lr_schedule: str = "exponential"
+    """After the warm-up: ``exponential`` (multiplied by ``lr_decay_rate`` every ``lr_decay_steps`` steps, per step)
+    or ``cosine`` (half a cosine from the full rate down to 0 at ``train.steps``)."""
+    lr_decay_rate: float = 0.6
+    """``exponential``: learning rates are multiplied by this factor every ``lr_decay_steps`` steps."""
+    lr_decay_steps: int = 100_000
+    """``exponential``: steps per ``lr_decay_rate`` factor."""
+    warmup_steps: int = 0
+    """Learning rates rise linearly from 1/warmup_steps of their value to the full value over these first steps
+    (0 = none)."""
+    fuse_rendered: bool = True
+    """Head input is the fused map (paper); False runs the head on the teacher map alone (released code)."""
+    grad_clip: float = 0.0
+    """Clip the global gradient norm to this value (0 = off). The training curves log the unclipped norm."""
+    ema_decay: float = 0.0
+    """Keep an exponential moving average of the weights with this decay (0 = off; e.g. 0.99 averages over about
+    the last 100 steps) and evaluate it instead of the last step's weights; checkpoints hold both."""
+    log_every: int = 10
+    """Steps between entries of the training curves."""
+    checkpoint_every: int = 0
+    """Steps between checkpoints (0 = only the final one)."""
+    keep_checkpoints: int = 0
+    """Keep only the newest K checkpoints of the run folder, deleting older ones as new ones are written (0 = keep
+    all)."""
+    resume: Optional[str] = None
+    """Checkpoint to resume from (restores model, optimizer, step and random state), or ``auto``: the newest intact
+    checkpoint in ``out_dir`` if there is one, else a fresh start (what a restarted or requeued job runs)."""
+    resume_strict: bool = True
+    """Refuse to resume when the model or loss config differs from the checkpoint's (False: print the
+    differences and go on)."""
+    precision: str = "fp32"
+    """``fp32``, or ``bf16``: the forward pass and the losses under bfloat16 autocast (CPU and CUDA); weights,
+    gradients and the optimizer stay float32."""
+    loggers: list[str] = field(default_factory=lambda: ["csv"])
+    """Where training scalars and evaluation metrics also go: ``csv`` (``scalars.csv`` in the run folder) and/or
+    ``tensorboard`` (``tensorboard/`` event files; needs the ``tensorboard`` extra). Rank 0 only."""
+
+
+@dataclass
+class EvalConfig:
+    render_stride: int = 0
+    """Stride of the rendered grid; 0 = the semantic map's stride (2 for GP-NeRF), so the head sees a full map."""
+    chunk_rays: int = 2048
+    """Rays rendered at once (bounds memory)."""
+    max_views_per_scene: int = 0
+    """Cap on held-out targets per scene (0 = all)."""
+    save_images: int = 2
+    """Targets per split whose pictures are written."""
+    splits: list[str] = field(default_factory=lambda: ["train", "unseen"])
+    """Which scene splits to evaluate: held-out views of ``train`` scenes, and ``unseen`` scenes."""
+    weights: str = "average"
+    """Which weights of a checkpoint ``eval``, ``render`` and ``finetune`` start from: ``average`` (the run's
+    weight average, ``train.ema_decay``, where it kept one; else the trained weights) or ``trained``."""
+    every_steps: int = 0
+    """``run``: also evaluate every this many training steps (0 = only at the end); ``metrics.json`` gets
+    ``eval_curve``, accuracy against steps and training seconds, which ``report --chart`` draws."""
+
+
+@dataclass
+class FinetuneConfig:
+    points: int = 4
+    """``finetune``: evaluate the held-out frames at this many step counts from 0 to ``train.steps`` (0, N/3, 2N/3, N
+    for 4)."""
+
+
+@dataclass
+class RenderConfig:
+    scene: str = ""
+    """``render``: the scene to render ("" = the first unseen scene, else the first training scene)."""
+    path: str = "interpolate"
+    """``interpolate`` (through the held-out frames' poses) or ``spiral`` (around frame ``frame``)."""
+    frames: int = 30
+    """Poses on the trajectory."""
+    frame: int = 0
+    """``spiral``: the frame whose pose is the centre."""
+    radius: float = 0.1
+    """``spiral``: radius of the circle, metres."""
+    focus: float = 2.0
+    """``spiral``: distance to the point looked at, metres."""
+    fps: int = 10
+    """Frames per second of the MP4 and GIF."""
+    feature_cache_mb: float = 512.0
+    """Encoded source features kept between frames of the trajectory (``feature_cache``), megabytes; 0 = encode the
+    sources of every frame again."""
+
+
+@dataclass
+class ViewConfig:
+    port: int = 8080
+    """``view``: TCP port of the web viewer (0 = any free port; a port in use is refused)."""
+    host: str = "127.0.0.1"
+    """``view``: address the viewer listens on (the default reaches this machine only; 0.0.0.0 = every interface)."""
+    scene: str = ""
+    """``view``: the scene shown first ("" = the first unseen scene, else the first training scene)."""
+    stride: int = 2
+    """``view``: pixels per rendered cell of the full frame, rendered once the camera rests."""
+    preview_stride: int = 8
+    """``view``: pixels per rendered cell of the coarse preview shown first while the camera moves."""
+    source_views: int = 0
+    """``view``: source views per rendered view (0 = ``model.num_source_views``); the viewer's slider changes it."""
+    feature_cache_mb: float = 256.0
+    """``view``: megabytes of encoded source feature maps kept, so a moving camera encodes only new sources (0 = off)."""
+
+
+@dataclass
+class RootConfig:
+    feature_extractor: Any = MISSING
+    field_aggregator: Any = MISSING
+    ray_aggregator: Any = MISSING
+    dataset: Any = MISSING
+    view_selector: Any = MISSING
+    head: Any = None
+    """Add-on group: ``+head=<name>``."""
+    loss: Any = None
+    """Add-on group: ``+loss=<name>``."""
+    seed: int = 0
+    device: str = "auto"
+    """``auto`` (CUDA when available), ``cpu`` or ``cuda[:N]``."""
+    threads: int = 0
+    """CPU threads for torch (0 = torch's default)."""
+    model: ModelConfig = field(default_factory=ModelConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    view: ViewConfig = field(default_factory=ViewConfig)
+    out_dir: str = ""
+    """Run folder; empty = Hydra's output directory. Nothing is written under ``outputs/`` when it is set."""
+    overwrite: bool = False
+    """Replace the run a non-empty ``out_dir`` holds (its checkpoints, metrics and pictures are deleted)."""
+    checkpoint: Optional[str] = None
+    """Checkpoint the ``eval`` command evaluates, ``finetune`` starts from and ``render`` renders."""

@@ -1,0 +1,56 @@
+"""Interface of scene datasets."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Sequence
+
+from gpnerf_core.data.checks import check_scene_files
+from gpnerf_core.types import Scene
+
+SPLITS = ("train", "unseen")
+
+
+class SceneDataset(ABC):
+    """A set of posed, labelled scenes with a fixed class map.
+
+    ``train`` scenes are trained on (their ``Scene.train_frames``) and evaluated on their held-out
+    ``Scene.eval_frames``; ``unseen`` scenes never reach training and test generalization.
+    """
+
+    validation: str = "quick"
+    """How thoroughly ``check_files`` looks before training: ``quick``, ``full`` or ``off`` (the built-in datasets
+    set it from ``dataset.validate``)."""
+
+    @property
+    @abstractmethod
+    def class_names(self) -> tuple[str, ...]:
+        """Names of the classes 0..K-1; empty for a dataset whose scenes have no labels (a user's capture), where a
+        trained model's own class list is used (``eval``, ``render``, ``finetune`` from its checkpoint)."""
+
+    @property
+    def num_classes(self) -> int:
+        return len(self.class_names)
+
+    @property
+    @abstractmethod
+    def ignore_index(self) -> int:
+        """Label value of unlabelled pixels."""
+
+    @abstractmethod
+    def scenes(self, split: str) -> tuple[str, ...]:
+        """Scene names of ``split`` (one of ``SPLITS``)."""
+
+    @abstractmethod
+    def load_scene(self, name: str) -> Scene:
+        """Load a scene's cameras and frame lists; frames load lazily through ``Scene.load_frame``."""
+
+
+    def check_files(self, scenes: Sequence[str], level: str) -> list[str]:
+        """Problems in the files of ``scenes``, one line each naming the file (or the scene and frame).
+
+        Called before training with ``level = self.validation``. The default loads every scene and checks its poses
+        (``quick``), and with ``full`` decodes every frame and checks its values (``gpnerf_core.data.checks``);
+        a dataset may check more (checksums) or faster.
+        """
+        return check_scene_files(self, scenes, level)

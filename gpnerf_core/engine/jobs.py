@@ -1,0 +1,635 @@
+"""The lifecycle every command of ``python -m gpnerf_core`` shares, as public functions.
+
+A Hydra command (``run``, ``eval``, ``finetune``, ``render``) goes through these steps, in this order:
+
+1. ``launch(task, argv, prog)`` (or ``launch_from_checkpoint``): refuses an unknown component name, composes and
+   validates the config (``precheck``) and only then hands the arguments to Hydra, which creates the run folder.
+   Guarantee: a bad override or value is one line and exit code 2, and nothing is written.
+2. ``@job`` around the task: joins the torchrun process group (if any) and turns every error caused by input or
+   environment into one line on stderr and an exit code, never a traceback (``GPNERF_DEBUG=1`` re-raises).
+   In a ``-m`` sweep a failing job writes ``error.json`` into its own folder and the others go on; the command
+   exits 2 after the sweep (``FAILED_SWEEP_JOBS``). A job refused before training leaves no folder behind.
+3. ``start(cfg)`` inside the task: validates again (a sweep's jobs were not prechecked), refuses a fixed ``out_dir``
+   shared by a sweep's jobs, sets the thread count and the seed (which fixes the model's initialisation).
+4. ``plan_resume(cfg, dist)`` (``run``): turns ``train.resume=auto`` into the newest intact checkpoint of ``out_dir`` (or a
+   fresh start) and refuses a resume the checkpoint cannot honour (another seed, fewer steps than it reached).
+5. ``claim_run_folder(cfg, dist, resuming=...)``: rank 0 locks the run folder (refusing a live one, and a finished one
+   unless resuming or ``overwrite=true``) and writes what the run is made from (``config.yaml``, its hash,
+   ``overrides.yaml``, ``plugins.json``); every other rank learns the folder from rank 0 and writes nothing.
+
+Commands that are not Hydra jobs (``report``, ``stress``, ``size``, ``bench``) parse their own arguments
+(``gpnerf_core.config.arguments.ArgumentParser``) and use the same error convention: raise a ``GpnerfError``; ``cli.main`` prints it as one line and exits 2.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shlex
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from gpnerf_core.model.build import build_components, checkpoint_classes
+from gpnerf_core.runtime.distributed import Distributed, init_distributed
+from gpnerf_core.errors import ConfigError, DataError, GpnerfError
+from gpnerf_core.runtime.io import atomic_write_json, atomic_write_text
+from gpnerf_core.config.overrides import (
+    RUN_SPECIFIC_KEYS,
+    is_search_path,
+    merge_overrides,
+    override_key,
+    quoted_for_hydra,
+)
+from gpnerf_core.runtime.signals import Terminated, interrupted_by, interruption
+from gpnerf_core.runtime.run_folder import RunFolder, RunFolderError, remove_untrained_run
+from gpnerf_core.model.checkpoint import (
+    MODEL_SECTIONS,
+    NOT_MODEL_KEYS,
+    RunRecord,
+    config_differences,
+    evaluation_weights,
+    load_weights,
+    read_checkpoint,
+)
+from gpnerf_core.training.interrupt import TrainingInterrupted
+from gpnerf_core.training.resume import newest_intact_checkpoint
+from gpnerf_core.engine.validation import check_data, validate_config
+
+FAILED_SWEEP_JOBS: list[str] = []
+"""Run folders of the jobs of this process's ``-m`` sweep that failed (the command exits 2 after the sweep)."""
+ERROR_FILE = "error.json"
+"""A failed sweep job's record in its folder: ``{"error": <the line>, "overrides": [...]}`` (``report`` shows it)."""
+
+
+# -- 1. before Hydra: refuse bad input while nothing is written -------------------------------------------------
+
+
+def launch(task: Callable[[DictConfig], Any], argv: list[str], prog: str) -> int:
+    """Run ``task`` as a Hydra job (or a ``-m`` sweep of them) on ``argv``; the command's exit code.
+
+    Guarantees: an unknown component name, an override Hydra cannot compose and a value the schema refuses are each
+    one ``GpnerfError`` raised before Hydra creates any folder. Returns 2 when some jobs of a sweep failed.
+    """
+    import hydra
+
+    from gpnerf_core.config.compose import config_dir, register_schema
+    from gpnerf_core.registry.components import get_registry
+
+    argv = [quoted_for_hydra(argument) for argument in argv]
+    check_component_choices(argv, get_registry())
+    register_schema()
+    precheck(argv)
+    sys.argv = [prog, *argv]
+    FAILED_SWEEP_JOBS.clear()
+    hydra.main(version_base="1.3", config_path=config_dir(), config_name="config")(task)()
+    failed = list(dict.fromkeys(FAILED_SWEEP_JOBS))
+    if failed:
+        print(f"error: {len(failed)} job(s) of the sweep failed ({ERROR_FILE} in each): {', '.join(failed)}",
+              file=sys.stderr)
+        return 2
+    return 0
+
+
+def launch_from_checkpoint(task: Callable[[DictConfig], Any], argv: list[str], command: str) -> int:
+    """``launch`` with the config of ``checkpoint=<path>`` in ``argv``: its overrides, then the command's (which win).
+
+    The model settings a default change would alter are restored from the checkpoint inside the task
+    (``checkpoint_config``)."""
+    given = [a for a in argv if a.startswith("checkpoint=")]
+    if not given:
+        raise GpnerfError(f"{command} needs checkpoint=<path to a .pt file written by run>")
+    stored = read_checkpoint(given[-1].split("=", 1)[1]).get("overrides", [])
+    return launch(task, merge_overrides(stored, argv), f"gpnerf_core {command}")
+
+
+def check_component_choices(argv: list[str], registry: Any) -> None:
+    """Refuse ``[+]head=<name>`` (and every other component group) naming no registered component, in one line that
+    lists the known names and any plugin that failed to load, before Hydra says only "could not find"."""
+    from gpnerf_core.registry.kinds import KINDS
+
+    for argument in argv:
+        key, sep, value = argument.partition("=")
+        group = key.lstrip("+~")
+        if not sep or group not in KINDS or "${" in value:
+            continue
+        for name in value.split(","):  # a -m sweep over options
+            name = name.strip()
+            if name and name != "null" and not any(c in name for c in "*?[("):
+                registry.get(group, name)
+
+
+def precheck(argv: list[str]) -> None:
+    """Compose and validate the config before Hydra starts (and creates the run folder), so a bad override or value
+    is one line and exit code 2. Sweeps (``-m``) and Hydra's own flags are left to Hydra; every job validates too."""
+    if any(argument.startswith("-") for argument in argv):
+        return
+    overrides = [a for a in argv if not a.lstrip("+~").startswith(("hydra.", "hydra/")) or is_search_path(a)]
+    cfg = compose_checked(overrides)
+    if cfg.out_dir:
+        check_writable_folder(Path(cfg.out_dir))
+    else:
+        check_default_output_root(Path("outputs"))
+
+
+def compose_checked(overrides: list[str]) -> DictConfig:
+    """The config ``overrides`` compose, validated; an unknown component, an override Hydra cannot apply and a value
+    the schema refuses are each one ``GpnerfError`` (for ``precheck`` and the commands that are not Hydra jobs)."""
+    from gpnerf_core.config.compose import compose
+    from gpnerf_core.registry.components import get_registry
+
+    check_component_choices(overrides, get_registry())
+    try:
+        cfg = compose(overrides)
+    except GpnerfError:
+        raise
+    except Exception as exc:
+        raise ConfigError(hydra_message(exc)) from None
+    validate_config(cfg)
+    return cfg
+
+
+def check_default_output_root(root: Path) -> None:
+    """Without ``out_dir`` Hydra makes the run folder under ``root`` in the working folder, with a traceback where it
+    cannot: try it first (a folder made and removed at once), as one line."""
+    import tempfile
+
+    parent = root if root.is_dir() else root.parent
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".gpnerf-write-test-", dir=parent))
+    except OSError as exc:
+        raise ConfigError(
+            f"out_dir is not set and runs go to {root.resolve()}, where no folder can be made ({exc.strerror or exc}); "
+            "set out_dir=<a writable folder>"
+        ) from None
+
+
+def check_writable_folder(path: Path) -> None:
+    """Create ``path`` (Hydra would, with a traceback on failure): one line naming it when that is impossible."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise RunFolderError(
+            f"out_dir={path} cannot be created ({exc.strerror or exc}); choose a writable out_dir"
+        ) from None
+
+
+def hydra_message(exc: BaseException) -> str:
+    """A Hydra/OmegaConf error and its causes on one line, without OmegaConf's ``full_key``/``object_type`` tail."""
+    parts: list[str] = []
+    while exc is not None:
+        lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+        lines = [line for line in lines if not line.startswith(("full_key:", "object_type=", "reference_type="))]
+        text = " ".join(lines)
+        if text and text not in parts:
+            parts.append(text)
+        exc = exc.__cause__
+    return "; ".join(parts) or "invalid overrides"
+
+
+# -- 2. around the task: process group, one-line errors, sweep failure records ----------------------------------
+
+
+def job(task: Callable[[DictConfig, Distributed], Any]) -> Callable[[DictConfig], Any]:
+    """Make ``task(cfg, dist)`` a Hydra task: ``guarded`` around ``distributed``."""
+    return guarded(distributed(task))
+
+
+def distributed(task: Callable[[DictConfig, Distributed], Any]) -> Callable[[DictConfig], Any]:
+    """Join the torchrun process group (if any) around ``task`` and leave it afterwards, whatever happens."""
+
+    def wrapper(cfg: DictConfig) -> Any:
+        dist = init_distributed(cfg.device)
+        try:
+            return task(cfg, dist)
+        finally:
+            dist.shutdown()
+
+    wrapper.__name__ = task.__name__
+    return wrapper
+
+
+def guarded(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
+    """Errors caused by input or environment, and interruptions, become one line on stderr and an exit code.
+
+    Exit codes: 2 for a refused input or an environment fault (full disk, read-only folder), the signal's code for an
+    interruption during training (after the checkpoint it wrote and the command that resumes from it are printed),
+    130 for Ctrl-C outside training. In a ``-m`` sweep a failing job does not stop the others: its error goes to
+    ``error.json`` in its folder and the command exits 2 once the sweep is done. A job refused before training
+    leaves no run folder behind.
+    """
+
+    def wrapper(cfg: DictConfig) -> Any:
+        try:
+            return task(cfg)
+        except (GpnerfError, OSError) as exc:
+            if os.environ.get("GPNERF_DEBUG"):
+                raise
+            if isinstance(exc, OSError):  # an environment fault: a full disk, a vanished or read-only folder
+                where = f"{exc.filename}: " if exc.filename else ""
+                exc = f"{where}{exc.strerror or exc}; the run stopped (free space, fix permissions or choose another folder)"
+            print(f"error: {exc}", file=sys.stderr)
+            if in_sweep() and record_sweep_failure(cfg, str(exc)):
+                return None
+            _remove_if_empty(cfg)
+            sys.exit(2)
+        except RuntimeError as exc:
+            if not lost_peer(exc) or os.environ.get("GPNERF_DEBUG"):
+                raise
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            print(f"error: another process of the job stopped ({first[:160]}); under torchrun --max-restarts=N with "
+                  "train.resume=auto the group restarts from the newest checkpoint", file=sys.stderr)
+            sys.exit(1)
+        except TrainingInterrupted as stop:
+            if stop.checkpoint is not None:
+                print(
+                    f"interrupted ({stop}): checkpoint {stop.checkpoint}; resume with: "
+                    f"{resume_command(stop.checkpoint.parent.parent, stop.checkpoint)}",
+                    file=sys.stderr,
+                )
+            sys.exit(stop.exit_code)
+        except (KeyboardInterrupt, Terminated, Exception) as exc:
+            # An Exception here may be a library's own error raised while an interruption unwound through it.
+            stop = interrupted_by(exc)
+            if stop is None:
+                raise
+            name, code = interruption(stop)
+            print(f"interrupted ({name}) outside the training loop; files already written stay", file=sys.stderr)
+            sys.exit(code)
+
+    wrapper.__name__ = task.__name__
+    return wrapper
+
+
+class SweepFailures(Callback):
+    """Hydra callback (``hydra.callbacks`` in ``conf/config.yaml``): after a ``-m`` sweep, the jobs that failed are
+    found by the ``error.json`` they wrote under the sweep folder during this sweep, whatever launcher ran them (in
+    this process, or pickled into other processes by submitit), and added to ``FAILED_SWEEP_JOBS``."""
+
+    def __init__(self) -> None:
+        self.started = time.time()
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self.started = time.time()
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        folder = Path(str(config.hydra.sweep.dir))
+        for marker in sorted(folder.rglob(ERROR_FILE)) if folder.is_dir() else []:
+            if marker.stat().st_mtime < self.started - 1:
+                continue
+            try:
+                failed = str(json.loads(marker.read_text()).get("run_folder") or marker.parent)
+            except (OSError, ValueError, AttributeError):
+                failed = str(marker.parent)
+            if failed not in FAILED_SWEEP_JOBS:
+                FAILED_SWEEP_JOBS.append(failed)
+
+
+def lost_peer(exc: BaseException) -> bool:
+    """True for the error a collective raises when another process of the group died (gloo/NCCL)."""
+    backend_error = getattr(torch.distributed, "DistBackendError", ())
+    text = str(exc)
+    return isinstance(exc, backend_error) or any(
+        marker in text for marker in ("Connection closed by peer", "Connection reset by peer", "Broken pipe",
+                                      "NCCL communicator was aborted")
+    )
+
+
+def in_sweep() -> bool:
+    """True inside a job of a ``-m`` sweep."""
+    from hydra.types import RunMode
+
+    hydra = hydra_config()
+    return hydra is not None and hydra.mode == RunMode.MULTIRUN
+
+
+def record_sweep_failure(cfg: DictConfig, message: str) -> bool:
+    """Write ``error.json`` (the error and the job's overrides) into the job's folder; False if that is impossible."""
+    try:
+        folder = run_dir(cfg)
+        folder.mkdir(parents=True, exist_ok=True)
+        record = {"error": message, "overrides": list(task_overrides())}
+        atomic_write_json(folder / ERROR_FILE, record)
+        hydra = hydra_config()
+        job_dir = Path(hydra.runtime.output_dir) if hydra is not None else folder
+        if job_dir.resolve() != folder.resolve():  # the sweep's own folder of this job: SweepFailures looks there
+            atomic_write_json(job_dir / ERROR_FILE, record | {"run_folder": str(folder)})
+        if not (folder / "config.yaml").exists():
+            atomic_write_text(folder / "config.yaml", OmegaConf.to_yaml(cfg, resolve=False))
+    except (GpnerfError, OSError, ValueError):
+        return False
+    FAILED_SWEEP_JOBS.append(str(folder))
+    return True
+
+
+def _remove_if_empty(cfg: DictConfig) -> None:
+    """Hydra creates the run folder before the job starts: a job refused before training leaves none behind."""
+    try:
+        folder = run_dir(cfg)
+    except GpnerfError:
+        return
+    remove_untrained_run(folder)
+
+
+def resume_command(folder: Path, checkpoint: Path | None) -> str:
+    """The command that resumes this run from ``checkpoint`` in the same folder (a torchrun line under torchrun):
+    ``run``, or ``finetune`` with its ``checkpoint=`` (the start it fine-tunes from) kept."""
+    command = sys.argv[0].split()[-1] if sys.argv and sys.argv[0].startswith("gpnerf_core ") else "run"
+    dropped = [key for key in RUN_SPECIFIC_KEYS if not (command == "finetune" and key == "checkpoint")]
+    kept = [o for o in task_overrides() if override_key(o) not in dropped]
+    args = [*kept, f"out_dir={folder}", f"train.resume={checkpoint}"]
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1:
+        local = os.environ.get("LOCAL_WORLD_SIZE", str(world))
+        nodes = " (on every node, with the same --nnodes/--rdzv-endpoint)" if int(local) != world else ""
+        launcher = f"torchrun --nproc_per_node={local} -m gpnerf_core {command}"
+        return f"{launcher} {' '.join(shlex.quote(a) for a in args)}{nodes}"
+    return f"python -m gpnerf_core {command} {' '.join(shlex.quote(a) for a in args)}"
+
+
+# -- 3. inside the task: validate, seed, claim the folder --------------------------------------------------------
+
+
+def start(cfg: DictConfig) -> None:
+    """Refuse bad values before any work, then set threads and the seed (which fixes the model's initialisation)."""
+    validate_config(cfg)
+    _refuse_shared_out_dir(cfg)
+    if cfg.threads:
+        torch.set_num_threads(int(cfg.threads))
+    torch.manual_seed(int(cfg.seed))
+
+
+def _refuse_shared_out_dir(cfg: DictConfig) -> None:
+    """Under ``-m`` every job would write one fixed ``out_dir``: refuse unless it depends on the job."""
+    if not in_sweep() or not cfg.out_dir:
+        return
+    raw = OmegaConf.to_container(cfg, resolve=False).get("out_dir")  # the interpolation as typed, before resolving
+    if "${" not in str(raw):
+        raise ConfigError(
+            f"out_dir={cfg.out_dir} with -m: every job of the sweep would write that one folder; leave out_dir "
+            "unset (jobs go under hydra.sweep.dir) or make it depend on the job, e.g. 'out_dir=runs/${hydra:job.num}'"
+        )
+
+
+@dataclass(frozen=True)
+class ResumePlan:
+    """How a ``run`` starts: from ``checkpoint`` (None: from scratch), with notes to print; ``replace_leftovers``: the
+    folder may hold files of an earlier attempt of this run that died before its first checkpoint (``resume=auto``),
+    which the claim replaces."""
+
+    checkpoint: Path | None
+    notes: tuple[str, ...] = ()
+    replace_leftovers: bool = False
+
+    @property
+    def resuming(self) -> bool:
+        return self.checkpoint is not None
+
+
+def plan_resume(cfg: DictConfig, dist: Distributed) -> ResumePlan:
+    """Resolve ``train.resume`` (``auto``: rank 0 picks the newest intact checkpoint of ``out_dir`` and every rank takes
+    the same) and check that the checkpoint can continue this config; ``cfg.train.resume`` becomes the path chosen.
+
+    Raises:
+        ConfigError: ``auto`` without ``out_dir``; another ``seed`` than the checkpoint's (its random streams go on,
+            the new seed would be recorded but not used); ``train.steps`` below the checkpoint's step.
+        DataError: the checkpoint is missing or damaged; ``auto`` found only damaged ones.
+    """
+    value = cfg.train.resume
+    if not value:
+        return ResumePlan(None)
+    notes: list[str] = []
+    if str(value) == "auto":
+        if not cfg.out_dir:
+            raise ConfigError("train.resume=auto needs out_dir=<folder>: the fixed folder a restarted job resumes in")
+        outcome = dist.broadcast_object(_find_auto_checkpoint(Path(str(cfg.out_dir))) if dist.is_main else None)
+        if outcome[0] == "error":
+            raise DataError(outcome[1])
+        found, notes = outcome[1], list(outcome[2])
+        with open_dict(cfg):
+            cfg.train.resume = found
+        if found is None:
+            notes.append(f"train.resume=auto: no checkpoint in {cfg.out_dir}; training from the start")
+            return ResumePlan(None, tuple(notes), replace_leftovers=True)
+        notes.append(f"train.resume=auto: resuming from {found}")
+    path = Path(str(cfg.train.resume))
+    if not path.is_file():
+        raise DataError(f"train.resume={path}: no such file; expected a checkpoint written by run (checkpoints/)")
+    state = read_checkpoint(path)
+    written = OmegaConf.create(state["config"]) if state.get("config") else OmegaConf.create({})
+    if "seed" in written and int(written.seed) != int(cfg.seed):
+        raise ConfigError(
+            f"train.resume={path}: seed={int(cfg.seed)} differs from the checkpoint's seed={int(written.seed)}; a "
+            "resumed run continues the checkpoint's random streams, so leave seed as it was or start a new run"
+        )
+    if int(cfg.train.steps) < int(state["step"]):
+        raise ConfigError(
+            f"train.resume={path}: train.steps={int(cfg.train.steps)} is below the step {int(state['step'])} the "
+            "checkpoint reached; give train.steps >= that step (equal: evaluate it again)"
+        )
+    return ResumePlan(path, tuple(notes))
+
+
+def _find_auto_checkpoint(folder: Path) -> tuple[str, Any, Any]:
+    """``("ok", path or None, notes)`` for ``train.resume=auto`` in ``folder``, or ``("error", message, None)``."""
+    try:
+        found, notes = newest_intact_checkpoint(folder)
+    except GpnerfError as exc:
+        return ("error", str(exc), None)
+    if found is None and (folder / "metrics.json").exists():
+        return ("error", f"train.resume=auto: {folder} holds a finished run's metrics.json but no checkpoint to "
+                         "resume from; choose another out_dir, or overwrite=true to replace it", None)
+    return ("ok", None if found is None else str(found), notes)
+
+
+def claim_run_folder(
+    cfg: DictConfig, dist: Distributed, *, resuming: bool, replace_leftovers: bool = False
+) -> tuple[RunFolder, RunRecord]:
+    """Rank 0 claims (locks) the run folder and writes what the run is made from; every rank gets the same folder.
+
+    Returns the claimed folder (a context manager that releases the lock) and the run's record (config YAML, its
+    hash, overrides, components with providers and versions). A refusal (a live run holds the folder; a finished
+    run is there and neither resuming nor ``overwrite=true``) is raised on every rank as one ``RunFolderError``.
+    """
+    folder_path = Path(dist.broadcast_object(str(run_dir(cfg)) if dist.is_main else None))
+    folder = RunFolder(folder_path)
+    outcome: tuple[str, Any] = ("ok", [])
+    if dist.is_main:
+        try:
+            overwrite = bool(cfg.overwrite) or replace_leftovers
+            outcome = ("ok", folder.claim(resuming=resuming, overwrite=overwrite, inputs=command_inputs(cfg)))
+        except GpnerfError as exc:
+            outcome = ("error", str(exc))
+    outcome = dist.broadcast_object(outcome)
+    if outcome[0] == "error":
+        raise RunFolderError(outcome[1])
+    record = run_record(cfg)
+    if dist.is_main:
+        for note in outcome[1]:
+            print(f"note: {note}", file=sys.stderr)
+        try:
+            _write_run_files(folder_path, record)
+        except BaseException:
+            folder.release()
+            raise
+    return folder, record
+
+
+def command_inputs(cfg: DictConfig) -> list[Path]:
+    """Files the job reads that a run folder may hold: ``checkpoint``, ``train.resume``, ``model.init``."""
+    values = [cfg.get("checkpoint"), OmegaConf.select(cfg, "train.resume"), OmegaConf.select(cfg, "model.init")]
+    return [Path(str(v)) for v in values if v and str(v) != "auto"]
+
+
+def run_record(cfg: DictConfig) -> RunRecord:
+    """The run's config (resolved), overrides and the components it uses with their providers and versions."""
+    from gpnerf_core.registry.components import get_registry
+    from gpnerf_core.registry.kinds import KINDS
+
+    registry = get_registry()
+    components = {}
+    for kind in KINDS:
+        node = cfg.get(kind)
+        if node is not None and "name" in node and str(node.name) in registry.components[kind]:
+            entry = registry.components[kind][str(node.name)]
+            components[kind] = {"name": entry.spec.name, "provider": entry.provider, "version": entry.version}
+    return RunRecord(
+        config_yaml=OmegaConf.to_yaml(cfg, resolve=True), overrides=task_overrides(), components=components
+    )
+
+
+def _write_run_files(folder: Path, record: RunRecord) -> None:
+    from gpnerf_core.registry.components import get_registry
+
+    registry = get_registry()
+    atomic_write_text(folder / "config.yaml", record.config_yaml)
+    atomic_write_text(folder / "config.sha256", record.config_sha256 + "\n")
+    atomic_write_text(folder / "overrides.yaml", OmegaConf.to_yaml(list(record.overrides)))
+    atomic_write_json(
+        folder / "plugins.json",
+        {
+            "used": record.components,
+            "components": [
+                {"kind": e.kind, "name": e.spec.name, "provider": e.provider, "version": e.version}
+                for entries in registry.components.values()
+                for e in entries.values()
+            ],
+            "disabled": registry.disabled,
+            "problems": [
+                {"plugin": p.plugin.name, "distribution": p.plugin.distribution, "version": p.plugin.version,
+                 "component": p.component, "reason": p.reason}
+                for p in registry.problems
+            ],
+        },
+    )
+
+
+# -- the job's Hydra context -------------------------------------------------------------------------------------
+
+
+def hydra_config() -> Any:
+    """Hydra's runtime config of this job, or None outside a Hydra job (a test, a notebook)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    return HydraConfig.get() if HydraConfig.initialized() else None
+
+
+def run_dir(cfg: DictConfig) -> Path:
+    """The job's run folder: ``out_dir`` when set, else Hydra's output directory."""
+    if cfg.out_dir:
+        return Path(cfg.out_dir)
+    hydra = hydra_config()
+    if hydra is None:
+        raise ConfigError("out_dir is empty and no Hydra run directory exists; set out_dir=<folder>")
+    return Path(hydra.runtime.output_dir)
+
+
+def task_overrides() -> tuple[str, ...]:
+    """The Hydra overrides of this job as typed (``+head=unet``, ``train.steps=10``, ...), and the search path if one
+    was given (``eval``, ``finetune`` and resuming compose the checkpoint's overrides again and need it)."""
+    hydra = hydra_config()
+    if hydra is None:
+        return ()
+    return (*[o for o in hydra.overrides.hydra if is_search_path(o)], *hydra.overrides.task)
+
+
+# -- commands that start from a checkpoint -----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CheckpointModel:
+    """A trained model rebuilt from its checkpoint for a command that uses it as it is (``eval``, ``render``).
+
+    Attributes:
+        path: the checkpoint file; state: its contents (``read_checkpoint``); notes: config keys restored from it.
+        components: built from the checkpoint's config plus the command's overrides, the model on the job's device
+            holding the weights ``eval.weights`` chose; weights: which (``average`` or ``trained``).
+    """
+
+    path: Path
+    state: dict[str, Any]
+    notes: list[str]
+    components: Any
+    weights: str
+
+
+def model_from_checkpoint(cfg: DictConfig, dist: Distributed, command: str, *, check_scenes: bool) -> CheckpointModel:
+    """``checkpoint_config``, ``start``, build the components (a dataset without a class list takes the checkpoint's),
+    (``check_scenes``: ``check_data`` on the evaluated splits), load the evaluation weights and move the model to the
+    job's device. Nothing is written."""
+    checkpoint, state, notes = checkpoint_config(cfg, command)
+    start(cfg)
+    components = build_components(cfg, classes=checkpoint_classes(state, checkpoint))
+    if components.classes.from_checkpoint:
+        notes.append(components.classes.note(str(cfg.dataset.name)))
+    if check_scenes:
+        check_data(cfg, components, training=False)
+    weights, which = evaluation_weights(state, str(cfg.eval.weights))
+    load_weights(components.model, weights, f"checkpoint {checkpoint}")
+    components.model.to(dist.device)
+    return CheckpointModel(checkpoint, state, notes, components, which)
+
+
+def checkpoint_config(cfg: DictConfig, command: str) -> tuple[Path, dict[str, Any], list[str]]:
+    """Read ``cfg.checkpoint`` and give ``cfg`` its model settings (``restore_model_config``).
+
+    Returns:
+        the checkpoint's path, its contents and the notes on restored keys.
+    """
+    if not cfg.checkpoint:
+        raise ConfigError(f"{command} needs checkpoint=<path to a .pt file written by run>")
+    checkpoint = Path(str(cfg.checkpoint))
+    state = read_checkpoint(checkpoint)
+    return checkpoint, state, restore_model_config(cfg, state["config"], state.get("overrides", []))
+
+
+def restore_model_config(cfg: DictConfig, checkpoint_yaml: str, checkpoint_overrides: list[str]) -> list[str]:
+    """Give ``cfg`` the checkpoint's model and loss settings wherever this command did not override them.
+
+    ``eval`` composes its config from the checkpoint's overrides plus the user's; if a default changed since the
+    checkpoint was written, the recomposed model would differ from the trained one. Such keys are set back to the
+    checkpoint's values (and reported); keys the user overrode keep the user's value.
+    """
+    typed = [override_key(o) for o in task_overrides() if o not in checkpoint_overrides]
+    current = OmegaConf.to_yaml(cfg, resolve=True)
+    restored = []
+    for key, old, _ in config_differences(checkpoint_yaml, current, MODEL_SECTIONS, NOT_MODEL_KEYS):
+        if any(key == t or key.startswith(t + ".") for t in typed):
+            continue
+        with open_dict(cfg):
+            if old == "<absent>":
+                parent, _, leaf = key.rpartition(".")
+                node = OmegaConf.select(cfg, parent) if parent else cfg
+                node.pop(leaf, None)
+            else:
+                OmegaConf.update(cfg, key, old, merge=False)
+        restored.append(key)
+    if not restored:
+        return []
+    return [f"kept the checkpoint's value of {', '.join(restored)} (the defaults changed since it was written)"]

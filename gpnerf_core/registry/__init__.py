@@ -1,0 +1,1 @@
+"""The plugin registry: the component kinds, the hooks, loading plugins and building what they register."""

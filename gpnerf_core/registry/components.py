@@ -1,0 +1,265 @@
+"""Component registry: collects specs from the loaded plugins, builds components from configs.
+
+A plugin that returns a bad spec, registers a name another plugin already has, or offers a factory the core cannot
+call is recorded as a ``PluginProblem`` and left out; every other plugin keeps working, and a taken name is never
+replaced. ``python -m gpnerf_core plugins`` lists the
+problems (and exits 1 when there are any).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import inspect
+import os
+import re
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+from gpnerf_core.errors import ConfigError, GpnerfError, PluginError
+from gpnerf_core.interfaces import StressCase
+from gpnerf_core.registry.kinds import KINDS
+from gpnerf_core.registry.plugins import LoadedPlugins, PluginInfo, PluginProblem, make_plugin_manager, one_line
+from gpnerf_core.registry.specs import ComponentSpec, DataTool
+
+NAME_PATTERN = re.compile(r"^[a-z][a-z0-9_]*$")
+"""Component names: snake_case, starting with a letter (they are Hydra option names)."""
+
+
+@dataclass(frozen=True)
+class RegisteredComponent:
+    kind: str
+    spec: ComponentSpec
+    provider: str
+    version: str
+
+
+@dataclass
+class Registry:
+    """All registered components by kind and name, the plugins behind them and the problems found."""
+
+    components: dict[str, dict[str, RegisteredComponent]] = field(default_factory=lambda: {k: {} for k in KINDS})
+    problems: list[PluginProblem] = field(default_factory=list)
+    plugins: dict[str, PluginInfo] = field(default_factory=dict)
+    disabled: list[str] = field(default_factory=list)
+    data_tools: dict[str, tuple[DataTool, str]] = field(default_factory=dict)
+    stress_cases: dict[str, tuple[Any, str]] = field(default_factory=dict)
+    """``name -> (StressCase, plugin name)``."""
+
+    def names(self, kind: str) -> list[str]:
+        return sorted(self.components[kind])
+
+    def get(self, kind: str, name: str) -> RegisteredComponent:
+        """The component ``name`` of ``kind``; an unknown name lists the known ones and what failed to load."""
+        if kind not in self.components:
+            raise ConfigError(f"unknown component kind {kind!r}; known kinds: {', '.join(KINDS)}")
+        if name in self.components[kind]:
+            return self.components[kind][name]
+        rejected = [p for p in self.problems if p.component == f"{kind}/{name}"]
+        if rejected:
+            raise PluginError(f"{kind} {name!r} was rejected: {rejected[0]}")
+        known = ", ".join(self.names(kind)) or "(none registered)"
+        message = f"unknown {kind} {name!r}; known {kind} names: {known}"
+        failed = [p for p in self.problems if p.component is None]
+        if failed:
+            message += "; plugins that failed to load: " + "; ".join(str(p) for p in failed)
+        if self.disabled:
+            message += (f"; disabled plugins (GPNERF_DISABLE_PLUGINS / GPNERF_DISABLE_PLUGIN_AUTOLOAD), which may "
+                        f"provide it: {', '.join(self.disabled)}")
+        raise ConfigError(message)
+
+    def build(self, kind: str, node: Mapping[str, Any], **runtime: Any) -> Any:
+        """Build the component a config node names (``node['name']``) with its fields as kwargs.
+
+        Fields the node leaves out take their config dataclass defaults.
+
+        A plugin's factory that raises anything but a gpnerf-core error, or returns something that does not
+        implement the kind's interface, is reported in one line naming the component and its plugin.
+        """
+        if "name" not in node:
+            raise ConfigError(f"config group {kind!r} has no 'name' key; known names: {', '.join(self.names(kind))}")
+        entry = self.get(kind, str(node["name"]))
+        given = {k: _plain(v) for k, v in node.items() if k != "name"}
+        expected = {f.name for f in dataclasses.fields(entry.spec.config)} - {"name"}
+        unknown = set(given) - expected
+        if unknown:
+            raise ConfigError(
+                f"{kind}.{sorted(unknown)[0]} is not an option of {kind} {entry.spec.name!r}; "
+                f"expected one of: {', '.join(sorted(expected))}"
+            )
+        defaults = entry.spec.config()
+        kwargs = {name: given.get(name, getattr(defaults, name)) for name in sorted(expected)}
+        where = f"{kind} {entry.spec.name!r} (plugin {entry.provider} {entry.version})"
+        try:
+            component = entry.spec.factory(**kwargs, **runtime)
+        except GpnerfError:
+            raise
+        except Exception as exc:
+            if os.environ.get("GPNERF_DEBUG"):
+                raise
+            raise PluginError(f"{where} failed to build: {type(exc).__name__}: {one_line(exc)}") from None
+        interface = KINDS[kind].interface
+        if not isinstance(component, interface):
+            raise PluginError(f"{where} built a {type(component).__name__}, which does not implement {interface.__name__}")
+        return component
+
+    def add(self, kind: str, spec: Any, plugin: PluginInfo) -> None:
+        """Register ``spec`` from ``plugin``, or record why it was rejected (the registry is left unchanged)."""
+        try:
+            self._check(kind, spec, plugin)
+        except PluginError as exc:
+            name = getattr(spec, "name", None)
+            self.problems.append(PluginProblem(plugin, str(exc), f"{kind}/{name}" if isinstance(name, str) else kind))
+            return
+        self.components[kind][spec.name] = RegisteredComponent(kind, spec, plugin.name, plugin.version)
+
+    def _check(self, kind: str, spec: Any, plugin: PluginInfo) -> None:
+        if not isinstance(spec, ComponentSpec):
+            raise PluginError(f"{KINDS[kind].hook} returned {type(spec).__name__}, expected ComponentSpec")
+        if not isinstance(spec.name, str) or not NAME_PATTERN.match(spec.name):
+            raise PluginError(f"name {spec.name!r} is not snake_case (lower-case letters, digits, underscores)")
+        existing = self.components[kind].get(spec.name)
+        if existing is not None:
+            raise PluginError(f"the name is taken by {existing.provider!r}; a plugin never replaces another's component")
+        if not dataclasses.is_dataclass(spec.config) or not isinstance(spec.config, type):
+            raise PluginError(f"config {spec.config!r} is not a dataclass type")
+        fields = {f.name: f for f in dataclasses.fields(spec.config)}
+        default_name = fields["name"].default if "name" in fields else None
+        if default_name != spec.name:
+            raise PluginError(f"config {spec.config.__name__}.name defaults to {default_name!r}; expected {spec.name!r}")
+        missing_default = [n for n, f in fields.items() if f.default is dataclasses.MISSING
+                           and f.default_factory is dataclasses.MISSING]
+        if missing_default:
+            raise PluginError(f"config {spec.config.__name__}.{missing_default[0]} has no default (Hydra needs one)")
+        factory = spec.factory
+        if inspect.isclass(factory):
+            interface = KINDS[kind].interface
+            if not issubclass(factory, interface):
+                raise PluginError(f"{factory.__name__} does not subclass {interface.__module__}.{interface.__name__}")
+            if inspect.isabstract(factory):
+                members = ", ".join(sorted(factory.__abstractmethods__))
+                raise PluginError(f"{factory.__name__} leaves abstract members unimplemented: {members}")
+        elif not callable(factory):
+            raise PluginError(f"factory {factory!r} is not callable")
+        arguments = [n for n in fields if n != "name"] + list(KINDS[kind].runtime_arguments)
+        try:
+            signature = inspect.signature(factory)
+        except (TypeError, ValueError):
+            return  # builtins without a signature: checked when built
+        try:
+            signature.bind(**dict.fromkeys(arguments))
+        except TypeError as exc:
+            raise PluginError(
+                f"factory {getattr(factory, '__name__', factory)!r} cannot be called with the config fields and the "
+                f"pipeline's arguments ({', '.join(arguments) or 'none'}): {exc}"
+            ) from None
+
+
+def _plain(value: Any) -> Any:
+    """OmegaConf containers to plain Python, so components never see the config tree."""
+    from omegaconf import DictConfig, ListConfig, OmegaConf
+
+    if isinstance(value, (DictConfig, ListConfig)):
+        return OmegaConf.to_container(value, resolve=True)
+    return value
+
+
+def collect(loaded: LoadedPlugins) -> Registry:
+    """Call every registration hook implementation and build the registry; problems are recorded, never raised."""
+    loaded.check_hooks()
+    registry = Registry(problems=list(loaded.problems), plugins=dict(loaded.plugins), disabled=list(loaded.disabled))
+    for kind, hook_name in ((kind.name, kind.hook) for kind in KINDS.values()):
+        for impl in getattr(loaded.manager.hook, hook_name).get_hookimpls():  # registration order: stable listings
+            info = loaded.plugins.get(impl.plugin_name, PluginInfo(impl.plugin_name))
+            try:
+                specs = impl.function()
+            except Exception as exc:
+                registry.problems.append(PluginProblem(info, f"{hook_name} raised {type(exc).__name__}: {one_line(exc)}"))
+                continue
+            if specs is not None and not isinstance(specs, (list, tuple)):
+                registry.problems.append(PluginProblem(info, f"{hook_name} returned {type(specs).__name__}, expected a list"))
+                continue
+            for spec in specs or ():
+                registry.add(kind, spec, info)
+    for impl in loaded.manager.hook.gpnerf_register_data_tools.get_hookimpls():
+        info = loaded.plugins.get(impl.plugin_name, PluginInfo(impl.plugin_name))
+        try:
+            tools = impl.function()
+        except Exception as exc:
+            registry.problems.append(
+                PluginProblem(info, f"gpnerf_register_data_tools raised {type(exc).__name__}: {one_line(exc)}")
+            )
+            continue
+        for tool in tools or ():
+            if not isinstance(tool, DataTool):
+                registry.problems.append(PluginProblem(info, f"data tool {tool!r} is not a DataTool", "data"))
+            elif tool.name in registry.data_tools:
+                owner = registry.data_tools[tool.name][1]
+                registry.problems.append(PluginProblem(info, f"the name is taken by {owner!r}", f"data/{tool.name}"))
+            else:
+                registry.data_tools[tool.name] = (tool, impl.plugin_name)
+    _collect_stress_cases(loaded, registry)
+    return registry
+
+
+def _collect_stress_cases(loaded: LoadedPlugins, registry: Registry) -> None:
+    hook = "gpnerf_register_stress_cases"
+    for impl in getattr(loaded.manager.hook, hook).get_hookimpls():
+        info = loaded.plugins.get(impl.plugin_name, PluginInfo(impl.plugin_name))
+        try:
+            cases = impl.function()
+        except Exception as exc:
+            registry.problems.append(PluginProblem(info, f"{hook} raised {type(exc).__name__}: {one_line(exc)}"))
+            continue
+        for case in cases or ():
+            problem = stress_case_problem(case)
+            name = getattr(case, "name", "?")
+            if problem is None and name in registry.stress_cases:
+                problem = f"the name is taken by {registry.stress_cases[name][1]!r}"
+            if problem is not None:
+                registry.problems.append(PluginProblem(info, problem, f"stress/{name}"))
+            else:
+                registry.stress_cases[name] = (case, impl.plugin_name)
+
+
+def stress_case_problem(case: Any) -> str | None:
+    """What is wrong with a registered stress case (None: nothing)."""
+    if not isinstance(case, StressCase):
+        return f"{case!r} is not a StressCase instance"
+    if not isinstance(case.name, str) or not NAME_PATTERN.match(case.name):
+        return f"name {case.name!r} is not snake_case"
+    if not case.levels or not all(isinstance(v, (int, float)) for v in case.levels):
+        return f"levels {case.levels!r}: expected a non-empty tuple of numbers, mildest first"
+    unknown = [v for v in case.quick_levels if v not in case.levels]
+    if unknown:
+        return f"quick_levels has {unknown[0]!r}, which is not one of its levels {list(case.levels)}"
+    if case.split not in ("train", "unseen"):
+        return f"split {case.split!r}: expected train or unseen"
+    return None
+
+
+def register_config_options(registry: Registry) -> None:
+    """Make every registered component an option of its Hydra config group (``+head=<name>``).
+
+    A config dataclass OmegaConf cannot represent (a field of an unsupported type) rejects its component.
+    """
+    from hydra.core.config_store import ConfigStore
+
+    cs = ConfigStore.instance()
+    for kind, entries in registry.components.items():
+        for name, entry in list(entries.items()):
+            try:
+                cs.store(group=kind, name=name, node=entry.spec.config, provider=entry.provider)
+            except Exception as exc:
+                del entries[name]
+                info = registry.plugins.get(entry.provider, PluginInfo(entry.provider))
+                reason = f"config {entry.spec.config.__name__} is not a valid Hydra schema: {one_line(exc)}"
+                registry.problems.append(PluginProblem(info, reason, f"{kind}/{name}"))
+
+
+@functools.cache
+def get_registry() -> Registry:
+    """The process-wide registry (built once; Hydra launcher workers rebuild it lazily)."""
+    registry = collect(make_plugin_manager())
+    register_config_options(registry)
+    return registry

@@ -1,0 +1,120 @@
+"""pluggy hook specifications of gpnerf-core.
+
+Every hook is named ``gpnerf_register_<kind>s`` and returns a list of ``ComponentSpec``. The host calls each
+hook once when it builds the registry, walks the implementations one by one so it knows which plugin
+provided each spec, and refuses duplicates. Hooks take no arguments so implementations stay pure data;
+a plugin that needs to compute its specs does it inside the hook.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import pluggy
+
+if TYPE_CHECKING:
+    from gpnerf_core.interfaces import StressCase
+    from gpnerf_core.registry.specs import ComponentSpec, DataTool
+
+PROJECT_NAME = "gpnerf"
+hookspec = pluggy.HookspecMarker(PROJECT_NAME)
+hookimpl = pluggy.HookimplMarker(PROJECT_NAME)
+
+
+@hookspec
+def gpnerf_register_feature_extractors() -> list[ComponentSpec]:
+    """Image encoders, implementing ``gpnerf_core.interfaces.FeatureExtractor``.
+
+    Called once per registry build. Each spec's factory is called with the config fields (minus ``name``)
+    as keyword arguments.
+
+    Returns:
+        Specs whose names become options of the Hydra group ``feature_extractor``.
+    """
+
+
+@hookspec
+def gpnerf_register_field_aggregators() -> list[ComponentSpec]:
+    """Per-sample aggregators over views, implementing ``FieldAggregator``.
+
+    The factory also receives ``in_dim`` (3 + the extractor's radiance width) from the pipeline.
+
+    Returns:
+        Specs for the Hydra group ``field_aggregator``.
+    """
+
+
+@hookspec
+def gpnerf_register_ray_aggregators() -> list[ComponentSpec]:
+    """Along-ray aggregators, implementing ``RayAggregator``.
+
+    The factory also receives ``in_dim`` (the field aggregator's token width).
+
+    Returns:
+        Specs for the Hydra group ``ray_aggregator``.
+    """
+
+
+@hookspec
+def gpnerf_register_heads() -> list[ComponentSpec]:
+    """Perception heads, implementing ``PerceptionHead``.
+
+    The factory also receives ``in_dim`` and ``in_levels`` (the semantic map's width and number of
+    levels) and ``num_outputs``: the dataset's class count, or ``slots + 1`` for a head whose class sets
+    ``predicts = "instances"`` (its config must then have a ``slots`` field).
+
+    Returns:
+        Specs for the Hydra group ``head`` (an add-on group: select with ``+head=<name>``).
+    """
+
+
+@hookspec
+def gpnerf_register_losses() -> list[ComponentSpec]:
+    """Loss sets (named, weighted groups of terms), implementing ``LossSet``.
+
+    Returns:
+        Specs for the Hydra group ``loss`` (an add-on group: select with ``+loss=<name>``).
+    """
+
+
+@hookspec
+def gpnerf_register_datasets() -> list[ComponentSpec]:
+    """Scene datasets, implementing ``SceneDataset``.
+
+    The factory receives its config fields; relative paths are resolved by the dataset against the
+    directory the command was started in.
+
+    Returns:
+        Specs for the Hydra group ``dataset``.
+    """
+
+
+@hookspec
+def gpnerf_register_view_selectors() -> list[ComponentSpec]:
+    """Source-view selectors, implementing ``ViewSelector``.
+
+    Returns:
+        Specs for the Hydra group ``view_selector``.
+    """
+
+
+@hookspec
+def gpnerf_register_data_tools() -> list[DataTool]:
+    """Subcommands of ``python -m gpnerf_core data`` (checkers, converters, generators).
+
+    Each tool parses its own arguments and returns an exit code; user errors are raised as
+    ``gpnerf_core.errors.GpnerfError`` and printed on one line by the CLI.
+
+    Returns:
+        ``DataTool`` records; a name registered twice is an error naming both providers.
+    """
+
+
+@hookspec
+def gpnerf_register_stress_cases() -> list[StressCase]:
+    """Conditions ``python -m gpnerf_core stress`` evaluates trained models under (source views, pose noise, ...).
+
+    Returns:
+        ``StressCase`` instances (``gpnerf_core.interfaces.StressCase``); a name registered twice is an error
+        naming both providers.
+    """

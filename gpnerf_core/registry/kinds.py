@@ -1,0 +1,57 @@
+"""The kinds of component a plugin can register: one record per kind, the only place a kind is declared.
+
+A kind is a registry key, a Hydra config group of the same name, a registration hook (``hookspecs``), an interface its
+components implement and the keyword arguments the core passes its factories besides the config fields. Adding a kind
+is one ``ComponentKind`` here, its hook in ``hookspecs`` and its interface in ``gpnerf_core.interfaces``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from gpnerf_core import interfaces as I  # noqa: N812 - the interfaces package
+from gpnerf_core.data.dataset import SceneDataset
+
+
+@dataclass(frozen=True)
+class ComponentKind:
+    """One kind of component.
+
+    Attributes:
+        name: the registry key and the Hydra config group (``+head=unet``, ``dataset=replica``).
+        hook: the registration hook (``gpnerf_register_<kind>s``) returning its ``ComponentSpec`` s.
+        interface: the class every built component is an instance of.
+        runtime_arguments: keyword arguments the core passes the factory besides the config fields.
+        add_on: absent by default and selected with ``+`` (``+head=<name>``); otherwise always in the config.
+        defines_model: its config section is part of the trained model (resuming or fine-tuning with other values is
+            refused, ``eval`` restores the checkpoint's values).
+    """
+
+    name: str
+    hook: str
+    interface: type
+    runtime_arguments: tuple[str, ...] = ()
+    add_on: bool = False
+    defines_model: bool = False
+
+
+KINDS: dict[str, ComponentKind] = {
+    kind.name: kind
+    for kind in (
+        ComponentKind("feature_extractor", "gpnerf_register_feature_extractors", I.FeatureExtractor,
+                      defines_model=True),
+        ComponentKind("field_aggregator", "gpnerf_register_field_aggregators", I.FieldAggregator, ("in_dim",),
+                      defines_model=True),
+        ComponentKind("ray_aggregator", "gpnerf_register_ray_aggregators", I.RayAggregator, ("in_dim", "num_blocks"),
+                      defines_model=True),
+        ComponentKind("head", "gpnerf_register_heads", I.PerceptionHead, ("in_dim", "in_levels", "num_outputs"),
+                      add_on=True, defines_model=True),
+        ComponentKind("loss", "gpnerf_register_losses", I.LossSet, add_on=True, defines_model=True),
+        ComponentKind("dataset", "gpnerf_register_datasets", SceneDataset),
+        ComponentKind("view_selector", "gpnerf_register_view_selectors", I.ViewSelector),
+    )
+}
+"""Every component kind by name, in the order ``plugins`` lists them."""
+
+OTHER_HOOKS = ("gpnerf_register_data_tools", "gpnerf_register_stress_cases")
+"""Hooks whose records are not Hydra config options."""

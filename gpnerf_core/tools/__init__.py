@@ -1,0 +1,1 @@
+"""Measurement, reporting and viewing built on the engine: bench, stress, sizing, reporting and the web viewer."""

@@ -1,0 +1,354 @@
+"""Run folders read back: one table from many of them (a sweep, an ablation, seeds), for ``report``, ``stress`` and
+``size``.
+
+Rows are the run folders found below the given paths (any folder holding ``metrics.json`` and ``config.yaml``). Runs
+whose configs differ only by ``seed`` (and by where or how they ran: ``out_dir``, ``threads``, ``device``, ...) form
+one row: each cell is the mean +- sample standard deviation over its runs, with n. Metric columns are keyed on the
+evaluator's protocol ids (``miou/image_mean_present``, ``psnr/clamped``). A row gets the paper's Table 4 ID and
+numbers only when it is the paper's method (the built-in ``unet`` head with a built-in loss set ``ce``, ``sd`` or
+``dgs``) with that row's switches; a third-party head or loss set never sits beside the paper's number. The paper's
+numbers are ScanNet at full size: context, not a target for CPU-sized runs.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from gpnerf_core.errors import DataError
+
+# Table 4 of the paper: (joint attention, S.D, gradient block, D.G) -> (ID, mIoU, PSNR) on ScanNet.
+PAPER_TABLE4 = {
+    (False, False, False, False): ("1", 56.45, 29.06),
+    (True, False, False, False): ("2", 57.19, 29.30),
+    (True, True, False, False): ("3", 52.03, 29.29),
+    (True, True, True, False): ("4", 59.55, 29.26),
+    (True, True, True, True): ("5", 59.92, 29.37),
+}
+PAPER_HEADS = ("unet",)
+PAPER_LOSS_SETS = ("ce", "sd", "dgs")
+NOT_METHOD_KEYS = ("seed", "out_dir", "overwrite", "threads", "device", "checkpoint", "finetune", "render", "view")
+"""Top-level config keys that say where or how a run ran (or belong to other commands), not what it computes: runs
+differing only there group."""
+NOT_METHOD_TRAIN_KEYS = ("resume", "resume_strict", "loggers", "log_every")
+
+# (column title, split, protocol id, scale, digits)
+METRIC_COLUMNS = (
+    ("mIoU held-out", "train_heldout", "miou/image_mean_present", 100.0, 2),
+    ("mIoU unseen", "unseen", "miou/image_mean_present", 100.0, 2),
+    ("PSNR held-out", "train_heldout", "psnr/clamped", 1.0, 2),
+    ("AP@0.75 held-out", "train_heldout", "instance/ap_matched@0.75", 100.0, 2),
+    ("COCO AP held-out", "train_heldout", "instance/coco_mask_ap", 100.0, 2),
+)
+
+
+@dataclass(frozen=True)
+class RunRow:
+    folder: Path
+    config: dict[str, Any]
+    metrics: dict[str, Any]
+    error: str | None = None
+    """A sweep job that failed: its ``error.json`` message (no metrics)."""
+
+    def switches(self) -> tuple[bool, bool, bool, bool] | None:
+        """Table 4's switches (joint attention, S.D, gradient block, D.G) of any run whose loss config carries them
+        (a built-in loss set, or a third-party one with ``sd_weight`` / ``dgs_weight``), whatever its head; else None."""
+        loss = self.config.get("loss") or {}
+        if loss.get("name") not in PAPER_LOSS_SETS and not {"sd_weight", "dgs_weight"} & set(loss):
+            return None
+        semantic_field = ((self.config.get("model") or {}).get("semantic_field") or {})
+        joint = bool(semantic_field.get("joint_attention", True))
+        sd = float(loss.get("sd_weight", 0)) > 0
+        dgs = float(loss.get("dgs_weight", 0)) > 0
+        block = bool(loss.get("teacher_stop_grad", False)) and (sd or dgs)
+        return joint, sd, block, dgs
+
+    def paper_switches(self) -> tuple[bool, bool, bool, bool] | None:
+        """``switches`` for the paper's method only (``PAPER_HEADS`` x ``PAPER_LOSS_SETS``): what gets a Table 4 ID."""
+        loss = self.config.get("loss") or {}
+        head = self.config.get("head") or {}
+        if loss.get("name") not in PAPER_LOSS_SETS or head.get("name") not in PAPER_HEADS:
+            return None
+        return self.switches()
+
+    def method_key(self) -> str:
+        """The config without the keys that do not change what the run computes (the seed among them). A key of the
+        schema's sections (``model``, ``train``, ...) that a run's config lacks takes today's default, and empty values
+        (``[]``, ``""``, None) count as absent, so runs written before an option existed group with runs written after
+        that leave it at its default."""
+        config = {k: v for k, v in with_schema_defaults(self.config).items() if k not in NOT_METHOD_KEYS}
+        if isinstance(config.get("train"), dict):
+            config["train"] = {k: v for k, v in config["train"].items() if k not in NOT_METHOD_TRAIN_KEYS}
+        return json.dumps(_without_empty(config), sort_keys=True, default=str)
+
+
+def _schema_defaults() -> dict[str, Any]:
+    from omegaconf import OmegaConf
+
+    from gpnerf_core.config.schema import RootConfig
+
+    defaults = OmegaConf.to_container(OmegaConf.structured(RootConfig), throw_on_missing=False)
+    return {k: v for k, v in defaults.items() if isinstance(v, dict)}
+
+
+def with_schema_defaults(config: dict[str, Any]) -> dict[str, Any]:
+    """``config`` with the keys its schema sections lack filled in from today's defaults."""
+
+    def fill(value: Any, default: Any) -> Any:
+        if not isinstance(value, dict) or not isinstance(default, dict):
+            return value
+        return {**default, **{k: fill(v, default.get(k)) for k, v in value.items()}}
+
+    defaults = _schema_defaults()
+    return {k: fill(v, defaults.get(k)) for k, v in config.items()}
+
+
+def _without_empty(value: Any) -> Any:
+    if isinstance(value, dict):
+        kept = {k: _without_empty(v) for k, v in value.items()}
+        return {k: v for k, v in kept.items() if v not in (None, "", [], {})}
+    if isinstance(value, list):
+        return [_without_empty(v) for v in value]
+    return value
+
+
+@dataclass(frozen=True)
+class RowGroup:
+    """Runs of one method that differ only by seed."""
+
+    runs: tuple[RunRow, ...]
+
+    @property
+    def label(self) -> str:
+        names = [run.folder.name for run in self.runs]
+        return names[0] if len(names) == 1 else f"{names[0]} (+{len(names) - 1})"
+
+    @property
+    def seeds(self) -> list[Any]:
+        return [run.config.get("seed", "?") for run in self.runs]
+
+
+def find_runs(paths: list[Path]) -> list[RunRow]:
+    rows = []
+    for path in paths:
+        if not path.exists():
+            raise DataError(f"{path}: expected a run folder or a folder of runs, found nothing")
+        for error_file in sorted(path.rglob("error.json")):
+            folder = error_file.parent
+            if (folder / "metrics.json").exists() or not (folder / "config.yaml").is_file():
+                continue
+            try:
+                message = str(json.loads(error_file.read_text()).get("error", "unknown error"))
+                config = yaml.safe_load((folder / "config.yaml").read_text()) or {}
+            except (json.JSONDecodeError, yaml.YAMLError, AttributeError):
+                message, config = f"{error_file} could not be parsed", {}
+            rows.append(RunRow(folder, config if isinstance(config, dict) else {}, {}, error=message))
+        for metrics_file in sorted(path.rglob("metrics.json")):
+            folder = metrics_file.parent
+            config_file = folder / "config.yaml"
+            if not config_file.is_file():
+                continue
+            try:
+                metrics = json.loads(metrics_file.read_text())
+                config = yaml.safe_load(config_file.read_text())
+            except (json.JSONDecodeError, yaml.YAMLError, UnicodeDecodeError) as exc:
+                raise DataError(f"{metrics_file}: could not be parsed ({type(exc).__name__})") from None
+            problem = metrics_shape_problem(metrics) or (
+                None if isinstance(config, dict) else f"{config_file.name} holds a {type(config).__name__}")
+            if problem is not None:
+                raise DataError(f"{metrics_file}: not a gpnerf-core run's metrics ({problem}); expected what run, eval "
+                                "or finetune writes")
+            rows.append(RunRow(folder, config, metrics))
+    return sorted(rows, key=lambda row: str(row.folder))
+
+
+NUMBER_OR_NONE = (int, float, type(None))
+
+
+def metrics_shape_problem(metrics: Any) -> str | None:
+    """What makes ``metrics`` unlike a run's ``metrics.json`` in the parts ``report`` reads, or None: an object whose
+    ``eval`` maps splits to objects of metrics (numbers, or nested objects and lists), ``train`` an object whose
+    ``steps`` and ``seconds`` are numbers, and ``eval_curve`` a list of objects with a numeric ``step``."""
+    if not isinstance(metrics, dict):
+        return f"it holds a {type(metrics).__name__}, not an object"
+    evaluated = metrics.get("eval", {})
+    if not isinstance(evaluated, dict):
+        return f"'eval' is a {type(evaluated).__name__}"
+    for split, values in evaluated.items():
+        if not isinstance(values, dict):
+            return f"'eval.{split}' is a {type(values).__name__}"
+        for key, value in values.items():
+            if "/" in key and not isinstance(value, (*NUMBER_OR_NONE, dict, list, str)):
+                return f"'eval.{split}.{key}' is a {type(value).__name__}"
+            if "/" in key and isinstance(value, str) and not key.endswith("reason"):
+                return f"'eval.{split}.{key}' is text, not a number"
+    train = metrics.get("train", {})
+    if not isinstance(train, dict):
+        return f"'train' is a {type(train).__name__}"
+    for key in ("steps", "seconds", "rays_per_second"):
+        if not isinstance(train.get(key), NUMBER_OR_NONE) or isinstance(train.get(key), bool):
+            return f"'train.{key}' is a {type(train.get(key)).__name__}, not a number"
+    curve = metrics.get("eval_curve")
+    if curve is not None and (not isinstance(curve, list) or not all(
+            isinstance(e, dict) and isinstance(e.get("step"), (int, float)) for e in curve)):
+        return "'eval_curve' is not a list of objects with a numeric step"
+    return None
+
+
+def group_runs(rows: list[RunRow]) -> list[RowGroup]:
+    """Runs grouped by ``method_key``, in the order their first run was found."""
+    groups: dict[str, list[RunRow]] = {}
+    for row in rows:
+        key = f"failed:{row.folder}" if row.error is not None else row.method_key()
+        groups.setdefault(key, []).append(row)
+    return [RowGroup(tuple(runs)) for runs in groups.values()]
+
+
+def summarize(values: list[float], scale: float = 1.0, digits: int = 2) -> str:
+    """``mean`` for one value, ``mean +- std (n=k)`` (sample standard deviation) for several, ``n/a`` for none."""
+    if not values:
+        return "n/a"
+    scaled = [v * scale for v in values]
+    mean = statistics.fmean(scaled)
+    if len(scaled) == 1:
+        return f"{mean:.{digits}f}"
+    return f"{mean:.{digits}f} +- {statistics.stdev(scaled):.{digits}f} (n={len(scaled)})"
+
+
+def _metric(run: RunRow, split: str, key: str) -> float | None:
+    value = run.metrics.get("eval", {}).get(split, {}).get(key)
+    return None if value is None else float(value)
+
+
+def format_table(rows: list[RunRow]) -> str:
+    header = (
+        "| run | seeds | head | loss | joint attn | S.D | grad block | D.G | steps | "
+        + " | ".join(title for title, *_ in METRIC_COLUMNS)
+        + " | train s | Table 4 ID | paper mIoU | paper PSNR |"
+    )
+    width = header.count("|") - 1
+    lines = [header, "|" + "|".join(["---"] * width) + "|"]
+    for group in group_runs(rows):
+        first = group.runs[0]
+        if first.error is not None:
+            lines.append(f"| {group.label} | " + f"failed: {first.error}".replace("|", "/") + " |" + " |" * (width - 2))
+            continue
+        switches = first.switches()
+        paper = PAPER_TABLE4.get(first.paper_switches()) if first.paper_switches() else None
+        flags = ["yes" if s else "no" for s in switches] if switches else ["-"] * 4
+        head = (first.config.get("head") or {}).get("name", "-")
+        loss = (first.config.get("loss") or {}).get("name", "-")
+        steps = sorted({str(run.metrics.get("train", {}).get("steps", "-")) for run in group.runs})
+        metric_cells = []
+        for _, split, key, scale, digits in METRIC_COLUMNS:
+            values = [v for run in group.runs if (v := _metric(run, split, key)) is not None]
+            metric_cells.append(summarize(values, scale, digits))
+        seconds = [float(s) for run in group.runs if (s := run.metrics.get("train", {}).get("seconds")) is not None]
+        cells = [
+            group.label,
+            ",".join(str(seed) for seed in group.seeds),
+            head,
+            loss,
+            *flags,
+            "/".join(steps),
+            *metric_cells,
+            summarize(seconds, digits=1),
+            paper[0] if paper else "-",
+            f"{paper[1]:.2f}" if paper else "-",
+            f"{paper[2]:.2f}" if paper else "-",
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def fronts_possible(method: Any) -> bool:
+    """The method has a point on at least one (accuracy, cost) panel."""
+    from gpnerf_core.tools.reporting.speed_accuracy import ACCURACY, COSTS
+
+    return any(a.name in method.points for a in ACCURACY) and any(c.name in method.points for c in COSTS)
+
+
+def method_labels(groups: list[RowGroup]) -> list[str]:
+    """Legend entries, one per group: head + loss (+ the Table 4 ID of the paper's methods); where several groups
+    share that text, each also names its own values of the config keys that tell them apart (its size: blocks,
+    samples, views, bounds, ...), and the first run's folder only where the configs name nothing."""
+    described = []
+    for group in groups:
+        first = group.runs[0]
+        head = (first.config.get("head") or {}).get("name", "no head")
+        loss = (first.config.get("loss") or {}).get("name", "no loss")
+        switches = first.paper_switches()
+        paper = PAPER_TABLE4.get(switches) if switches else None
+        described.append(f"{head} + {loss}" + (f" (Table 4 ID {paper[0]})" if paper else ""))
+    labels = []
+    for text, group in zip(described, groups):
+        twins = [g for t, g in zip(described, groups) if t == text]
+        if len(twins) == 1:
+            labels.append(text)
+            continue
+        differences = distinguishing_values(group, twins)
+        labels.append(f"{text} [{differences or group.runs[0].folder.name}]")
+    return labels
+
+
+def distinguishing_values(group: RowGroup, twins: list[RowGroup], most: int = 4) -> str:
+    """``key=value`` of ``group`` for the config keys whose values differ among ``twins`` (keys by their last part,
+    so ``field_aggregator.num_blocks=2`` reads ``num_blocks=2``; the model's size first), at most ``most`` of them,
+    then ``+N more``."""
+    defaults = _flatten(_without_empty(_schema_defaults()))  # sections a run's config lacks read as the defaults
+    flat = [{**defaults, **_flatten(json.loads(twin.runs[0].method_key()))} for twin in twins]
+    keys = sorted(set().union(*flat), key=lambda key: (_SIZE_ORDER.get(key.split(".")[0], len(_SIZE_ORDER)), key))
+    value = lambda config, key: json.dumps(config.get(key), sort_keys=True)  # noqa: E731
+    differing = [key for key in keys if len({value(f, key) for f in flat}) > 1]
+    own = flat[next(i for i, twin in enumerate(twins) if twin is group)]
+    shown = differing[:most]
+    # Then what still tells this group from a twin that the first keys do not (labels stay unique).
+    for other in flat:
+        if other is not own and all(value(other, key) == value(own, key) for key in shown):
+            shown += [next(key for key in differing if value(other, key) != value(own, key))]
+    parts = [f"{key.rsplit('.', 1)[-1]}={_short(own.get(key, '-'))}" for key in shown]
+    if len(differing) > len(shown):
+        parts.append(f"+{len(differing) - len(shown)} more")
+    return ", ".join(parts)
+
+
+_SIZE_ORDER = {section: rank for rank, section in enumerate(
+    ("model", "field_aggregator", "ray_aggregator", "feature_extractor", "dataset", "train", "loss", "head"))}
+"""Sections named first in a label: the model's size before the data, the recipe and the rest."""
+
+
+def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(value, dict):
+        return {prefix: value}
+    out: dict[str, Any] = {}
+    for key, item in value.items():
+        out.update(_flatten(item, f"{prefix}.{key}" if prefix else str(key)))
+    return out
+
+
+def _short(value: Any) -> str:
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def with_parameter_count(row: RunRow) -> RunRow:
+    """Runs written before ``metrics.json`` held ``parameters``: count the model tensors of their final checkpoint."""
+    if row.error is not None or "parameters" in row.metrics:
+        return row
+    checkpoint = (row.metrics.get("train") or {}).get("checkpoint")
+    if not checkpoint or not Path(checkpoint).is_file():
+        return row
+    from gpnerf_core.errors import DataError
+    from gpnerf_core.model.checkpoint import read_torch_file
+
+    try:  # weights only: a report never runs code from a file it reads
+        state = read_torch_file(Path(checkpoint))
+    except DataError:
+        return row
+    state = state.get("model", {}) if isinstance(state, dict) else {}
+    total = sum(t.numel() for t in state.values() if hasattr(t, "numel"))
+    return RunRow(row.folder, row.config, {**row.metrics, "parameters": {"total": total}}, row.error)

@@ -1,0 +1,38 @@
+"""What a configuration costs before it is trained: parameters and floating-point operations per rendered ray."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+from gpnerf_core.tools.bench.measure import view_renderer
+from gpnerf_core.model.build import build_components
+from gpnerf_core.data.frames import FrameCache
+
+
+@dataclass(frozen=True)
+class StaticCost:
+    """Attributes: parameters (all model tensors); flops_per_ray: matmul and convolution FLOPs of rendering one
+    held-out view (source encoding included) divided by its rays (torch's FLOP counter); rays: rays of that view."""
+
+    parameters: int
+    flops_per_ray: float
+    rays: int
+
+
+def static_cost(cfg: Any, scene_name: str) -> StaticCost:
+    """Build the model ``cfg`` describes (randomly initialised: the counts do not depend on the weights) and render
+    the first held-out view of ``scene_name`` once under the FLOP counter, on the CPU."""
+    torch.manual_seed(int(cfg.seed))
+    components = build_components(cfg)
+    model = components.model.eval()
+    frames = FrameCache(components.dataset, torch.device("cpu"))
+    render = view_renderer(cfg, model, frames, components.view_selector, scene_name)
+    with torch.inference_mode(), FlopCounterMode(display=False) as counter:
+        prediction = render()
+    flops = int(counter.get_total_flops())
+    rays = int(prediction.rgb.shape[0] * prediction.rgb.shape[1])
+    return StaticCost(parameters=int(model.parameter_counts()["total"]), flops_per_ray=flops / rays, rays=rays)

@@ -1,0 +1,282 @@
+"""Evaluate trained models under every level of the chosen stress cases (``python -m gpnerf_core stress``).
+
+For each model: the clean condition once (held-out views of the training scenes, the model's own source views),
+then every level of every case. A level a dataset cannot offer is skipped with its reason; a non-finite metric is
+recorded and fails the suite at the end (the suite guarantees no crash and no NaN).
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import torch
+import yaml
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from gpnerf_core.errors import ConfigError, DataError, NonFiniteError
+from gpnerf_core.interfaces import StressCase
+
+METRICS = {"miou": "miou/image_mean_present", "accuracy": "acc/image_total", "psnr": "psnr/clamped"}
+"""Figures kept per evaluation: name -> protocol id in ``metrics.json`` (mIoU and accuracy only with semantics)."""
+
+QUICK_VIEWS_PER_SCENE = 1
+"""``--quick``: held-out views per scene evaluated (0 = all otherwise)."""
+
+
+@dataclass(frozen=True)
+class ModelUnderTest:
+    """A trained model to stress: its checkpoint, composed config, method key and label."""
+
+    checkpoint: Path
+    config: dict[str, Any]
+    method: str
+    seed: Any
+    name: str
+
+
+@dataclass
+class Outcome:
+    """One (model, case, level): its metrics, or why it was skipped."""
+
+    model: str
+    method: str
+    seed: Any
+    case: str
+    level: float | None
+    label: str
+    metrics: dict[str, float] = field(default_factory=dict)
+    skipped: str | None = None
+    seconds: float = 0.0
+    error: str | None = None
+    """The evaluation stopped on a non-finite value (the metrics refuse NaN/Inf predictions)."""
+
+    @property
+    def non_finite(self) -> list[str]:
+        found = [k for k, v in self.metrics.items() if not math.isfinite(v)]
+        return found + ([self.error] if self.error else [])
+
+
+def models_from_paths(paths: Sequence[Path]) -> list[ModelUnderTest]:
+    """Run folders (or folders of runs) and ``.pt`` checkpoints, each a model; grouped into methods by config."""
+    from gpnerf_core.tools.reporting.runs import RunRow, find_runs, group_runs, method_labels
+    from gpnerf_core.model.checkpoint import read_checkpoint
+
+    rows: list[RunRow] = []
+    checkpoints: dict[Path, Path] = {}
+    for path in paths:
+        if path.is_file():
+            state = read_checkpoint(path)
+            row = RunRow(path.parent.parent if path.parent.name == "checkpoints" else path.parent,
+                         yaml.safe_load(state["config"]) or {}, {})
+            rows.append(row)
+            checkpoints[row.folder] = path
+            continue
+        for row in find_runs([path]):
+            if row.error is not None:
+                print(f"stress: skipping {row.folder}: it failed ({row.error})", file=sys.stderr)
+                continue
+            checkpoint = _run_checkpoint(row.folder, row.metrics)
+            if checkpoint is None:
+                print(f"stress: skipping {row.folder}: no checkpoint in {row.folder / 'checkpoints'} (an eval "
+                      "folder, or a copy without its checkpoints)", file=sys.stderr)
+                continue
+            rows.append(row)
+            checkpoints[row.folder] = checkpoint
+    if not rows:
+        raise DataError(f"no trained runs or checkpoints under {', '.join(map(str, paths))}")
+    groups = group_runs(rows)
+    labels = method_labels(groups)
+    models = []
+    for group, label in zip(groups, labels):
+        for row in group.runs:
+            models.append(ModelUnderTest(checkpoints[row.folder], row.config, label, row.config.get("seed"),
+                                         row.folder.name))
+    return models
+
+
+def _run_checkpoint(folder: Path, metrics: dict[str, Any]) -> Path | None:
+    """The run's final checkpoint inside ``folder``: the one ``metrics.json`` names if the folder holds it, else its
+    newest. A copied folder's ``metrics.json`` names the original's file, which is never taken in its place."""
+    from gpnerf_core.training.resume import run_checkpoints
+
+    recorded = (metrics.get("train") or {}).get("checkpoint")
+    if recorded:
+        own = folder / "checkpoints" / Path(str(recorded)).name
+        if own.is_file():
+            return own
+    found = run_checkpoints(folder)
+    return found[-1][1] if found else None
+
+
+def choose_cases(names: Sequence[str] | None) -> list[StressCase]:
+    """The registered cases named (all when None), in registration order; an unknown name lists the known."""
+    from gpnerf_core.registry.components import get_registry
+
+    registered = {name: case for name, (case, _) in get_registry().stress_cases.items()}
+    if not names:
+        return list(registered.values())
+    unknown = [n for n in names if n not in registered]
+    if unknown:
+        raise ConfigError(f"unknown stress case {unknown[0]!r}; known cases: {', '.join(registered)}")
+    return [registered[n] for n in dict.fromkeys(names)]
+
+
+def _config(model: ModelUnderTest, views_per_scene: int, dataset_overrides: dict[str, Any]) -> DictConfig:
+    """The run's config (keys it predates at today's defaults) for evaluation, with the dataset overrides."""
+    from gpnerf_core.tools.reporting.runs import with_schema_defaults
+
+    cfg = OmegaConf.create(with_schema_defaults(copy.deepcopy(model.config)))
+    with open_dict(cfg):
+        cfg.eval.max_views_per_scene = views_per_scene
+        cfg.eval.save_images = 0
+        for key, value in dataset_overrides.items():
+            cfg.dataset[key] = value
+    return cfg
+
+
+class _Evaluator:
+    """One model, its weights loaded once; datasets (and frame caches) per dataset variant."""
+
+    def __init__(self, model: ModelUnderTest, views_per_scene: int, device: torch.device) -> None:
+        from gpnerf_core.model.build import build_components
+        from gpnerf_core.model.checkpoint import evaluation_weights, load_weights, read_checkpoint
+
+        self.model = model
+        self.views_per_scene = views_per_scene
+        self.device = device
+        self.cfg = _config(model, views_per_scene, {})
+        self.components = build_components(self.cfg)
+        state = read_checkpoint(model.checkpoint)
+        load_weights(self.components.model, evaluation_weights(state)[0], f"checkpoint {model.checkpoint}")
+        self.components.model.to(device).eval()
+        self._variants: dict[str, tuple[DictConfig, Any, Any]] = {}
+
+    def variant(self, overrides: dict[str, Any]) -> tuple[DictConfig, Any, Any]:
+        """``(cfg, components, frames)`` with the dataset changed by ``overrides`` (shared model)."""
+        from dataclasses import replace
+
+        from gpnerf_core.data.frames import FrameCache
+        from gpnerf_core.registry.components import get_registry
+
+        key = repr(sorted(overrides.items()))
+        if key not in self._variants:
+            cfg = _config(self.model, self.views_per_scene, overrides)
+            components = self.components
+            if overrides:
+                components = replace(components, dataset=get_registry().build("dataset", cfg.dataset))
+            self._variants[key] = (cfg, components, FrameCache(components.dataset, self.device))
+        return self._variants[key]
+
+    def evaluate(self, case: StressCase | None, level: float | None, run_dir: Path) -> dict[str, float]:
+        from gpnerf_core.runtime.distributed import Distributed
+        from gpnerf_core.evaluation.evaluator import evaluate
+        from gpnerf_core.data.frames import choose_sources
+
+        overrides = case.dataset_overrides(level, self.cfg.dataset) if case is not None else {}
+        cfg, components, frames = self.variant(overrides)
+        split = case.split if case is not None else "train"
+        with open_dict(cfg):
+            cfg.eval.splits = [split]
+        trained_views = int(cfg.model.num_source_views)
+
+        def choose(scene, target: int, count: int) -> list[int]:
+            return choose_sources(components.view_selector, scene, target, count, None)
+
+        def sources_for(scene, target: int):
+            if case is None:
+                return frames.source_views(scene, choose(scene, target, trained_views))
+            count = case.num_source_views(level, trained_views)
+            indices = case.source_indices(level, scene, target, count, choose)
+            if target in indices or len(indices) != count:
+                raise DataError(f"stress case {case.name!r} level {level:g}: gave sources {indices} for target "
+                                f"{target} of {scene.name!r}; expected {count} frames, not the target")
+            generator = torch.Generator().manual_seed(_seed(case.name, level, scene.name, target))
+            return case.perturb_sources(level, frames.source_views(scene, indices), generator)
+
+        result = evaluate(cfg, components, frames, run_dir, Distributed.single(), sources_for=sources_for,
+                          references=False)
+        label = "train_heldout" if split == "train" else "unseen"
+        values = result["eval"][label]
+        return {name: float(values[key]) for name, key in METRICS.items() if key in values}
+
+    def scenes(self, case: StressCase, level: float) -> list[Any]:
+        cfg, components, frames = self.variant(case.dataset_overrides(level, self.cfg.dataset))
+        return [frames.scene(name) for name in components.dataset.scenes(case.split)]
+
+
+def _seed(*parts: Any) -> int:
+    """A generator seed fixed by (case, level, scene, target): the same suite perturbs the same way."""
+    return int.from_bytes(hashlib.sha256(repr(parts).encode()).digest()[:8], "little") >> 1
+
+
+def run_suite(
+    models: list[ModelUnderTest], cases: list[StressCase], *, quick: bool, views_per_scene: int, scratch: Path,
+    device: torch.device, outcomes: list[Outcome] | None = None,
+) -> list[Outcome]:
+    """Every model under the clean condition and every chosen level of every case, with progress on stderr.
+
+    Args:
+        outcomes: the list each finished evaluation is appended to as it ends (so an interrupted suite's caller still
+            holds them); a new one when None.
+    """
+    outcomes = [] if outcomes is None else outcomes
+    for model in models:
+        evaluator = _Evaluator(model, views_per_scene, device)
+        started = time.perf_counter()
+        clean = evaluator.evaluate(None, None, scratch)
+        outcomes.append(Outcome(model.name, model.method, model.seed, "clean", None, "clean", clean,
+                                seconds=time.perf_counter() - started))
+        print(f"stress: {model.name} clean: {_shown(clean)}", file=sys.stderr)
+        for case in cases:
+            for level in case.chosen_levels(quick):
+                outcome = Outcome(model.name, model.method, model.seed, case.name, float(level), case.label(level))
+                reason = _unavailable(case, level, evaluator)
+                if reason is not None:
+                    outcome.skipped = reason
+                    print(f"stress: {model.name} {case.name} {case.label(level)}: skipped: {reason}", file=sys.stderr)
+                else:
+                    started = time.perf_counter()
+                    try:
+                        outcome.metrics = evaluator.evaluate(case, level, scratch)
+                    except NonFiniteError as exc:
+                        outcome.error = str(exc)
+                    outcome.seconds = time.perf_counter() - started
+                    shown = _shown(outcome.metrics) if outcome.error is None else f"NOT FINITE: {outcome.error}"
+                    print(f"stress: {model.name} {case.name} {case.label(level)}: {shown}", file=sys.stderr)
+                outcomes.append(outcome)
+    return outcomes
+
+
+def dataset_options(name: str) -> set[str]:
+    """The config fields of the registered dataset ``name``."""
+    import dataclasses
+
+    from gpnerf_core.registry.components import get_registry
+
+    registered = get_registry().components["dataset"].get(name)
+    return {f.name for f in dataclasses.fields(registered.spec.config)} if registered else set()
+
+
+def _unavailable(case: StressCase, level: float, evaluator: _Evaluator) -> str | None:
+    """Why the level cannot run: a dataset option its variant needs is missing, or the case's own reason."""
+    dataset = evaluator.cfg.dataset
+    options = dataset_options(str(dataset.get("name")))
+    missing = [key for key in case.dataset_overrides(level, dataset) if key not in options]
+    if missing:
+        return f"dataset {dataset.get('name')!r} has no option {missing[0]!r} for this variant ({case.description})"
+    scenes = evaluator.scenes(case, level)
+    reason = case.unavailable(level, dataset, scenes, int(evaluator.cfg.model.num_source_views))
+    if reason is None and not any(scene.eval_frames for scene in scenes):
+        reason = f"no evaluation frames in the {case.split!r} split"
+    return reason
+
+
+def _shown(metrics: dict[str, float]) -> str:
+    return ", ".join(f"{k} {v:.3f}" for k, v in metrics.items())

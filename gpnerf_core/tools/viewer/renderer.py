@@ -1,0 +1,312 @@
+"""Novel views for the viewer: one view rendered with ``GeneralizableNeRF.predict`` and turned into picture layers,
+and a background thread that renders each client's latest camera progressively (coarse preview, then the full frame
+once the camera rests), dropping work a newer camera made stale."""
+
+from __future__ import annotations
+
+import math
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable, Hashable
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from gpnerf_core.evaluation import visualize as vis
+from gpnerf_core.evaluation.instances import slot_predictions
+from gpnerf_core.model.feature_cache import SourceFeatureCache
+from gpnerf_core.data.frames import FrameCache
+from gpnerf_core.interfaces import ViewSelector
+from gpnerf_core.model.pipeline import GeneralizableNeRF, Prediction
+from gpnerf_core.types import Scene, TargetCamera
+from gpnerf_core.tools.viewer.camera import view_from_viser
+
+LAYERS = ("rgb", "depth", "semantic", "instances", "features", "error")
+"""Picture layers a view may have: ``semantic`` with a class head, ``instances`` with an instance head, ``features``
+(PCA of the rendered semantic map) with a semantic field, ``error`` (per-pixel colour error against the real frame)
+when the camera sits at a frame of the scene."""
+SNAP_DISTANCE = 1e-3
+"""A camera within this many metres of a frame's centre ..."""
+SNAP_ANGLE = 1e-3
+"""... and this many radians of its orientation sits at that frame: it is rendered with the frame's own camera (its
+size and intrinsics), without the frame among its sources, and compared with it."""
+
+
+def frame_at(scene: Scene, c2w: torch.Tensor) -> int | None:
+    """The frame of ``scene`` whose pose is ``c2w`` (a camera snapped to it, up to ``SNAP_DISTANCE``/``SNAP_ANGLE``)."""
+    pose = c2w.detach().cpu().double()
+    distance = (scene.c2w[:, :3, 3].double() - pose[:3, 3]).norm(dim=-1)
+    index = int(distance.argmin())
+    if float(distance[index]) > SNAP_DISTANCE:
+        return None
+    relative = scene.c2w[index, :3, :3].double().T @ pose[:3, :3]
+    angle = math.acos(max(-1.0, min(1.0, (float(relative.trace()) - 1.0) / 2.0)))
+    return index if angle <= SNAP_ANGLE else None
+
+
+def highlight_class(picture: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
+    """``picture`` ``[H, W, 3]`` uint8 with every pixel whose label (``[H, W]``) is not ``k`` dimmed to a quarter."""
+    out = picture.copy()
+    other = labels != k
+    out[other] = out[other] // 4
+    return out
+
+
+@dataclass(frozen=True)
+class ViewRequest:
+    """What a client asks for: the scene, its viser camera and the render settings.
+
+    Attributes:
+        wxyz, position: the viser camera (OpenCV convention, world coordinates); fov: vertical, radians; aspect:
+            canvas width / height.
+        source_views: source views per render (0 = the model's ``num_source_views``).
+        stride, preview_stride: pixels per rendered cell of the full frame and of the preview.
+    """
+
+    scene: str
+    wxyz: tuple[float, float, float, float]
+    position: tuple[float, float, float]
+    fov: float
+    aspect: float
+    source_views: int
+    stride: int
+    preview_stride: int
+
+
+@dataclass(frozen=True)
+class RenderedView:
+    """One rendered view.
+
+    Attributes:
+        stage: ``preview`` or ``full``; stride: its render stride.
+        layers: name (``LAYERS``) -> ``[h, w, 3]`` uint8 picture (rgb and depth at the render grid, the head's layers
+            at the full image size); empty when the render failed.
+        sources: the scene frame indices used as source views.
+        seconds: wall time of the render; prediction: the model's output (None on failure).
+        error: one line when the render failed, else None.
+        frame, psnr: the scene frame the camera sits at and the render's PSNR against it (clamped colours), or None.
+    """
+
+    stage: str
+    stride: int
+    layers: dict[str, np.ndarray]
+    sources: tuple[int, ...]
+    seconds: float
+    prediction: Prediction | None = None
+    error: str | None = None
+    frame: int | None = None
+    psnr: float | None = None
+
+
+class SceneRenderer:
+    """Renders novel views of a dataset's scenes with a trained model (synchronous; ``ProgressiveRenderer`` drives it).
+
+    Args:
+        model: the model in eval mode, on ``frames.device``.
+        frames: the dataset's frame cache.
+        selector: picks each view's source views among the scene's training frames (deterministically).
+        num_classes, class_names: the head's classes (for the semantic layer).
+        chunk_rays: rays rendered at once; default_source_views: source views when a request asks for 0.
+        feature_cache: keeps the encoded source maps of the scenes shown (None: every render encodes its sources).
+    """
+
+    def __init__(
+        self,
+        model: GeneralizableNeRF,
+        frames: FrameCache,
+        selector: ViewSelector,
+        num_classes: int,
+        chunk_rays: int,
+        default_source_views: int,
+        feature_cache: SourceFeatureCache | None = None,
+    ) -> None:
+        self.model = model
+        self.frames = frames
+        self.selector = selector
+        self.num_classes = num_classes
+        self.chunk_rays = chunk_rays
+        self.default_source_views = default_source_views
+        self.feature_cache = feature_cache
+        self.lock = threading.Lock()  # one render at a time: the model and the frame cache are not thread-safe
+
+    def camera(self, request: ViewRequest, multiple: int) -> TargetCamera:
+        """The target camera of ``request`` at the scene's image height."""
+        scene = self.frames.scene(request.scene)
+        view = view_from_viser(request.wxyz, request.position, request.fov, request.aspect, scene.height, multiple)
+        device = self.frames.device
+        return TargetCamera(intrinsics=view.intrinsics.to(device), c2w=view.c2w.to(device), height=view.height,
+                            width=view.width, near=scene.near, far=scene.far)
+
+    def sources_for(self, scene_name: str, c2w: torch.Tensor, count: int, exclude: int | None = None) -> list[int]:
+        """The scene's training frames (but ``exclude``) the selector picks for a camera at ``c2w`` (``count`` 0 = the
+        default)."""
+        scene = self.frames.scene(scene_name)
+        candidates = [i for i in scene.train_frames if i != exclude] or list(scene.train_frames)
+        count = min(count or self.default_source_views, len(candidates))
+        positions = self.selector.select(c2w.cpu().float(), scene.c2w[candidates], count, None)
+        return [candidates[p] for p in positions]
+
+    def render(self, scene_name: str, camera: TargetCamera, source_views: int, stride: int, stage: str) -> RenderedView:
+        """Render ``camera`` in scene ``scene_name`` at ``stride`` with ``source_views`` sources (0 = default)."""
+        began = time.perf_counter()
+        with self.lock:
+            scene = self.frames.scene(scene_name)
+            index = frame_at(scene, camera.c2w)
+            frame = self.frames.frame(scene, index) if index is not None else None
+            if frame is not None and frame.height % stride == 0 and frame.width % stride == 0:
+                camera = self.frames.camera(scene, frame)  # compared pixel for pixel with the real frame
+            else:
+                index = frame = None
+            indices = self.sources_for(scene_name, camera.c2w, source_views, exclude=index)
+            sources = self.frames.source_views(scene, indices)
+            features = None
+            if self.feature_cache is not None:
+                features = self.feature_cache.features(self.model, scene.name, indices, sources.rgb)
+            prediction = self.model.predict(camera, sources, stride=stride, chunk_rays=self.chunk_rays,
+                                            features=features)
+        layers = self.layers(prediction, scene.near, scene.far)
+        psnr = None
+        if frame is not None:
+            real = F.avg_pool2d(frame.rgb.permute(2, 0, 1)[None], prediction.stride)[0].permute(1, 2, 0)
+            rendered = torch.nan_to_num(prediction.rgb.float().cpu()).clamp(0, 1)
+            layers["error"] = vis.rgb_error_map(rendered, real)
+            psnr = float(-10 * torch.log10(((rendered - real.clamp(0, 1)) ** 2).mean().clamp_min(1e-10)))
+        return RenderedView(stage=stage, stride=prediction.stride, layers=layers, sources=tuple(indices),
+                            seconds=time.perf_counter() - began, prediction=prediction, frame=index, psnr=psnr)
+
+    def layers(self, prediction: Prediction, near: float, far: float) -> dict[str, np.ndarray]:
+        """The picture layers of a prediction; non-finite values are shown black, never raised."""
+        rgb = torch.nan_to_num(prediction.rgb.float(), nan=0.0, posinf=1.0, neginf=0.0).clamp(0, 1)
+        layers = {"rgb": (rgb.cpu().numpy() * 255).round().astype(np.uint8),
+                  "depth": vis.depth_to_color(prediction.depth.cpu(), near, far)}
+        head = self.model.head
+        if prediction.logits is not None and head is not None:
+            logits = torch.nan_to_num(prediction.logits[0].float().cpu())
+            if head.predicts == "instances":
+                slots, _ = slot_predictions(logits)
+                layers["instances"] = vis.colorize_instances(slots)
+            else:
+                layers["semantic"] = vis.colorize_labels(logits.argmax(0), self.num_classes)
+        if prediction.semantic is not None:
+            features = torch.nan_to_num(prediction.semantic.float().cpu())
+            layers["features"] = vis.pca_rgb(features)
+        return layers
+
+
+@dataclass
+class _Client:
+    request: ViewRequest | None = None
+    version: int = 0
+    submitted: float = 0.0
+    done_version: int = 0
+    done_stage: str = ""
+
+
+class ProgressiveRenderer:
+    """One background thread rendering every client's latest camera: a preview at the request's ``preview_stride``
+    as soon as it can, then the full frame at ``stride`` once no newer camera came for ``rest_s`` seconds.
+
+    A camera that arrives while a view is rendering makes it stale: a stale preview or full frame is dropped, never
+    delivered, and a full frame is not started while newer cameras keep coming. Clients are independent: each result
+    goes to the client that asked, tagged with the request it answers.
+
+    Args:
+        renderer: renders one view.
+        deliver: ``(client, request, view)`` called from the render thread with each fresh result (a failed render
+            arrives as a view with ``error`` set).
+        rest_s: how long a camera must stay still before its full frame starts.
+    """
+
+    def __init__(
+        self,
+        renderer: SceneRenderer,
+        deliver: Callable[[Hashable, ViewRequest, RenderedView], None],
+        rest_s: float = 0.15,
+    ) -> None:
+        self.renderer = renderer
+        self.deliver = deliver
+        self.rest_s = rest_s
+        self._clients: dict[Hashable, _Client] = {}
+        self._wake = threading.Condition()
+        self._stopping = False
+        self._thread = threading.Thread(target=self._loop, name="gpnerf-viewer-render", daemon=True)
+        self._thread.start()
+
+    def submit(self, client: Hashable, request: ViewRequest) -> None:
+        """The client's camera or settings changed: render ``request`` (replacing any older one of this client)."""
+        with self._wake:
+            state = self._clients.setdefault(client, _Client())
+            state.request = request
+            state.version += 1
+            state.submitted = time.monotonic()
+            self._wake.notify_all()
+
+    def forget(self, client: Hashable) -> None:
+        """The client left: drop its request; a render in flight for it is not delivered."""
+        with self._wake:
+            self._clients.pop(client, None)
+
+    def close(self, timeout: float = 30.0) -> None:
+        """Stop the thread (after the render in flight, if any) and wait for it."""
+        with self._wake:
+            self._stopping = True
+            self._wake.notify_all()
+        self._thread.join(timeout)
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def _next_job(self) -> tuple[tuple[Hashable, int, ViewRequest, str] | None, float | None]:
+        """The next (client, version, request, stage), or None and how long to wait before asking again."""
+        wait = None
+        for client, state in self._clients.items():
+            if state.request is not None and state.done_version != state.version:
+                return (client, state.version, state.request, "preview"), None
+        now = time.monotonic()
+        for client, state in self._clients.items():
+            if state.request is None or state.done_stage == "full":
+                continue
+            rested = now - state.submitted
+            if rested >= self.rest_s:
+                return (client, state.version, state.request, "full"), None
+            wait = self.rest_s - rested if wait is None else min(wait, self.rest_s - rested)
+        return None, wait
+
+    def _loop(self) -> None:
+        while True:
+            with self._wake:
+                while True:
+                    if self._stopping:
+                        return
+                    job, wait = self._next_job()
+                    if job is not None:
+                        break
+                    self._wake.wait(wait)
+            client, version, request, stage = job
+            view = self._render(request, stage)
+            with self._wake:
+                state = self._clients.get(client)
+                if state is None or state.version != version:
+                    continue  # the client moved on (or left) while this rendered: stale
+                full = stage == "full" or view.stride == request.stride or view.error is not None
+                state.done_version, state.done_stage = version, "full" if full else "preview"
+            try:
+                self.deliver(client, request, view)
+            except Exception as exc:  # a client that vanished mid-delivery must not stop the others' renders
+                print(f"viewer: could not deliver a frame to client {client}: {exc}", file=sys.stderr)
+
+    def _render(self, request: ViewRequest, stage: str) -> RenderedView:
+        stride = request.preview_stride if stage == "preview" else request.stride
+        began = time.perf_counter()
+        try:
+            camera = self.renderer.camera(request, math.lcm(request.stride, request.preview_stride))
+            return self.renderer.render(request.scene, camera, request.source_views, stride, stage)
+        except Exception as exc:  # the server keeps serving; the client sees the reason
+            message = f"{type(exc).__name__}: {exc}".splitlines()[0]
+            print(f"viewer: render failed ({message})", file=sys.stderr)
+            return RenderedView(stage=stage, stride=stride, layers={}, sources=(),
+                                seconds=time.perf_counter() - began, error=message)

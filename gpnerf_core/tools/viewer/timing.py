@@ -1,0 +1,65 @@
+"""How long the viewer takes for one camera: ``python -m gpnerf_core.tools.viewer.timing [config overrides]``.
+
+Builds the model of the given config (its weights do not change the time; ``checkpoint=<pt>`` is not read), then, for
+a camera at a training frame of the first scene, times what the viewer does when a camera stops: the preview at
+``view.preview_stride`` and the full frame at ``view.stride``, each for a camera whose sources are not encoded yet
+(cold) and again with the feature cache holding them (warm, as while the camera moves among the same sources).
+Prints one JSON object (seconds, the image size, threads and device)."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+
+import torch
+
+
+def measure(overrides: list[str], repeats: int = 3) -> dict[str, object]:
+    from gpnerf_core.model.build import build_components
+    from gpnerf_core.config.compose import compose
+    from gpnerf_core.model.feature_cache import SourceFeatureCache
+    from gpnerf_core.data.frames import FrameCache
+    from gpnerf_core.tools.viewer.camera import vertical_fov, viser_pose
+    from gpnerf_core.tools.viewer.renderer import SceneRenderer, ViewRequest
+
+    cfg = compose(overrides)
+    if int(cfg.threads):
+        torch.set_num_threads(int(cfg.threads))
+    components = build_components(cfg)
+    model = components.model.eval()
+    scenes = list(components.dataset.scenes("unseen")) + list(components.dataset.scenes("train"))
+    renderer = SceneRenderer(model, FrameCache(components.dataset, torch.device("cpu")), components.view_selector,
+                             num_classes=components.classes.num_classes, chunk_rays=int(cfg.eval.chunk_rays),
+                             default_source_views=int(cfg.model.num_source_views),
+                             feature_cache=SourceFeatureCache(float(cfg.view.feature_cache_mb)))
+    scene = renderer.frames.scene(scenes[0])
+    index = scene.train_frames[0]
+    wxyz, position = viser_pose(scene.c2w[index])
+    request = ViewRequest(scene=scene.name, wxyz=tuple(wxyz), position=tuple(position),
+                          fov=vertical_fov(scene.intrinsics[index], scene.height), aspect=scene.width / scene.height,
+                          source_views=int(cfg.view.source_views), stride=int(cfg.view.stride),
+                          preview_stride=int(cfg.view.preview_stride))
+    camera = renderer.camera(request, math.lcm(request.stride, request.preview_stride))
+    result: dict[str, object] = {"scene": scene.name, "image": [camera.height, camera.width],
+                                 "stride": request.stride, "preview_stride": request.preview_stride,
+                                 "threads": torch.get_num_threads(), "device": "cpu",
+                                 "parameters": model.parameter_counts()["total"]}
+    for stage, stride in (("preview", request.preview_stride), ("full", request.stride)):
+        cold = []
+        for _ in range(repeats):
+            renderer.feature_cache.clear()
+            began = time.perf_counter()
+            renderer.render(scene.name, camera, request.source_views, stride, stage)
+            cold.append(time.perf_counter() - began)
+        began = time.perf_counter()
+        for _ in range(repeats):
+            renderer.render(scene.name, camera, request.source_views, stride, stage)
+        result[f"{stage}_s_cold"] = round(min(cold), 4)
+        result[f"{stage}_s_warm"] = round((time.perf_counter() - began) / repeats, 4)
+    return result
+
+
+if __name__ == "__main__":
+    print(json.dumps(measure(sys.argv[1:]), indent=1))
