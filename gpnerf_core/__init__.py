@@ -21,25 +21,37 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     "gpnerf_core.registry.components": ("get_registry",),
     # the interfaces a component implements
     "gpnerf_core.data.dataset": ("SPLITS", "SceneDataset"),
+    "gpnerf_core.data.base": (
+        "DatasetBase", "DatasetConfig", "check_depth_range", "check_image_size", "from_launch_dir",
+    ),
     "gpnerf_core.interfaces": (
         "FeatureExtractor", "FieldAggregator", "ImportedWeights", "ImportsWeights", "LossSet",
         "PerceptionHead", "RayAggregator", "StressCase", "ViewSelector",
     ),
     "gpnerf_core.interfaces.stress": ("ChooseSources",),
+    "gpnerf_core.interfaces.head": ("Predicts",),
+    "gpnerf_core.interfaces.model": ("ModelFamily", "ModelParts", "SemanticMode", "SemanticOutput"),
+    "gpnerf_core.config.schema": ("ModelConfig",),
     # the records passed between stages
     "gpnerf_core.types": (
-        "FeatureMaps", "FieldBlockOutput", "Frame", "HeadOutput", "LossInputs", "ProjectedFeatures", "RayBatch",
+        "FeatureMaps", "FieldBlockOutput", "Frame", "HeadOutput", "LossInputs", "Prediction", "ProjectedFeatures",
+        "RayBatch",
         "RayBlockOutput", "RayReadout", "RaySamples", "RenderedRays", "SampledMaps", "Scene", "SourceViews",
         "StepBatch", "StepOutput", "TargetCamera", "TargetView", "ViewOutput",
     ),
     # one-line errors
     "gpnerf_core.errors": ("ConfigError", "DataError", "GpnerfError", "NonFiniteError", "PluginError"),
     # geometry and checks a dataset or data tool uses
-    "gpnerf_core.geometry": ("EXPECTED_RIGID", "rigid_transform_problem"),
+    "gpnerf_core.geometry": (
+        "EXPECTED_RIGID", "Projector", "composite", "compositing_weights", "density_opacity", "importance_depths", "pixel_grid", "points_along_rays", "rays_through_pixels",
+        "rigid_transform_problem", "sampling_layout", "stratified_inverse_depths",
+    ),
     "gpnerf_core.geometry.pose_sanity": ("check_poses",),
     "gpnerf_core.data.checks": ("check_scene_files", "check_validation_level"),
     "gpnerf_core.config.arguments": ("ArgumentParser",),
     "gpnerf_core.runtime.io": ("atomic_write_json",),
+    "gpnerf_core.runtime.profiling": ("stage",),
+    "gpnerf_core.runtime.device": ("checked_compile_backend",),
     "gpnerf_core.evaluation.instances": ("hungarian", "instance_masks"),
     # composing and building from a script or notebook
     "gpnerf_core.config.compose": ("compose",),
@@ -70,10 +82,31 @@ def __dir__() -> list[str]:
 if TYPE_CHECKING:  # the same names, for type checkers and readers
     from gpnerf_core.config.arguments import ArgumentParser
     from gpnerf_core.config.compose import compose
+    from gpnerf_core.config.schema import ModelConfig
+    from gpnerf_core.data.base import (
+        DatasetBase,
+        DatasetConfig,
+        check_depth_range,
+        check_image_size,
+        from_launch_dir,
+    )
     from gpnerf_core.data.checks import check_scene_files, check_validation_level
     from gpnerf_core.errors import ConfigError, DataError, GpnerfError, NonFiniteError, PluginError
     from gpnerf_core.evaluation.instances import hungarian, instance_masks
-    from gpnerf_core.geometry import EXPECTED_RIGID, rigid_transform_problem
+    from gpnerf_core.geometry import (
+        EXPECTED_RIGID,
+        Projector,
+        composite,
+        compositing_weights,
+        density_opacity,
+        importance_depths,
+        pixel_grid,
+        points_along_rays,
+        rays_through_pixels,
+        rigid_transform_problem,
+        sampling_layout,
+        stratified_inverse_depths,
+    )
     from gpnerf_core.geometry.pose_sanity import check_poses
     from gpnerf_core.data.dataset import SPLITS, SceneDataset
     from gpnerf_core.interfaces import (
@@ -87,12 +120,16 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
         StressCase,
         ViewSelector,
     )
+    from gpnerf_core.interfaces.head import Predicts
+    from gpnerf_core.interfaces.model import ModelFamily, ModelParts, SemanticMode, SemanticOutput
     from gpnerf_core.interfaces.stress import ChooseSources
     from gpnerf_core.model.build import build_components
     from gpnerf_core.registry.components import get_registry
     from gpnerf_core.registry.hookspecs import hookimpl
     from gpnerf_core.registry.specs import ComponentSpec, DataTool
+    from gpnerf_core.runtime.device import checked_compile_backend
     from gpnerf_core.runtime.io import atomic_write_json
+    from gpnerf_core.runtime.profiling import stage
     from gpnerf_core.tools.bench.ab import alternate, make_trainer, timing_lines
     from gpnerf_core.types import (
         FeatureMaps,
@@ -100,6 +137,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
         Frame,
         HeadOutput,
         LossInputs,
+        Prediction,
         ProjectedFeatures,
         RayBatch,
         RayBlockOutput,

@@ -14,11 +14,13 @@ Conventions used by every record below:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Mapping
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+from gpnerf_core.errors import NonFiniteError
 
 
 @dataclass(frozen=True)
@@ -159,7 +161,7 @@ class TargetView:
         image: ``[3, H, W]`` target RGB in [0, 1] (ground truth, and the teacher's input).
         depth: ``[H, W]`` target depth in metres, 0 = unknown.
         labels: ``[H, W]`` int64 class ids or the dataset's ignore index.
-        sources: the chosen source views.
+        sources: the chosen source views (None for a per-scene model, which renders from its own parameters).
         instances: ``[H, W]`` int64 instance ids (``Frame.instance``), or None when the dataset has none.
         pixels: ``[R, 2]`` the chosen target pixels ``(u, v)``; the rays are cast through them (the one copy).
         render_seed: seeds this view's stochastic rendering (sample jitter, importance sampling), so a view
@@ -172,7 +174,7 @@ class TargetView:
     image: Tensor
     depth: Tensor
     labels: Tensor
-    sources: SourceViews
+    sources: SourceViews | None
     pixels: Tensor
     render_seed: int
     instances: Tensor | None = None
@@ -355,6 +357,8 @@ class RenderedRays:
         samples: the samples the pass used.
         semantic: ``[R, C_sem]`` rendered semantic features, or None when the semantic field is off.
         sample_semantic: ``[R, S, C_sem]`` per-sample semantic features (for the D.G loss), or None.
+        logits: ``[R, K]`` per-ray scores of a label-rendering model (``SemanticMode.LABEL_RENDERING``: per-sample
+            scores composited along the ray), or None.
     """
 
     rgb: Tensor
@@ -363,6 +367,7 @@ class RenderedRays:
     samples: RaySamples
     semantic: Tensor | None = None
     sample_semantic: Tensor | None = None
+    logits: Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -371,7 +376,7 @@ class HeadOutput:
 
     Attributes:
         logits: ``[N, K, H, W]`` per-pixel scores at the requested output size: K classes, or for an instance head
-            (``PerceptionHead.predicts == "instances"``) ``slots + 1`` channels whose softmax gives each slot's
+            (``Predicts.INSTANCES``) ``slots + 1`` channels whose softmax gives each slot's
             probability, the last channel being "no instance".
     """
 
@@ -407,6 +412,39 @@ class ViewOutput:
 
 
 @dataclass(frozen=True)
+class Prediction:
+    """A whole target view rendered on a stride grid, and its per-pixel scores (``ModelFamily.predict``).
+
+    Attributes:
+        rgb: ``[h, w, 3]`` (unclamped); depth: ``[h, w]`` metres.
+        semantic: ``[C, h, w]`` rendered semantic features, or None (a model without them).
+        logits: ``[1, K, H, W]`` per-pixel scores at the full image size (a head's on the rendered map, or label
+            rendering's), or None.
+        stride: pixels of the full image per rendered cell (h = H / stride).
+    """
+
+    rgb: Tensor
+    depth: Tensor
+    semantic: Tensor | None
+    logits: Tensor | None
+    stride: int
+
+    def check_finite(self, owners: Mapping[str, str], where: str) -> None:
+        """Raise NonFiniteError when an output holds NaN or Inf, naming the part that made it first.
+
+        Args:
+            owners: who made each output, by name (``colour``, ``depth``, ``semantic map``, ``logits``):
+                ``ModelFamily.output_owners``.
+            where: the view, for the message (``scene 'x' frame 3``).
+        """
+        parts = (("colour", self.rgb), ("depth", self.depth), ("semantic map", self.semantic), ("logits", self.logits))
+        for output, value in parts:
+            if value is not None and not bool(torch.isfinite(value).all()):
+                owner = owners.get(output, "model")
+                raise NonFiniteError(f"{where}: the {owner} gave NaN or Inf ({output}); nothing was scored")
+
+
+@dataclass(frozen=True)
 class StepOutput:
     """The model's forward pass over a ``StepBatch``: one ``ViewOutput`` per target view, in batch order."""
 
@@ -426,6 +464,8 @@ class LossInputs:
             the loss set decides whether the gradient is blocked.
         ignore_index: label value excluded from CE and metrics.
         instances: ``[1, H, W]`` int64 target instance ids, or None unless the loss set ``needs_instances``.
+        labels_at_rays: ``[R]`` the target labels at the rays' pixels (for per-ray scores, ``RenderedRays.logits``),
+            or None without labels.
     """
 
     coarse: RenderedRays
@@ -437,6 +477,7 @@ class LossInputs:
     teacher_at_rays: Tensor | None
     ignore_index: int
     instances: Tensor | None = None
+    labels_at_rays: Tensor | None = None
 
     @property
     def last(self) -> RenderedRays:

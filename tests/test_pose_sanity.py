@@ -23,6 +23,8 @@ from gpnerf_plugins.datasets.replica.dataset import ReplicaScenes
 H, W = 48, 64
 NEAR, FAR = 0.2, 6.5
 FOCAL = W / (2 * math.tan(math.radians(35)))  # 70 degrees horizontally
+COLOUR_ONLY = SimpleNamespace(semantic_output=None, generalizable=True, check_image_size=lambda height, width: None)
+"""What ``check_data`` reads of a model that renders colour and depth only."""
 K = torch.tensor([[FOCAL, 0.0, (W - 1) / 2], [0.0, FOCAL, (H - 1) / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
 
 
@@ -188,10 +190,10 @@ def test_validate_refuses_a_scale_and_notes_an_outlier(damaged, capsys):
 
     cfg = OmegaConf.create({"eval": {"splits": ["train", "unseen"]}, "model": {"num_source_views": 2}})
     clean = _replica(damaged, ["layout_00"])  # only the warning: training goes on, the note is on stderr
-    check_data(cfg, SimpleNamespace(dataset=clean, loss=None, model=SimpleNamespace(head=None)))
+    check_data(cfg, SimpleNamespace(dataset=clean, loss=None, model=COLOUR_ONLY))
     assert "note: scene 'layout_00/Sequence_1' frame 2: outlier camera:" in capsys.readouterr().err
     with pytest.raises(DataError, match=r"found 1 problem\(s\) before training; first: scene 'layout_01/Sequence_1': impl"):
-        check_data(cfg, SimpleNamespace(dataset=dataset, loss=None, model=SimpleNamespace(head=None)))
+        check_data(cfg, SimpleNamespace(dataset=dataset, loss=None, model=COLOUR_ONLY))
 
 
 def test_data_check_prints_the_findings_with_frame_names(damaged, capsys):

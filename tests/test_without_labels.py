@@ -6,14 +6,16 @@ import pytest
 import torch
 from omegaconf import OmegaConf, open_dict
 
-from gpnerf_core.model.build import ClassList, build_components
+from gpnerf_core.model.build import build_components
+from gpnerf_core.model.classes import ClassList
 from gpnerf_core.config.compose import compose
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.engine.jobs import model_from_checkpoint
 from gpnerf_core.registry.plugins import BUILTIN_PLUGINS, make_plugin_manager
 from gpnerf_core.registry.components import collect
-from gpnerf_core.model.checkpoint import read_checkpoint, stored_classes
+from gpnerf_core.model.checkpoint import read_checkpoint
+from gpnerf_core.model.classes import stored_classes
 from gpnerf_core.engine.validation import check_data
 from gpnerf_plugins.datasets.embedded import CLASS_NAMES, IGNORE_INDEX
 from pipeline_check import TINY_MODEL, TINY_SCENES, make_trainer
@@ -81,7 +83,7 @@ def test_a_dataset_without_a_class_list_takes_the_checkpoints_classes(registry, 
                                           r"empty\), so head 'unet' has no classes to predict; "):
         build_components(cfg, registry)
     components = build_components(cfg, registry, classes=CHECKPOINT_CLASSES)
-    assert components.classes is CHECKPOINT_CLASSES and components.model.classes is CHECKPOINT_CLASSES
+    assert components.classes is CHECKPOINT_CLASSES and components.model.semantic_output.num_outputs == 3
     assert components.model.head.num_outputs == 3
     assert CHECKPOINT_CLASSES.describe() == "3 classes of checkpoint old.pt (wall, floor, chair)"
     own = build_components(config(root, loss="label_free"), registry, classes=CHECKPOINT_CLASSES)

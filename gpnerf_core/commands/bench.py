@@ -26,7 +26,7 @@ from gpnerf_core.config.compose import compose
 from gpnerf_core.runtime.device import machine_info, resolve_device
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.runtime.io import atomic_write_json, atomic_write_text
-from gpnerf_core.engine.jobs import compose_checked
+from gpnerf_core.engine.setup import compose_checked
 from gpnerf_core.runtime.run_folder import RunFolder
 
 OWN_KEYS = ("size", "repeats", "warmup", "out_dir", "phases", "sweep")

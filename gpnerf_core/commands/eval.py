@@ -25,13 +25,12 @@ def eval_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.data.frames import FrameCache
 
     loaded = model_from_checkpoint(cfg, dist, "eval", check_scenes=True)
-    checkpoint, state, notes, components, which = (
-        loaded.path, loaded.state, loaded.notes, loaded.components, loaded.weights)
+    trained, notes, components, which = loaded.trained, loaded.notes, loaded.components, loaded.weights
     folder, record = claim_run_folder(cfg, dist, resuming=False)
     with folder:
         if dist.is_main:
             ignore = ("checkpoint", "out_dir", "overwrite")
-            differences = config_differences(state["config"], record.config_yaml, ignore=ignore)
+            differences = config_differences(trained.config_yaml, record.config_yaml, ignore=ignore)
             if differences:
                 print(f"eval: differences from the checkpoint's config: {format_differences(differences)}",
                       file=sys.stderr)
@@ -39,9 +38,9 @@ def eval_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
                 print(f"note: {note}", file=sys.stderr)
         evaluation = evaluate(cfg, components, FrameCache(components.dataset, dist.device), folder.path, dist)
         metrics = {
-            "checkpoint": str(checkpoint),
-            "checkpoint_step": state["step"],
-            "checkpoint_config_sha256": state["config_sha256"],
+            "checkpoint": str(trained.path),
+            "checkpoint_step": trained.step,
+            "checkpoint_config_sha256": trained.config_sha256,
             "evaluated_weights": which,
             "config_sha256": record.config_sha256,
             "machine": machine_info(),

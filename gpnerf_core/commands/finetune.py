@@ -20,15 +20,15 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from gpnerf_core.model.build import build_components, checkpoint_classes
+from gpnerf_core.model.build import build_components
 from gpnerf_core.runtime.device import machine_info
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.evaluation.curves import CURVE_KEYS, curve_points
 from gpnerf_core.runtime.io import atomic_write_json
 from gpnerf_core.engine.jobs import checkpoint_config, claim_run_folder, job, launch_from_checkpoint, plan_resume, start
-from gpnerf_core.model.checkpoint import evaluation_weights
-from gpnerf_core.model.finetuning import finetune_weights
+from gpnerf_core.model.checkpoint import format_differences, model_differences
+from gpnerf_core.model.weights import load_weights
 from gpnerf_core.engine.validation import check_data
 
 
@@ -39,9 +39,11 @@ def main(argv: list[str]) -> int:
 @job
 def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.evaluation.evaluator import evaluate, print_summary
+    from gpnerf_core.training.callbacks import CurvePoints
     from gpnerf_core.training.trainer import Trainer
 
-    checkpoint, state, notes = checkpoint_config(cfg, "finetune")
+    trained, notes = checkpoint_config(cfg, "finetune")
+    checkpoint = trained.path
     scenes = list(cfg.dataset.get("scenes") or [])
     if not scenes:
         raise ConfigError(
@@ -54,13 +56,18 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     with open_dict(cfg):
         cfg.eval.splits = ["train"]  # the chosen scenes' held-out frames
     start(cfg)
-    components = build_components(cfg, classes=checkpoint_classes(state, checkpoint))
+    components = build_components(cfg, classes=trained.classes)
     if components.classes.from_checkpoint:
         notes.append(components.classes.note(str(cfg.dataset.name)))
     check_data(cfg, components, training=True)
-    start_weights, which = evaluation_weights(state, str(cfg.eval.weights))
-    reinitialised = finetune_weights(
-        components.model, start_weights, checkpoint, state["config"], OmegaConf.to_yaml(cfg, resolve=True)
+    start_weights, which = trained.weights(str(cfg.eval.weights))
+    old_classes = trained.classes.num_classes if trained.classes is not None else None
+    new_config = OmegaConf.to_yaml(cfg, resolve=True)
+    reinitialised = load_weights(
+        components.model, start_weights, f"finetune checkpoint={checkpoint}",
+        new_classes=(old_classes, components.classes.num_classes) if old_classes is not None else None,
+        explain=lambda: format_differences(model_differences(trained.config_yaml, new_config))
+        or "no key (a different plugin version?)",
     )
     folder, record = claim_run_folder(cfg, dist, resuming=plan.resuming, replace_leftovers=plan.replace_leftovers)
     run_dir = folder.path
@@ -75,30 +82,33 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
                     f"re-initialised {', '.join(reinitialised)} (the head's last layer); every other tensor loaded",
                     file=sys.stderr,
                 )
-            print(f"finetune: {', '.join(scenes)} from {checkpoint} (step {state['step']}, {which} weights); "
+            print(f"finetune: {', '.join(scenes)} from {checkpoint} (step {trained.step}, {which} weights); "
                   f"evaluating at steps {', '.join(map(str, points))}", file=sys.stderr)
         trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record)
         started = time.perf_counter()
         curve = _curve_so_far(run_dir, trainer.step) if plan.resuming else []
         evaluation: dict[str, Any] = {}
-        for point in points:
-            if any(entry["step"] == point for entry in curve) and point < total:
-                continue  # evaluated before the interruption
-            if point > trainer.step:
-                with open_dict(cfg):
-                    cfg.train.steps = point
-                trainer.fit(progress=True)
+
+        def evaluate_point(trainer: Any) -> dict[str, Any]:
+            nonlocal curve, evaluation
             evaluation = evaluate(cfg, components, trainer.frames, run_dir, dist)
             held_out = evaluation["eval"].get("train_heldout", {})
-            entry = {"step": trainer.step, "train_seconds": round(trainer.elapsed, 2)}
+            entry = {"step": trainer.step, "train_seconds": round(trainer.training_seconds, 2)}
             entry.update({key: held_out[key] for key in CURVE_KEYS if key in held_out})
             curve = [*(e for e in curve if e["step"] != entry["step"]), entry]
             if dist.is_main:
                 atomic_write_json(run_dir / CURVE_FILE, curve)
                 shown = ", ".join(f"{k} {v:.3f}" for k, v in entry.items() if k in CURVE_KEYS and v is not None)
                 print(f"finetune step {trainer.step}: {shown}", file=sys.stderr)
-        with open_dict(cfg):
-            cfg.train.steps = total
+            return entry
+
+        done = {entry["step"] for entry in curve}
+        pending = [point for point in points if point >= trainer.step and (point not in done or point == total)]
+        if trainer.step in pending and trainer.step < total:  # the start, or a point reached before an interruption
+            evaluate_point(trainer)
+        trainer.fit(progress=True, callbacks=[CurvePoints([p for p in pending if trainer.step < p < total],
+                                                          evaluate_point)])
+        evaluate_point(trainer)  # the last point: train.steps
         rays_per_step = int(cfg.train.rays) * int(cfg.train.targets_per_step)
         metrics = {
             "config_sha256": record.config_sha256,
@@ -106,8 +116,8 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             "machine": machine_info(),
             "finetune": {
                 "checkpoint": str(checkpoint),
-                "checkpoint_step": state["step"],
-                "checkpoint_config_sha256": state["config_sha256"],
+                "checkpoint_step": trained.step,
+                "checkpoint_config_sha256": trained.config_sha256,
                 "scenes": scenes,
                 "reinitialised": reinitialised,
                 "curve": curve,

@@ -21,6 +21,7 @@ from omegaconf import DictConfig
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.model.feature_cache import SourceFeatureCache
+from gpnerf_core.model.view_inputs import view_inputs
 from gpnerf_core.geometry.trajectories import trajectory
 from gpnerf_core.engine.jobs import claim_run_folder, job, launch_from_checkpoint, model_from_checkpoint
 
@@ -36,16 +37,17 @@ def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
 
     from gpnerf_core.evaluation import visualize as vis
     from gpnerf_core.evaluation.evaluator import component_names
-    from gpnerf_core.evaluation.instances import slot_predictions
+    from gpnerf_core.evaluation.pictures import prediction_layers
     from gpnerf_core.data.frames import FrameCache
+    from gpnerf_core.interfaces.head import Predicts
     from gpnerf_core.runtime.io import atomic_write_json
-    from gpnerf_core.types import TargetCamera
 
     loaded = model_from_checkpoint(cfg, dist, "render", check_scenes=False)
-    checkpoint, notes, components = loaded.path, loaded.notes, loaded.components
+    checkpoint, notes, components = loaded.trained.path, loaded.notes, loaded.components
     model = components.model.eval()
     classes = components.classes
-    semantic = model.has_semantics and model.head.predicts != "instances"
+    output = model.semantic_output
+    semantic = output is not None and output.predicts is Predicts.CLASSES
     frames = FrameCache(components.dataset, dist.device)
     budget = float(cfg.render.feature_cache_mb)
     if budget < 0:
@@ -58,8 +60,6 @@ def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     scene = frames.scene(name)
     poses = trajectory(scene, cfg.render)
     reference = frames.frame(scene, scene.train_frames[0])
-    candidates = list(scene.train_frames)
-    count = min(int(cfg.model.num_source_views), len(candidates))
     folder, _ = claim_run_folder(cfg, dist, resuming=False)
     run_dir = folder.path
     pictures = []
@@ -68,33 +68,15 @@ def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             print(f"note: {note}", file=sys.stderr)
         started = time.perf_counter()
         for pose in tqdm(poses, desc="render", unit="frame", file=sys.stderr, dynamic_ncols=True):
-            c2w = pose.float()
-            positions = components.view_selector.select(c2w, scene.c2w[candidates], count, None)
-            chosen = [candidates[p] for p in positions]
-            sources = frames.source_views(scene, chosen)
-            features = (feature_cache.features(model, scene.name, chosen, sources.rgb)
-                        if feature_cache is not None else None)
-            camera = TargetCamera(
-                intrinsics=reference.intrinsics.to(dist.device), c2w=c2w.to(dist.device),
-                height=reference.height, width=reference.width, near=scene.near, far=scene.far,
-            )
-            prediction = model.predict(camera, sources, stride=int(cfg.eval.render_stride),
-                                       chunk_rays=int(cfg.eval.chunk_rays), features=features)
-            prediction.check_finite(component_names(cfg), f"render frame {len(pictures)} of {name!r}")
-            s = prediction.stride
-            rgb = (prediction.rgb.clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8)
-            tiles = [np.kron(rgb, np.ones((s, s, 1), dtype=np.uint8)),
-                     np.kron(vis.depth_to_color(prediction.depth.cpu(), scene.near, scene.far),
-                             np.ones((s, s, 1), dtype=np.uint8))]
-            labels = ["rgb", "depth"]
-            if prediction.logits is not None and model.head.predicts == "instances":
-                slots, _ = slot_predictions(prediction.logits[0].cpu())
-                tiles.append(vis.colorize_instances(slots))  # a slot keeps its colour from frame to frame
-                labels.append("instances")
-            elif prediction.logits is not None:
-                tiles.append(vis.colorize_labels(prediction.logits[0].argmax(0).cpu(), classes.num_classes))
-                labels.append("semantic")
-            pictures.append(vis.side_by_side(tiles, labels))
+            camera = frames.camera(scene, reference, c2w=pose)
+            given = view_inputs(model, frames, components.view_selector, scene, camera.c2w,
+                                int(cfg.model.num_source_views), cache=feature_cache)
+            prediction = model.predict(camera, given.sources, stride=int(cfg.eval.render_stride),
+                                       chunk_rays=int(cfg.eval.chunk_rays), features=given.features)
+            prediction.check_finite(model.output_owners(component_names(cfg)), f"render frame {len(pictures)} of {name!r}")
+            layers = prediction_layers(prediction, scene.near, scene.far, output, classes.num_classes, full_size=True)
+            shown = [name for name in ("rgb", "depth", "semantic", "instances") if name in layers]
+            pictures.append(vis.side_by_side([layers[name] for name in shown], shown))
         render_seconds = time.perf_counter() - started
         for index, picture in enumerate(pictures):
             vis.save_image(run_dir / "frames" / f"{index:04d}.png", picture)

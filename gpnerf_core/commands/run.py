@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, open_dict
+from omegaconf import DictConfig
 
 from gpnerf_core.model.build import build_components
 from gpnerf_core.runtime.device import machine_info
@@ -31,7 +31,7 @@ def main(argv: list[str]) -> int:
 def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.evaluation.evaluator import evaluate, print_summary
     from gpnerf_core.evaluation.visualize import plot_training_curves
-    from gpnerf_core.model.init_weights import init_weights
+    from gpnerf_core.model.weights import init_weights
     from gpnerf_core.training.loggers import make_loggers
     from gpnerf_core.training.sampler import check_global_batch
     from gpnerf_core.training.trainer import Trainer
@@ -63,8 +63,9 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
         loggers = make_loggers(list(cfg.train.loggers), run_dir, trainer.resumed_step) if dist.is_main else []
         try:
             started = time.perf_counter()
-            curve = _evaluated_curve(cfg, components, trainer, run_dir, dist, loggers)
-            result = trainer.fit(progress=True, loggers=loggers)
+            points = _curve_points(cfg, components, trainer, run_dir, dist, loggers)
+            result = trainer.fit(progress=True, loggers=loggers, callbacks=[points] if points else ())
+            curve = points.entries if points else []
             if dist.is_main:
                 atomic_write_json(run_dir / "training_curves.json", result.history)
                 if result.history:
@@ -107,37 +108,29 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     return metrics
 
 
-def _evaluated_curve(cfg: DictConfig, components: Any, trainer: Any, run_dir: Path, dist: Distributed,
-                     loggers: list[Any]) -> list[dict[str, Any]]:
-    """With ``eval.every_steps``: train to every multiple of it below ``train.steps`` and evaluate there (no pictures;
-    a checkpoint at each). Evaluation draws no random numbers, so the training after it is the training without it."""
+def _curve_points(cfg: DictConfig, components: Any, trainer: Any, run_dir: Path, dist: Distributed,
+                  loggers: list[Any]) -> Any:
+    """``CurvePoints`` with ``eval.every_steps`` (None without): evaluate at every multiple of it below ``train.steps`` (no pictures; a checkpoint at
+    each), while training. Evaluation draws no random numbers, so the training around it is the training without it."""
     from gpnerf_core.evaluation.evaluator import evaluate
+    from gpnerf_core.training.callbacks import CurvePoints
 
     every, total = int(cfg.eval.every_steps), int(cfg.train.steps)
-    curve: list[dict[str, Any]] = []
     if not every:
-        return curve
-    for point in range(every, total, every):
-        if point <= trainer.step:
-            continue
-        with open_dict(cfg):
-            cfg.train.steps, saved_images = point, cfg.eval.save_images
-            cfg.eval.save_images = 0
-        try:
-            trainer.fit(progress=True, loggers=loggers)
-            with trainer.evaluation_weights():
-                evaluation = evaluate(cfg, components, trainer.frames, run_dir, dist)
-        finally:
-            with open_dict(cfg):
-                cfg.train.steps, cfg.eval.save_images = total, saved_images
-        curve.append(curve_entry(trainer.step, trainer.elapsed, evaluation))
+        return None
+
+    def evaluate_point(trainer: Any) -> dict[str, Any]:
+        with trainer.evaluation_weights():
+            evaluation = evaluate(cfg, components, trainer.frames, run_dir, dist, pictures=False)
         if dist.is_main:
             for logger in loggers:
                 logger.log(trainer.step, eval_scalars(evaluation))
             shown = ", ".join(f"{split} {_headline(values)}" for split, values in evaluation["eval"].items()
                               if isinstance(values, dict))
             print(f"eval at step {trainer.step}: {shown}", file=sys.stderr)
-    return curve
+        return curve_entry(trainer.step, trainer.training_seconds, evaluation)
+
+    return CurvePoints([p for p in range(every, total, every) if p > trainer.step], evaluate_point)
 
 
 def _headline(values: dict[str, Any]) -> str:

@@ -23,7 +23,7 @@ from gpnerf_core.model.build import build_components
 from gpnerf_core.config.compose import compose
 from gpnerf_core.errors import ConfigError, GpnerfError
 from gpnerf_core.runtime.io import atomic_write_json
-from gpnerf_core.engine.jobs import compose_checked
+from gpnerf_core.engine.setup import compose_checked, setup_process
 from gpnerf_core.config.overrides import RUN_SPECIFIC_KEYS, override_key
 from gpnerf_core.runtime.run_folder import LOCK_NAME, RunFolder
 from gpnerf_core.tools.sizing.costs import StaticCost, static_cost
@@ -106,10 +106,7 @@ def _check_request(out: Path, request: dict[str, Any], overwrite: bool) -> None:
 
 def _size(cfg: Any, overrides: list[str], options: SizeOptions, metric: str, tolerance: float, steps: int,
           out: Path) -> int:
-    import torch
-
-    if cfg.threads:
-        torch.set_num_threads(int(cfg.threads))
+    setup_process(cfg)
     components = build_components(cfg)
     check_data(cfg, components, training=True)
     train_scenes = list(components.dataset.scenes("train"))

@@ -18,6 +18,7 @@ from omegaconf import DictConfig
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError, GpnerfError
 from gpnerf_core.engine.jobs import job, launch_from_checkpoint, model_from_checkpoint, run_dir
+from gpnerf_core.interfaces.head import Predicts
 
 
 def main(argv: list[str]) -> int:
@@ -51,7 +52,8 @@ def view_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             default_source_views=int(cfg.model.num_source_views),
             feature_cache=SourceFeatureCache(budget) if budget > 0 else None,
         )
-        semantic = model.has_semantics and model.head.predicts != "instances"
+        output = model.semantic_output
+        semantic = output is not None and output.predicts is Predicts.CLASSES
         options = ViewerOptions(
             host=host, port=port, scene=first, scenes=tuple(scenes), stride=int(cfg.view.stride),
             preview_stride=int(cfg.view.preview_stride), source_views=int(cfg.view.source_views),

@@ -7,47 +7,36 @@ misspelled key (``train.step=10``) fails at composition with the key named.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Any, ClassVar, Optional
 
 from omegaconf import MISSING
 
 
 @dataclass
-class SemanticFieldConfig:
-    enabled: bool = True
-    """Render the semantic-embedding field (off = GNT alone)."""
-    joint_attention: bool = True
-    """Semantic losses also train the transformers' attention (Table 4: False = frozen attention, ID 1)."""
-    adaptor_relu: bool = False
-    """ReLU after the 512->512 adaptor, as the released code (its teacher is signed, so off by default)."""
-
-
-@dataclass
 class ModelConfig:
+    """The options every model family has: its config (``model=<name>``) subclasses this one.
+
+    The core reads ``num_source_views``, ``init`` and ``init_strict`` itself; the family's factory gets the others.
+    """
+
+    name: str = ""
+    """Registry name of the model family (each subclass defaults it to its own)."""
     coarse_samples: int = 48
     """Stratified samples per ray (inverse-depth spacing)."""
     fine_samples: int = 16
     """Importance samples added for the fine pass (0 = single pass)."""
     num_source_views: int = 10
-    """Source views per target."""
-    detach_source_semantics: bool = True
-    """Rendered-feature losses do not train the extractor through the source views (released code)."""
-    semantic_field: SemanticFieldConfig = field(default_factory=SemanticFieldConfig)
-    checkpoint_blocks: bool = False
-    """Activation checkpointing of the transformer blocks: recompute them in the backward pass (less memory)."""
-    channels_last_maps: bool = True
-    """Copy the detached source semantic maps channels-last where each is sampled at more points than it has pixels:
-    ``grid_sample`` then reads each sample's channels contiguously (the same float32 values, about 2.7x faster at
-    512 channels)."""
-    compile: bool = False
-    """``torch.compile`` the transformer block pairs and the semantic attention sums (compiled on first use)."""
-    compile_backend: str = "inductor"
-    """The ``torch.compile`` backend when ``compile`` is true (inductor: C++ on CPU, Triton on CUDA)."""
+    """Source views per target (a generalizable family's; a per-scene family has none)."""
     init: Optional[str] = None
-    """Start from these weights: an official GNT checkpoint (``net_coarse`` + ``feature_net``) or a gpnerf-core
-    checkpoint (its model weights only: the weight average where the run kept one). Ignored when resuming."""
+    """Start from these weights: a gpnerf-core checkpoint (its model weights only: the weight average where the run
+    kept one) or another code base's checkpoint the family reads (an official GNT one for ``gnt``). Ignored when
+    resuming."""
     init_strict: bool = True
     """Refuse an init checkpoint holding keys no component maps (False: load the rest and list them)."""
+
+    runtime_keys: ClassVar[tuple[str, ...]] = ("init", "init_strict")
+    """Fields that change how weights start, or how time and memory are spent, not the model: resuming or evaluating
+    with other values is allowed (a family's config adds its own)."""
 
 
 @dataclass
@@ -58,6 +47,8 @@ class LearningRates:
     """Field and ray aggregators and the semantic adaptor (paper: 1e-5, fine-tuning GNT weights)."""
     head: float = 5e-5
     """Perception head (paper: 5e-5)."""
+    field: float = 5e-4
+    """A per-scene model family's own field (a NeRF MLP, a grid; Semantic-NeRF: 5e-4)."""
 
 
 @dataclass
@@ -80,8 +71,6 @@ class TrainConfig:
     warmup_steps: int = 0
     """Learning rates rise linearly from 1/warmup_steps of their value to the full value over these first steps
     (0 = none)."""
-    fuse_rendered: bool = True
-    """Head input is the fused map (paper); False runs the head on the teacher map alone (released code)."""
     grad_clip: float = 0.0
     """Clip the global gradient norm to this value (0 = off). The training curves log the unclipped norm."""
     ema_decay: float = 0.0
@@ -176,6 +165,8 @@ class ViewConfig:
 
 @dataclass
 class RootConfig:
+    model: Any = MISSING
+    """The model family (``model=<name>``; ``ModelConfig`` and the family's own options)."""
     feature_extractor: Any = MISSING
     field_aggregator: Any = MISSING
     ray_aggregator: Any = MISSING
@@ -190,7 +181,6 @@ class RootConfig:
     """``auto`` (CUDA when available), ``cpu`` or ``cuda[:N]``."""
     threads: int = 0
     """CPU threads for torch (0 = torch's default)."""
-    model: ModelConfig = field(default_factory=ModelConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     finetune: FinetuneConfig = field(default_factory=FinetuneConfig)

@@ -6,6 +6,7 @@ from collections import OrderedDict
 from typing import Sequence
 
 import torch
+from torch import Tensor
 
 from gpnerf_core.errors import DataError
 from gpnerf_core.data.dataset import SceneDataset
@@ -61,13 +62,28 @@ class FrameCache:
             c2w=torch.stack([f.c2w for f in frames]).to(self.device),
         )
 
-    def camera(self, scene: Scene, frame: Frame) -> TargetCamera:
-        """The camera of ``frame`` (a frame of ``scene``) as a target, on the device."""
+    def camera(
+        self,
+        scene: Scene,
+        frame: Frame | None = None,
+        *,
+        c2w: Tensor | None = None,
+        intrinsics: Tensor | None = None,
+        size: tuple[int, int] | None = None,
+    ) -> TargetCamera:
+        """A target camera in ``scene`` (its near and far), on the device: the camera of ``frame``, or a pose ``c2w``
+        with ``frame``'s intrinsics and size (a trajectory's), or with ``intrinsics`` at ``size`` (the viewer's).
+
+        The one place a ``TargetCamera`` is made for evaluation, ``render`` and the viewer.
+        """
+        if frame is None and (c2w is None or intrinsics is None or size is None):
+            raise ValueError("camera() needs a frame, or c2w with intrinsics and size")
+        height, width = size if size is not None else (frame.height, frame.width)
         return TargetCamera(
-            intrinsics=frame.intrinsics.to(self.device),
-            c2w=frame.c2w.to(self.device),
-            height=frame.height,
-            width=frame.width,
+            intrinsics=(intrinsics if intrinsics is not None else frame.intrinsics).to(self.device),
+            c2w=(c2w if c2w is not None else frame.c2w).float().to(self.device),
+            height=int(height),
+            width=int(width),
             near=scene.near,
             far=scene.far,
         )
@@ -85,4 +101,14 @@ def choose_sources(
     if not candidates:
         raise DataError(f"scene {scene.name!r}: no candidate source views for frame {target_index}")
     positions = selector.select(scene.c2w[target_index], scene.c2w[candidates], num_views, generator)
+    return [candidates[p] for p in positions]
+
+
+def sources_at_pose(
+    selector: ViewSelector, scene: Scene, c2w: torch.Tensor, num_views: int, exclude: int | None = None
+) -> list[int]:
+    """Source frame indices for a camera at ``c2w`` (a trajectory's pose, a viewer's camera): the scene's training
+    frames but ``exclude`` (the frame the camera sits at, when it does) that the selector picks, deterministically."""
+    candidates = [i for i in scene.train_frames if i != exclude] or list(scene.train_frames)
+    positions = selector.select(c2w.detach().cpu().float(), scene.c2w[candidates], min(num_views, len(candidates)), None)
     return [candidates[p] for p in positions]

@@ -36,7 +36,7 @@ import torch
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from gpnerf_core.model.build import build_components, checkpoint_classes
+from gpnerf_core.model.build import build_components
 from gpnerf_core.runtime.distributed import Distributed, init_distributed
 from gpnerf_core.errors import ConfigError, DataError, GpnerfError
 from gpnerf_core.runtime.io import atomic_write_json, atomic_write_text
@@ -49,17 +49,12 @@ from gpnerf_core.config.overrides import (
 )
 from gpnerf_core.runtime.signals import Terminated, interrupted_by, interruption
 from gpnerf_core.runtime.run_folder import RunFolder, RunFolderError, remove_untrained_run
-from gpnerf_core.model.checkpoint import (
-    MODEL_SECTIONS,
-    NOT_MODEL_KEYS,
-    RunRecord,
-    config_differences,
-    evaluation_weights,
-    load_weights,
-    read_checkpoint,
-)
+from gpnerf_core.model.checkpoint import RunRecord
+from gpnerf_core.model.trained import TrainedModel, load_trained, restore_model_settings
+from gpnerf_core.model.weights import load_weights
 from gpnerf_core.training.interrupt import TrainingInterrupted
 from gpnerf_core.training.resume import newest_intact_checkpoint
+from gpnerf_core.engine.setup import check_component_choices, compose_checked, setup_process
 from gpnerf_core.engine.validation import check_data, validate_config
 
 FAILED_SWEEP_JOBS: list[str] = []
@@ -105,24 +100,8 @@ def launch_from_checkpoint(task: Callable[[DictConfig], Any], argv: list[str], c
     given = [a for a in argv if a.startswith("checkpoint=")]
     if not given:
         raise GpnerfError(f"{command} needs checkpoint=<path to a .pt file written by run>")
-    stored = read_checkpoint(given[-1].split("=", 1)[1]).get("overrides", [])
+    stored = load_trained(given[-1].split("=", 1)[1]).overrides  # the task reads the same file: not read again
     return launch(task, merge_overrides(stored, argv), f"gpnerf_core {command}")
-
-
-def check_component_choices(argv: list[str], registry: Any) -> None:
-    """Refuse ``[+]head=<name>`` (and every other component group) naming no registered component, in one line that
-    lists the known names and any plugin that failed to load, before Hydra says only "could not find"."""
-    from gpnerf_core.registry.kinds import KINDS
-
-    for argument in argv:
-        key, sep, value = argument.partition("=")
-        group = key.lstrip("+~")
-        if not sep or group not in KINDS or "${" in value:
-            continue
-        for name in value.split(","):  # a -m sweep over options
-            name = name.strip()
-            if name and name != "null" and not any(c in name for c in "*?[("):
-                registry.get(group, name)
 
 
 def precheck(argv: list[str]) -> None:
@@ -136,23 +115,6 @@ def precheck(argv: list[str]) -> None:
         check_writable_folder(Path(cfg.out_dir))
     else:
         check_default_output_root(Path("outputs"))
-
-
-def compose_checked(overrides: list[str]) -> DictConfig:
-    """The config ``overrides`` compose, validated; an unknown component, an override Hydra cannot apply and a value
-    the schema refuses are each one ``GpnerfError`` (for ``precheck`` and the commands that are not Hydra jobs)."""
-    from gpnerf_core.config.compose import compose
-    from gpnerf_core.registry.components import get_registry
-
-    check_component_choices(overrides, get_registry())
-    try:
-        cfg = compose(overrides)
-    except GpnerfError:
-        raise
-    except Exception as exc:
-        raise ConfigError(hydra_message(exc)) from None
-    validate_config(cfg)
-    return cfg
 
 
 def check_default_output_root(root: Path) -> None:
@@ -178,19 +140,6 @@ def check_writable_folder(path: Path) -> None:
         raise RunFolderError(
             f"out_dir={path} cannot be created ({exc.strerror or exc}); choose a writable out_dir"
         ) from None
-
-
-def hydra_message(exc: BaseException) -> str:
-    """A Hydra/OmegaConf error and its causes on one line, without OmegaConf's ``full_key``/``object_type`` tail."""
-    parts: list[str] = []
-    while exc is not None:
-        lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
-        lines = [line for line in lines if not line.startswith(("full_key:", "object_type=", "reference_type="))]
-        text = " ".join(lines)
-        if text and text not in parts:
-            parts.append(text)
-        exc = exc.__cause__
-    return "; ".join(parts) or "invalid overrides"
 
 
 # -- 2. around the task: process group, one-line errors, sweep failure records ----------------------------------
@@ -357,12 +306,10 @@ def resume_command(folder: Path, checkpoint: Path | None) -> str:
 
 
 def start(cfg: DictConfig) -> None:
-    """Refuse bad values before any work, then set threads and the seed (which fixes the model's initialisation)."""
+    """Refuse bad values before any work (a sweep's jobs share no fixed ``out_dir``), then ``setup_process``."""
     validate_config(cfg)
     _refuse_shared_out_dir(cfg)
-    if cfg.threads:
-        torch.set_num_threads(int(cfg.threads))
-    torch.manual_seed(int(cfg.seed))
+    setup_process(cfg)
 
 
 def _refuse_shared_out_dir(cfg: DictConfig) -> None:
@@ -421,7 +368,7 @@ def plan_resume(cfg: DictConfig, dist: Distributed) -> ResumePlan:
     path = Path(str(cfg.train.resume))
     if not path.is_file():
         raise DataError(f"train.resume={path}: no such file; expected a checkpoint written by run (checkpoints/)")
-    state = read_checkpoint(path)
+    state = load_trained(path).state  # the trainer reads the same file: not read again
     written = OmegaConf.create(state["config"]) if state.get("config") else OmegaConf.create({})
     if "seed" in written and int(written.seed) != int(cfg.seed):
         raise ConfigError(
@@ -564,16 +511,15 @@ def task_overrides() -> tuple[str, ...]:
 
 @dataclass(frozen=True)
 class CheckpointModel:
-    """A trained model rebuilt from its checkpoint for a command that uses it as it is (``eval``, ``render``).
+    """A trained model rebuilt from its checkpoint for a command that uses it as it is (``eval``, ``render``, ``view``).
 
     Attributes:
-        path: the checkpoint file; state: its contents (``read_checkpoint``); notes: config keys restored from it.
+        trained: the checkpoint (``load_trained``); notes: config keys restored from it, classes taken from it.
         components: built from the checkpoint's config plus the command's overrides, the model on the job's device
             holding the weights ``eval.weights`` chose; weights: which (``average`` or ``trained``).
     """
 
-    path: Path
-    state: dict[str, Any]
+    trained: TrainedModel
     notes: list[str]
     components: Any
     weights: str
@@ -583,53 +529,28 @@ def model_from_checkpoint(cfg: DictConfig, dist: Distributed, command: str, *, c
     """``checkpoint_config``, ``start``, build the components (a dataset without a class list takes the checkpoint's),
     (``check_scenes``: ``check_data`` on the evaluated splits), load the evaluation weights and move the model to the
     job's device. Nothing is written."""
-    checkpoint, state, notes = checkpoint_config(cfg, command)
+    trained, notes = checkpoint_config(cfg, command)
     start(cfg)
-    components = build_components(cfg, classes=checkpoint_classes(state, checkpoint))
+    components = build_components(cfg, classes=trained.classes)
     if components.classes.from_checkpoint:
         notes.append(components.classes.note(str(cfg.dataset.name)))
     if check_scenes:
         check_data(cfg, components, training=False)
-    weights, which = evaluation_weights(state, str(cfg.eval.weights))
-    load_weights(components.model, weights, f"checkpoint {checkpoint}")
+    weights, which = trained.weights(str(cfg.eval.weights))
+    load_weights(components.model, weights, f"checkpoint {trained.path}")
     components.model.to(dist.device)
-    return CheckpointModel(checkpoint, state, notes, components, which)
+    return CheckpointModel(trained, notes, components, which)
 
 
-def checkpoint_config(cfg: DictConfig, command: str) -> tuple[Path, dict[str, Any], list[str]]:
-    """Read ``cfg.checkpoint`` and give ``cfg`` its model settings (``restore_model_config``).
+def checkpoint_config(cfg: DictConfig, command: str) -> tuple[TrainedModel, list[str]]:
+    """Read ``cfg.checkpoint`` (``load_trained``) and give ``cfg`` its model settings wherever the command did not set
+    them (``restore_model_settings``).
 
     Returns:
-        the checkpoint's path, its contents and the notes on restored keys.
+        the checkpoint and the notes on restored keys.
     """
     if not cfg.checkpoint:
         raise ConfigError(f"{command} needs checkpoint=<path to a .pt file written by run>")
-    checkpoint = Path(str(cfg.checkpoint))
-    state = read_checkpoint(checkpoint)
-    return checkpoint, state, restore_model_config(cfg, state["config"], state.get("overrides", []))
-
-
-def restore_model_config(cfg: DictConfig, checkpoint_yaml: str, checkpoint_overrides: list[str]) -> list[str]:
-    """Give ``cfg`` the checkpoint's model and loss settings wherever this command did not override them.
-
-    ``eval`` composes its config from the checkpoint's overrides plus the user's; if a default changed since the
-    checkpoint was written, the recomposed model would differ from the trained one. Such keys are set back to the
-    checkpoint's values (and reported); keys the user overrode keep the user's value.
-    """
-    typed = [override_key(o) for o in task_overrides() if o not in checkpoint_overrides]
-    current = OmegaConf.to_yaml(cfg, resolve=True)
-    restored = []
-    for key, old, _ in config_differences(checkpoint_yaml, current, MODEL_SECTIONS, NOT_MODEL_KEYS):
-        if any(key == t or key.startswith(t + ".") for t in typed):
-            continue
-        with open_dict(cfg):
-            if old == "<absent>":
-                parent, _, leaf = key.rpartition(".")
-                node = OmegaConf.select(cfg, parent) if parent else cfg
-                node.pop(leaf, None)
-            else:
-                OmegaConf.update(cfg, key, old, merge=False)
-        restored.append(key)
-    if not restored:
-        return []
-    return [f"kept the checkpoint's value of {', '.join(restored)} (the defaults changed since it was written)"]
+    trained = load_trained(str(cfg.checkpoint))
+    typed = [override_key(o) for o in task_overrides() if o not in trained.overrides]
+    return trained, restore_model_settings(cfg, trained, typed)

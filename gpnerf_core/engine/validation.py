@@ -20,6 +20,8 @@ from gpnerf_core.config.schema import RootConfig
 from gpnerf_core.data.checks import pose_warnings
 from gpnerf_core.runtime.device import PRECISIONS
 from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.interfaces.head import Predicts
+from gpnerf_core.registry.components import get_registry
 from gpnerf_core.registry.kinds import KINDS
 from gpnerf_core.training.schedule import LR_SCHEDULES
 from gpnerf_core.model.checkpoint import WEIGHT_CHOICES
@@ -67,6 +69,7 @@ RULES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("train.lr.feature_extractor", _positive, "a finite learning rate > 0"),
     ("train.lr.transformer", _positive, "a finite learning rate > 0"),
     ("train.lr.head", _positive, "a finite learning rate > 0"),
+    ("train.lr.field", _positive, "a finite learning rate > 0"),
     ("train.lr_decay_rate", _fraction, "a factor in (0, 1]"),
     ("train.lr_decay_steps", _count(1), COUNT),
     ("train.warmup_steps", _count(0), f"{COUNT0} (0 = no warm-up)"),
@@ -113,22 +116,39 @@ def validate_config(cfg: DictConfig) -> None:
     check_loggers(list(cfg.train.loggers))
 
 
-def _refuse_unknown_keys(node: DictConfig, schema: type, prefix: str) -> None:
+def _refuse_unknown_keys(node: DictConfig, schema: type, prefix: str, top: bool = True) -> None:
     hints = typing.get_type_hints(schema)
     fields = {f.name for f in dataclasses.fields(schema)}
     for key in node.keys():
         path = f"{prefix}{key}"
+        if not top and prefix.count(".") == 1 and key not in fields:
+            continue  # a component's own option: ``Registry.build`` refuses it, listing the component's options
         if key not in fields:
             raise ConfigError(
                 f"unknown config key {path!r}; {schema.__name__} has: {', '.join(sorted(fields))} "
                 "(a key added with '+' must still be one the schema knows)"
             )
-        if key in KINDS or key == "hydra":
-            continue  # component options: checked against the component's config when it is built
+        if key == "hydra":
+            continue
         hint = hints.get(key)
         child = node.get(key)
+        if key in KINDS:
+            # A component's options: its registered config (an unknown top-level option is also refused when it is
+            # built, naming the options; here nested ones are too, before any work).
+            hint = _component_config(key, child)
+            if hint is None or not isinstance(child, DictConfig):
+                continue
+            _refuse_unknown_keys(child, hint, f"{path}.", top=False)
+            continue
         if dataclasses.is_dataclass(hint) and isinstance(child, DictConfig):
             _refuse_unknown_keys(child, hint, f"{path}.")
+
+
+def _component_config(kind: str, node: Any) -> type | None:
+    """The config dataclass of the component ``node`` names (None: not a registered name; the build refuses it)."""
+    name = node.get("name") if isinstance(node, DictConfig) else None
+    entry = get_registry().components.get(kind, {}).get(str(name))
+    return entry.spec.config if entry is not None else None
 
 
 def check_data(cfg: DictConfig, components: Components, *, training: bool = True) -> None:
@@ -163,7 +183,7 @@ def check_data(cfg: DictConfig, components: Components, *, training: bool = True
                               f"{name!r} ({scene.height}x{scene.width}); expected at most {pixels} rays per target view")
         train = set(scene.train_frames)
         offered = len(train) - 1 if name in training_scenes or train & set(scene.eval_frames) else len(train)
-        if offered < views:
+        if components.model.generalizable and offered < views:
             raise ConfigError(
                 f"model.num_source_views={views} but scene {name!r} offers {offered} source views per target "
                 f"({len(train)} training frames, never the target itself); expected model.num_source_views <= {offered}"
@@ -171,11 +191,10 @@ def check_data(cfg: DictConfig, components: Components, *, training: bool = True
 
 
 def check_image_size(cfg: DictConfig, components: Components, height: int, width: int, where: str) -> None:
-    """The extractor can encode ``height`` x ``width`` images and a non-zero ``eval.render_stride`` divides both."""
-    extractor = getattr(components.model, "extractor", None)
+    """The model can render (and encode) ``height`` x ``width`` images and a non-zero ``eval.render_stride`` divides
+    both."""
     try:
-        if extractor is not None:
-            extractor.check_image_size(int(height), int(width))
+        components.model.check_image_size(int(height), int(width))
     except ConfigError as exc:
         raise ConfigError(f"{where}: {exc}") from None
     stride = int(OmegaConf.select(cfg, "eval.render_stride", default=0))
@@ -185,16 +204,16 @@ def check_image_size(cfg: DictConfig, components: Components, height: int, width
 
 
 def _require_trained_head(cfg: DictConfig, components: Components, training: bool) -> None:
-    """A head trained from scratch needs a loss set that renders semantics (``LossSet.needs_semantics``): otherwise no
-    term reaches it and its evaluation would score an untrained head. A head that starts trained (``finetune``'s
-    checkpoint, ``model.init``) may be kept fixed."""
-    head, loss = components.model.head, components.loss
-    if not training or head is None or loss is None or loss.needs_semantics:
+    """Semantic outputs trained from scratch need a loss set that renders semantics (``LossSet.needs_semantics``):
+    otherwise no term reaches them and their evaluation would score an untrained head. A model that starts trained
+    (``finetune``'s checkpoint, ``model.init``) may keep them fixed."""
+    output, loss = components.model.semantic_output, components.loss
+    if not training or output is None or loss is None or loss.needs_semantics:
         return
     if cfg.get("checkpoint") or cfg.model.get("init"):
         return
     raise ConfigError(
-        f"head {cfg.head.name!r} is trained by no term of loss {cfg.loss.name!r} (it renders no semantics), so its "
+        f"{_scores_owner(cfg)} is trained by no term of loss {cfg.loss.name!r} (it renders no semantics), so its "
         "scores would be an untrained head's; use a loss set with semantic terms (e.g. +loss=dgs) or drop +head"
     )
 
@@ -222,9 +241,9 @@ def _require_instances(cfg: DictConfig, components: Components, scenes: list[str
     evaluates on (the first frame of each scene is looked at; a scene without labels is only rendered), and before
     training at most ``head.slots`` ids in a frame (checked on ``INSTANCE_FRAMES_CHECKED`` frames per training scene;
     the loss names any other frame that has more)."""
-    head = components.model.head
+    output = components.model.semantic_output
     needs = (training and components.loss is not None and components.loss.needs_instances) or (
-        head is not None and head.predicts == "instances"
+        output is not None and output.predicts is Predicts.INSTANCES
     )
     if not needs:
         return
@@ -235,11 +254,11 @@ def _require_instances(cfg: DictConfig, components: Components, scenes: list[str
         first = (scene.train_frames or scene.eval_frames)[0]
         if scene.load_frame(first).instance is None:
             raise ConfigError(
-                f"dataset {cfg.dataset.name!r} has no instance ids (scene {name!r}, frame {first}), but head "
-                f"{cfg.head.name!r} predicts instances; use a dataset with instance ids (embedded, replica_instance, "
+                f"dataset {cfg.dataset.name!r} has no instance ids (scene {name!r}, frame {first}), but "
+                f"{_scores_owner(cfg)} predicts instances; use a dataset with instance ids (embedded, replica_instance, "
                 f"replica with semantic_instance/ folders, scannet with instance-filt/ folders)"
             )
-    slots = getattr(head, "slots", None)
+    slots = output.slots if output is not None else None
     if not training or not isinstance(slots, int):
         return
     for name in components.dataset.scenes("train"):
@@ -253,3 +272,8 @@ def _require_instances(cfg: DictConfig, components: Components, scenes: list[str
                     f"scene {name!r} frame {index} has {count} instance ids (background included) but "
                     f"head.slots={slots}; set head.slots >= {count}"
                 )
+
+
+def _scores_owner(cfg: DictConfig) -> str:
+    """``head 'unet'``, or ``model '<name>'`` when the model makes its scores without a head (label rendering)."""
+    return f"head {cfg.head.name!r}" if cfg.get("head") is not None else f"model {cfg.model.name!r}"

@@ -28,11 +28,13 @@ from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.evaluation import instances as I
 from gpnerf_core.evaluation import metrics as M
+from gpnerf_core.evaluation import pictures as P
 from gpnerf_core.evaluation import visualize as vis
 from gpnerf_core.data.frames import FrameCache, choose_sources
+from gpnerf_core.registry.kinds import KINDS
 from gpnerf_core.runtime.io import atomic_save_png
-from gpnerf_core.model.pipeline import Prediction
-from gpnerf_core.types import Frame, Scene, SourceViews
+from gpnerf_core.interfaces.head import Predicts
+from gpnerf_core.types import Frame, Prediction, Scene, SourceViews
 
 SourcesFor = Callable[[Scene, int], SourceViews]
 """``(scene, target frame index) -> the source views`` the model is given for that target."""
@@ -75,11 +77,14 @@ class ViewRecord:
     instance_baseline: I.InstanceRecord | None = None
     labelled: bool = True
     depth: dict[str, float] | None = None
+    references: bool = False
+    """The class references (majority class, the 2D reference where the model has one) were scored on this view."""
 
 
-def predicts_instances(components: Components) -> bool:
-    head = components.model.head
-    return head is not None and head.predicts == "instances"
+def predicts(components: Components) -> Predicts | None:
+    """What the model's semantic scores are (None: colour and depth only)."""
+    output = components.model.semantic_output
+    return None if output is None else output.predicts
 
 
 def majority_class(components: Components, frames: FrameCache, max_frames_per_scene: int = 8) -> int | None:
@@ -107,10 +112,6 @@ def _area_downsample(image: torch.Tensor, stride: int) -> torch.Tensor:
     return F.avg_pool2d(image.permute(2, 0, 1)[None], stride)[0].permute(1, 2, 0)
 
 
-def _to_uint8(image: torch.Tensor) -> np.ndarray:
-    return (image.clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
-
-
 def evaluate(
     cfg: Any,
     components: Components,
@@ -120,6 +121,7 @@ def evaluate(
     *,
     sources_for: SourcesFor | None = None,
     references: bool = True,
+    pictures: bool = True,
 ) -> dict[str, Any]:
     """Evaluate every configured split; returns ``{"eval": {split: metrics}, ...}`` ready for metrics.json.
 
@@ -129,14 +131,15 @@ def evaluate(
         sources_for: the source views of a target (default: ``model.num_source_views`` frames from the view
             selector); the stress suite passes its cases' views here.
         references: also score the references (2D teacher, majority class, connected-components instances).
+        pictures: write the pictures of the first ``eval.save_images`` views (False: none, as at a curve point).
     """
     for split in cfg.eval.splits:
         if split not in SPLIT_LABELS:
             raise ConfigError(f"eval.splits contains {split!r}; expected some of {', '.join(SPLIT_LABELS)}")
     model = components.model.to(dist.device).eval()
     dataset = components.dataset
-    instance_head = predicts_instances(components)
-    semantics = model.has_semantics and not instance_head
+    instance_head = predicts(components) is Predicts.INSTANCES
+    semantics = predicts(components) is Predicts.CLASSES
     baseline_class = majority_class(components, frames) if semantics and references else None
     results: dict[str, Any] = {}
     for split in cfg.eval.splits:
@@ -146,7 +149,8 @@ def evaluate(
             results[label] = {"count/images": 0, "note": f"split {split!r} has no evaluation frames"}
             continue
         mine = [
-            _evaluate_view(cfg, components, frames, position, scene, index, baseline_class, sources_for, references)
+            _evaluate_view(cfg, components, frames, position, scene, index, baseline_class, sources_for, references,
+                           int(cfg.eval.save_images) if pictures else 0)
             for position, (scene, index) in enumerate(targets)
             if position % dist.world_size == dist.rank
         ]
@@ -187,6 +191,7 @@ def _evaluate_view(
     baseline_class: int | None,
     sources_for: SourcesFor | None,
     references: bool,
+    save_images: int,
 ) -> ViewRecord:
     model, dataset = components.model, components.dataset
     num_classes, ignore = components.classes.num_classes, dataset.ignore_index
@@ -194,10 +199,12 @@ def _evaluate_view(
     target = frames.frame(scene, index)
     if sources_for is not None:
         sources = sources_for(scene, index)
-    else:
+    elif model.generalizable:
         sources = frames.source_views(
             scene, choose_sources(components.view_selector, scene, index, cfg.model.num_source_views, None)
         )
+    else:
+        sources = None
     started = time.perf_counter()
     prediction = model.predict(
         frames.camera(scene, target),
@@ -205,8 +212,8 @@ def _evaluate_view(
         stride=int(cfg.eval.render_stride),
         chunk_rays=int(cfg.eval.chunk_rays),
     )
-    prediction.check_finite(component_names(cfg), f"scene {scene.name!r} frame {index}")
-    instance_head = predicts_instances(components)
+    prediction.check_finite(model.output_owners(component_names(cfg)), f"scene {scene.name!r} frame {index}")
+    instance_head = predicts(components) is Predicts.INSTANCES
     classes = None
     if prediction.logits is not None and not instance_head:
         classes = prediction.logits.argmax(dim=1)[0].cpu()
@@ -220,9 +227,11 @@ def _evaluate_view(
     instance_picture = None
     if classes is not None and labelled:
         confusion = M.confusion_matrix(classes, target.semantic, num_classes, ignore)
-    if classes is not None and references and labelled:
-        teacher = model.teacher_logits(target.rgb.permute(2, 0, 1).to(frames.device)).argmax(dim=1)[0].cpu()
-        teacher_confusion = M.confusion_matrix(teacher, target.semantic, num_classes, ignore)
+    scored_references = classes is not None and references and labelled
+    if scored_references:
+        teacher = model.teacher_logits(target.rgb.permute(2, 0, 1).to(frames.device))
+        if teacher is not None:
+            teacher_confusion = M.confusion_matrix(teacher.argmax(dim=1)[0].cpu(), target.semantic, num_classes, ignore)
         if baseline_class is not None:
             constant = torch.full_like(target.semantic, int(baseline_class))
             baseline_confusion = M.confusion_matrix(constant, target.semantic, num_classes, ignore)
@@ -235,11 +244,11 @@ def _evaluate_view(
         slots, confidence = I.slot_predictions(prediction.logits[0].cpu())
         instances, pairing = I.instance_record(slots, confidence, target.instance)
         instance_picture = (slots, pairing)
-        if references:
-            teacher = model.teacher_logits(target.rgb.permute(2, 0, 1).to(frames.device))[0].cpu()
-            teacher_instances, _ = I.instance_record(*I.slot_predictions(teacher), target.instance)
+        teacher = model.teacher_logits(target.rgb.permute(2, 0, 1).to(frames.device)) if references else None
+        if teacher is not None:
+            teacher_instances, _ = I.instance_record(*I.slot_predictions(teacher[0].cpu()), target.instance)
     pictures = {}
-    if position < int(cfg.eval.save_images):
+    if position < save_images:
         pictures = _pictures(target, prediction, classes, gt_rgb, num_classes, ignore, scene.near, scene.far,
                              labelled=labelled)
         if instance_picture is not None:
@@ -264,6 +273,7 @@ def _evaluate_view(
         instance_baseline=instance_baseline,
         labelled=labelled,
         depth=depth,
+        references=scored_references,
     )
 
 
@@ -315,7 +325,7 @@ def summarize(
     if semantics:
         result.update(rendered.compute())
         result["per_scene"] = rendered.compute_per_group()
-        if any(r.teacher_confusion is not None for r in records):
+        if any(r.references or r.teacher_confusion is not None or r.baseline_confusion is not None for r in records):
             if any(r.baseline_confusion is not None for r in records):
                 result["baseline_majority"] = baseline.compute()
             else:
@@ -323,7 +333,8 @@ def summarize(
                 result[M.BASELINE_MAJORITY_UNAVAILABLE_REASON] = (
                     "no training scene has labels to take the majority class from"
                 )
-            result["teacher_2d"] = teacher.compute()
+            if any(r.teacher_confusion is not None for r in records):
+                result["teacher_2d"] = teacher.compute()
     if any(r.instances is not None for r in records):
         result.update(instances.compute())
         if any(r.teacher_instances is not None for r in records):
@@ -367,21 +378,19 @@ def _pictures(
     *,
     labelled: bool = True,
 ) -> dict[str, np.ndarray]:
-    """The pictures of one view, by file suffix; rendered maps are shown at full size, a block per cell. Without labels
-    the semantic picture shows the predicted classes alone."""
-    pred_rgb = prediction.rgb.cpu()
+    """The pictures of one view, by file suffix: each predicted layer (``pictures.prediction_layers``, the rendered grid
+    at the image's size) beside the ground truth and the errors. Without labels the semantic picture shows the
+    predicted classes alone."""
     s = prediction.stride
+    layers = P.prediction_layers(prediction, near, far, None, num_classes, full_size=True)
     pictures = {
         "rgb": vis.side_by_side(
-            [_upscale(_to_uint8(pred_rgb), s), _upscale(_to_uint8(gt_rgb), s),
-             _upscale(vis.rgb_error_map(pred_rgb.clamp(0, 1), gt_rgb), s)],
+            [layers["rgb"], P.upscale(P.rgb_picture(gt_rgb), s),
+             P.upscale(vis.rgb_error_map(prediction.rgb.cpu().clamp(0, 1), gt_rgb), s)],
             ["rendered RGB", "ground truth", "|error|"],
         ),
-        "depth": vis.side_by_side(
-            [_upscale(vis.depth_to_color(prediction.depth.cpu(), near, far), s),
-             vis.depth_to_color(target.depth, near, far)],
-            ["rendered depth", "ground truth"],
-        ),
+        "depth": vis.side_by_side([layers["depth"], P.depth_picture(target.depth, near, far)],
+                                  ["rendered depth", "ground truth"]),
     }
     if classes is not None and labelled:
         pictures["semantic"] = vis.side_by_side(
@@ -393,8 +402,8 @@ def _pictures(
     elif classes is not None:
         pictures["semantic"] = vis.side_by_side([vis.colorize_labels(classes, num_classes)],
                                                 ["predicted classes (no labels)"])
-    if prediction.semantic is not None:
-        pictures["features_pca"] = _upscale(vis.pca_rgb(prediction.semantic.cpu()), s)
+    if "features" in layers:
+        pictures["features_pca"] = layers["features"]
     return pictures
 
 
@@ -415,10 +424,6 @@ def _write_pictures(folder: Path, records: list[ViewRecord]) -> None:
         stem = f"{record.scene.replace('/', '_')}_{record.frame:04d}"
         for suffix, image in record.pictures.items():
             atomic_save_png(folder / f"{stem}_{suffix}.png", image)
-
-
-def _upscale(image: np.ndarray, factor: int) -> np.ndarray:
-    return image.repeat(factor, axis=0).repeat(factor, axis=1)
 
 
 def print_summary(metrics: dict[str, Any], run_dir: Path) -> None:
@@ -473,6 +478,5 @@ def _fmt(value: Any, digits: int = 3) -> str:
 
 
 def component_names(cfg: Any) -> dict[str, str]:
-    """The configured name of each model component kind present in ``cfg`` (for messages)."""
-    kinds = ("feature_extractor", "field_aggregator", "ray_aggregator", "head")
-    return {kind: str(cfg[kind].name) for kind in kinds if cfg.get(kind) is not None and "name" in cfg[kind]}
+    """The configured name of each component kind present in ``cfg`` (for messages: ``ModelFamily.output_owners``)."""
+    return {kind: str(cfg[kind].name) for kind in KINDS if cfg.get(kind) is not None and "name" in cfg[kind]}

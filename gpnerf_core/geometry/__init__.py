@@ -1,5 +1,6 @@
 """Camera geometry: rays, samples along rays, projection into source views."""
 
+from gpnerf_core.geometry.compositing import composite, compositing_weights, density_opacity
 from gpnerf_core.geometry.poses import EXPECTED_RIGID, rigid_transform_problem
 from gpnerf_core.geometry.projection import Projector, project_points, sampling_layout
 from gpnerf_core.geometry.rays import pixel_grid, rays_through_pixels
@@ -8,6 +9,9 @@ from gpnerf_core.geometry.sampling import importance_depths, points_along_rays, 
 __all__ = [
     "EXPECTED_RIGID",
     "Projector",
+    "composite",
+    "compositing_weights",
+    "density_opacity",
     "importance_depths",
     "pixel_grid",
     "points_along_rays",

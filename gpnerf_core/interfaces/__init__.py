@@ -4,6 +4,7 @@ from gpnerf_core.interfaces.feature_extractor import FeatureExtractor
 from gpnerf_core.interfaces.field_aggregator import FieldAggregator
 from gpnerf_core.interfaces.head import PerceptionHead
 from gpnerf_core.interfaces.loss import LossSet
+from gpnerf_core.interfaces.model import ModelFamily
 from gpnerf_core.interfaces.ray_aggregator import RayAggregator
 from gpnerf_core.interfaces.stress import StressCase
 from gpnerf_core.interfaces.view_selector import ViewSelector
@@ -15,6 +16,7 @@ __all__ = [
     "ImportedWeights",
     "ImportsWeights",
     "LossSet",
+    "ModelFamily",
     "PerceptionHead",
     "RayAggregator",
     "StressCase",

@@ -6,6 +6,7 @@ from abc import ABC, abstractmethod
 
 from torch import Tensor, nn
 
+from gpnerf_core.interfaces.head import Predicts
 from gpnerf_core.types import LossInputs
 
 
@@ -27,9 +28,8 @@ class LossSet(nn.Module, ABC):
     (``Scene.labelled`` False, its labels all ``ignore_index``) is then refused before any work. True unless the loss
     set says otherwise, so a loss set that never declared it is never trained silently on empty labels; a loss set
     whose terms need none (colour, distillation from the 2D teacher) sets it False."""
-    head_predicts: str | None = None
-    """What the head's logits must be for this loss set: ``"classes"``, ``"instances"``, or None (no head needed, or
-    either)."""
+    head_predicts: Predicts | None = None
+    """What the model's semantic scores must be for this loss set (``Predicts``), or None (none needed, or either)."""
 
     @abstractmethod
     def forward(self, inputs: LossInputs) -> dict[str, Tensor]:

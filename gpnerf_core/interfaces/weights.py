@@ -10,14 +10,21 @@ from torch import Tensor
 
 @dataclass(frozen=True)
 class ImportedWeights:
-    """A component's share of a foreign checkpoint.
+    """A component's (or a whole model's) share of a foreign checkpoint.
 
     Attributes:
         tensors: ``{key in the component's own state dict: (key in the checkpoint, tensor)}``; the checkpoint
             key is dotted from the checkpoint's top level (``net_coarse.q_fcs.0.0.weight``) so reports name it.
+        format: the checkpoint's format (``gnt``), for the report; a model's ``read_foreign`` sets it.
+        offered: every weight key of the checkpoint (dotted), so the keys no part took are reported; a model's
+            ``read_foreign`` sets it.
+        ignored: top-level entries of the checkpoint left out on purpose (optimizer state, ...).
     """
 
     tensors: dict[str, tuple[str, Tensor]]
+    format: str = ""
+    offered: tuple[str, ...] = ()
+    ignored: tuple[str, ...] = ()
 
 
 class ImportsWeights:

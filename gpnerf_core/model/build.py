@@ -1,4 +1,5 @@
-"""Builds components from a composed config through the registry, passing widths downstream."""
+"""Builds what a config names through the registry: the dataset, the view selector, the model family (which builds
+its own parts through ``ConfiguredParts``) and the loss set, and checks that they fit together."""
 
 from __future__ import annotations
 
@@ -6,51 +7,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
-from gpnerf_core.errors import ConfigError
 from gpnerf_core.data.dataset import SceneDataset
-from gpnerf_core.interfaces import LossSet, ViewSelector
-from gpnerf_core.model.pipeline import GeneralizableNeRF
+from gpnerf_core.errors import ConfigError
+from gpnerf_core.interfaces import LossSet, PerceptionHead, ViewSelector
+from gpnerf_core.interfaces.head import Predicts
+from gpnerf_core.interfaces.model import ModelFamily, ModelParts
+from gpnerf_core.model.classes import ClassList
 from gpnerf_core.registry.components import Registry, get_registry
-from gpnerf_core.model.semantic_field import SemanticFieldRenderer
-from gpnerf_core.model.checkpoint import stored_classes
-
-
-@dataclass(frozen=True)
-class ClassList:
-    """The classes a model's head predicts.
-
-    Attributes:
-        names: names of the class ids 0..K-1.
-        ignore_index: the label value of unlabelled pixels in the labels the model was trained on.
-        source: where the list came from, for notes (``"dataset 'embedded'"``, ``"checkpoint <path>"``).
-        from_checkpoint: the list is a checkpoint's (the dataset has none).
-    """
-
-    names: tuple[str, ...]
-    ignore_index: int
-    source: str = "dataset"
-    from_checkpoint: bool = False
-
-    @property
-    def num_classes(self) -> int:
-        return len(self.names)
-
-    def describe(self, shown: int = 6) -> str:
-        """``9 classes of checkpoint <path> (wall, floor, ..., 3 more)``, for notes."""
-        more = len(self.names) - shown
-        names = ", ".join(self.names[:shown]) + (f", ... {more} more" if more > 0 else "")
-        return f"{self.num_classes} classes of {self.source} ({names})"
-
-    def note(self, dataset: str) -> str:
-        """What a command says when dataset ``dataset`` has no class list and these (a checkpoint's) are used."""
-        return f"dataset {dataset!r} has no class list: using the {self.describe()}"
-
-
-def checkpoint_classes(state: Mapping[str, Any], path: str | Path) -> ClassList | None:
-    """The classes a checkpoint stores (``stored_classes``) as a class list for a dataset without one; None for a
-    checkpoint written before checkpoints kept them."""
-    stored = stored_classes(state, path)
-    return None if stored is None else ClassList(*stored, source=f"checkpoint {path}", from_checkpoint=True)
+from gpnerf_core.registry.kinds import KINDS
 
 
 @dataclass
@@ -64,19 +28,19 @@ class Components:
 
     dataset: SceneDataset
     view_selector: ViewSelector
-    model: GeneralizableNeRF
+    model: ModelFamily
     loss: LossSet | None
     classes: ClassList
 
 
-def head_predicts(head_cfg: Any, registry: Registry) -> str:
-    """What the head ``head_cfg`` names predicts (``PerceptionHead.predicts``): ``"classes"`` or ``"instances"``."""
-    return str(getattr(registry.get("head", str(head_cfg["name"])).spec.factory, "predicts", "classes"))
+def head_predicts(head_cfg: Any, registry: Registry) -> Predicts:
+    """What the head ``head_cfg`` names predicts (``PerceptionHead.predicts``)."""
+    return Predicts(getattr(registry.get("head", str(head_cfg["name"])).spec.factory, "predicts", Predicts.CLASSES))
 
 
 def head_outputs(head_cfg: Any, num_classes: int, registry: Registry) -> int:
     """``num_outputs`` of a head: the dataset's classes, or ``slots + 1`` for an instance head."""
-    if head_predicts(head_cfg, registry) != "instances":
+    if head_predicts(head_cfg, registry) is not Predicts.INSTANCES:
         return num_classes
     slots = head_cfg.get("slots")
     if not isinstance(slots, int) or isinstance(slots, bool):
@@ -86,60 +50,52 @@ def head_outputs(head_cfg: Any, num_classes: int, registry: Registry) -> int:
     return slots + 1  # the head itself checks the value
 
 
-def build_model(cfg: Any, num_classes: int, registry: Registry | None = None) -> GeneralizableNeRF:
-    """Assemble the model; each stage's width comes from the stage before it."""
+class ConfiguredParts(ModelParts):
+    """``ModelParts`` of a composed config: a model family builds the components the config selects through it."""
+
+    def __init__(self, cfg: Any, num_classes: int, registry: Registry) -> None:
+        self._cfg = cfg
+        self._num_classes = int(num_classes)
+        self._registry = registry
+        self.built: list[Any] = []
+        """The components built through it, in order."""
+
+    @property
+    def num_classes(self) -> int:
+        return self._num_classes
+
+    def __repr__(self) -> str:
+        chosen = ", ".join(f"{kind}={self.name(kind)}" for kind in KINDS if kind != "model" and self.configured(kind))
+        return f"parts({chosen}; {self._num_classes} classes)"
+
+    def configured(self, kind: str) -> bool:
+        if kind not in KINDS:
+            raise ConfigError(f"unknown component kind {kind!r}; known kinds: {', '.join(KINDS)}")
+        return self._cfg.get(kind) is not None
+
+    def name(self, kind: str) -> str | None:
+        """The configured component name of ``kind`` (None when the config selects none)."""
+        return str(self._cfg[kind].name) if self.configured(kind) else None
+
+    def build(self, kind: str, **runtime: Any) -> Any:
+        if not self.configured(kind):
+            raise ConfigError(f"model {self._cfg.model.name!r} needs a {kind}; the config selects none "
+                              f"(known: {', '.join(self._registry.names(kind))})")
+        component = self._registry.build(kind, self._cfg[kind], **runtime)
+        self.built.append(component)
+        return component
+
+    def head(self, *, in_dim: int, in_levels: int) -> PerceptionHead | None:
+        if not self.configured("head"):
+            return None
+        outputs = head_outputs(self._cfg.head, self._num_classes, self._registry)
+        return self.build("head", in_dim=in_dim, in_levels=in_levels, num_outputs=outputs)
+
+
+def build_model(cfg: Any, num_classes: int, registry: Registry | None = None) -> ModelFamily:
+    """The model family ``cfg.model`` names, built with its options and the config's parts."""
     registry = registry or get_registry()
-    extractor = registry.build("feature_extractor", cfg.feature_extractor)
-    field = registry.build("field_aggregator", cfg.field_aggregator, in_dim=3 + extractor.radiance_dim)
-    ray = registry.build("ray_aggregator", cfg.ray_aggregator, in_dim=field.width, num_blocks=field.num_blocks)
-    head = semantic = None
-    wants_semantics = cfg.get("head") is not None and cfg.model.semantic_field.enabled
-    if cfg.get("head") is not None:
-        if extractor.semantic_dim == 0:
-            raise ConfigError(
-                f"head {cfg.head.name!r} needs semantic features but feature_extractor "
-                f"{cfg.feature_extractor.name!r} produces none"
-            )
-        head = registry.build(
-            "head",
-            cfg.head,
-            in_dim=extractor.semantic_dim,
-            in_levels=extractor.semantic_levels,
-            num_outputs=head_outputs(cfg.head, num_classes, registry),
-        )
-    if wants_semantics:
-        semantic = SemanticFieldRenderer(
-            semantic_dim=extractor.semantic_dim,
-            attention_channels=field.attention_channels,
-            ray_heads=ray.num_heads,
-            num_blocks=field.num_blocks,
-            joint_attention=cfg.model.semantic_field.joint_attention,
-            adaptor_relu=cfg.model.semantic_field.adaptor_relu,
-        )
-    return GeneralizableNeRF(
-        extractor=extractor,
-        field=field,
-        ray=ray,
-        head=head,
-        semantic=semantic,
-        coarse_samples=cfg.model.coarse_samples,
-        fine_samples=cfg.model.fine_samples,
-        detach_source_semantics=cfg.model.detach_source_semantics,
-        fuse_rendered=cfg.train.fuse_rendered,
-        checkpoint_blocks=cfg.model.checkpoint_blocks,
-        channels_last_maps=cfg.model.channels_last_maps,
-        compile_backend=checked_compile_backend(cfg.model.compile_backend) if cfg.model.compile else None,
-    )
-
-
-def checked_compile_backend(backend: str) -> str:
-    """``backend`` if ``torch.compile`` knows it; otherwise a ConfigError naming the key and the known ones."""
-    import torch._dynamo
-
-    known = sorted(torch._dynamo.list_backends(exclude_tags=()))
-    if backend not in known:
-        raise ConfigError(f"model.compile_backend={backend!r} is not a torch.compile backend; known: {', '.join(known)}")
-    return backend
+    return registry.build("model", cfg.model, parts=ConfiguredParts(cfg, num_classes, registry))
 
 
 def model_classes(
@@ -156,7 +112,7 @@ def model_classes(
     if fallback is not None:
         return fallback
     head = cfg.get("head")
-    if head is not None and head_predicts(head, registry or get_registry()) == "classes":
+    if head is not None and head_predicts(head, registry or get_registry()) is Predicts.CLASSES:
         raise ConfigError(
             f"dataset {cfg.dataset.name!r} has no class list (class_names is empty), so head {head.name!r} has no "
             "classes to predict; train on a dataset with classes, or start from a trained model: eval, render and "
@@ -170,7 +126,7 @@ def build_components(cfg: Any, registry: Registry | None = None, *, classes: Cla
     """Build the dataset, view selector, model and loss set of ``cfg``.
 
     Args:
-        classes: the classes to build the head with when the dataset has no class list (a checkpoint's:
+        classes: the classes to build the model with when the dataset has no class list (a checkpoint's:
             ``checkpoint_classes``); a dataset with its own list always uses it.
     """
     registry = registry or get_registry()
@@ -178,23 +134,28 @@ def build_components(cfg: Any, registry: Registry | None = None, *, classes: Cla
     selector = registry.build("view_selector", cfg.view_selector)
     label_space = model_classes(cfg, dataset, classes, registry)
     model = build_model(cfg, label_space.num_classes, registry)
-    # Every checkpoint of this model stores its classes (save_checkpoint reads them here), so eval, render and finetune
-    # can name them on a dataset that has none.
-    model.classes = label_space
     loss = None
     if cfg.get("loss") is not None:
         loss = registry.build("loss", cfg.loss)
-        if loss.needs_semantics and not model.has_semantics:
-            hint = "+head=instance" if loss.head_predicts == "instances" else "+head=unet"
-            raise ConfigError(
-                f"loss {cfg.loss.name!r} needs semantics: add a head ({hint}) and keep "
-                "model.semantic_field.enabled=true"
-            )
-        predicts = model.head.predicts if model.head is not None else None
-        if loss.head_predicts is not None and predicts is not None and loss.head_predicts != predicts:
-            wanted = "an instance head (+head=instance)" if loss.head_predicts == "instances" else "a class head"
-            raise ConfigError(
-                f"loss {cfg.loss.name!r} trains {loss.head_predicts} but head {cfg.head.name!r} predicts {predicts}; "
-                f"use {wanted} or a loss set for {predicts} (+loss={'instance' if predicts == 'instances' else 'dgs'})"
-            )
+        check_loss_fits(cfg, model, loss)
     return Components(dataset=dataset, view_selector=selector, model=model, loss=loss, classes=label_space)
+
+
+def check_loss_fits(cfg: Any, model: ModelFamily, loss: LossSet) -> None:
+    """The loss set reads only what the model renders: semantic outputs, and scores of the kind it trains."""
+    output = model.semantic_output
+    wanted = Predicts(loss.head_predicts) if loss.head_predicts is not None else None
+    if loss.needs_semantics and output is None:
+        hint = "+head=instance" if wanted is Predicts.INSTANCES else "+head=unet"
+        raise ConfigError(
+            f"loss {cfg.loss.name!r} needs semantics but model {cfg.model.name!r} renders none as configured: add a "
+            f"head ({hint}) and keep the model's semantic outputs on"
+        )
+    if wanted is not None and output is not None and output.predicts is not wanted:
+        predicts = output.predicts.value
+        what = "an instance head (+head=instance)" if wanted is Predicts.INSTANCES else "a class head"
+        owner = f"head {cfg.head.name!r}" if cfg.get("head") is not None else f"model {cfg.model.name!r}"
+        raise ConfigError(
+            f"loss {cfg.loss.name!r} trains {wanted.value} but {owner} predicts {predicts}; use {what} or a loss set "
+            f"for {predicts} (+loss={'instance' if output.predicts is Predicts.INSTANCES else 'dgs'})"
+        )

@@ -22,25 +22,37 @@ from typing import Any, Iterable, Mapping
 import torch
 import yaml
 
+from gpnerf_core.config.legacy import upgrade_config_yaml, upgrade_overrides
+from gpnerf_core.config.schema import ModelConfig
 from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.model.classes import ClassList
+from gpnerf_core.registry.components import get_registry
+from gpnerf_core.registry.kinds import KINDS
 from gpnerf_core.runtime.io import atomic_torch_save
 from gpnerf_core.runtime.versions import software_versions
 
 FORMAT_VERSION = 2
 """Schema version of the checkpoint dictionary; bumped whenever a key changes meaning."""
 
-MODEL_SECTIONS = ("feature_extractor", "field_aggregator", "ray_aggregator", "head", "loss", "model")
-"""Config sections that define the model and its loss: resuming with other values is refused."""
 
-NOT_MODEL_KEYS = (
-    "model.init",
-    "model.init_strict",
-    "model.checkpoint_blocks",
-    "model.channels_last_maps",
-    "model.compile",
-    "model.compile_backend",
-)
-"""Keys inside ``MODEL_SECTIONS`` that change how weights start or how memory is spent, not the model."""
+def model_sections() -> tuple[str, ...]:
+    """Config sections that define the model and its loss (``ComponentKind.defines_model``): resuming or fine-tuning
+    with other values is refused, ``eval`` restores the checkpoint's."""
+    return tuple(kind.name for kind in KINDS.values() if kind.defines_model)
+
+
+def runtime_keys(config_yaml: str) -> tuple[str, ...]:
+    """Dotted keys inside the model sections that change how weights start, or how time and memory are spent, not the
+    model: the ``runtime_keys`` of the config's model family (``ModelConfig.runtime_keys`` for an unknown one)."""
+    name = ((yaml.safe_load(config_yaml) or {}).get("model") or {}).get("name")
+    registered = get_registry().components["model"].get(str(name))
+    config = registered.spec.config if registered is not None else ModelConfig
+    return tuple(f"model.{key}" for key in getattr(config, "runtime_keys", ModelConfig.runtime_keys))
+
+
+def model_differences(old_yaml: str, new_yaml: str) -> list[tuple[str, Any, Any]]:
+    """``config_differences`` of the model sections, runtime keys left out."""
+    return config_differences(old_yaml, new_yaml, model_sections(), runtime_keys(new_yaml))
 
 
 @dataclass(frozen=True)
@@ -75,16 +87,17 @@ def save_checkpoint(
     history: list[dict[str, float]],
     elapsed: float,
     weight_average: Mapping[str, Any] | None = None,
+    classes: ClassList | None = None,
 ) -> Path:
     """Write a checkpoint atomically (a reader never sees half a file).
 
     Args:
-        model: the model; the classes it predicts are stored from its ``classes`` attribute (a ``ClassList``, set by
-            ``build_components``; None for a model built otherwise).
+        model: the model.
+        classes: the classes it predicts (``Components.classes``), stored so that ``eval``, ``render`` and
+            ``finetune`` name them on a dataset that has none; None stores none.
         rng_states: one ``{"cpu": ByteTensor, "cuda": ByteTensor | None}`` per process, in rank order.
         weight_average: ``WeightAverage.state_dict()`` when the run keeps one (``train.ema_decay``).
     """
-    classes = getattr(model, "classes", None)
     state = {
         "format": FORMAT_VERSION,
         "step": step,
@@ -149,27 +162,15 @@ def verify_content(state: Mapping[str, Any], path: str | Path) -> None:
         )
 
 
-def stored_classes(state: Mapping[str, Any], path: str | Path) -> tuple[tuple[str, ...], int] | None:
-    """The class names and ignore index a checkpoint's model was trained with, or None when it stores none (written
-    before checkpoints kept them, by a model built without ``build_components``, or by one trained without classes).
-
-    Raises:
-        DataError: the stored values are not a list of names and an integer.
-    """
-    names, ignore = state.get("class_names"), state.get("ignore_index")
-    if names is None or (isinstance(names, (list, tuple)) and not names):
-        return None
-    if not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
-        raise DataError(f"checkpoint {path}: class_names is {names!r:.80}; expected a list of class names")
-    if not isinstance(ignore, int) or isinstance(ignore, bool):
-        raise DataError(f"checkpoint {path}: ignore_index is {ignore!r}; expected an integer")
-    return tuple(names), int(ignore)
-
-
 def read_checkpoint(path: str | Path) -> dict[str, Any]:
-    """Load a gpnerf-core checkpoint's dictionary safely (``weights_only``), with one-line errors."""
+    """Load a gpnerf-core checkpoint's dictionary safely (``weights_only``), with one-line errors; ``checked_state``."""
     path = Path(path)
-    state = read_torch_file(path)
+    return checked_state(read_torch_file(path), path)
+
+
+def checked_state(state: Any, path: str | Path) -> dict[str, Any]:
+    """What every reader of a gpnerf-core checkpoint checks of its dictionary: a checkpoint, of this format version, its
+    contents matching their hash; configs written by earlier versions are then brought to today's keys."""
     if not isinstance(state, dict) or "format" not in state:
         raise DataError(f"checkpoint {path} is not a gpnerf-core checkpoint (no 'format' key)")
     if state["format"] != FORMAT_VERSION:
@@ -178,6 +179,10 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
             "(it was written by another version: evaluate it with that version, or retrain)"
         )
     verify_content(state, path)
+    if isinstance(state.get("config"), str):
+        state["config"] = upgrade_config_yaml(state["config"])
+    if isinstance(state.get("overrides"), list):
+        state["overrides"] = upgrade_overrides([str(o) for o in state["overrides"]])
     return state
 
 
@@ -214,35 +219,6 @@ def read_torch_file(path: Path) -> Any:
         if "weights_only" in str(exc) or "Unsupported global" in str(exc):
             reason = "it holds Python objects that are not weights (only tensors and plain containers load safely)"
         raise DataError(f"checkpoint {path} could not be read: {reason} (truncated or not a torch file?)") from None
-
-
-def load_weights(module: torch.nn.Module, state: Mapping[str, torch.Tensor], source: str) -> None:
-    """Load ``state`` into ``module`` strictly; a missing, extra or differently shaped tensor is one line.
-
-    Args:
-        source: names where the weights came from in the error (a file path).
-    """
-    own = module.state_dict()
-    missing = [key for key in own if key not in state]
-    unexpected = [key for key in state if key not in own]
-    if missing or unexpected:
-        detail = f"missing {missing[0]!r}" if missing else f"unexpected {unexpected[0]!r}"
-        raise DataError(
-            f"{source} does not match the configured model: {detail} "
-            f"({len(missing)} missing, {len(unexpected)} unexpected tensors)"
-        )
-    check_shapes(own, state, source)
-    module.load_state_dict(state)
-
-
-def check_shapes(own: Mapping[str, torch.Tensor], state: Mapping[str, torch.Tensor], source: str) -> None:
-    """Raise on the first tensor of ``state`` whose shape differs from ``own``'s, naming key and both shapes."""
-    for key, value in state.items():
-        if key in own and tuple(own[key].shape) != tuple(value.shape):
-            raise DataError(
-                f"{source}: tensor {key!r} has shape {list(value.shape)}, the configured model expects "
-                f"{list(own[key].shape)} (a different model size?)"
-            )
 
 
 def config_differences(
@@ -294,7 +270,7 @@ def check_resume_config(path: Path, checkpoint_yaml: str, config_yaml: str, stri
     Returns:
         Lines describing accepted differences (``strict`` False); raises ConfigError when ``strict``.
     """
-    differences = config_differences(checkpoint_yaml, config_yaml, MODEL_SECTIONS, NOT_MODEL_KEYS)
+    differences = model_differences(checkpoint_yaml, config_yaml)
     if not differences:
         return []
     if strict:

@@ -79,8 +79,9 @@ class Registry:
         if "name" not in node:
             raise ConfigError(f"config group {kind!r} has no 'name' key; known names: {', '.join(self.names(kind))}")
         entry = self.get(kind, str(node["name"]))
-        given = {k: _plain(v) for k, v in node.items() if k != "name"}
-        expected = {f.name for f in dataclasses.fields(entry.spec.config)} - {"name"}
+        withheld = {"name", *KINDS[kind].core_fields}
+        given = {k: _plain(v) for k, v in node.items() if k not in withheld}
+        expected = {f.name for f in dataclasses.fields(entry.spec.config)} - withheld
         unknown = set(given) - expected
         if unknown:
             raise ConfigError(
@@ -127,6 +128,10 @@ class Registry:
         default_name = fields["name"].default if "name" in fields else None
         if default_name != spec.name:
             raise PluginError(f"config {spec.config.__name__}.name defaults to {default_name!r}; expected {spec.name!r}")
+        lacking = [name for name in KINDS[kind].core_fields if name not in fields]
+        if lacking:
+            raise PluginError(f"config {spec.config.__name__} has no field {lacking[0]!r}; the config of a {kind} "
+                              f"subclasses the kind's base config (gpnerf_core.ModelConfig)")
         missing_default = [n for n, f in fields.items() if f.default is dataclasses.MISSING
                            and f.default_factory is dataclasses.MISSING]
         if missing_default:
@@ -141,7 +146,8 @@ class Registry:
                 raise PluginError(f"{factory.__name__} leaves abstract members unimplemented: {members}")
         elif not callable(factory):
             raise PluginError(f"factory {factory!r} is not callable")
-        arguments = [n for n in fields if n != "name"] + list(KINDS[kind].runtime_arguments)
+        withheld = {"name", *KINDS[kind].core_fields}
+        arguments = [n for n in fields if n not in withheld] + list(KINDS[kind].runtime_arguments)
         try:
             signature = inspect.signature(factory)
         except (TypeError, ValueError):

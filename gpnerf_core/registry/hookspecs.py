@@ -22,6 +22,21 @@ hookimpl = pluggy.HookimplMarker(PROJECT_NAME)
 
 
 @hookspec
+def gpnerf_register_models() -> list[ComponentSpec]:
+    """Model families, implementing ``gpnerf_core.interfaces.model.ModelFamily``: what renders a target view's rays
+    (GNT with GP-NeRF's semantic field is ``gnt``).
+
+    Each spec's config subclasses ``gpnerf_core.ModelConfig`` (the fields every family has: samples per ray, source
+    views, ``init``). The factory is called with the config's own fields (not ``num_source_views``, ``init`` and
+    ``init_strict``, which the core reads) and ``parts`` (``ModelParts``), through which it builds the extractor,
+    aggregators or head it is made of from their own config groups.
+
+    Returns:
+        Specs whose names become options of the Hydra group ``model`` (``model=<name>``).
+    """
+
+
+@hookspec
 def gpnerf_register_feature_extractors() -> list[ComponentSpec]:
     """Image encoders, implementing ``gpnerf_core.interfaces.FeatureExtractor``.
 
@@ -61,7 +76,7 @@ def gpnerf_register_heads() -> list[ComponentSpec]:
 
     The factory also receives ``in_dim`` and ``in_levels`` (the semantic map's width and number of
     levels) and ``num_outputs``: the dataset's class count, or ``slots + 1`` for a head whose class sets
-    ``predicts = "instances"`` (its config must then have a ``slots`` field).
+    ``predicts = Predicts.INSTANCES`` (its config must then have a ``slots`` field).
 
     Returns:
         Specs for the Hydra group ``head`` (an add-on group: select with ``+head=<name>``).

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 from gpnerf_core import interfaces as I  # noqa: N812 - the interfaces package
 from gpnerf_core.data.dataset import SceneDataset
+from gpnerf_core.interfaces.model import ModelFamily
 
 
 @dataclass(frozen=True)
@@ -25,6 +26,8 @@ class ComponentKind:
         add_on: absent by default and selected with ``+`` (``+head=<name>``); otherwise always in the config.
         defines_model: its config section is part of the trained model (resuming or fine-tuning with other values is
             refused, ``eval`` restores the checkpoint's values).
+        core_fields: fields every config of the kind has (its base config's) that the core reads itself and does not
+            pass to the factory.
     """
 
     name: str
@@ -33,11 +36,14 @@ class ComponentKind:
     runtime_arguments: tuple[str, ...] = ()
     add_on: bool = False
     defines_model: bool = False
+    core_fields: tuple[str, ...] = ()
 
 
 KINDS: dict[str, ComponentKind] = {
     kind.name: kind
     for kind in (
+        ComponentKind("model", "gpnerf_register_models", ModelFamily, ("parts",), defines_model=True,
+                      core_fields=("num_source_views", "init", "init_strict")),
         ComponentKind("feature_extractor", "gpnerf_register_feature_extractors", I.FeatureExtractor,
                       defines_model=True),
         ComponentKind("field_aggregator", "gpnerf_register_field_aggregators", I.FieldAggregator, ("in_dim",),

@@ -25,6 +25,7 @@ DISABLE_PLUGINS_ENV = "GPNERF_DISABLE_PLUGINS"
 CORE_DISTRIBUTION = "gpnerf-core"
 
 BUILTIN_PLUGINS: tuple[str, ...] = (
+    "gpnerf_plugins.families.plugin",
     "gpnerf_plugins.extractors.plugin",
     "gpnerf_plugins.transformers.plugin",
     "gpnerf_plugins.heads.plugin",

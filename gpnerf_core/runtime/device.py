@@ -81,3 +81,13 @@ def machine_info() -> dict[str, object]:
         "torch_threads": torch.get_num_threads(),
         "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
     }
+
+
+def checked_compile_backend(backend: str) -> str:
+    """``backend`` if ``torch.compile`` knows it; otherwise a ConfigError naming the key and the known ones."""
+    import torch._dynamo
+
+    known = sorted(torch._dynamo.list_backends(exclude_tags=()))
+    if backend not in known:
+        raise ConfigError(f"model.compile_backend={backend!r} is not a torch.compile backend; known: {', '.join(known)}")
+    return backend

@@ -7,12 +7,23 @@ size, or mixes up two axes of equal length, fails.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 from torch import Tensor
 
 from gpnerf_core.geometry import points_along_rays, rays_through_pixels, stratified_inverse_depths
-from gpnerf_core.types import LossInputs, ProjectedFeatures, RayBatch, RaySamples, RenderedRays
+from gpnerf_core.types import (
+    LossInputs,
+    ProjectedFeatures,
+    RayBatch,
+    RaySamples,
+    RenderedRays,
+    SourceViews,
+    StepBatch,
+    TargetCamera,
+    TargetView,
+)
 
 HEAD_IN_DIM = 32
 """``in_dim`` the kit passes to heads: 4 levels of 8 channels."""
@@ -180,3 +191,64 @@ def cameras(count: int, *, radius: float = 2.0, seed: int = 0) -> Tensor:
         poses[i, :3, :3] = torch.stack([right, down, forward], dim=1)
         poses[i, :3, 3] = centre
     return poses
+
+
+KIT_CLASSES = 3
+"""Classes of the synthetic scene a model family is checked on."""
+KIT_PARTS = {
+    "feature_extractor": {"name": "resunet_fpn", "widths": [8, 8, 8, 16], "fpn_channels": 4},
+    "field_aggregator": {"name": "gnt_view", "width": 16, "num_blocks": 2},
+    "ray_aggregator": {"name": "gnt_ray"},
+    "view_selector": {"name": "nearest"},
+}
+"""The small built-in parts a model family is built with (``kit_parts``)."""
+KIT_HEAD = {"name": "unet", "channels": 16, "norm_groups": 4}
+KIT_SAMPLES = {"coarse_samples": 6, "fine_samples": 2}
+"""Samples per ray of a model family under check."""
+
+
+def kit_parts(registry: Any, model: str, *, head: bool) -> Any:
+    """``ModelParts`` of the kit's parts (``KIT_PARTS``, with the ``unet`` head when ``head``) at ``KIT_CLASSES``."""
+    from omegaconf import OmegaConf
+
+    from gpnerf_core.model.build import ConfiguredParts
+
+    cfg = OmegaConf.create({"model": {"name": model}, **KIT_PARTS, "head": dict(KIT_HEAD) if head else None})
+    return ConfiguredParts(cfg, KIT_CLASSES, registry)
+
+
+HEIGHT, WIDTH = 32, 48
+KIT_INTRINSICS = torch.tensor([[40.0, 0.0, 23.5], [0.0, 40.0, 15.5], [0.0, 0.0, 1.0]])
+
+
+def _pose(x: float) -> Tensor:
+    c2w = torch.eye(4)
+    c2w[0, 3] = x
+    return c2w
+
+
+def model_view(*, sources: bool = True, seed: int = 0) -> tuple[TargetCamera, SourceViews | None]:
+    """A 32 x 48 target camera at the origin looking down +z (0.5 m to 4 m) and two source views 0.1 m to either
+    side (None without ``sources``: a per-scene family)."""
+    camera = TargetCamera(KIT_INTRINSICS.clone(), _pose(0.0), HEIGHT, WIDTH, 0.5, 4.0)
+    if not sources:
+        return camera, None
+    views = SourceViews(rgb=images(2, HEIGHT, WIDTH, seed=seed), intrinsics=KIT_INTRINSICS.expand(2, 3, 3).clone(),
+                        c2w=torch.stack([_pose(-0.1), _pose(0.1)]))
+    return camera, views
+
+
+def model_batch(*, sources: bool = True, views: int = 2, rays: int = 12) -> StepBatch:
+    """A step of ``views`` target views of the synthetic scene, ``rays`` pixels each, labels in ``[0, KIT_CLASSES)``."""
+    targets = []
+    for index in range(views):
+        g = generator(100 + index)
+        camera, source_views = model_view(sources=sources, seed=index)
+        flat = torch.randperm(HEIGHT * WIDTH, generator=g)[:rays]
+        targets.append(TargetView(
+            scene="kit", frame=index, camera=camera, image=images(1, HEIGHT, WIDTH, seed=10 + index)[0],
+            depth=torch.rand(HEIGHT, WIDTH, generator=g) * 2 + 1, labels=torch.randint(KIT_CLASSES, (HEIGHT, WIDTH), generator=g),
+            sources=source_views, pixels=torch.stack([flat % WIDTH, flat // WIDTH], -1).float(), render_seed=7 + index,
+            instances=torch.randint(3, (HEIGHT, WIDTH), generator=g),
+        ))
+    return StepBatch(tuple(targets))

@@ -12,7 +12,7 @@ import re
 from pathlib import Path
 
 from gpnerf_core.errors import DataError
-from gpnerf_core.model.checkpoint import read_checkpoint
+from gpnerf_core.model.trained import load_trained
 
 CHECKPOINT_NAME = re.compile(r"^step_(\d+)\.pt$")
 CHECKPOINT_FOLDER = "checkpoints"
@@ -47,7 +47,7 @@ def newest_intact_checkpoint(run_dir: Path) -> tuple[Path | None, list[str]]:
     notes = []
     for _, path in reversed(checkpoints):
         try:
-            read_checkpoint(path)
+            load_trained(path)  # the one resumed from stays read for plan_resume and the trainer
         except DataError as exc:
             notes.append(f"skipped a damaged checkpoint: {exc}")
             continue

@@ -39,7 +39,7 @@ class StepSampler:
         frames: the frame cache; the batch goes to its device.
         selector: the source-view selector.
         scene_names: the training scenes.
-        num_source_views: V, source views per target.
+        num_source_views: V, source views per target; 0 for a per-scene model (``TargetView.sources`` None).
         rays_per_view: pixels drawn per target view (at most the image's pixel count).
         targets_per_step: the global batch of target views per step.
         seed: seed of the selection generator.
@@ -99,7 +99,10 @@ class StepSampler:
         view_generator = torch.Generator().manual_seed(seed)
         frames = self.frames
         scene = frames.scene(scene_name)
-        source_indices = choose_sources(self.selector, scene, frame_index, self.num_source_views, view_generator)
+        sources = None
+        if self.num_source_views:
+            indices = choose_sources(self.selector, scene, frame_index, self.num_source_views, view_generator)
+            sources = frames.source_views(scene, indices)
         frame = frames.frame(scene, frame_index)
         height, width = frame.height, frame.width
         if frame.valid is None:
@@ -117,7 +120,7 @@ class StepSampler:
             image=frame.rgb.permute(2, 0, 1).to(device),
             depth=frame.depth.to(device),
             labels=frame.semantic.to(device),
-            sources=frames.source_views(scene, source_indices),
+            sources=sources,
             pixels=pixels.to(device),
             render_seed=self._randint(view_generator, SEED_RANGE),
             instances=None if frame.instance is None else frame.instance.to(device),

@@ -14,7 +14,7 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Iterator, Protocol, Sequence
 
 import torch
 from torch import Tensor
@@ -26,7 +26,9 @@ from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError, DataError, NonFiniteError
 from gpnerf_core.data.frames import FrameCache
 from gpnerf_core.runtime.profiling import stage
-from gpnerf_core.model.checkpoint import RunRecord, check_resume_config, load_weights, read_checkpoint, save_checkpoint
+from gpnerf_core.model.checkpoint import RunRecord, check_resume_config, save_checkpoint
+from gpnerf_core.model.trained import load_trained, release_trained
+from gpnerf_core.model.weights import load_weights
 from gpnerf_core.training.interrupt import StopRequest, TrainingInterrupted
 from gpnerf_core.training.loggers import ScalarLogger
 from gpnerf_core.training.resume import checkpoint_path, prune_checkpoints
@@ -62,8 +64,12 @@ def make_optimizer(model: torch.nn.Module, lrs: Any) -> torch.optim.Optimizer:
     groups = []
     for name, params in model.parameter_groups().items():
         params = [p for p in params if p.requires_grad]
-        if params:
-            groups.append({"params": params, "lr": float(getattr(lrs, name)), "name": name})
+        if not params:
+            continue
+        if name not in lrs:
+            raise ConfigError(f"model {type(model).__name__} trains a parameter group {name!r} that train.lr has no "
+                              f"learning rate for; train.lr has: {', '.join(lrs)}")
+        groups.append({"params": params, "lr": float(lrs[name]), "name": name})
     return torch.optim.Adam(groups)
 
 
@@ -80,12 +86,42 @@ def loss_inputs(view: TargetView, output: ViewOutput, ignore_index: int) -> Loss
         teacher_at_rays=output.teacher_at_rays,
         ignore_index=ignore_index,
         instances=view.instances[None] if output.logits is not None and view.instances is not None else None,
+        labels_at_rays=view.labels[rows, cols] if output.last.logits is not None else None,
     )
 
 
 def process_seed(seed: int, rank: int) -> int:
     """Seed of a process's global torch RNG (dropout): distinct per rank, fixed by (seed, rank)."""
     return int.from_bytes(hashlib.sha256(f"{seed}:{rank}".encode()).digest()[:8], "little") >> 1
+
+
+class _Clock:
+    """Seconds since it started, minus the spans it was ``paused``; it stands still while paused."""
+
+    def __init__(self) -> None:
+        self.started = time.perf_counter()
+        self.excluded = 0.0
+        self.paused_at: float | None = None
+
+    def seconds(self) -> float:
+        now = self.paused_at if self.paused_at is not None else time.perf_counter()
+        return now - self.started - self.excluded
+
+    @contextmanager
+    def paused(self) -> Iterator[None]:
+        self.paused_at = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.excluded += time.perf_counter() - self.paused_at
+            self.paused_at = None
+
+
+class Callback(Protocol):
+    """Something ``Trainer.fit`` runs after every step (``training.callbacks.CurvePoints``)."""
+
+    def after_step(self, trainer: Trainer) -> None:
+        """Called after every training step, on every process."""
 
 
 class Trainer:
@@ -117,6 +153,7 @@ class Trainer:
         self.run_dir = run_dir
         self.record = record
         self.model = components.model.to(self.device)
+        self.classes = components.classes
         self.loss = components.loss.to(self.device)
         self.ignore_index = components.dataset.ignore_index
         self.frames = FrameCache(components.dataset, self.device)
@@ -124,7 +161,7 @@ class Trainer:
             self.frames,
             components.view_selector,
             scene_names=components.dataset.scenes("train"),
-            num_source_views=int(cfg.model.num_source_views),
+            num_source_views=int(cfg.model.num_source_views) if self.model.generalizable else 0,
             rays_per_view=int(cfg.train.rays),
             targets_per_step=int(cfg.train.targets_per_step),
             seed=int(cfg.seed),
@@ -148,6 +185,8 @@ class Trainer:
         self.step = 0
         self.history: list[dict[str, float]] = []
         self.elapsed = 0.0
+        self._clock: _Clock | None = None
+        """The ``fit`` in progress's training time (callbacks' time is not counted)."""
         self.notes: list[str] = []
         self.loss_names: list[str] = []
         """Names of the loss set's terms, known after the first step."""
@@ -245,18 +284,30 @@ class Trainer:
 
     # ---- the loop ----------------------------------------------------------------------------------------------
 
-    def fit(self, progress: bool = True, loggers: Sequence[ScalarLogger] = ()) -> TrainResult:
-        """Train to ``train.steps``, checkpointing every ``train.checkpoint_every`` steps and at the end.
+    def fit(
+        self,
+        until: int | None = None,
+        *,
+        progress: bool = True,
+        loggers: Sequence[ScalarLogger] = (),
+        callbacks: Sequence[Callback] = (),
+    ) -> TrainResult:
+        """Train to step ``until`` (``train.steps`` when None), checkpointing every ``train.checkpoint_every`` steps
+        and at the end.
+
+        Args:
+            callbacks: each one's ``after_step(trainer)`` runs after every step (``CurvePoints`` evaluates there); the
+                time they take is not training time, and the model is back in training mode after them.
 
         Raises:
             TrainingInterrupted: on SIGINT/SIGTERM, after a checkpoint at the current step.
         """
         cfg = self.cfg.train
-        total_steps = int(cfg.steps)
-        bar = self._progress_bar(total_steps) if progress and self.dist.is_main else None
+        total_steps = int(cfg.steps) if until is None else min(int(until), int(cfg.steps))
+        bar = self._progress_bar(int(cfg.steps)) if progress and self.dist.is_main else None
         self.model.train()
         rays_done = 0
-        started = time.perf_counter()
+        self._clock = _Clock()
         try:
             with StopRequest() as stop:
                 while self.step < total_steps:
@@ -264,22 +315,25 @@ class Trainer:
                     self.loss_names = [name for name in terms if name != "loss"]
                     self.step += 1
                     rays_done += rays
-                    now = time.perf_counter()
+                    run_seconds = self._run_seconds()
                     if self.step % int(cfg.log_every) == 0 or self.step == total_steps:
-                        self._log(terms, rays_done, now - started, self.elapsed + now - started, loggers)
+                        self._log(terms, rays_done, run_seconds, self.elapsed + run_seconds, loggers)
                     if bar is not None:
                         bar.update(1)
                         if self.history and self.history[-1]["step"] == self.step:
                             bar.set_postfix(loss=f"{self.history[-1]['loss']:.4f}", refresh=False)
                     if stop_signal is not None:
-                        path = self._checkpoint(self.elapsed + now - started)
+                        path = self._checkpoint(self.training_seconds)
                         raise TrainingInterrupted(stop_signal, self.step, path)
                     if cfg.checkpoint_every and self.step % int(cfg.checkpoint_every) == 0 and self.step < total_steps:
-                        self._checkpoint(self.elapsed + now - started)
+                        self._checkpoint(self.training_seconds)
+                    if callbacks:
+                        self._run_callbacks(callbacks)
         finally:
             if bar is not None:
                 bar.close()
-        seconds = time.perf_counter() - started
+        seconds = self._run_seconds()
+        self._clock = None
         self.elapsed += seconds
         checkpoint = self._checkpoint(self.elapsed)
         global_rays = float(self.dist.all_reduce(torch.tensor(float(rays_done), device=self.device)))
@@ -293,6 +347,24 @@ class Trainer:
             history=self.history,
             checkpoint=checkpoint,
         )
+
+    @property
+    def training_seconds(self) -> float:
+        """Seconds spent training so far (earlier runs of a resumed run included; callbacks' time not)."""
+        return self.elapsed + (self._run_seconds() if self._clock is not None else 0.0)
+
+    def checkpoint(self) -> Path | None:
+        """Write a checkpoint at the current step now (rank 0; every process must call it); its path on rank 0."""
+        return self._checkpoint(self.training_seconds)
+
+    def _run_seconds(self) -> float:
+        return self._clock.seconds()
+
+    def _run_callbacks(self, callbacks: Sequence[Callback]) -> None:
+        with self._clock.paused():
+            for callback in callbacks:
+                callback.after_step(self)
+        self.model.train()
 
     def _progress_bar(self, total_steps: int) -> Any:
         from tqdm import tqdm
@@ -370,6 +442,7 @@ class Trainer:
             history=self.history,
             elapsed=elapsed,
             weight_average=self.average.state_dict() if self.average is not None else None,
+            classes=self.classes,
         )
         prune_checkpoints(self.run_dir, int(self.cfg.train.keep_checkpoints))
         return path
@@ -377,7 +450,7 @@ class Trainer:
     def _resume(self, path: Path) -> None:
         if not path.is_file():
             raise DataError(f"train.resume={path}: no such file; expected a checkpoint written by run (checkpoints/)")
-        state = read_checkpoint(path)
+        state = load_trained(path).state  # plan_resume read it already: not read again
         self.notes += check_resume_config(path, state["config"], self.record.config_yaml, self.cfg.train.resume_strict)
         load_weights(self.model, state["model"], f"checkpoint {path}")
         try:
@@ -405,3 +478,4 @@ class Trainer:
                 f"the checkpoint was written by {len(rng)} processes and this run has {self.dist.world_size}: "
                 "target views, pixels and samples resume exactly, dropout draws do not"
             )
+        release_trained()

@@ -49,12 +49,13 @@ class WeightAverage:
 
     def load_state_dict(self, state: Mapping[str, Any], source: str) -> None:
         """Restore an average written by ``state_dict``; ``source`` names the file in errors."""
-        from gpnerf_core.model.checkpoint import check_shapes
-
         weights = state["weights"]
         if set(weights) != set(self.average):
             raise ValueError(f"{source}: its weight average holds other tensors than this model")
-        check_shapes(self.average, weights, source)
+        for key, value in weights.items():
+            if tuple(value.shape) != tuple(self.average[key].shape):
+                raise ValueError(f"{source}: tensor {key!r} of its weight average has shape {list(value.shape)}, the "
+                                 f"configured model expects {list(self.average[key].shape)}")
         self.average = {key: value.to(self.average[key].device).clone() for key, value in weights.items()}
         self.updates = int(state["updates"])
 

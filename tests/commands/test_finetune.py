@@ -10,7 +10,8 @@ from gpnerf_core.model.build import build_model
 from gpnerf_core.config.compose import compose
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.evaluation.curves import curve_points
-from gpnerf_core.model.finetuning import finetune_weights
+from gpnerf_core.model.checkpoint import format_differences, model_differences
+from gpnerf_core.model.weights import load_weights
 from pipeline_check import TINY_CLI as TINY, gpnerf
 
 def test_curve_points_run_from_zero_to_the_last_step():
@@ -28,8 +29,7 @@ def test_a_new_class_count_reinitialises_only_the_heads_last_layer():
     torch.manual_seed(1)
     new = build_model(cfg, num_classes=5)
     fresh = {k: v.clone() for k, v in new.state_dict().items()}
-    yaml = OmegaConf.to_yaml(cfg)
-    reinitialised = finetune_weights(new, old.state_dict(), "old.pt", yaml, yaml)
+    reinitialised = load_weights(new, old.state_dict(), "finetune checkpoint=old.pt", new_classes=(3, 5))
     assert reinitialised and all(key.startswith("head.") for key in reinitialised)
     assert all(old.state_dict()[key].shape[0] == 3 for key in reinitialised)
     for key, value in new.state_dict().items():
@@ -42,8 +42,9 @@ def test_another_model_names_the_config_keys_that_differ():
     wide = compose(["+head=unet", "+loss=dgs", *TINY, "field_aggregator.width=32", "feature_extractor.fpn_channels=8"])
     with pytest.raises(ConfigError, match=r"finetune checkpoint=old.pt: tensor .* differs from the checkpoint's: .*"
                                           r"field_aggregator.width"):
-        finetune_weights(build_model(wide, 3), build_model(small, 3).state_dict(), "old.pt",
-                         OmegaConf.to_yaml(small), OmegaConf.to_yaml(wide))
+        load_weights(build_model(wide, 3), build_model(small, 3).state_dict(), "finetune checkpoint=old.pt",
+                     new_classes=(3, 3), explain=lambda: format_differences(
+                         model_differences(OmegaConf.to_yaml(small), OmegaConf.to_yaml(wide))))
 
 
 def test_finetune_on_an_unseen_scene_writes_the_curve(tmp_path):

@@ -270,7 +270,7 @@ def test_any_ray_sample_and_channel_count(shape):
 
 
 def test_missing_inputs_are_config_errors():
-    with pytest.raises(ConfigError, match="'ce' needs head logits"):
+    with pytest.raises(ConfigError, match="'ce' needs semantic scores and labels"):
         WeightedLossSet()(_inputs(logits=None))
     with pytest.raises(ConfigError, match="'sd' needs the teacher"):
         WeightedLossSet()(_inputs(teacher_at_rays=None))

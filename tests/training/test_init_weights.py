@@ -6,7 +6,7 @@ import torch
 from gpnerf_core.model.build import build_model
 from gpnerf_core.config.compose import compose
 from gpnerf_core.errors import DataError
-from gpnerf_core.model.init_weights import init_weights
+from gpnerf_core.model.weights import init_weights
 from pipeline_check import TINY_MODEL
 
 
@@ -75,5 +75,5 @@ def test_gnt_checkpoint_of_another_width_names_the_tensor(tmp_path):
 def test_file_of_no_known_format_is_refused(tmp_path):
     path = tmp_path / "other.pth"
     torch.save({"state_dict": {}}, path)
-    with pytest.raises(DataError, match="neither an official GNT checkpoint"):
+    with pytest.raises(DataError, match="neither a gpnerf-core checkpoint nor a format model GeneralizableNeRF reads"):
         init_weights(tiny_model(1), path)

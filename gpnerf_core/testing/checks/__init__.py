@@ -9,10 +9,11 @@ from __future__ import annotations
 from typing import Any, Callable
 
 from gpnerf_core.testing import inputs
-from gpnerf_core.testing.checks import aggregators, datasets, extractors, heads, losses, selectors
+from gpnerf_core.testing.checks import aggregators, datasets, extractors, heads, losses, models, selectors
 from gpnerf_core.testing.checks.common import CheckFailed, CheckSkipped, Subject
 
 CHECKS: dict[str, dict[str, Callable[[Subject], None]]] = {
+    "model": models.CHECKS,
     "feature_extractor": extractors.CHECKS,
     "field_aggregator": aggregators.FIELD_CHECKS,
     "ray_aggregator": aggregators.RAY_CHECKS,
@@ -23,6 +24,7 @@ CHECKS: dict[str, dict[str, Callable[[Subject], None]]] = {
 }
 
 RUNTIME: dict[str, dict[str, Any]] = {
+    "model": {},  # ``parts``: the kit's small built-in parts (``inputs.kit_parts``), made per check
     "feature_extractor": {},
     "field_aggregator": {"in_dim": inputs.FIELD_IN_DIM},
     "ray_aggregator": {"in_dim": inputs.RAY_IN_DIM, "num_blocks": inputs.RAY_BLOCKS},

@@ -11,6 +11,7 @@ import torch
 from omegaconf import OmegaConf
 from torch import Tensor, nn
 
+from gpnerf_core.interfaces.head import Predicts
 from gpnerf_core.registry.components import RegisteredComponent, Registry
 from gpnerf_core.registry.plugins import one_line
 
@@ -50,13 +51,17 @@ class Subject:
         return component_label(self.kind, self.name, self.entry.provider, self.entry.version)
 
     def node(self) -> dict[str, Any]:
-        """The config node the checks build from: the name and the overridden fields."""
-        return {"name": self.name, **self.config}
+        """The config node the checks build from: the name and the overridden fields (a model family renders few
+        samples per ray unless told otherwise: ``inputs.KIT_SAMPLES``)."""
+        from gpnerf_core.testing.inputs import KIT_SAMPLES
+
+        return {"name": self.name, **(KIT_SAMPLES if self.kind == "model" else {}), **self.config}
 
     @property
     def predicts_instances(self) -> bool:
-        """A head whose class declares ``predicts = "instances"`` (``num_outputs = slots + 1``, at least 2)."""
-        return self.kind == "head" and getattr(self.entry.spec.factory, "predicts", "classes") == "instances"
+        """A head whose class declares ``predicts = Predicts.INSTANCES`` (``num_outputs = slots + 1``, at least 2)."""
+        predicts = getattr(self.entry.spec.factory, "predicts", Predicts.CLASSES)
+        return self.kind == "head" and Predicts(predicts) is Predicts.INSTANCES
 
     def build(self, node: Mapping[str, Any] | None = None, **runtime: Any) -> Any:
         """Build through the registry with ``runtime`` replacing the kit's runtime arguments.
@@ -65,6 +70,10 @@ class Subject:
         factory's own error (without the registry's prefix, which repeats the component's name).
         """
         arguments = {**self.runtime, **runtime}
+        if self.kind == "model" and "parts" not in arguments:
+            from gpnerf_core.testing.inputs import kit_parts
+
+            arguments["parts"] = kit_parts(self.registry, self.name, head=True)
         where = "building" + (" from the round-tripped config" if node is not None else "")
         where += f" with {describe(arguments)}" if arguments and node is None else ""
         node = self.node() if node is None else node

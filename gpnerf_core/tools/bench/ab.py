@@ -28,7 +28,7 @@ import torch
 from gpnerf_core.tools.bench.sizes import get_size, variant_overrides
 from gpnerf_core.model.build import build_components
 from gpnerf_core.config.compose import compose
-from gpnerf_core.runtime.device import resolve_device
+from gpnerf_core.engine.setup import setup_process
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.model.checkpoint import RunRecord
@@ -61,7 +61,7 @@ OPTIONS: dict[str, Callable[[], dict[str, Variant]]] = {
 def make_trainer(size: str, overrides: list[str], folder: Path) -> Trainer:
     """A trainer of the bench ``size``'s GP-NeRF (``overrides`` last), writing nothing outside ``folder``."""
     cfg = compose(variant_overrides(get_size(size), "gpnerf", overrides))
-    trainer = Trainer(cfg, build_components(cfg), dist=Distributed.single(resolve_device(cfg.device)), run_dir=folder,
+    trainer = Trainer(cfg, build_components(cfg), dist=Distributed.single(setup_process(cfg)), run_dir=folder,
                       record=RunRecord(config_yaml="", overrides=(), components={}))
     trainer.model.train()
     return trainer

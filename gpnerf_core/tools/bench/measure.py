@@ -24,12 +24,13 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from gpnerf_core.model.build import build_components
 from gpnerf_core.config.compose import compose
-from gpnerf_core.runtime.device import peak_memory_mb, resolve_device
+from gpnerf_core.runtime.device import peak_memory_mb
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.data.frames import FrameCache, choose_sources
 from gpnerf_core.model.checkpoint import RunRecord
 from gpnerf_core.training.trainer import Trainer
-from gpnerf_core.engine.validation import check_data, validate_config
+from gpnerf_core.engine.setup import setup_process
+from gpnerf_core.engine.validation import check_data
 
 OUT_OF_MEMORY = ("OutOfMemoryError", "MemoryError", "out of memory", "can't allocate memory")
 """Markers of a child that ran out of memory (with a kill by signal 9)."""
@@ -90,11 +91,7 @@ def count_flops(run: Callable[[], Any]) -> int:
 
 def measure(spec: dict[str, Any]) -> dict[str, Any]:
     cfg = compose(spec["overrides"])
-    validate_config(cfg)
-    if cfg.threads:
-        torch.set_num_threads(int(cfg.threads))
-    torch.manual_seed(int(cfg.seed))
-    device = resolve_device(cfg.device)
+    device = setup_process(cfg)
     components = build_components(cfg)
     check_data(cfg, components)
     progress = Path(spec["progress"])
@@ -135,7 +132,10 @@ def view_renderer(cfg: Any, model: Any, frames: FrameCache, selector: Any, scene
     """``predict`` on the first held-out view of ``scene_name`` (a training scene), at the configured stride."""
     scene = frames.scene(scene_name)
     index = scene.eval_frames[0] if scene.eval_frames else scene.train_frames[0]
-    sources = frames.source_views(scene, choose_sources(selector, scene, index, int(cfg.model.num_source_views), None))
+    sources = None
+    if model.generalizable:
+        chosen = choose_sources(selector, scene, index, int(cfg.model.num_source_views), None)
+        sources = frames.source_views(scene, chosen)
     camera = frames.camera(scene, frames.frame(scene, index))
     stride, chunk = int(cfg.eval.render_stride), int(cfg.eval.chunk_rays)
     return lambda: model.predict(camera, sources, stride=stride, chunk_rays=chunk)

@@ -27,13 +27,12 @@ from gpnerf_core.tools.bench.sizes import VARIANTS, variant_overrides
 from gpnerf_core.tools.bench.sizes import get_size
 from gpnerf_core.model.build import build_components
 from gpnerf_core.config.compose import compose
-from gpnerf_core.runtime.device import resolve_device
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.runtime.profiling import StageTime, stage_table, stage_times
 from gpnerf_core.model.checkpoint import RunRecord
 from gpnerf_core.training.trainer import Trainer
-from gpnerf_core.engine.validation import validate_config
+from gpnerf_core.engine.setup import setup_process
 
 OWN_KEYS = ("size", "variant", "phase", "rows")
 
@@ -42,11 +41,7 @@ def profile_step(overrides: list[str], rows: int, phase: str = "train") -> tuple
     """The time and the profiler's table of one training step (or rendered view, ``phase=render``) after one
     warm-up, and its stage times."""
     cfg = compose(overrides)
-    validate_config(cfg)
-    if cfg.threads:
-        torch.set_num_threads(int(cfg.threads))
-    torch.manual_seed(int(cfg.seed))
-    device = resolve_device(cfg.device)
+    device = setup_process(cfg)
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
     with tempfile.TemporaryDirectory() as folder:
         record = RunRecord(config_yaml="", overrides=(), components={})

@@ -10,8 +10,9 @@ from typing import Any
 
 import torch
 
+from gpnerf_core.engine.setup import setup_process
 from gpnerf_core.model.build import build_components
-from gpnerf_core.runtime.device import peak_memory_mb, resolve_device
+from gpnerf_core.runtime.device import peak_memory_mb
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.model.checkpoint import RunRecord
 from gpnerf_core.training.trainer import Trainer
@@ -39,10 +40,7 @@ def time_train_step(cfg: Any, *, warmup: int = 1, repeats: int = 3, run_dir: Pat
         "device"}``; on CPU the memory is the process's peak RSS (``memory_before_mb``: RSS after building the
         model and loading the first batch's frames), on CUDA the peak allocated memory during the steps.
     """
-    if cfg.threads:
-        torch.set_num_threads(int(cfg.threads))
-    torch.manual_seed(int(cfg.seed))
-    device = resolve_device(cfg.device)
+    device = setup_process(cfg)
     record = RunRecord(config_yaml="", overrides=(), components={})
     trainer = Trainer(cfg, build_components(cfg), dist=Distributed.single(device), run_dir=run_dir, record=record)
     trainer.model.train()

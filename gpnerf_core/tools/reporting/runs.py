@@ -20,6 +20,7 @@ from typing import Any
 
 import yaml
 
+from gpnerf_core.config.legacy import upgrade_config_yaml
 from gpnerf_core.errors import DataError
 
 # Table 4 of the paper: (joint attention, S.D, gradient block, D.G) -> (ID, mIoU, PSNR) on ScanNet.
@@ -96,15 +97,40 @@ def _schema_defaults() -> dict[str, Any]:
     return {k: v for k, v in defaults.items() if isinstance(v, dict)}
 
 
+def _component_defaults(config: dict[str, Any]) -> dict[str, Any]:
+    """The defaults of each component section's registered config (``model``, ``head``, ...), by the name it holds."""
+    import dataclasses
+
+    from gpnerf_core.registry.components import get_registry
+    from gpnerf_core.registry.kinds import KINDS
+
+    registry = get_registry()
+    defaults = {}
+    for kind in KINDS:
+        section = config.get(kind)
+        entry = registry.components[kind].get(str(section.get("name"))) if isinstance(section, dict) else None
+        if entry is not None:
+            defaults[kind] = _plain(dataclasses.asdict(entry.spec.config()))
+    return defaults
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    return value
+
+
 def with_schema_defaults(config: dict[str, Any]) -> dict[str, Any]:
-    """``config`` with the keys its schema sections lack filled in from today's defaults."""
+    """``config`` with the keys its schema sections and component sections lack filled in from today's defaults."""
 
     def fill(value: Any, default: Any) -> Any:
         if not isinstance(value, dict) or not isinstance(default, dict):
             return value
         return {**default, **{k: fill(v, default.get(k)) for k, v in value.items()}}
 
-    defaults = _schema_defaults()
+    defaults = {**_schema_defaults(), **_component_defaults(config)}
     return {k: fill(v, defaults.get(k)) for k, v in config.items()}
 
 
@@ -144,7 +170,7 @@ def find_runs(paths: list[Path]) -> list[RunRow]:
                 continue
             try:
                 message = str(json.loads(error_file.read_text()).get("error", "unknown error"))
-                config = yaml.safe_load((folder / "config.yaml").read_text()) or {}
+                config = yaml.safe_load(upgrade_config_yaml((folder / "config.yaml").read_text())) or {}
             except (json.JSONDecodeError, yaml.YAMLError, AttributeError):
                 message, config = f"{error_file} could not be parsed", {}
             rows.append(RunRow(folder, config if isinstance(config, dict) else {}, {}, error=message))
@@ -155,7 +181,7 @@ def find_runs(paths: list[Path]) -> list[RunRow]:
                 continue
             try:
                 metrics = json.loads(metrics_file.read_text())
-                config = yaml.safe_load(config_file.read_text())
+                config = yaml.safe_load(upgrade_config_yaml(config_file.read_text()))
             except (json.JSONDecodeError, yaml.YAMLError, UnicodeDecodeError) as exc:
                 raise DataError(f"{metrics_file}: could not be parsed ({type(exc).__name__})") from None
             problem = metrics_shape_problem(metrics) or (

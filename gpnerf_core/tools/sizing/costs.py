@@ -9,6 +9,7 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from gpnerf_core.tools.bench.measure import view_renderer
+from gpnerf_core.engine.setup import setup_process
 from gpnerf_core.model.build import build_components
 from gpnerf_core.data.frames import FrameCache
 
@@ -26,7 +27,7 @@ class StaticCost:
 def static_cost(cfg: Any, scene_name: str) -> StaticCost:
     """Build the model ``cfg`` describes (randomly initialised: the counts do not depend on the weights) and render
     the first held-out view of ``scene_name`` once under the FLOP counter, on the CPU."""
-    torch.manual_seed(int(cfg.seed))
+    setup_process(cfg)
     components = build_components(cfg)
     model = components.model.eval()
     frames = FrameCache(components.dataset, torch.device("cpu"))

@@ -65,16 +65,15 @@ class Outcome:
 
 def models_from_paths(paths: Sequence[Path]) -> list[ModelUnderTest]:
     """Run folders (or folders of runs) and ``.pt`` checkpoints, each a model; grouped into methods by config."""
+    from gpnerf_core.model.trained import load_trained
     from gpnerf_core.tools.reporting.runs import RunRow, find_runs, group_runs, method_labels
-    from gpnerf_core.model.checkpoint import read_checkpoint
 
     rows: list[RunRow] = []
     checkpoints: dict[Path, Path] = {}
     for path in paths:
         if path.is_file():
-            state = read_checkpoint(path)
             row = RunRow(path.parent.parent if path.parent.name == "checkpoints" else path.parent,
-                         yaml.safe_load(state["config"]) or {}, {})
+                         yaml.safe_load(load_trained(path).config_yaml) or {}, {})
             rows.append(row)
             checkpoints[row.folder] = path
             continue
@@ -128,11 +127,9 @@ def choose_cases(names: Sequence[str] | None) -> list[StressCase]:
     return [registered[n] for n in dict.fromkeys(names)]
 
 
-def _config(model: ModelUnderTest, views_per_scene: int, dataset_overrides: dict[str, Any]) -> DictConfig:
-    """The run's config (keys it predates at today's defaults) for evaluation, with the dataset overrides."""
-    from gpnerf_core.tools.reporting.runs import with_schema_defaults
-
-    cfg = OmegaConf.create(with_schema_defaults(copy.deepcopy(model.config)))
+def _config(trained_config: DictConfig, views_per_scene: int, dataset_overrides: dict[str, Any]) -> DictConfig:
+    """The trained model's config (``TrainedModel.config``) for evaluation, with the dataset overrides."""
+    cfg = copy.deepcopy(trained_config)
     with open_dict(cfg):
         cfg.eval.max_views_per_scene = views_per_scene
         cfg.eval.save_images = 0
@@ -146,15 +143,18 @@ class _Evaluator:
 
     def __init__(self, model: ModelUnderTest, views_per_scene: int, device: torch.device) -> None:
         from gpnerf_core.model.build import build_components
-        from gpnerf_core.model.checkpoint import evaluation_weights, load_weights, read_checkpoint
+        from gpnerf_core.model.trained import load_trained, release_trained
+        from gpnerf_core.model.weights import load_weights
 
         self.model = model
         self.views_per_scene = views_per_scene
         self.device = device
-        self.cfg = _config(model, views_per_scene, {})
-        self.components = build_components(self.cfg)
-        state = read_checkpoint(model.checkpoint)
-        load_weights(self.components.model, evaluation_weights(state)[0], f"checkpoint {model.checkpoint}")
+        trained = load_trained(model.checkpoint)
+        self.trained_config = trained.config()
+        self.cfg = _config(self.trained_config, views_per_scene, {})
+        self.components = build_components(self.cfg, classes=trained.classes)
+        load_weights(self.components.model, trained.weights()[0], f"checkpoint {model.checkpoint}")
+        release_trained()
         self.components.model.to(device).eval()
         self._variants: dict[str, tuple[DictConfig, Any, Any]] = {}
 
@@ -167,7 +167,7 @@ class _Evaluator:
 
         key = repr(sorted(overrides.items()))
         if key not in self._variants:
-            cfg = _config(self.model, self.views_per_scene, overrides)
+            cfg = _config(self.trained_config, self.views_per_scene, overrides)
             components = self.components
             if overrides:
                 components = replace(components, dataset=get_registry().build("dataset", cfg.dataset))
@@ -190,6 +190,8 @@ class _Evaluator:
             return choose_sources(components.view_selector, scene, target, count, None)
 
         def sources_for(scene, target: int):
+            if not components.model.generalizable:
+                return None  # a per-scene model renders from its own parameters
             if case is None:
                 return frames.source_views(scene, choose(scene, target, trained_views))
             count = case.num_source_views(level, trained_views)
@@ -264,8 +266,18 @@ def dataset_options(name: str) -> set[str]:
     return {f.name for f in dataclasses.fields(registered.spec.config)} if registered else set()
 
 
+def changes_sources(case: StressCase) -> bool:
+    """The case changes the source views a model is given (which, how many, their images or cameras)."""
+    return any(getattr(type(case), method) is not getattr(StressCase, method)
+               for method in ("source_indices", "num_source_views", "perturb_sources"))
+
+
 def _unavailable(case: StressCase, level: float, evaluator: _Evaluator) -> str | None:
-    """Why the level cannot run: a dataset option its variant needs is missing, or the case's own reason."""
+    """Why the level cannot run: the model has no source views to change, a dataset option its variant needs is
+    missing, or the case's own reason."""
+    if changes_sources(case) and not evaluator.components.model.generalizable:
+        return (f"model {evaluator.cfg.model.name!r} renders from its own parameters (per-scene): it has no source "
+                "views to change")
     dataset = evaluator.cfg.dataset
     options = dataset_options(str(dataset.get("name")))
     missing = [key for key in case.dataset_overrides(level, dataset) if key not in options]

@@ -16,12 +16,14 @@ import torch
 import torch.nn.functional as F
 
 from gpnerf_core.evaluation import visualize as vis
-from gpnerf_core.evaluation.instances import slot_predictions
+from gpnerf_core.evaluation.pictures import prediction_layers
 from gpnerf_core.model.feature_cache import SourceFeatureCache
+from gpnerf_core.model.view_inputs import view_inputs
 from gpnerf_core.data.frames import FrameCache
 from gpnerf_core.interfaces import ViewSelector
-from gpnerf_core.model.pipeline import GeneralizableNeRF, Prediction
-from gpnerf_core.types import Scene, TargetCamera
+from gpnerf_core.interfaces.head import Predicts
+from gpnerf_core.interfaces.model import ModelFamily
+from gpnerf_core.types import Prediction, Scene, TargetCamera
 from gpnerf_core.tools.viewer.camera import view_from_viser
 
 LAYERS = ("rgb", "depth", "semantic", "instances", "features", "error")
@@ -115,7 +117,7 @@ class SceneRenderer:
 
     def __init__(
         self,
-        model: GeneralizableNeRF,
+        model: ModelFamily,
         frames: FrameCache,
         selector: ViewSelector,
         num_classes: int,
@@ -136,18 +138,7 @@ class SceneRenderer:
         """The target camera of ``request`` at the scene's image height."""
         scene = self.frames.scene(request.scene)
         view = view_from_viser(request.wxyz, request.position, request.fov, request.aspect, scene.height, multiple)
-        device = self.frames.device
-        return TargetCamera(intrinsics=view.intrinsics.to(device), c2w=view.c2w.to(device), height=view.height,
-                            width=view.width, near=scene.near, far=scene.far)
-
-    def sources_for(self, scene_name: str, c2w: torch.Tensor, count: int, exclude: int | None = None) -> list[int]:
-        """The scene's training frames (but ``exclude``) the selector picks for a camera at ``c2w`` (``count`` 0 = the
-        default)."""
-        scene = self.frames.scene(scene_name)
-        candidates = [i for i in scene.train_frames if i != exclude] or list(scene.train_frames)
-        count = min(count or self.default_source_views, len(candidates))
-        positions = self.selector.select(c2w.cpu().float(), scene.c2w[candidates], count, None)
-        return [candidates[p] for p in positions]
+        return self.frames.camera(scene, c2w=view.c2w, intrinsics=view.intrinsics, size=(view.height, view.width))
 
     def render(self, scene_name: str, camera: TargetCamera, source_views: int, stride: int, stage: str) -> RenderedView:
         """Render ``camera`` in scene ``scene_name`` at ``stride`` with ``source_views`` sources (0 = default)."""
@@ -160,13 +151,10 @@ class SceneRenderer:
                 camera = self.frames.camera(scene, frame)  # compared pixel for pixel with the real frame
             else:
                 index = frame = None
-            indices = self.sources_for(scene_name, camera.c2w, source_views, exclude=index)
-            sources = self.frames.source_views(scene, indices)
-            features = None
-            if self.feature_cache is not None:
-                features = self.feature_cache.features(self.model, scene.name, indices, sources.rgb)
-            prediction = self.model.predict(camera, sources, stride=stride, chunk_rays=self.chunk_rays,
-                                            features=features)
+            given = view_inputs(self.model, self.frames, self.selector, scene, camera.c2w,
+                                source_views or self.default_source_views, exclude=index, cache=self.feature_cache)
+            prediction = self.model.predict(camera, given.sources, stride=stride, chunk_rays=self.chunk_rays,
+                                            features=given.features)
         layers = self.layers(prediction, scene.near, scene.far)
         psnr = None
         if frame is not None:
@@ -174,26 +162,13 @@ class SceneRenderer:
             rendered = torch.nan_to_num(prediction.rgb.float().cpu()).clamp(0, 1)
             layers["error"] = vis.rgb_error_map(rendered, real)
             psnr = float(-10 * torch.log10(((rendered - real.clamp(0, 1)) ** 2).mean().clamp_min(1e-10)))
-        return RenderedView(stage=stage, stride=prediction.stride, layers=layers, sources=tuple(indices),
+        return RenderedView(stage=stage, stride=prediction.stride, layers=layers, sources=given.indices,
                             seconds=time.perf_counter() - began, prediction=prediction, frame=index, psnr=psnr)
 
     def layers(self, prediction: Prediction, near: float, far: float) -> dict[str, np.ndarray]:
-        """The picture layers of a prediction; non-finite values are shown black, never raised."""
-        rgb = torch.nan_to_num(prediction.rgb.float(), nan=0.0, posinf=1.0, neginf=0.0).clamp(0, 1)
-        layers = {"rgb": (rgb.cpu().numpy() * 255).round().astype(np.uint8),
-                  "depth": vis.depth_to_color(prediction.depth.cpu(), near, far)}
-        head = self.model.head
-        if prediction.logits is not None and head is not None:
-            logits = torch.nan_to_num(prediction.logits[0].float().cpu())
-            if head.predicts == "instances":
-                slots, _ = slot_predictions(logits)
-                layers["instances"] = vis.colorize_instances(slots)
-            else:
-                layers["semantic"] = vis.colorize_labels(logits.argmax(0), self.num_classes)
-        if prediction.semantic is not None:
-            features = torch.nan_to_num(prediction.semantic.float().cpu())
-            layers["features"] = vis.pca_rgb(features)
-        return layers
+        """The picture layers of a prediction (``evaluation.pictures``); non-finite values are shown black, never
+        raised."""
+        return prediction_layers(prediction, near, far, self.model.semantic_output, self.num_classes)
 
 
 @dataclass

@@ -19,14 +19,14 @@ import torch
 def measure(overrides: list[str], repeats: int = 3) -> dict[str, object]:
     from gpnerf_core.model.build import build_components
     from gpnerf_core.config.compose import compose
+    from gpnerf_core.engine.setup import setup_process
     from gpnerf_core.model.feature_cache import SourceFeatureCache
     from gpnerf_core.data.frames import FrameCache
     from gpnerf_core.tools.viewer.camera import vertical_fov, viser_pose
     from gpnerf_core.tools.viewer.renderer import SceneRenderer, ViewRequest
 
     cfg = compose(overrides)
-    if int(cfg.threads):
-        torch.set_num_threads(int(cfg.threads))
+    setup_process(cfg)
     components = build_components(cfg)
     model = components.model.eval()
     scenes = list(components.dataset.scenes("unseen")) + list(components.dataset.scenes("train"))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from gpnerf_core import ConfigError
+from gpnerf_core import ConfigError, Predicts
 from gpnerf_plugins.heads.unet import UNetHead
 
 
@@ -35,7 +35,7 @@ class InstanceHead(UNetHead):
         decoder, channels, norm_groups: as for ``UNetHead``.
     """
 
-    predicts = "instances"
+    predicts = Predicts.INSTANCES
 
     def __init__(
         self,

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from gpnerf_core import ConfigError, LossInputs, hungarian, instance_masks
+from gpnerf_core import ConfigError, LossInputs, Predicts, hungarian, instance_masks
 from gpnerf_plugins.losses.sets import LossSetConfig, WeightedLossSet
 
 LOG_ONE_MINUS_FLOOR = 1e-7
@@ -106,7 +106,7 @@ class InstanceLossSet(WeightedLossSet):
         super().__init__(**options, extra_weights={"instance": instance_weight})
         self.needs_semantics = True
         self.needs_labels = True  # the instance term reads the target's instance ids
-        self.head_predicts = "instances"
+        self.head_predicts = Predicts.INSTANCES
 
     @staticmethod
     def _instance(inputs: LossInputs) -> Tensor:

@@ -25,7 +25,7 @@ from typing import Mapping
 
 from torch import Tensor
 
-from gpnerf_core import ConfigError, LossInputs, LossSet
+from gpnerf_core import ConfigError, LossInputs, LossSet, Predicts
 from gpnerf_plugins.losses.terms import (
     centre_from_depth,
     centre_from_weights,
@@ -156,7 +156,7 @@ class WeightedLossSet(LossSet):
         self.dgs_push_away = bool(dgs_push_away)
         self.needs_semantics = any(term != "rgb" for term in self.weights)
         self.needs_sample_semantics = "dgs" in self.weights
-        self.head_predicts = "classes" if "ce" in self.weights else None
+        self.head_predicts = Predicts.CLASSES if "ce" in self.weights else None
         # rgb, sd and dgs read colours, the teacher and (gt_depth centre) depth; only the cross-entropy reads labels.
         self.needs_labels = "ce" in self.weights
 
@@ -178,9 +178,16 @@ class WeightedLossSet(LossSet):
 
     @staticmethod
     def _ce(inputs: LossInputs) -> Tensor:
-        if inputs.logits is None or inputs.labels is None:
-            raise ConfigError("loss term 'ce' needs head logits and labels; select a head (+head=<name>)")
-        return cross_entropy(inputs.logits, inputs.labels, inputs.ignore_index)
+        """On the head's map; for a label-rendering model on each pass's per-ray scores (coarse + fine, as
+        Semantic-NeRF)."""
+        if inputs.logits is not None and inputs.labels is not None:
+            return cross_entropy(inputs.logits, inputs.labels, inputs.ignore_index)
+        passes = [p for p in (inputs.coarse, inputs.fine) if p is not None and p.logits is not None]
+        if passes and inputs.labels_at_rays is not None:
+            labels = inputs.labels_at_rays[None, :, None]  # [1, R, 1]: the rays as a one-pixel-wide image
+            return sum(cross_entropy(p.logits.T[None, :, :, None], labels, inputs.ignore_index) for p in passes)
+        raise ConfigError("loss term 'ce' needs semantic scores and labels; select a head (+head=<name>) or a model "
+                          "that renders labels")
 
     def _sd(self, inputs: LossInputs) -> Tensor:
         if inputs.last.semantic is None:

@@ -16,13 +16,21 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from gpnerf_core import SPLITS, ConfigError, DataError, Frame, Scene, SceneDataset, check_validation_level
-from gpnerf_plugins.datasets.base import DatasetConfig
+from gpnerf_core import (
+    ConfigError,
+    DataError,
+    DatasetBase,
+    DatasetConfig,
+    Frame,
+    Scene,
+    check_image_size,
+    from_launch_dir,
+)
 from gpnerf_plugins.datasets.capture.transforms import TRANSFORMS_FILE, CaptureFile, CaptureFrame, read_transforms
 from gpnerf_plugins.datasets.capture.undistort import Undistorter
 from gpnerf_plugins.datasets.common.cameras import scale_intrinsics
+from gpnerf_plugins.datasets.common.decoding import FrameDecoder, FrameFiles
 from gpnerf_plugins.datasets.common.image_io import decode_image, resize_nearest, resize_rgb
-from gpnerf_plugins.datasets.common.paths import from_launch_dir
 from gpnerf_plugins.datasets.common.scene_lists import chosen_scenes, disjoint_unseen, missing_scene
 
 CLASSES_FILE = "classes.json"
@@ -79,7 +87,7 @@ class ClassList:
     path: Path
 
 
-class CaptureScenes(SceneDataset):
+class CaptureScenes(DatasetBase):
     """Captures in nerfstudio's format under ``root`` (construction touches no file)."""
 
     def __init__(
@@ -98,31 +106,22 @@ class CaptureScenes(SceneDataset):
         scenes: Sequence[str] = (),
         unseen_scenes: Sequence[str] = (),
     ) -> None:
-        if not root:
-            raise ConfigError("dataset.root is empty; expected a capture folder holding transforms.json, or a folder "
-                              "of such capture folders")
-        for key, size in (("height", height), ("width", width)):
-            if size < 0 or size % SIZE_MULTIPLE:
-                raise ConfigError(f"dataset.{key}={size}: expected 0 (automatic) or a positive multiple of "
-                                  f"{SIZE_MULTIPLE}")
-        if (height == 0) != (width == 0):
-            raise ConfigError(f"dataset.height={height}, dataset.width={width}: expected both 0 (automatic) or both set")
+        holds = f"a capture ({TRANSFORMS_FILE} in it) or folders of captures"
+        if not root:  # refused before any file is read (the base resolves the root on first use)
+            raise ConfigError(f"dataset.root is empty; expected the folder holding {holds}")
+        super().__init__(root=root, validate=validate, near=near, far=far, root_holds=holds, automatic_bounds=True)
+        size = check_image_size(height, width, zero="automatic", multiple=SIZE_MULTIPLE)
         if long_side < SIZE_MULTIPLE:
             raise ConfigError(f"dataset.long_side={long_side}: expected at least {SIZE_MULTIPLE} pixels")
-        if near < 0 or far < 0 or (near and far and near >= far) or (bool(near) != bool(far)):
-            raise ConfigError(f"dataset.near={near}, dataset.far={far}: expected both 0 (from the capture) or "
-                              "0 < near < far (metres)")
         if not scale > 0 or scale == float("inf"):
             raise ConfigError(f"dataset.scale={scale}: expected a finite factor > 0")
         if eval_every < 0:
             raise ConfigError(f"dataset.eval_every={eval_every}: expected an integer >= 0 (0 = no held-out frames)")
         if depth_unit < 0:
             raise ConfigError(f"dataset.depth_unit={depth_unit}: expected metres per depth unit > 0 (0 = the file's)")
-        self.validation = check_validation_level(validate)
-        self.root = from_launch_dir(root)
-        self.size = (int(height), int(width))
+        self.size = size or (0, 0)
         self.long_side = int(long_side)
-        self.bounds = (float(near), float(far))
+        self.bounds = (self.near, self.far)
         self.eval_every = int(eval_every)
         self.scale = float(scale)
         self.depth_unit = float(depth_unit)
@@ -130,7 +129,6 @@ class CaptureScenes(SceneDataset):
         self._given = {"train": chosen_scenes("scenes", scenes, ()),
                        "unseen": chosen_scenes("unseen_scenes", unseen_scenes, ())}
         self._files: dict[str, CaptureFile] = {}
-        self._scenes: dict[str, Scene] = {}
         self._classes: ClassList | None = None
         self._classes_read = False
 
@@ -140,18 +138,13 @@ class CaptureScenes(SceneDataset):
         """Capture name -> folder: ``root`` itself when it holds transforms.json, else its subfolders that do."""
         if (self.root / TRANSFORMS_FILE).is_file():
             return {self.root.name: self.root}
-        if not self.root.is_dir():
-            raise DataError(f"{self.root}: not a folder; expected a capture folder holding {TRANSFORMS_FILE}, or a "
-                            "folder of capture folders")
         found = {p.name: p for p in sorted(self.root.iterdir()) if (p / TRANSFORMS_FILE).is_file()}
         if not found:
             raise DataError(f"{self.root}: no {TRANSFORMS_FILE} in it or in its folders; expected a capture (make one "
                             "with `data prepare-capture` or `data import-colmap`)")
         return found
 
-    def scenes(self, split: str) -> tuple[str, ...]:
-        if split not in SPLITS:
-            raise ConfigError(f"unknown split {split!r}; expected one of: {', '.join(SPLITS)}")
+    def list_scenes(self, split: str) -> tuple[str, ...]:
         found = self._found()
         for key, names in (("scenes", self._given["train"]), ("unseen_scenes", self._given["unseen"])):
             for name in names:
@@ -203,10 +196,8 @@ class CaptureScenes(SceneDataset):
 
     # -- loading ---------------------------------------------------------------------------------------------------
 
-    def load_scene(self, name: str) -> Scene:
-        if name not in self._scenes:
-            self._scenes[name] = self._scene(name, self.capture(name))
-        return self._scenes[name]
+    def read_scene(self, name: str) -> Scene:
+        return self._scene(name, self.capture(name))
 
     def _scene(self, name: str, capture: CaptureFile) -> Scene:
         frames = capture.frames
@@ -272,7 +263,7 @@ class CaptureScenes(SceneDataset):
         if with_depth:
             picks = [with_depth[round(k * (len(with_depth) - 1) / max(DEPTH_FRAMES - 1, 1))]
                      for k in range(min(DEPTH_FRAMES, len(with_depth)))]
-            depths = np.concatenate([reader.depth(i).ravel() for i in dict.fromkeys(picks)])
+            depths = np.concatenate([reader.depth_of(i).ravel() for i in dict.fromkeys(picks)])
             valid = depths[depths > 0]
             if valid.size:
                 low, high = np.percentile(valid, DEPTH_PERCENTILES)
@@ -340,16 +331,19 @@ def read_class_list(path: Path) -> ClassList:
     return ClassList(tuple(names), int(ignore), Path(path))
 
 
-class _FrameReader:
-    """``Scene.load_frame`` of a capture: decode, undistort, resize, mask and scale one frame."""
+class _FrameReader(FrameDecoder):
+    """``Scene.load_frame`` of a capture: decode, undistort, resize, mask and scale one frame (``FrameDecoder``'s
+    hooks for a capture's files: any image format, depth in any unit or ``.npy``, lens distortion, masks)."""
 
     def __init__(self, dataset: CaptureScenes, capture: CaptureFile, size: tuple[int, int], intrinsics: np.ndarray,
                  c2w: np.ndarray) -> None:
-        self.dataset, self.capture, self.size = dataset, capture, size
+        super().__init__(size, dataset.ignore_index)
+        self.dataset, self.capture = dataset, capture
         self.intrinsics, self.c2w = intrinsics, c2w
         unit = dataset.depth_unit or capture.depth_unit or DEFAULT_DEPTH_UNIT
         self.depth_scale = unit * dataset.scale
         self._undistorters: dict[tuple, Undistorter] = {}
+        self._frames = {frame.name: frame for frame in capture.frames}
 
     def _undistorter(self, frame: CaptureFrame) -> Undistorter | None:
         camera = frame.camera
@@ -374,68 +368,71 @@ class _FrameReader:
                             f"{frame.camera.width}x{frame.camera.height}; expected the same size")
         return array
 
-    def depth(self, index: int) -> np.ndarray:
+    @staticmethod
+    def files(frame: CaptureFrame) -> FrameFiles:
+        return FrameFiles(frame.image, frame.depth, frame.semantic, None, frame.mask, name=frame.name)
+
+    def rgb(self, files: FrameFiles) -> np.ndarray:
+        frame = self._frames[files.name]
+        image = decode_image(files.rgb, "an image (PNG or JPEG)")
+        rgb = np.asarray(image.convert("RGB"), dtype=np.float32) / 255.0
+        undistort = self._undistorter(frame)
+        if undistort is not None:
+            rgb = undistort.rgb(rgb)
+        return resize_rgb(rgb, *self.size)
+
+    def depth_of(self, index: int) -> np.ndarray:
+        """Frame ``index``'s depth (``depth``); the scene's depth bounds read it."""
+        return self.depth(self.files(self.capture.frames[index]))
+
+    def depth(self, files: FrameFiles) -> np.ndarray:
         """``[H, W]`` float32 metres (after ``scale``) at the dataset's size, 0 where unknown."""
-        frame = self.capture.frames[index]
-        if frame.depth is None:
+        frame = self._frames[files.name]
+        if files.depth is None:
             return np.zeros(self.size, dtype=np.float32)
-        stored = self._stored(frame.depth, frame, "depth")
+        stored = self._stored(files.depth, frame, "depth")
         if stored.ndim != 2 or not (np.issubdtype(stored.dtype, np.integer) or np.issubdtype(stored.dtype, np.floating)):
-            raise DataError(f"{frame.depth}: depth of shape {list(stored.shape)} and type {stored.dtype}; expected a "
+            raise DataError(f"{files.depth}: depth of shape {list(stored.shape)} and type {stored.dtype}; expected a "
                             "single-channel 16-bit PNG or a 2-D .npy")
         if stored.dtype == np.uint8:
-            raise DataError(f"{frame.depth}: depth stored in 8 bits (at most 255 units); expected a 16-bit PNG or a "
+            raise DataError(f"{files.depth}: depth stored in 8 bits (at most 255 units); expected a 16-bit PNG or a "
                             ".npy of depths")
         depth = stored.astype(np.float32) * np.float32(self.depth_scale)
         if not np.isfinite(depth).all() or (depth < 0).any():
-            raise DataError(f"{frame.depth}: depth negative or not finite; expected depths >= 0 (0 = unknown)")
+            raise DataError(f"{files.depth}: depth negative or not finite; expected depths >= 0 (0 = unknown)")
         undistort = self._undistorter(frame)
         if undistort is not None:
             depth = undistort.values(depth)
         return resize_nearest(depth, *self.size).astype(np.float32)
 
-    def __call__(self, index: int) -> Frame:
-        frame = self.capture.frames[index]
-        image = decode_image(frame.image, "an image (PNG or JPEG)")
-        rgb = np.asarray(image.convert("RGB"), dtype=np.float32) / 255.0
+    def labels(self, files: FrameFiles) -> np.ndarray:
+        frame = self._frames[files.name]
+        if files.semantic is None:
+            return np.full(self.size, self.ignore_index, dtype=np.int64)
+        stored = self._stored(files.semantic, frame, "semantic label")
+        if stored.ndim != 2 or not np.issubdtype(stored.dtype, np.integer):
+            raise DataError(f"{files.semantic}: labels of shape {list(stored.shape)} and type {stored.dtype}; "
+                            "expected a single-channel 8- or 16-bit PNG of class ids")
+        labels = stored.astype(np.int64)
         undistort = self._undistorter(frame)
         if undistort is not None:
-            rgb = undistort.rgb(rgb)
-        rgb = resize_rgb(rgb, *self.size)
-        depth = self.depth(index)
-        ignore = self.dataset.ignore_index
-        valid = None
-        if frame.semantic is not None:
-            stored = self._stored(frame.semantic, frame, "semantic label")
-            if stored.ndim != 2 or not np.issubdtype(stored.dtype, np.integer):
-                raise DataError(f"{frame.semantic}: labels of shape {list(stored.shape)} and type {stored.dtype}; "
-                                "expected a single-channel 8- or 16-bit PNG of class ids")
-            labels = stored.astype(np.int64)
-            if undistort is not None:
-                labels = undistort.labels(labels, ignore)
-            labels = resize_nearest(labels, *self.size)
-        else:
-            labels = np.full(self.size, ignore, dtype=np.int64)
-        if frame.mask is not None:
-            mask = self._stored(frame.mask, frame, "mask")
-            mask = (mask if mask.ndim == 2 else mask[..., 0]).astype(np.float32)
-            if undistort is not None:
-                mask = undistort.values(mask)
-            keep = resize_nearest(mask, *self.size) > 0
-            if not keep.any():
-                raise DataError(f"{frame.mask}: the mask keeps no pixel of frame {frame.name!r}; expected 0 only where "
-                                "pixels are to be ignored")
-            labels = np.where(keep, labels, ignore)
-            depth = np.where(keep, depth, 0.0).astype(np.float32)
-            valid = torch.from_numpy(np.ascontiguousarray(keep))
-        return Frame(
-            rgb=torch.from_numpy(np.ascontiguousarray(rgb)),
-            depth=torch.from_numpy(np.ascontiguousarray(depth)),
-            semantic=torch.from_numpy(np.ascontiguousarray(labels)),
-            intrinsics=torch.from_numpy(self.intrinsics[index]).float(),
-            c2w=torch.from_numpy(self.c2w[index]).float(),
-            valid=valid,
-        )
+            labels = undistort.labels(labels, self.ignore_index)
+        return resize_nearest(labels, *self.size)
+
+    def keep(self, files: FrameFiles) -> np.ndarray | None:
+        if files.mask is None:
+            return None
+        frame = self._frames[files.name]
+        mask = self._stored(files.mask, frame, "mask")
+        mask = (mask if mask.ndim == 2 else mask[..., 0]).astype(np.float32)
+        undistort = self._undistorter(frame)
+        if undistort is not None:
+            mask = undistort.values(mask)
+        return resize_nearest(mask, *self.size) > 0
+
+    def __call__(self, index: int) -> Frame:
+        return self.decode(self.files(self.capture.frames[index]), torch.from_numpy(self.intrinsics[index]).float(),
+                           torch.from_numpy(self.c2w[index]).float())
 
 
 __all__ = ["CaptureScenes", "CaptureScenesConfig", "read_class_list"]

@@ -11,9 +11,15 @@ from typing import Sequence
 
 import numpy as np
 
-from gpnerf_core import SPLITS, ConfigError, DataError, Scene, SceneDataset, check_scene_files, check_validation_level
-from gpnerf_plugins.datasets.base import DatasetConfig
-from gpnerf_plugins.datasets.common.paths import from_launch_dir
+from gpnerf_core import (
+    ConfigError,
+    DataError,
+    DatasetBase,
+    DatasetConfig,
+    Scene,
+    check_scene_files,
+    from_launch_dir,
+)
 from gpnerf_plugins.datasets.common.scene_lists import chosen_scenes, disjoint_unseen
 from gpnerf_plugins.datasets.embedded import CLASS_NAMES, IGNORE_INDEX, SEQUENCE, SceneSetParams, ensure_generated
 from gpnerf_plugins.datasets.embedded.generation import check_params, damaged_files
@@ -52,7 +58,7 @@ class EmbeddedScenesConfig(DatasetConfig):
     """Render every surface in one flat colour (same layouts and cameras; the stress suite's textureless case)."""
 
 
-class EmbeddedScenes(SceneDataset):
+class EmbeddedScenes(DatasetBase):
     """Rooms of pybullet_data objects, generated on first ``load_scene`` into ``root`` or the cache.
 
     Scenes ``layout_00, ...`` form the train split and ``unseen_00, ...`` the unseen split. Constructing the
@@ -77,6 +83,7 @@ class EmbeddedScenes(SceneDataset):
         scenes: Sequence[str] = (),
         unseen_scenes: Sequence[str] = (),
     ) -> None:
+        super().__init__(root="", validate=validate, near=near, far=far)
         self.params = SceneSetParams(
             num_train_scenes, num_unseen_scenes, frames_per_scene, height, width, seed, bool(textureless)
         )
@@ -96,15 +103,10 @@ class EmbeddedScenes(SceneDataset):
             self._lists["train"], self._lists["unseen"], train_given=bool(scenes), unseen_given=bool(unseen_scenes)
         )
         every_nth_split(frames_per_scene, eval_every)  # raises ConfigError for a bad eval_every
-        if not 0.0 < near < far:
-            raise ConfigError(f"dataset.near={near}, dataset.far={far}; expected 0 < near < far (metres)")
         self.eval_every = eval_every
-        self.validation = check_validation_level(validate)
-        self.near, self.far = float(near), float(far)
-        self._root_arg = from_launch_dir(root) if root else None  # None: the cache
-        self._root: Path | None = None
+        self._set_given = from_launch_dir(root) if root else None  # None: the cache
+        self._set_folder: Path | None = None
         self._hfov = 0.0
-        self._scenes: dict[str, Scene] = {}
 
     @property
     def class_names(self) -> tuple[str, ...]:
@@ -114,15 +116,13 @@ class EmbeddedScenes(SceneDataset):
     def ignore_index(self) -> int:
         return IGNORE_INDEX
 
-    def scenes(self, split: str) -> tuple[str, ...]:
-        if split not in SPLITS:
-            raise ConfigError(f"unknown split {split!r}; expected one of: {', '.join(SPLITS)}")
+    def list_scenes(self, split: str) -> tuple[str, ...]:
         return self._lists[split]
 
     def prepare(self) -> Path:
         """Generate the set if needed (once) and return its folder."""
-        if self._root is None:
-            root = ensure_generated(self.params, self._root_arg)
+        if self._set_folder is None:
+            root = ensure_generated(self.params, self._set_given)
             info = check_params(root, self.params)
             if tuple(info.get("class_names", ())) != CLASS_NAMES or info.get("ignore_index") != IGNORE_INDEX:
                 raise DataError(
@@ -130,8 +130,8 @@ class EmbeddedScenes(SceneDataset):
                     f"expected {list(CLASS_NAMES)} (ignore {IGNORE_INDEX})"
                 )
             self._hfov = float(info["hfov_deg"])
-            self._root = root
-        return self._root
+            self._set_folder = root
+        return self._set_folder
 
     def check_files(self, scenes: Sequence[str], level: str) -> list[str]:
         """The generic check, after comparing the files with the generator's checksum list.
@@ -143,10 +143,11 @@ class EmbeddedScenes(SceneDataset):
             return []
         root = self.prepare()
         damaged = damaged_files(root, list(scenes), full=level == "full")
-        if damaged and self._root_arg is None:
+        if damaged and self._set_given is None:
             print(f"note: the cached embedded scenes in {root} are damaged ({damaged[0]}); regenerating", file=sys.stderr)
             shutil.rmtree(root)
-            self._root, self._scenes = None, {}
+            self._set_folder = None
+            self.forget_scenes()
             root = self.prepare()
             damaged = damaged_files(root, list(scenes), full=level == "full")
         if damaged:
@@ -154,18 +155,15 @@ class EmbeddedScenes(SceneDataset):
             return [f"{problem}; {fix}" for problem in damaged]
         return check_scene_files(self, scenes, level)
 
-    def load_scene(self, name: str) -> Scene:
+    def read_scene(self, name: str) -> Scene:
         known = self.params.scene_names("train") + self.params.scene_names("unseen")
         if name not in known:
             raise ConfigError(f"unknown scene {name!r}; expected one of: {', '.join(known)}")
-        if name not in self._scenes:
-            root = self.prepare()
-            sequence = ReplicaSequence(
-                root / name / SEQUENCE,
-                hfov_deg=self._hfov,
-                label_map=np.arange(len(CLASS_NAMES)),
-                ignore_index=IGNORE_INDEX,
-            )
-            split = functools.partial(every_nth_split, every=self.eval_every)
-            self._scenes[name] = sequence.scene(name=name, split=split, near=self.near, far=self.far)
-        return self._scenes[name]
+        sequence = ReplicaSequence(
+            self.prepare() / name / SEQUENCE,
+            hfov_deg=self._hfov,
+            label_map=np.arange(len(CLASS_NAMES)),
+            ignore_index=IGNORE_INDEX,
+        )
+        split = functools.partial(every_nth_split, every=self.eval_every)
+        return sequence.scene(name=name, split=split, near=self.near, far=self.far)

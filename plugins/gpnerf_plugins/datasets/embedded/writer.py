@@ -10,14 +10,8 @@ import numpy as np
 from PIL import Image
 
 from gpnerf_plugins.datasets.embedded.render import RenderedView
-from gpnerf_plugins.datasets.replica.layout import (
-    CLASS_DIR,
-    DEPTH_DIR,
-    DEPTH_SCALE,
-    INSTANCE_DIR,
-    RGB_DIR,
-    TRAJECTORY_FILE,
-)
+from gpnerf_plugins.datasets.common.decoding import DEPTH_UNITS_PER_METRE
+from gpnerf_plugins.datasets.replica.layout import CLASS_DIR, DEPTH_DIR, INSTANCE_DIR, RGB_DIR, TRAJECTORY_FILE
 
 CLASSES_FILE = "classes.json"
 README_FILE = "README.md"
@@ -35,7 +29,7 @@ def parse_pose(row: str) -> np.ndarray:
 
 def depth_to_png(depth_m: np.ndarray) -> np.ndarray:
     """Metres to uint16 millimetres (0 stays 0 = unknown; beyond 65.535 m saturates)."""
-    return np.clip(np.rint(depth_m * DEPTH_SCALE), 0, np.iinfo(np.uint16).max).astype(np.uint16)
+    return np.clip(np.rint(depth_m * DEPTH_UNITS_PER_METRE), 0, np.iinfo(np.uint16).max).astype(np.uint16)
 
 
 def _save(path: Path, image: np.ndarray) -> None:

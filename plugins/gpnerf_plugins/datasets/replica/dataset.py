@@ -27,9 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-from gpnerf_core import SPLITS, ConfigError, DataError, Frame, Scene, SceneDataset, check_validation_level
-from gpnerf_plugins.datasets.base import DatasetConfig
-from gpnerf_plugins.datasets.common.paths import from_launch_dir
+from gpnerf_core import ConfigError, DataError, DatasetBase, DatasetConfig, Frame, Scene, check_image_size
 from gpnerf_plugins.datasets.common.scene_lists import chosen_scenes, disjoint_unseen, missing_scene
 from gpnerf_plugins.datasets.replica.check import check_replica_instance_layout, check_replica_layout
 from gpnerf_plugins.datasets.replica.classes import CLASS_NAMES, IGNORE_INDEX, map_raw_labels
@@ -113,30 +111,7 @@ class ReplicaInstanceScenesConfig(DatasetConfig):
     """Raw class ids above 101 in an optional semantic_class folder raise a DataError (false: they become ignore)."""
 
 
-def _resolve_root(root: str) -> Path:
-    """The dataset folder; a relative path is taken from the directory the command was started in."""
-    if not root:
-        raise ConfigError("dataset.root is empty; expected the folder holding the Replica scenes (office_0/, ...)")
-    path = from_launch_dir(root)
-    if not path.is_dir():
-        raise DataError(f"{path}: dataset.root folder missing; expected the folder holding the Replica scene folders")
-    return path
-
-
-def _check_common(height: int, width: int, near: float, far: float, hfov_deg: float) -> tuple[int, int] | None:
-    """Validate the shared settings; returns the load size or None for the files' size."""
-    if (height == 0) != (width == 0) or height < 0 or width < 0:
-        raise ConfigError(
-            f"dataset.height={height}, dataset.width={width}; expected both positive, or both 0 (the files' size)"
-        )
-    if not 0.0 < near < far:
-        raise ConfigError(f"dataset.near={near}, dataset.far={far}; expected 0 < near < far (metres)")
-    if not 0.0 < hfov_deg < 180.0:
-        raise ConfigError(f"dataset.hfov_deg={hfov_deg}; expected a field of view in (0, 180) degrees")
-    return (height, width) if height else None
-
-
-class _ReplicaDataset(SceneDataset):
+class _ReplicaDataset(DatasetBase):
     """What both Replica datasets share: load settings, the 51 classes, a lazily resolved root, one reader per scene.
 
     Subclasses define ``_reader(name)`` (validates the scene name, opens its folder) and ``frame_split``.
@@ -154,14 +129,14 @@ class _ReplicaDataset(SceneDataset):
         strict_labels: bool,
         validate: str,
     ) -> None:
-        self.size = _check_common(height, width, near, far, hfov_deg)
-        self.validation = check_validation_level(validate)
+        super().__init__(root=root, validate=validate, near=near, far=far,
+                         root_holds="the Replica scene folders (office_0/, ...)")
+        self.size = check_image_size(height, width, zero="the files' size")
+        if not 0.0 < hfov_deg < 180.0:
+            raise ConfigError(f"dataset.hfov_deg={hfov_deg}; expected a field of view in (0, 180) degrees")
         self.protocol = protocol
-        self.near, self.far, self.hfov_deg = float(near), float(far), float(hfov_deg)
+        self.hfov_deg = float(hfov_deg)
         self.strict_labels = strict_labels
-        self._root_arg = root
-        self._root: Path | None = None
-        self._scenes: dict[str, Scene] = {}
 
     @property
     def class_names(self) -> tuple[str, ...]:
@@ -180,21 +155,17 @@ class _ReplicaDataset(SceneDataset):
         """The reader of scene ``name``; ConfigError for a name outside the splits."""
 
     def _scene_folder(self, scene: str, expected: str) -> Path:
-        if self._root is None:
-            self._root = _resolve_root(self._root_arg)
-        folder = self._root / scene
+        folder = self.root / scene
         if not folder.is_dir():
-            raise missing_scene(self._root, scene, expected)
+            raise missing_scene(self.root, scene, expected)
         return folder
 
-    def load_scene(self, name: str) -> Scene:
-        if name not in self._scenes:
-            reader = self._reader(name)
-            split = self.frame_split(reader.num_frames)
-            overlap = self.protocol == "paper_parity"
-            loaded = reader.scene(name=name, split=split, near=self.near, far=self.far, allow_overlap=overlap)
-            self._scenes[name] = dataclasses.replace(loaded, load_frame=functools.partial(self._load_frame, reader))
-        return self._scenes[name]
+    def read_scene(self, name: str) -> Scene:
+        reader = self._reader(name)
+        split = self.frame_split(reader.num_frames)
+        overlap = self.protocol == "paper_parity"
+        loaded = reader.scene(name=name, split=split, near=self.near, far=self.far, allow_overlap=overlap)
+        return dataclasses.replace(loaded, load_frame=functools.partial(self._load_frame, reader))
 
     def _load_frame(self, reader: ReplicaSequence, index: int) -> Frame:
         # The reader returns raw Replica ids (no label_map) so that ids outside Replica's table can be reported.
@@ -254,13 +225,11 @@ class ReplicaScenes(_ReplicaDataset):
                 stacklevel=2,
             )
 
-    def scenes(self, split: str) -> tuple[str, ...]:
+    def list_scenes(self, split: str) -> tuple[str, ...]:
         """``<scene>/Sequence_<n>`` names of ``split`` (reads the scene folders' listings)."""
         if split == "train":
             return tuple(f"{scene}/{sequence}" for scene in self.train_scene_names for sequence in self.sequences(scene))
-        if split == "unseen":
-            return tuple(name for scene in self.test_scene_names for name in self._unseen_names(scene))
-        raise ConfigError(f"unknown split {split!r}; expected one of: {', '.join(SPLITS)}")
+        return tuple(name for scene in self.test_scene_names for name in self._unseen_names(scene))
 
     def sequences(self, scene: str) -> tuple[str, ...]:
         """The ``Sequence_<n>`` folders of ``scene``, by number; DataError when the scene has none."""
@@ -350,12 +319,8 @@ class ReplicaInstanceScenes(_ReplicaDataset):
                 stacklevel=2,
             )
 
-    def scenes(self, split: str) -> tuple[str, ...]:
-        if split == "train":
-            return self.scene_names
-        if split == "unseen":
-            return self.unseen_scene_names
-        raise ConfigError(f"unknown split {split!r}; expected one of: {', '.join(SPLITS)}")
+    def list_scenes(self, split: str) -> tuple[str, ...]:
+        return self.scene_names if split == "train" else self.unseen_scene_names
 
     def frame_split(self, num_frames: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
         """``(train_frames, eval_frames)`` positions; they overlap only under ``paper_parity``."""

@@ -25,18 +25,12 @@ from typing import Callable, Sequence, Union
 import numpy as np
 import torch
 
-from gpnerf_core import EXPECTED_RIGID, ConfigError, DataError, Frame, Scene, rigid_transform_problem
-from gpnerf_plugins.datasets.common.image_io import (
-    image_size,
-    read_integer_png,
-    read_rgb_png,
-    resize_nearest,
-    resize_rgb,
-)
+from gpnerf_core import EXPECTED_RIGID, ConfigError, DataError, Frame, Scene, check_depth_range, rigid_transform_problem
+from gpnerf_plugins.datasets.common.decoding import FrameDecoder, FrameFiles
+from gpnerf_plugins.datasets.common.image_io import image_size
 
 TRAJECTORY_FILE = "traj_w_c.txt"
 RGB_DIR, DEPTH_DIR, CLASS_DIR, INSTANCE_DIR = "rgb", "depth", "semantic_class", "semantic_instance"
-DEPTH_SCALE = 1000.0  # depth PNG units per metre
 
 SplitRule = Callable[[int], tuple[Sequence[int], Sequence[int]]]
 """``num_frames -> (train_frames, eval_frames)``."""
@@ -85,7 +79,7 @@ def hfov_intrinsics(height: int, width: int, hfov_deg: float, aspect_scale: floa
 
 
 @dataclass(frozen=True)
-class FrameFiles:
+class SequenceFrame:
     """Files of one frame; ``number`` is the ``i`` of ``rgb_<i>.png``; None for a kind the sequence lacks."""
 
     number: int
@@ -93,6 +87,23 @@ class FrameFiles:
     depth: Path
     semantic: Path | None
     instance: Path | None
+
+
+class ReplicaFrames(FrameDecoder):
+    """The Replica layout's frames: ``FrameDecoder``'s PNGs, raw class ids mapped through ``label_map`` (raw ids past
+    its end become the ignore index; None keeps raw ids)."""
+
+    def __init__(self, size: tuple[int, int], ignore_index: int, label_map: np.ndarray | None) -> None:
+        super().__init__(size, ignore_index)
+        self.label_map = label_map
+
+    def class_ids(self, stored: np.ndarray, files: FrameFiles) -> np.ndarray:
+        if self.label_map is None:
+            return stored
+        out = np.full(stored.shape, self.ignore_index, dtype=np.int64)
+        known = (stored >= 0) & (stored < len(self.label_map))
+        out[known] = self.label_map[stored[known]]
+        return out
 
 
 def read_trajectory(path: Path) -> np.ndarray:
@@ -120,7 +131,7 @@ def read_trajectory(path: Path) -> np.ndarray:
     return np.stack(poses)
 
 
-def _list_frames(root: Path, require_semantic: bool, require_instance: bool) -> list[FrameFiles]:
+def _list_frames(root: Path, require_semantic: bool, require_instance: bool) -> list[SequenceFrame]:
     """Frames in numeric order; every rgb frame needs a file of each kind that is required or has a folder."""
     rgb_dir = root / RGB_DIR
     if not rgb_dir.is_dir():
@@ -142,7 +153,7 @@ def _list_frames(root: Path, require_semantic: bool, require_instance: bool) -> 
         for companion in (depth, semantic, instance):
             if companion is not None and not companion.is_file():
                 raise DataError(f"{companion}: missing; expected it beside {path.name} (every rgb frame needs one)")
-        frames.append(FrameFiles(int(token), path, depth, semantic, instance))
+        frames.append(SequenceFrame(int(token), path, depth, semantic, instance))
     if not frames:
         raise DataError(f"{rgb_dir}: no rgb_<i>.png frames")
     frames.sort(key=lambda f: f.number)
@@ -213,6 +224,7 @@ class ReplicaSequence:
         aspect_scale = (self.height / self.native_size[0]) / (self.width / self.native_size[1])
         self.intrinsics = torch.from_numpy(hfov_intrinsics(self.height, self.width, hfov_deg, aspect_scale)).float()
         self.c2w = torch.from_numpy(poses).float()
+        self.decoder = ReplicaFrames((self.height, self.width), self.ignore_index, self.label_map)
 
     @property
     def num_frames(self) -> int:
@@ -232,36 +244,13 @@ class ReplicaSequence:
                     )
         return expected
 
-    def _map_labels(self, raw: np.ndarray) -> np.ndarray:
-        if self.label_map is None:
-            return raw
-        out = np.full(raw.shape, self.ignore_index, dtype=np.int64)
-        known = (raw >= 0) & (raw < len(self.label_map))
-        out[known] = self.label_map[raw[known]]
-        return out
-
     def load_frame(self, index: int) -> Frame:
         """Decode frame ``index`` (position in the numeric order) at the loaded size."""
         if not 0 <= index < self.num_frames:
             raise DataError(f"{self.path}: frame index {index} out of range; expected 0..{self.num_frames - 1}")
-        files, h, w = self.files[index], self.height, self.width
-        rgb = resize_rgb(read_rgb_png(files.rgb), h, w)
-        depth = resize_nearest(read_integer_png(files.depth, "depth in millimetres", depth=True), h, w)
-        if files.semantic is None:
-            semantic = np.full((h, w), self.ignore_index, dtype=np.int64)
-        else:
-            semantic = resize_nearest(self._map_labels(read_integer_png(files.semantic, "class ids")), h, w)
-        instance = None
-        if files.instance is not None:
-            instance = resize_nearest(read_integer_png(files.instance, "instance ids"), h, w)
-        return Frame(
-            rgb=_tensor(rgb),
-            depth=_tensor(depth.astype(np.float32) / DEPTH_SCALE),
-            semantic=_tensor(semantic),
-            intrinsics=self.intrinsics.clone(),
-            c2w=self.c2w[index].clone(),
-            instance=None if instance is None else _tensor(instance),
-        )
+        files = self.files[index]
+        decoded = FrameFiles(files.rgb, files.depth, files.semantic, files.instance, name=str(files.number))
+        return self.decoder.decode(decoded, self.intrinsics.clone(), self.c2w[index].clone())
 
     def scene(
         self,
@@ -297,8 +286,7 @@ class ReplicaSequence:
             raise ConfigError(
                 f"frame {overlap[0]} of {self.path} is in both train_frames and eval_frames; expected disjoint lists"
             )
-        if not 0.0 < near < far:
-            raise ConfigError(f"near={near}, far={far}; expected 0 < near < far (metres)")
+        near, far = check_depth_range(near, far)
         n = self.num_frames
         return Scene(
             name=name if name is not None else f"{self.path.parent.name}/{self.path.name}",
@@ -312,10 +300,6 @@ class ReplicaSequence:
             eval_frames=held,
             load_frame=self.load_frame,
         )
-
-
-def _tensor(array: np.ndarray) -> torch.Tensor:
-    return torch.from_numpy(np.ascontiguousarray(array))
 
 
 def read_replica_sequence(

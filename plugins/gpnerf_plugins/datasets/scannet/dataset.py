@@ -8,11 +8,9 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Sequence
 
-from gpnerf_core import SPLITS, ConfigError, DataError, Scene, SceneDataset, check_validation_level
-from gpnerf_plugins.datasets.base import DatasetConfig
+from gpnerf_core import ConfigError, DataError, DatasetBase, DatasetConfig, Scene, check_image_size, from_launch_dir
 from gpnerf_plugins.datasets.scannet.check import check_scannet_layout
 from gpnerf_plugins.datasets.scannet.files import SCENE_NAME
 from gpnerf_plugins.datasets.scannet.labels import (
@@ -55,7 +53,7 @@ class ScanNetScenesConfig(DatasetConfig):
     """Scenes of the unseen split; empty = the shipped splits/scannet_test.txt (10 scenes)."""
 
 
-class ScanNetScenes(SceneDataset):
+class ScanNetScenes(DatasetBase):
     """ScanNet scenes under ``root``, 20 classes (``ignore_index`` 255).
 
     Construction validates the options and touches no file. ``scenes`` checks that the split's folders exist;
@@ -85,19 +83,13 @@ class ScanNetScenes(SceneDataset):
         self.depth_alignment = depth_alignment
         if protocol not in PROTOCOLS:
             raise ConfigError(f"dataset.protocol={protocol!r}; expected one of: {', '.join(PROTOCOLS)}")
-        if not 0.0 < near < far:
-            raise ConfigError(f"dataset.near={near}, dataset.far={far}; expected 0 < near < far (metres)")
-        if height < 1 or width < 1:
-            raise ConfigError(f"dataset.height={height}, dataset.width={width}; expected positive sizes in pixels")
+        super().__init__(root=root, validate=validate, near=near, far=far, root_holds="the sceneXXXX_YY folders")
+        self.height, self.width = check_image_size(height, width)
         for key, names in (("scenes", scenes), ("unseen_scenes", unseen_scenes)):
             bad = [n for n in names if not SCENE_NAME.match(str(n))]
             if bad:
                 raise ConfigError(f"dataset.{key} has {bad[0]!r}; expected scene names sceneXXXX_YY")
-        self.validation = check_validation_level(validate)
-        self.root = Path(root).expanduser() if root else None
-        self.label_map_path = Path(label_map_file).expanduser() if label_map_file else None
-        self.height, self.width = int(height), int(width)
-        self.near, self.far = float(near), float(far)
+        self.label_map_path = from_launch_dir(label_map_file) if label_map_file else None
         self.protocol = protocol
         self.allow_missing_scenes = bool(allow_missing_scenes)
         self._lists = {
@@ -108,7 +100,6 @@ class ScanNetScenes(SceneDataset):
             self._lists["train"], self._lists["unseen"], train_given=bool(scenes), unseen_given=bool(unseen_scenes)
         )
         self._label_map: LabelMap | None = None
-        self._scenes: dict[str, Scene] = {}
 
     @property
     def class_names(self) -> tuple[str, ...]:
@@ -118,23 +109,14 @@ class ScanNetScenes(SceneDataset):
     def ignore_index(self) -> int:
         return IGNORE_INDEX
 
-    def _root(self) -> Path:
-        if self.root is None:
-            raise ConfigError("dataset.root is empty; expected the folder holding the sceneXXXX_YY folders")
-        if not self.root.is_dir():
-            raise DataError(f"{self.root}: expected the ScanNet folder holding sceneXXXX_YY folders, found nothing")
-        return self.root
-
-    def scenes(self, split: str) -> tuple[str, ...]:
+    def list_scenes(self, split: str) -> tuple[str, ...]:
         """Scenes of ``split`` present under ``root``, in split-file order.
 
         Raises:
             DataError: a listed scene folder is missing (naming the first and the count) unless
                 ``allow_missing_scenes``, which warns instead; or no listed scene is present at all.
         """
-        if split not in SPLITS:
-            raise ConfigError(f"unknown split {split!r}; expected one of: {', '.join(SPLITS)}")
-        root = self._root()
+        root = self.root
         listed = self._lists[split]
         present = tuple(name for name in listed if (root / name).is_dir())
         missing = [name for name in listed if name not in present]
@@ -153,20 +135,18 @@ class ScanNetScenes(SceneDataset):
     def label_map(self) -> LabelMap:
         """The raw id -> class map, read once from ``label_map_file`` or ``<root>/scannetv2-labels.combined.tsv``."""
         if self._label_map is None:
-            path = self.label_map_path if self.label_map_path is not None else self._root() / LABEL_MAP_NAME
+            path = self.label_map_path if self.label_map_path is not None else self.root / LABEL_MAP_NAME
             self._label_map = read_label_map(path)
         return self._label_map
 
-    def load_scene(self, name: str) -> Scene:
+    def read_scene(self, name: str) -> Scene:
         if not SCENE_NAME.match(name):
             raise ConfigError(f"unknown scene {name!r}; expected a ScanNet scene name sceneXXXX_YY")
-        if name not in self._scenes:
-            reader = ScanNetScene(
-                self._root() / name,
-                label_map=self.label_map(),
-                height=self.height,
-                width=self.width,
-                depth_alignment=self.depth_alignment,
-            )
-            self._scenes[name] = reader.scene(protocol=self.protocol, near=self.near, far=self.far)
-        return self._scenes[name]
+        reader = ScanNetScene(
+            self.root / name,
+            label_map=self.label_map(),
+            height=self.height,
+            width=self.width,
+            depth_alignment=self.depth_alignment,
+        )
+        return reader.scene(protocol=self.protocol, near=self.near, far=self.far)

@@ -25,8 +25,10 @@ import numpy as np
 import torch
 from PIL import Image
 
-from gpnerf_core import ConfigError, Frame, Scene
+from gpnerf_core import ConfigError, Frame, Scene, check_depth_range
 from gpnerf_plugins.datasets.common.cameras import scale_intrinsics
+from gpnerf_plugins.datasets.common.decoding import FrameDecoder
+from gpnerf_plugins.datasets.common.decoding import FrameFiles as DecodedFiles
 from gpnerf_plugins.datasets.common.image_io import resize_nearest
 from gpnerf_plugins.datasets.scannet.files import (
     DEPTH_SCALE,
@@ -157,11 +159,10 @@ class ScanNetScene:
                     stacklevel=2,
                 )
         self._k_color_out = scale_intrinsics(k_color, sx, sy)
-        self._lookup: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         # The depth intrinsics describe one depth image size: the first frame's, which every depth image must have.
         self.depth_size = image_size(self.files[0].depth, self.files[0].token) if self.k_depth is not None else None
         self.dropped_invalid_poses = dropped
-        self._warned_unknown = False
+        self.decoder = ScanNetFrames(self)
 
     @property
     def num_frames(self) -> int:
@@ -172,99 +173,17 @@ class ScanNetScene:
         """Frame names in index order."""
         return tuple(f.token for f in self.files)
 
-    def _color(self, files: FrameFiles) -> np.ndarray:
-        image = decode_image(files.color, files.token, "JPEG colour image")
-        found = (image.height, image.width)
-        if found != self.color_size:
-            raise LayoutError(
-                files.color,
-                f"{self.color_size[1]}x{self.color_size[0]} (WxH) like {self.files[0].color.name}",
-                f"{found[1]}x{found[0]}",
-                files.token,
-            )
-        image = image.convert("RGB")
-        if found != (self.height, self.width):
-            image = image.resize((self.width, self.height), Image.Resampling.BILINEAR)
-        return np.asarray(image, dtype=np.float32) / 255.0
-
-    def _aligned(self, path: Path, files: FrameFiles, kind: str) -> np.ndarray:
-        values = read_integer_image(path, files.token, kind)
-        if aspect_mismatch(values.shape, self.color_size):
-            raise LayoutError(
-                path,
-                f"the aspect ratio of the colour images ({self.color_size[1]}x{self.color_size[0]} WxH)",
-                f"{values.shape[1]}x{values.shape[0]}",
-                files.token,
-            )
-        return resize_nearest(values, self.height, self.width)
-
-    def _depth(self, files: FrameFiles) -> np.ndarray:
-        """Depth in metres at the output size, 0 = unknown (registered or resized, see ``depth_alignment``)."""
-        if self.k_depth is None:
-            return self._aligned(files.depth, files, "depth").astype(np.float32) / DEPTH_SCALE
-        values = read_integer_image(files.depth, files.token, "depth")
-        if values.shape[:2] != self.depth_size:
-            raise LayoutError(
-                files.depth,
-                f"{self.depth_size[1]}x{self.depth_size[0]} (WxH) like {self.files[0].depth.name}, the size "
-                f"{INTRINSIC_DEPTH} describes",
-                f"{values.shape[1]}x{values.shape[0]}",
-                files.token,
-            )
-        if self._lookup is None:
-            self._lookup = depth_lookup(self._k_color_out, self.k_depth, self.height, self.width, self.depth_size)
-        rows, cols, inside = self._lookup
-        return np.where(inside, values[rows, cols], 0).astype(np.float32) / DEPTH_SCALE
-
-    def _ids(self, path: Path, files: FrameFiles, kind: str, what: str) -> np.ndarray:
-        """Non-negative integer ids of a ``kind`` PNG, ``[height, width]`` int64, resized by nearest neighbour."""
-        ids = self._aligned(path, files, kind)
-        if ids.min(initial=0) < 0:
-            raise LayoutError(path, f"non-negative {what}", f"{int(ids.min())}", files.token)
-        return ids
-
-    def _instances(self, files: FrameFiles) -> np.ndarray | None:
-        """``instance-filt`` ids at the output size (0 = not annotated), or None when the scene has no instance maps."""
-        if files.instance is None:
-            return None
-        return self._ids(files.instance, files, "instance", "instance ids")
-
-    def _labels(self, files: FrameFiles) -> np.ndarray:
-        raw = self._ids(files.label, files, "label", "ScanNet category ids")
-        labels, unknown, count = self.label_map.apply(raw)
-        if count and not self._warned_unknown:
-            self._warned_unknown = True
-            shown = ", ".join(str(int(v)) for v in unknown[:8]) + (", ..." if len(unknown) > 8 else "")
-            warnings.warn(
-                f"{self.path.name}: {count} label pixels of frame {files.token} have ids {shown} that "
-                f"{self.label_map.path} does not list; mapped to ignore ({IGNORE_INDEX}) "
-                "(reported once per scene)",
-                stacklevel=3,
-            )
-        return labels
-
     def load_frame(self, index: int) -> Frame:
         """Decode frame ``index`` (position in the numeric order, invalid poses dropped) at ``height`` x ``width``."""
         if not 0 <= index < self.num_frames:
             raise LayoutError(self.path, f"a frame index in 0..{self.num_frames - 1}", str(index))
         files = self.files[index]
-        rgb = self._color(files)
-        depth = self._depth(files)
-        semantic = self._labels(files)
-        instance = self._instances(files)
-        return Frame(
-            rgb=torch.from_numpy(np.ascontiguousarray(rgb)),
-            depth=torch.from_numpy(np.ascontiguousarray(depth)),
-            semantic=torch.from_numpy(np.ascontiguousarray(semantic)),
-            intrinsics=self.intrinsics.clone(),
-            c2w=self.c2w[index].clone(),
-            instance=None if instance is None else torch.from_numpy(np.ascontiguousarray(instance)),
-        )
+        decoded = DecodedFiles(files.color, files.depth, files.label, files.instance, name=files.token)
+        return self.decoder.decode(decoded, self.intrinsics.clone(), self.c2w[index].clone())
 
     def scene(self, *, protocol: str = "heldout", near: float = 0.1, far: float = 6.0) -> Scene:
         """Wrap as a ``Scene`` named after the folder, frames split by ``frame_split(protocol)``."""
-        if not 0.0 < near < far:
-            raise ConfigError(f"dataset.near={near}, dataset.far={far}; expected 0 < near < far (metres)")
+        near, far = check_depth_range(near, far)
         train, held = frame_split(self.tokens, protocol)
         return Scene(
             name=self.path.name,
@@ -278,3 +197,90 @@ class ScanNetScene:
             eval_frames=held,
             load_frame=self.load_frame,
         )
+
+
+class ScanNetFrames(FrameDecoder):
+    """A ScanNet scene's frames: JPEG colour resized with PIL's antialiasing, depth registered to the colour camera (or
+    resized, ``depth_alignment``), label ids mapped to the 20 classes, instance ids as stored.
+
+    Args:
+        scene: the scene whose files and cameras it decodes.
+    """
+
+    def __init__(self, scene: ScanNetScene) -> None:
+        super().__init__((scene.height, scene.width), IGNORE_INDEX)
+        self.scene = scene
+        self._lookup: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._warned_unknown = False
+
+    def rgb(self, files: DecodedFiles) -> np.ndarray:
+        image = decode_image(files.rgb, files.name, "JPEG colour image")
+        found = (image.height, image.width)
+        if found != self.scene.color_size:
+            raise LayoutError(
+                files.rgb,
+                f"{self.scene.color_size[1]}x{self.scene.color_size[0]} (WxH) like {self.scene.files[0].color.name}",
+                f"{found[1]}x{found[0]}",
+                files.name,
+            )
+        image = image.convert("RGB")
+        if found != self.size:
+            image = image.resize((self.size[1], self.size[0]), Image.Resampling.BILINEAR)
+        return np.asarray(image, dtype=np.float32) / 255.0
+
+    def _aligned(self, path: Path, files: DecodedFiles, kind: str) -> np.ndarray:
+        values = read_integer_image(path, files.name, kind)
+        if aspect_mismatch(values.shape, self.scene.color_size):
+            raise LayoutError(
+                path,
+                f"the aspect ratio of the colour images ({self.scene.color_size[1]}x{self.scene.color_size[0]} WxH)",
+                f"{values.shape[1]}x{values.shape[0]}",
+                files.name,
+            )
+        return resize_nearest(values, *self.size)
+
+    def depth(self, files: DecodedFiles) -> np.ndarray:
+        """Depth in metres at the output size, 0 = unknown (registered or resized, see ``depth_alignment``)."""
+        if self.scene.k_depth is None:
+            return self._aligned(files.depth, files, "depth").astype(np.float32) / DEPTH_SCALE
+        values = read_integer_image(files.depth, files.name, "depth")
+        if values.shape[:2] != self.scene.depth_size:
+            raise LayoutError(
+                files.depth,
+                f"{self.scene.depth_size[1]}x{self.scene.depth_size[0]} (WxH) like {self.scene.files[0].depth.name}, "
+                f"the size {INTRINSIC_DEPTH} describes",
+                f"{values.shape[1]}x{values.shape[0]}",
+                files.name,
+            )
+        if self._lookup is None:
+            self._lookup = depth_lookup(self.scene._k_color_out, self.scene.k_depth, *self.size, self.scene.depth_size)
+        rows, cols, inside = self._lookup
+        return np.where(inside, values[rows, cols], 0).astype(np.float32) / DEPTH_SCALE
+
+    def _ids(self, path: Path, files: DecodedFiles, kind: str, what: str) -> np.ndarray:
+        """Non-negative integer ids of a ``kind`` PNG, ``[height, width]`` int64, resized by nearest neighbour."""
+        ids = self._aligned(path, files, kind)
+        if ids.min(initial=0) < 0:
+            raise LayoutError(path, f"non-negative {what}", f"{int(ids.min())}", files.name)
+        return ids
+
+    def instances(self, files: DecodedFiles) -> np.ndarray | None:
+        """``instance-filt`` ids at the output size (0 = not annotated), or None when the scene has no instance maps."""
+        if files.instance is None:
+            return None
+        return self._ids(files.instance, files, "instance", "instance ids")
+
+    def labels(self, files: DecodedFiles) -> np.ndarray:
+        raw = self._ids(files.semantic, files, "label", "ScanNet category ids")
+        labels, unknown, count = self.scene.label_map.apply(raw)
+        if count and not self._warned_unknown:
+            self._warned_unknown = True
+            shown = ", ".join(str(int(v)) for v in unknown[:8]) + (", ..." if len(unknown) > 8 else "")
+            warnings.warn(
+                f"{self.scene.path.name}: {count} label pixels of frame {files.name} have ids {shown} that "
+                f"{self.scene.label_map.path} does not list; mapped to ignore ({IGNORE_INDEX}) "
+                "(reported once per scene)",
+                stacklevel=3,
+            )
+        return labels
+

@@ -26,8 +26,8 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor, nn
 
-from gpnerf_core.errors import ConfigError
-from gpnerf_core.types import SampledMaps
+from gpnerf_core import ConfigError
+from gpnerf_core import SampledMaps
 
 
 class StreamedRendering(torch.autograd.Function):

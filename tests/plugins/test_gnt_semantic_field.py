@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from gpnerf_core.errors import ConfigError
-from gpnerf_core.model.semantic_field import SemanticFieldRenderer
+from gpnerf_plugins.families.gnt.semantic_field import SemanticFieldRenderer
 
 
 def attentions(rays, samples, views, channels, heads, blocks, seed=0):
@@ -101,7 +101,7 @@ def test_streamed_rendering_equals_dense_forward_and_gradients(with_samples, rec
 
 
 def test_streamed_rendering_passes_gradcheck():
-    from gpnerf_core.model.semantic_field import StreamedRendering
+    from gpnerf_plugins.families.gnt.semantic_field import StreamedRendering
 
     sampled = sampled_maps(3, 4, 2, 8)
     weights = torch.rand(3, 4, 2, 4, dtype=torch.float64, requires_grad=True)
@@ -141,7 +141,7 @@ def test_streamed_rendering_mixes_bf16_attention_with_fp32_maps():
 def test_streamed_rendering_reads_each_view_s_weights_contiguously(monkeypatch):
     """The per-view products read the weights as contiguous [A, 1, R, S] slices: a permuted view of [R, S, V, A]
     (what ``.to(dtype, memory_format=...)`` returns when the dtype matches) made a rendered view 5x slower there."""
-    from gpnerf_core.model.semantic_field import StreamedRendering
+    from gpnerf_plugins.families.gnt.semantic_field import StreamedRendering
 
     rays, samples, views, channels, attention = 4, 6, 3, 16, 8
     seen = []

@@ -1,83 +1,64 @@
-"""The generalizable NeRF assembled from its four stages, a semantic field and a perception head.
+"""The ``gnt`` model family: GNT's transformers over source views with GP-NeRF's semantic field and a perception head.
 
 ``GeneralizableNeRF.forward`` is the training pass of GP-NeRF's Fig. 2, top-down: encode the source views (and the
 target view, the teacher), render the chosen rays with the field and ray aggregators, render the semantic field
 from their attention, write the rendered features into the teacher map (the fused map) and decode it with the
-perception head. ``predict`` renders whole views for evaluation and rendering.
+perception head. ``predict`` renders whole views for evaluation and rendering. The extractor, the two aggregators and
+the head are components of their own kinds (``feature_extractor=``, ``field_aggregator=``, ``ray_aggregator=``,
+``+head=``), built through ``ModelParts``; without a head (or with ``model.semantic_field.enabled=false``) it is GNT
+alone.
 """
 
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
-from typing import Mapping
+from typing import Any, Mapping
 
 import torch
 from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint as activation_checkpoint
 
-from gpnerf_core.errors import ConfigError, NonFiniteError, PluginError
-from gpnerf_core.model.fusion import cells_of_pixels, fuse_rendered, gather_cells
-from gpnerf_core.geometry import (
-    Projector,
-    importance_depths,
-    pixel_grid,
-    points_along_rays,
-    rays_through_pixels,
-    sampling_layout,
-    stratified_inverse_depths,
-)
-from gpnerf_core.interfaces import FeatureExtractor, FieldAggregator, PerceptionHead, RayAggregator
-from gpnerf_core.runtime.profiling import stage
-from gpnerf_core.model.semantic_field import AttentionSums, SemanticFieldRenderer
-from gpnerf_core.types import (
+from gpnerf_core import (
+    ConfigError,
+    FeatureExtractor,
     FeatureMaps,
+    FieldAggregator,
     FieldBlockOutput,
     HeadOutput,
+    ImportedWeights,
+    ModelFamily,
+    ModelParts,
+    PerceptionHead,
+    PluginError,
+    Prediction,
+    Predicts,
+    Projector,
+    RayAggregator,
     RayBatch,
     RayBlockOutput,
     RaySamples,
     RenderedRays,
+    SemanticMode,
+    SemanticOutput,
     SourceViews,
     StepBatch,
     StepOutput,
     TargetCamera,
     TargetView,
     ViewOutput,
+    checked_compile_backend,
+    importance_depths,
+    pixel_grid,
+    points_along_rays,
+    rays_through_pixels,
+    sampling_layout,
+    stage,
+    stratified_inverse_depths,
 )
-
-
-@dataclass(frozen=True)
-class Prediction:
-    """A whole target view rendered on a stride grid, and the head's output on the rendered map.
-
-    Attributes:
-        rgb: ``[h, w, 3]`` (unclamped); depth: ``[h, w]`` metres.
-        semantic: ``[C, h, w]`` rendered semantic map, or None.
-        logits: ``[1, K, H, W]`` head output at the full image size, or None.
-        stride: pixels of the full image per rendered cell (h = H / stride).
-    """
-
-    rgb: Tensor
-    depth: Tensor
-    semantic: Tensor | None
-    logits: Tensor | None
-    stride: int
-
-    def check_finite(self, names: Mapping[str, str], where: str) -> None:
-        """Raise NonFiniteError when an output holds NaN or Inf, naming the component that made it first.
-
-        Args:
-            names: the configured component names by kind (``field_aggregator``, ``ray_aggregator``, ``head``).
-            where: the view, for the message (``scene 'x' frame 3``).
-        """
-        rendering = f"field aggregator {names.get('field_aggregator')!r} / ray aggregator {names.get('ray_aggregator')!r}"
-        parts = (("colour", self.rgb, rendering), ("depth", self.depth, rendering),
-                 ("semantic map", self.semantic, f"semantic field (the attention of the {rendering})"),
-                 ("logits", self.logits, f"head {names.get('head')!r}"))
-        for output, value, owner in parts:
-            if value is not None and not bool(torch.isfinite(value).all()):
-                raise NonFiniteError(f"{where}: the {owner} gave NaN or Inf ({output}); nothing was scored")
+from gpnerf_plugins.families.gnt.config import SemanticFieldConfig
+from gpnerf_plugins.families.gnt.fusion import cells_of_pixels, fuse_rendered, gather_cells
+from gpnerf_plugins.families.gnt.semantic_field import AttentionSums, SemanticFieldRenderer
+from gpnerf_plugins.families.gnt.weights import read_gnt_checkpoint
 
 
 @functools.lru_cache(maxsize=None)
@@ -92,7 +73,7 @@ def compiled_block_pair(backend: str, num_blocks: int):
     return torch.compile(GeneralizableNeRF._block_pair, backend=backend)
 
 
-class GeneralizableNeRF(nn.Module):
+class GeneralizableNeRF(ModelFamily):
     """Extractor -> projector -> field aggregator <-> ray aggregator -> semantic field -> fused map -> head.
 
     Args:
@@ -156,6 +137,29 @@ class GeneralizableNeRF(nn.Module):
     @property
     def has_semantics(self) -> bool:
         return self.semantic is not None and self.head is not None
+
+    @property
+    def semantic_output(self) -> SemanticOutput | None:
+        """Decoded by the head on the rendered map (GP-NeRF's context-aware path); None for GNT alone."""
+        if not self.has_semantics:
+            return None
+        predicts = Predicts(self.head.predicts)
+        slots = getattr(self.head, "slots", None) if predicts is Predicts.INSTANCES else None
+        return SemanticOutput(predicts, SemanticMode.DECODED, int(self.head.num_outputs), slots)
+
+    def output_owners(self, names: Mapping[str, str]) -> dict[str, str]:
+        rendering = f"field aggregator {names.get('field_aggregator')!r} / ray aggregator {names.get('ray_aggregator')!r}"
+        return {"colour": rendering, "depth": rendering,
+                "semantic map": f"semantic field (the attention of the {rendering})", "logits": f"head {names.get('head')!r}"}
+
+    def check_image_size(self, height: int, width: int) -> None:
+        """The extractor's limits (its strides)."""
+        self.extractor.check_image_size(height, width)
+
+    def read_foreign(self, checkpoint: Mapping[str, Any]) -> ImportedWeights | None:
+        """An official GNT checkpoint (``net_coarse`` + ``feature_net``): each stage maps its share, and the semantic
+        adaptor GP-NeRF's code adds to ``net_coarse``."""
+        return read_gnt_checkpoint(self, checkpoint)
 
     def parameter_counts(self) -> dict[str, int]:
         """Parameters per stage (``extractor``, ``field``, ``ray``, ``semantic``, ``head``; absent stages left out)

@@ -1,0 +1,187 @@
+"""Interface of model families: what renders a target view's rays, and the only thing every tool drives.
+
+The trainer, the evaluator and its metrics, checkpoints, ``render``, ``view``, ``stress``, ``size``, ``bench``,
+``report`` and the chart know a model only through ``ModelFamily``. A family is registered like any component
+(``gpnerf_register_models``) and selected with ``model=<name>``; GP-NeRF's GNT transformers with the attention-reusing
+semantic field are one family (``model=gnt``, a built-in plugin), and docs/plugins.md ("Write a model family") shows
+another.
+"""
+
+from __future__ import annotations
+
+import enum
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any, ClassVar, Mapping
+
+from torch import Tensor, nn
+
+from gpnerf_core.errors import ConfigError
+from gpnerf_core.interfaces.head import PerceptionHead, Predicts
+from gpnerf_core.interfaces.weights import ImportedWeights, ImportsWeights
+from gpnerf_core.types import FeatureMaps, Prediction, SourceViews, StepBatch, StepOutput, TargetCamera
+
+
+class SemanticMode(str, enum.Enum):
+    """How a model turns what it renders into per-pixel scores."""
+
+    DECODED = "decoded"
+    """Semantic features rendered per ray and decoded by a 2D head on the whole map, with image context (GP-NeRF)."""
+    LABEL_RENDERING = "label_rendering"
+    """Per-sample class (or instance) scores volume-rendered per pixel, each pixel on its own (Semantic-NeRF,
+    Semantic-Ray, "X + semantic head")."""
+
+
+@dataclass(frozen=True)
+class SemanticOutput:
+    """What a model's semantic output is: every tool reads this instead of asking which head or family it has.
+
+    Attributes:
+        predicts: ``Predicts.CLASSES`` (mIoU and the segmentation protocols) or ``Predicts.INSTANCES`` (instance AP).
+        mode: how the scores are made (``SemanticMode``).
+        num_outputs: channels of ``Prediction.logits``: the classes, or ``slots + 1`` for instances (the last channel
+            is "no instance").
+        slots: the instance slots (``predicts`` INSTANCES), else None.
+    """
+
+    predicts: Predicts
+    mode: SemanticMode
+    num_outputs: int
+    slots: int | None = None
+
+
+class ModelParts(ABC):
+    """What the core hands a model family's factory (its ``parts`` argument) besides the family's own options.
+
+    A family builds the other components it is made of (an extractor, aggregators, a head) from the config through
+    this, so each stays a plugin of its own kind, chosen on the command line (``feature_extractor=...``,
+    ``+head=...``), and is never a copy inside the family.
+    """
+
+    @property
+    @abstractmethod
+    def num_classes(self) -> int:
+        """K: the classes the model predicts (the dataset's, or a checkpoint's on a dataset without a class list)."""
+
+    @abstractmethod
+    def configured(self, kind: str) -> bool:
+        """The config selects a component of ``kind`` (``head`` and ``loss`` are optional, ``+head=<name>``)."""
+
+    @abstractmethod
+    def build(self, kind: str, **runtime: Any) -> Any:
+        """The configured component of ``kind`` built with ``runtime`` keyword arguments (its kind's
+        ``runtime_arguments``); a ConfigError when the config selects none."""
+
+    @abstractmethod
+    def head(self, *, in_dim: int, in_levels: int) -> PerceptionHead | None:
+        """The configured perception head decoding ``in_dim`` channels in ``in_levels`` equal blocks, with its outputs
+        (``num_classes``, or ``slots + 1`` for an instance head); None when the config has no head."""
+
+
+class ModelFamily(ImportsWeights, nn.Module, ABC):
+    """Renders colour, depth and semantics of a target view's rays; trained, evaluated, rendered and viewed unchanged.
+
+    Built by its factory with its config fields (a subclass of ``gpnerf_core.ModelConfig``) and ``parts``
+    (``ModelParts``). The core reads ``model.num_source_views``, ``model.init`` and ``model.init_strict`` itself; every
+    other field goes to the factory.
+
+    A **generalizable** family (``generalizable = True``) renders from the source views it is given and is trained on
+    many scenes; a **per-scene** family renders from its own parameters, fitted on one scene's frames (its
+    ``predict`` gets ``sources=None``).
+
+    Class attributes:
+        generalizable: renders from source views.
+    """
+
+    generalizable: ClassVar[bool] = True
+
+    # ---- what the model is ------------------------------------------------------------------------------------------
+
+    @property
+    @abstractmethod
+    def semantic_output(self) -> SemanticOutput | None:
+        """What its semantic scores are, or None for a model that renders colour and depth only."""
+
+    @abstractmethod
+    def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
+        """Parameters by learning-rate group; each group is a key of ``train.lr`` (``feature_extractor``,
+        ``transformer``, ``head``, and ``field`` for a per-scene family's own field)."""
+
+    def parameter_counts(self) -> dict[str, int]:
+        """Parameters per direct child module (absent ones left out) and their ``total``."""
+        counts = {name: sum(p.numel() for p in module.parameters()) for name, module in self.named_children()}
+        counts = {name: count for name, count in counts.items() if count}
+        return {**counts, "total": sum(p.numel() for p in self.parameters())}
+
+    def output_owners(self, names: Mapping[str, str]) -> dict[str, str]:
+        """Which part made each output of a ``Prediction`` (``colour``, ``depth``, ``semantic map``, ``logits``), for
+        the message naming the part that gave NaN or Inf.
+
+        Args:
+            names: the configured component name of each kind (``{"model": "gnt", "head": "unet", ...}``).
+        """
+        model = f"model {names.get('model')!r}"
+        return {"colour": model, "depth": model, "semantic map": model, "logits": model}
+
+    def check_image_size(self, height: int, width: int) -> None:
+        """Raise ``ConfigError`` (one line, naming the size and what is expected) when images of ``height`` x
+        ``width`` cannot be rendered or encoded; called before training or evaluation starts. By default any size can."""
+
+    # ---- training ---------------------------------------------------------------------------------------------------
+
+    @abstractmethod
+    def forward(self, batch: StepBatch, *, semantics: bool, sample_semantics: bool = False) -> StepOutput:
+        """Render the chosen rays (``TargetView.pixels``) of every target view of ``batch``.
+
+        Args:
+            semantics: the loss set reads semantic outputs (``ViewOutput.logits``, ``RenderedRays.semantic``, ...).
+            sample_semantics: it also reads per-sample semantic features (``RenderedRays.sample_semantic``).
+
+        Returns:
+            One ``ViewOutput`` per target view, in batch order. In training mode, randomness comes from a generator
+            seeded with each view's ``render_seed`` (a view renders the same on any process); in eval mode none.
+        """
+
+    # ---- whole views ------------------------------------------------------------------------------------------------
+
+    @abstractmethod
+    def predict(
+        self,
+        camera: TargetCamera,
+        sources: SourceViews | None,
+        *,
+        stride: int,
+        chunk_rays: int,
+        features: FeatureMaps | None = None,
+    ) -> Prediction:
+        """Render a whole view (under inference mode) on a ``stride`` grid, ``chunk_rays`` rays at a time.
+
+        Args:
+            sources: its source views (None for a per-scene family).
+            stride: pixels per rendered cell; 0 = the model's natural stride (the semantic map's, for GP-NeRF).
+            features: the sources' encoded maps when the caller keeps them (``encode``); None encodes them.
+        """
+
+    def encode(self, images: Tensor) -> FeatureMaps:
+        """Encoded maps of ``[N, 3, H, W]`` source images, which ``predict`` reuses when given them (kept between renders
+        by ``model.feature_cache``). A family without an encoder raises ConfigError."""
+        raise ConfigError(f"model {type(self).__name__} encodes no source views")
+
+    def teacher_logits(self, image: Tensor) -> Tensor | None:
+        """The 2D-only reference: its head on the target image's own features, ``[3, H, W]`` -> ``[1, K, H, W]``; None
+        when the family has no such reference (it is then not reported)."""
+        return None
+
+    # ---- options every family may have ------------------------------------------------------------------------------
+
+    def use_compiled(self, backend: str | None) -> None:
+        """Run the model's heavy parts ``torch.compile`` d with ``backend`` (None: eager). By default a family has no
+        compiled path: asking for one is a ConfigError."""
+        if backend is not None:
+            raise ConfigError(f"model {type(self).__name__} has no compiled path (model.compile=true)")
+
+    def read_foreign(self, checkpoint: Mapping[str, Any]) -> ImportedWeights | None:
+        """The model's share of another code base's checkpoint (``model.init=<file>``, e.g. an official GNT one): the
+        tensors by the model's own state-dict keys, the format's name, the checkpoint's weight keys it offers and its
+        top-level entries left out on purpose. None: not a format this family reads."""
+        return None

@@ -1,0 +1,134 @@
+"""A trained model read back: one reader for every command that starts from a checkpoint.
+
+``load_trained(path)`` reads a checkpoint once (and checks its content hash once), whoever asks: the launcher that
+composes ``eval``'s config from the checkpoint's overrides and the task that then evaluates it, ``plan_resume`` and the
+trainer it hands over to, ``stress``, ``finetune``, ``render``, ``view`` and ``model.init``. The config of a trained
+model is rebuilt one way, ``TrainedModel.config``: the checkpoint's overrides, then the command's, composed; then
+the checkpoint's model settings restored wherever the command did not set them (a default that changed since must
+not change a trained model). A Hydra command composes the same overrides itself and calls ``restore_model_settings``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import torch
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from gpnerf_core.config.compose import compose
+from gpnerf_core.config.overrides import merge_overrides, override_key
+from gpnerf_core.errors import DataError
+from gpnerf_core.model.checkpoint import evaluation_weights, model_differences, read_checkpoint
+from gpnerf_core.model.classes import ClassList, checkpoint_classes
+
+
+@dataclass(frozen=True)
+class TrainedModel:
+    """A checkpoint's contents, read and verified once.
+
+    Attributes:
+        path: the file.
+        state: its dictionary (``model.checkpoint``), configs written by earlier versions brought to today's keys.
+    """
+
+    path: Path
+    state: Mapping[str, Any]
+
+    @property
+    def step(self) -> int:
+        return int(self.state["step"])
+
+    @property
+    def config_yaml(self) -> str:
+        return str(self.state.get("config") or "")
+
+    @property
+    def config_sha256(self) -> str | None:
+        return self.state.get("config_sha256")
+
+    @property
+    def overrides(self) -> list[str]:
+        """The Hydra overrides that composed the trained config (as typed, run-specific ones included)."""
+        return [str(o) for o in self.state.get("overrides") or []]
+
+    @property
+    def classes(self) -> ClassList | None:
+        """The classes the model was trained with (None: a checkpoint written before they were stored)."""
+        return checkpoint_classes(self.state, self.path)
+
+    def weights(self, choice: str = "average") -> tuple[dict[str, torch.Tensor], str]:
+        """The model weights to evaluate or start from: ``(state dict, "average" | "trained")`` (``eval.weights``)."""
+        return evaluation_weights(self.state, choice)
+
+    def config(self, overrides: list[str] | tuple[str, ...] = ()) -> DictConfig:
+        """The trained model's config with ``overrides`` on top: composed from the checkpoint's overrides and then
+        ``overrides``, the model settings restored (``restore_model_settings``)."""
+        cfg = compose(merge_overrides(self.overrides, list(overrides)))
+        restore_model_settings(cfg, self, [override_key(o) for o in overrides])
+        return cfg
+
+
+_LAST: tuple[tuple[Any, ...], TrainedModel] | None = None
+"""The last checkpoint read, by file identity: the launcher's read serves the task, ``plan_resume``'s the trainer."""
+
+
+def load_trained(path: str | Path) -> TrainedModel:
+    """The trained model in ``path``, read and verified once per file (the same file read again is not read).
+
+    Raises:
+        DataError: missing, not a file, unreadable, of another format version, or damaged (content hash).
+    """
+    global _LAST
+    path = Path(path)
+    if not str(path).strip() or str(path) == ".":
+        raise DataError("checkpoint path is empty; expected checkpoint=<path to a .pt file written by run>")
+    if path.is_dir():
+        raise DataError(f"checkpoint {path} is a folder; expected a .pt file written by run (in <run>/checkpoints/)")
+    identity = _identity(path)
+    if _LAST is not None and identity is not None and _LAST[0] == identity:
+        return _LAST[1]
+    trained = TrainedModel(path, read_checkpoint(path))
+    _LAST = (identity, trained) if identity is not None else None
+    return trained
+
+
+def release_trained() -> None:
+    """Forget the last checkpoint read (its tensors), once its weights are in a model."""
+    global _LAST
+    _LAST = None
+
+
+def _identity(path: Path) -> tuple[Any, ...] | None:
+    try:
+        stat = path.stat()
+    except OSError:
+        return None
+    return (str(path.resolve()), stat.st_ino, stat.st_size, stat.st_mtime_ns)
+
+
+def restore_model_settings(cfg: DictConfig, trained: TrainedModel, typed: list[str]) -> list[str]:
+    """Give ``cfg`` the checkpoint's model and loss settings wherever the command did not set them (``typed``: the
+    dotted keys it set). Returns the notes on restored keys (empty when nothing changed).
+
+    A command's config is composed from the checkpoint's overrides plus its own; if a default changed since the
+    checkpoint was written, the recomposed model would differ from the trained one. Such keys are set back to the
+    checkpoint's values (and reported); keys the command set keep its value.
+    """
+    current = OmegaConf.to_yaml(cfg, resolve=True)
+    restored = []
+    for key, old, _ in model_differences(trained.config_yaml, current):
+        if any(key == t or key.startswith(t + ".") for t in typed):
+            continue
+        with open_dict(cfg):
+            if old == "<absent>":
+                parent, _, leaf = key.rpartition(".")
+                node = OmegaConf.select(cfg, parent) if parent else cfg
+                node.pop(leaf, None)
+            else:
+                OmegaConf.update(cfg, key, old, merge=False)
+        restored.append(key)
+    if not restored:
+        return []
+    return [f"kept the checkpoint's value of {', '.join(restored)} (the defaults changed since it was written)"]

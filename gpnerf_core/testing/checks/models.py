@@ -1,0 +1,195 @@
+"""Checks of model families: ``forward(StepBatch) -> StepOutput`` in training, ``predict(camera, sources) ->
+Prediction`` on a whole view, and what they say about themselves (``semantic_output``, ``parameter_groups``).
+
+The kit builds a family with small built-in parts (``inputs.KIT_PARTS``: ``resunet_fpn``, ``gnt_view``, ``gnt_ray`` and
+the ``unet`` head, at 3 classes) and renders a synthetic 32 x 48 scene seen from two source views.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from gpnerf_core.interfaces.head import Predicts
+from gpnerf_core.interfaces.model import ModelFamily, SemanticMode, SemanticOutput
+from gpnerf_core.testing.checks.common import (
+    CheckFailed,
+    Subject,
+    call,
+    check_round_trip,
+    expect,
+    expect_finite,
+    expect_tensor,
+    shape,
+    total,
+)
+from gpnerf_core.testing.inputs import KIT_CLASSES, kit_parts, model_batch, model_view
+from gpnerf_core.types import Prediction, RenderedRays, StepOutput, ViewOutput
+
+
+def build(subject: Subject, *, head: bool) -> ModelFamily:
+    return built(subject, head=head)[0]
+
+
+def built(subject: Subject, *, head: bool) -> tuple[ModelFamily, set[int]]:
+    """The family, and the ids of its parts' parameters (the parts are checked as components of their own kinds)."""
+    parts = kit_parts(subject.registry, subject.name, head=head)
+    model = subject.build(parts=parts)
+    expect(isinstance(model, ModelFamily), f"built a {type(model).__name__}, expected a ModelFamily")
+    return model, {id(p) for part in parts.built if isinstance(part, nn.Module) for p in part.parameters()}
+
+
+def semantic_output(model: ModelFamily) -> SemanticOutput | None:
+    output = call("reading semantic_output", lambda: model.semantic_output)
+    if output is None:
+        return None
+    expect(isinstance(output, SemanticOutput), f"semantic_output is {type(output).__name__}, expected SemanticOutput")
+    expect(isinstance(output.predicts, Predicts) and isinstance(output.mode, SemanticMode),
+           f"semantic_output {output}: predicts and mode must be Predicts and SemanticMode members")
+    expect(isinstance(output.num_outputs, int) and output.num_outputs >= 1,
+           f"semantic_output.num_outputs is {output.num_outputs!r}, expected a positive int")
+    return output
+
+
+def check_build(subject: Subject) -> None:
+    """Builds with and without a head; parameters start finite; ``semantic_output`` is a ``SemanticOutput`` or None,
+    with the kit's class count for a class output."""
+    for head in (False, True):
+        model = build(subject, head=head)
+        expect_finite({f"parameter {k}": p for k, p in model.named_parameters()}, "after construction")
+        output = semantic_output(model)
+        if output is not None and output.predicts is Predicts.CLASSES:
+            expect(output.num_outputs == KIT_CLASSES, f"semantic_output.num_outputs is {output.num_outputs} with a "
+                                                      f"{KIT_CLASSES}-class dataset, expected {KIT_CLASSES}")
+
+
+def check_parameter_groups(subject: Subject) -> None:
+    """Every trainable parameter is in exactly one learning-rate group, named by a ``train.lr`` key."""
+    from gpnerf_core.config.schema import LearningRates
+
+    model = build(subject, head=True)
+    groups = call("parameter_groups()", model.parameter_groups)
+    expect(isinstance(groups, dict), f"parameter_groups() returned {type(groups).__name__}, expected a dict")
+    known = set(LearningRates.__dataclass_fields__)
+    unknown = [name for name in groups if name not in known]
+    expect(not unknown, f"parameter group {unknown[0] if unknown else ''!r} is not a key of train.lr "
+                        f"({', '.join(sorted(known))})")
+    seen: dict[int, str] = {}
+    for name, params in groups.items():
+        for p in params:
+            expect(id(p) not in seen, f"a parameter is in both groups {seen.get(id(p))!r} and {name!r}")
+            seen[id(p)] = name
+    missing = [n for n, p in model.named_parameters() if p.requires_grad and id(p) not in seen]
+    expect(not missing, f"{len(missing)} trainable parameters are in no group (first: {missing[0] if missing else ''})")
+
+
+def _pass_outputs(name: str, rendered: RenderedRays, rays: int, classes: int | None) -> dict[str, Tensor]:
+    expect(isinstance(rendered, RenderedRays), f"{name} is {type(rendered).__name__}, expected RenderedRays")
+    out = {f"{name}.rgb": expect_tensor(rendered.rgb, f"{name}.rgb", [rays, 3])}
+    samples = expect_tensor(rendered.weights, f"{name}.weights").shape[-1]
+    expect_tensor(rendered.weights, f"{name}.weights", [rays, samples])
+    out[f"{name}.weights"] = rendered.weights
+    out[f"{name}.depth"] = expect_tensor(rendered.depth, f"{name}.depth", [rays])
+    if rendered.semantic is not None:
+        out[f"{name}.semantic"] = expect_tensor(rendered.semantic, f"{name}.semantic")
+    if rendered.sample_semantic is not None:
+        out[f"{name}.sample_semantic"] = rendered.sample_semantic
+    if rendered.logits is not None:
+        expect(classes is not None, f"{name}.logits {shape(rendered.logits)} from a model without semantic_output")
+        out[f"{name}.logits"] = expect_tensor(rendered.logits, f"{name}.logits", [rays, classes])
+    return out
+
+
+def _view_outputs(view: ViewOutput, rays: int, image: tuple[int, int], output: SemanticOutput | None) -> dict[str, Tensor]:
+    expect(isinstance(view, ViewOutput), f"forward gave a {type(view).__name__} per view, expected ViewOutput")
+    classes = output.num_outputs if output is not None else None
+    out = _pass_outputs("coarse", view.coarse, rays, classes)
+    if view.fine is not None:
+        out |= _pass_outputs("fine", view.fine, rays, classes)
+    if view.logits is not None:
+        expect(output is not None, f"logits {shape(view.logits)} from a model without semantic_output")
+        out["logits"] = expect_tensor(view.logits, "logits", [1, output.num_outputs, *image])
+    if view.teacher_at_rays is not None:
+        out["teacher_at_rays"] = view.teacher_at_rays
+    if output is not None:
+        if output.mode is SemanticMode.DECODED:
+            expect(view.logits is not None, "semantic_output.mode is DECODED but forward(semantics=True) gave no logits")
+        else:
+            expect(view.last.logits is not None,
+                   "semantic_output.mode is LABEL_RENDERING but forward(semantics=True) gave no per-ray logits")
+    return out
+
+
+def check_forward(subject: Subject) -> None:
+    """Training: one ``ViewOutput`` per target view, every pass's colour ``[R, 3]``, weights ``[R, S]``, depth ``[R]``,
+    the semantic scores its ``semantic_output`` promises, finite gradients, and (with a head configured) a gradient to
+    every parameter of the family's own (its parts are checked as components of their kinds)."""
+    for head in (False, True):
+        model, part_parameters = built(subject, head=head)
+        model.train()
+        output = semantic_output(model)
+        batch = model_batch(sources=model.generalizable)
+        result = call("forward(batch of 2 views, semantics=True, sample_semantics=True)", model, batch,
+                      semantics=output is not None, sample_semantics=output is not None)
+        expect(isinstance(result, StepOutput) and len(result.views) == len(batch.views),
+               f"forward returned {type(result).__name__}, expected a StepOutput with {len(batch.views)} views")
+        outputs: dict[str, Tensor] = {}
+        for index, (view, target) in enumerate(zip(result.views, batch.views)):
+            found = _view_outputs(view, target.num_rays, target.camera.image_size, output)
+            outputs |= {f"view {index} {name}": tensor for name, tensor in found.items()}
+        expect_finite(outputs, "in training mode")
+        differentiable = {k: v for k, v in outputs.items() if not k.endswith(".depth")}
+        scalar = total(differentiable)
+        expect(isinstance(scalar, Tensor) and scalar.requires_grad, "no output of forward requires grad")
+        call("backward of the sum of the outputs", scalar.backward)
+        expect_finite({f"gradient of {n}": p.grad for n, p in model.named_parameters() if p.grad is not None},
+                      "after a backward of the outputs")
+        # The family's own parameters all learn from what it renders (with a head its whole semantic path is in use);
+        # a part may be partly unused (an extractor's semantic branch under a colour-only model).
+        own = [n for n, p in model.named_parameters() if p.requires_grad and id(p) not in part_parameters]
+        missing = [n for n in own if dict(model.named_parameters())[n].grad is None]
+        expect(not missing or not head,
+               f"no gradient reached the model's own {', '.join(missing[:5])}{' ...' if len(missing) > 5 else ''} "
+               f"({len(missing)} of {len(own)}) after a backward of the sum of its outputs")
+
+
+def _prediction(model: ModelFamily, stride: int) -> Prediction:
+    camera, sources = model_view(sources=model.generalizable)
+    what = f"predict(camera {camera.height}x{camera.width}, {'2 source views' if sources else 'no sources'}, stride={stride})"
+    prediction = call(what, model.predict, camera, sources, stride=stride, chunk_rays=97)
+    expect(isinstance(prediction, Prediction), f"{what} returned {type(prediction).__name__}, expected Prediction")
+    return prediction
+
+
+def check_predict(subject: Subject) -> None:
+    """A whole view: colour ``[h, w, 3]`` and depth ``[h, w]`` on the ``stride`` grid (h = H / stride), scores
+    ``[1, K, H, W]`` at the image's size when the model has a semantic output; finite; the same twice in eval mode."""
+    for head in (False, True):
+        model = build(subject, head=head).eval()
+        output = semantic_output(model)
+        for stride in (0, 4):
+            first, second = _prediction(model, stride), _prediction(model, stride)
+            s = first.stride
+            expect(isinstance(s, int) and s >= 1 and (stride == 0 or s == stride),
+                   f"predict(stride={stride}) reports stride {s!r}")
+            h, w = 32 // s, 48 // s
+            found = {"rgb": expect_tensor(first.rgb, "rgb", [h, w, 3]), "depth": expect_tensor(first.depth, "depth", [h, w])}
+            if output is not None:
+                found["logits"] = expect_tensor(first.logits, "logits", [1, output.num_outputs, 32, 48])
+            if first.semantic is not None:
+                found["semantic"] = expect_tensor(first.semantic, "semantic")
+                expect(list(first.semantic.shape[1:]) == [h, w], f"semantic {shape(first.semantic)}, expected [C, {h}, {w}]")
+            expect_finite(found, f"in eval mode at stride {stride}")
+            for name, tensor in found.items():
+                again = getattr(second, name)
+                if not torch.equal(tensor, again):
+                    raise CheckFailed(f"predict gave different {name} twice in eval mode: it must be deterministic")
+
+
+CHECKS = {
+    "build": check_build,
+    "parameter groups": check_parameter_groups,
+    "forward": check_forward,
+    "predict": check_predict,
+    "config round trip": check_round_trip,
+}

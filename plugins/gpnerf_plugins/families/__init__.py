@@ -1,0 +1,1 @@
+"""Model families: what renders a target view's rays (``model=<name>``)."""

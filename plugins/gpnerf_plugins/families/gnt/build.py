@@ -1,0 +1,63 @@
+"""Building the ``gnt`` family from its options and the configured parts."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from gpnerf_core import ConfigError, ModelParts, checked_compile_backend
+from gpnerf_plugins.families.gnt.config import GNTModelConfig, SemanticFieldConfig
+from gpnerf_plugins.families.gnt.model import GeneralizableNeRF
+from gpnerf_plugins.families.gnt.semantic_field import SemanticFieldRenderer
+
+
+def build_gnt(
+    *,
+    parts: ModelParts,
+    coarse_samples: int = GNTModelConfig.coarse_samples,
+    fine_samples: int = GNTModelConfig.fine_samples,
+    detach_source_semantics: bool = GNTModelConfig.detach_source_semantics,
+    semantic_field: SemanticFieldConfig | dict[str, Any] | None = None,
+    fuse_rendered: bool = GNTModelConfig.fuse_rendered,
+    checkpoint_blocks: bool = GNTModelConfig.checkpoint_blocks,
+    channels_last_maps: bool = GNTModelConfig.channels_last_maps,
+    compile: bool = GNTModelConfig.compile,
+    compile_backend: str = GNTModelConfig.compile_backend,
+) -> GeneralizableNeRF:
+    """Extractor, field and ray aggregators, the head (if configured) and the semantic field; each stage's width comes
+    from the stage before it."""
+    semantics = SemanticFieldConfig(**semantic_field) if isinstance(semantic_field, dict) else (
+        semantic_field or SemanticFieldConfig())
+    extractor = parts.build("feature_extractor")
+    field = parts.build("field_aggregator", in_dim=3 + extractor.radiance_dim)
+    ray = parts.build("ray_aggregator", in_dim=field.width, num_blocks=field.num_blocks)
+    head = semantic = None
+    if parts.configured("head"):
+        if extractor.semantic_dim == 0:
+            raise ConfigError(
+                f"head {parts.name('head')!r} needs semantic features but feature_extractor "
+                f"{parts.name('feature_extractor')!r} produces none"
+            )
+        head = parts.head(in_dim=extractor.semantic_dim, in_levels=extractor.semantic_levels)
+        if semantics.enabled:
+            semantic = SemanticFieldRenderer(
+                semantic_dim=extractor.semantic_dim,
+                attention_channels=field.attention_channels,
+                ray_heads=ray.num_heads,
+                num_blocks=field.num_blocks,
+                joint_attention=semantics.joint_attention,
+                adaptor_relu=semantics.adaptor_relu,
+            )
+    return GeneralizableNeRF(
+        extractor=extractor,
+        field=field,
+        ray=ray,
+        head=head,
+        semantic=semantic,
+        coarse_samples=coarse_samples,
+        fine_samples=fine_samples,
+        detach_source_semantics=detach_source_semantics,
+        fuse_rendered=fuse_rendered,
+        checkpoint_blocks=checkpoint_blocks,
+        channels_last_maps=channels_last_maps,
+        compile_backend=checked_compile_backend(compile_backend) if compile else None,
+    )

@@ -1,0 +1,47 @@
+"""Options of the ``gnt`` model family (``model=gnt``, the default): GP-NeRF's, at the paper's sizes."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+from gpnerf_core import ModelConfig
+
+
+@dataclass
+class SemanticFieldConfig:
+    enabled: bool = True
+    """Render the semantic-embedding field (off = GNT alone)."""
+    joint_attention: bool = True
+    """Semantic losses also train the transformers' attention (Table 4: False = frozen attention, ID 1)."""
+    adaptor_relu: bool = False
+    """ReLU after the 512->512 adaptor, as the released code (its teacher is signed, so off by default)."""
+
+
+@dataclass
+class GNTModelConfig(ModelConfig):
+    """GNT's view and ray transformers (``field_aggregator``, ``ray_aggregator``) over the ``feature_extractor``'s maps,
+    GP-NeRF's semantic field on their attention, and the ``+head`` on the rendered map."""
+
+    name: str = "gnt"
+    """Registry name of this model family."""
+    detach_source_semantics: bool = True
+    """Rendered-feature losses do not train the extractor through the source views (released code)."""
+    semantic_field: SemanticFieldConfig = field(default_factory=SemanticFieldConfig)
+    fuse_rendered: bool = True
+    """In training the head decodes the fused map (the teacher map with the rendered features in the rays' cells, the
+    paper); False decodes the teacher map alone (the released code)."""
+    checkpoint_blocks: bool = False
+    """Activation checkpointing of the transformer blocks: recompute them in the backward pass (less memory)."""
+    channels_last_maps: bool = True
+    """Copy the detached source semantic maps channels-last where each is sampled at more points than it has pixels:
+    ``grid_sample`` then reads each sample's channels contiguously (the same float32 values, about 2.7x faster at
+    512 channels)."""
+    compile: bool = False
+    """``torch.compile`` the transformer block pairs and the semantic attention sums (compiled on first use)."""
+    compile_backend: str = "inductor"
+    """The ``torch.compile`` backend when ``compile`` is true (inductor: C++ on CPU, Triton on CUDA)."""
+
+    runtime_keys: ClassVar[tuple[str, ...]] = (
+        *ModelConfig.runtime_keys, "checkpoint_blocks", "channels_last_maps", "compile", "compile_backend",
+    )
