@@ -1,4 +1,5 @@
-"""Abstract interfaces of every pluggable component kind."""
+"""Abstract interfaces of every pluggable component kind (the dataset interface is ``gpnerf_core.data.dataset``, beside
+the dataset base)."""
 
 from gpnerf_core.interfaces.feature_extractor import FeatureExtractor
 from gpnerf_core.interfaces.field_aggregator import FieldAggregator

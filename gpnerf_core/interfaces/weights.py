@@ -30,9 +30,10 @@ class ImportedWeights:
 class ImportsWeights:
     """Mixin of every model component: ``import_weights`` maps a foreign checkpoint onto the component.
 
-    The default supports no format. ``model.init=<file>`` calls it on each stage with the loaded checkpoint
-    dictionary; the core checks names and shapes against the component's state dict and reports what was loaded,
-    what the component still lacks and what no component took.
+    The default supports no format. ``model.init=<file>`` hands a foreign checkpoint to the model family
+    (``ModelFamily.read_foreign``), which asks its components for their shares (the ``gnt`` family calls this on its
+    extractor, aggregators and head); the core checks names and shapes against the model's state dict and reports what
+    was loaded, what the model still lacks and what no component took.
     """
 
     def import_weights(self, checkpoint: Mapping[str, Any], fmt: str) -> ImportedWeights | None:
