@@ -116,13 +116,15 @@ def validate_config(cfg: DictConfig) -> None:
     check_loggers(list(cfg.train.loggers))
 
 
-def _refuse_unknown_keys(node: DictConfig, schema: type, prefix: str, top: bool = True) -> None:
+def _refuse_unknown_keys(node: DictConfig, schema: type, prefix: str, component: bool = False) -> None:
+    """``component``: ``node`` is a component's section, whose unknown options ``Registry.build`` refuses itself,
+    listing the component's options; its nested sections are checked here."""
     hints = typing.get_type_hints(schema)
     fields = {f.name for f in dataclasses.fields(schema)}
     for key in node.keys():
         path = f"{prefix}{key}"
-        if not top and prefix.count(".") == 1 and key not in fields:
-            continue  # a component's own option: ``Registry.build`` refuses it, listing the component's options
+        if component and key not in fields:
+            continue
         if key not in fields:
             raise ConfigError(
                 f"unknown config key {path!r}; {schema.__name__} has: {', '.join(sorted(fields))} "
@@ -138,7 +140,7 @@ def _refuse_unknown_keys(node: DictConfig, schema: type, prefix: str, top: bool 
             hint = _component_config(key, child)
             if hint is None or not isinstance(child, DictConfig):
                 continue
-            _refuse_unknown_keys(child, hint, f"{path}.", top=False)
+            _refuse_unknown_keys(child, hint, f"{path}.", component=True)
             continue
         if dataclasses.is_dataclass(hint) and isinstance(child, DictConfig):
             _refuse_unknown_keys(child, hint, f"{path}.")
