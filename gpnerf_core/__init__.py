@@ -22,7 +22,7 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     # the interfaces a component implements
     "gpnerf_core.data.dataset": ("SPLITS", "SceneDataset"),
     "gpnerf_core.data.base": (
-        "DatasetBase", "DatasetConfig", "check_depth_range", "check_image_size", "from_launch_dir",
+        "MAX_FAR", "DatasetBase", "DatasetConfig", "check_depth_range", "check_image_size", "from_launch_dir",
     ),
     "gpnerf_core.interfaces": (
         "FeatureExtractor", "FieldAggregator", "ImportedWeights", "ImportsWeights", "LossSet",
@@ -47,7 +47,9 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
         "rigid_transform_problem", "sampling_layout", "stratified_inverse_depths",
     ),
     "gpnerf_core.geometry.pose_sanity": ("check_poses",),
-    "gpnerf_core.data.checks": ("check_scene_files", "check_validation_level"),
+    "gpnerf_core.data.checks": (
+        "ValueProblem", "check_scene_files", "check_validation_level", "depth_problem", "far_away_cameras",
+    ),
     "gpnerf_core.config.arguments": ("ArgumentParser",),
     "gpnerf_core.runtime.io": ("atomic_write_json",),
     "gpnerf_core.runtime.profiling": ("stage",),
@@ -84,13 +86,20 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
     from gpnerf_core.config.compose import compose
     from gpnerf_core.config.schema import ModelConfig
     from gpnerf_core.data.base import (
+        MAX_FAR,
         DatasetBase,
         DatasetConfig,
         check_depth_range,
         check_image_size,
         from_launch_dir,
     )
-    from gpnerf_core.data.checks import check_scene_files, check_validation_level
+    from gpnerf_core.data.checks import (
+        ValueProblem,
+        check_scene_files,
+        check_validation_level,
+        depth_problem,
+        far_away_cameras,
+    )
     from gpnerf_core.errors import ConfigError, DataError, GpnerfError, NonFiniteError, PluginError
     from gpnerf_core.evaluation.instances import hungarian, instance_masks
     from gpnerf_core.geometry import (

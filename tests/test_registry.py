@@ -67,9 +67,11 @@ def test_build_passes_config_fields_and_runtime_kwargs():
     assert head.width == 7 and head.runtime == {"in_dim": 12, "in_levels": 1, "num_outputs": 3}
 
 
-def test_a_duplicate_name_is_rejected_and_never_replaces_the_first():
+def test_a_duplicate_name_is_rejected_never_replaces_the_first_and_is_refused_when_chosen():
     registry = registry_with(head_plugin(), head_plugin())
-    assert registry.get("head", "tiny").provider == "test_plugin_0"
+    assert registry.components["head"]["tiny"].provider == "test_plugin_0"
+    with pytest.raises(PluginError, match=r"^head 'tiny' is offered by 2 plugins, test_plugin_0 .* and test_plugin_1"):
+        registry.get("head", "tiny")  # choosing it is refused: neither is picked silently
     [problem] = registry.problems
     assert problem.component == "head/tiny" and problem.plugin.name == "test_plugin_1"
     assert "taken by 'test_plugin_0'" in str(problem) and "test-dist 9.9" in str(problem)
@@ -151,7 +153,7 @@ def test_a_factory_that_fails_at_build_time_is_one_line_naming_its_plugin():
     with pytest.raises(PluginError) as error:
         registry.build("head", {"name": "tiny"}, in_dim=4, in_levels=1, num_outputs=2)
     assert str(error.value) == (
-        "head 'tiny' (plugin test_plugin_0 9.9) failed to build: ValueError: bad weights file"
+        "head 'tiny' (plugin test_plugin_0, test-dist 9.9) failed to build: ValueError: bad weights file"
     )
 
 

@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from gpnerf_core.runtime.run_folder import LOCK_NAME, RunFolder, RunFolderError, remove_untrained_run
+from gpnerf_core.runtime.run_folder import LOCK_NAME, RunFolder, RunFolderError
 
 
 def test_claim_writes_a_lock_naming_the_holder_and_release_removes_it(tmp_path):
@@ -102,19 +102,3 @@ def test_a_folder_without_checkpoints_is_refused_without_advice_to_resume(tmp_pa
     (run / "scalars.csv").write_text("step\n")
     with pytest.raises(RunFolderError, match="it holds no checkpoint to resume from; replace it with overwrite=true"):
         RunFolder(run).claim(resuming=False, overwrite=False)
-
-
-def test_what_a_run_failing_before_its_first_checkpoint_left_is_removed_unless_locked_or_trained(tmp_path):
-    failed = tmp_path / "failed"
-    (failed / "tensorboard").mkdir(parents=True)
-    for name in ("config.yaml", "overrides.yaml", "scalars.csv"):
-        (failed / name).write_text("x")
-    remove_untrained_run(failed)
-    assert not failed.exists()
-    for name, extra in (("trained", "checkpoints"), ("locked", LOCK_NAME), ("foreign", "notes.txt")):
-        folder = tmp_path / name
-        folder.mkdir()
-        (folder / "scalars.csv").write_text("x")
-        (folder / extra).mkdir() if extra == "checkpoints" else (folder / extra).write_text("x")
-        remove_untrained_run(folder)
-        assert (folder / "scalars.csv").exists(), name

@@ -8,6 +8,7 @@ import torch
 
 from gpnerf_core.model.build import build_components
 from gpnerf_core.config.compose import compose
+from gpnerf_core.data import checks
 from gpnerf_core.data.checks import check_scene_files
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.data.dataset import SceneDataset
@@ -119,12 +120,13 @@ def test_a_pose_that_is_not_rigid_is_refused_before_training_naming_the_line(tmp
         check_data(cfg, _fresh(cfg))
 
 
-def test_a_truncated_image_is_found_by_full_validation_only(tmp_path):
+def test_a_truncated_image_is_found_by_full_validation_only(tmp_path, monkeypatch):
     cfg, _ = _tiny(tmp_path)
     label = tmp_path / "set" / "layout_00" / "Sequence_1" / "semantic_class" / "semantic_class_1.png"
     label.write_bytes(label.read_bytes()[: label.stat().st_size * 2 // 3])  # the header still reads
     (tmp_path / "set" / "checksums.json").unlink()  # as a real dataset, which has no checksum list
-    check_data(cfg, _fresh(cfg))  # quick: file index, sizes from the headers, poses
+    monkeypatch.setattr(checks, "QUICK_FRAMES", 2)  # quick decodes frames 0 and 5 of the 6, not frame 1
+    check_data(cfg, _fresh(cfg))  # quick: file index, sizes from the headers, poses, a sample of frames
     full = compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES, f"dataset.root={tmp_path / 'set'}",
                     "dataset.validate=full"])
     with pytest.raises(DataError, match=r"semantic_class_1.png: unreadable image"):
@@ -147,8 +149,8 @@ class LabelsOutOfRange(SceneDataset):
 
 
 def test_full_validation_checks_label_ids_against_the_class_count():
-    assert check_scene_files(LabelsOutOfRange(), ["only"], "quick") == []
     [problem] = check_scene_files(LabelsOutOfRange(), ["only"], "full")
+    assert check_scene_files(LabelsOutOfRange(), ["only"], "quick") == [problem]  # quick decodes a sample (here: all)
     assert problem == "scene 'only' frame 0: label 7 is neither a class id in [0, 3) nor the ignore index 255"
 
 

@@ -55,6 +55,9 @@ def _count(own: dict[str, str], key: str, default: int, minimum: int) -> int:
 
 
 def main(argv: list[str]) -> int:
+    if "-h" in argv or "--help" in argv:
+        print("usage: python -m gpnerf_core bench" + (__doc__ or "").split("bench", 1)[1].replace("``", ""))
+        return 0
     own, overrides = _parse(argv)
     names = [n.strip() for n in own.get("size", "demo").split(",") if n.strip()]
     if not names:

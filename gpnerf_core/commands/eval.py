@@ -11,7 +11,8 @@ from omegaconf import DictConfig
 from gpnerf_core.runtime.device import machine_info
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.runtime.io import atomic_write_json
-from gpnerf_core.engine.jobs import claim_run_folder, job, launch_from_checkpoint, model_from_checkpoint
+from gpnerf_core.config.overrides import foreign_dataset_note
+from gpnerf_core.engine.jobs import claim_run_folder, job, launch_from_checkpoint, model_from_checkpoint, task_overrides
 from gpnerf_core.model.checkpoint import config_differences, format_differences
 
 
@@ -21,11 +22,14 @@ def main(argv: list[str]) -> int:
 
 @job
 def eval_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
-    from gpnerf_core.evaluation.evaluator import evaluate, print_summary
+    from gpnerf_core.evaluation.evaluator import check_splits_have_frames, evaluate, print_summary
     from gpnerf_core.data.frames import FrameCache
 
     loaded = model_from_checkpoint(cfg, dist, "eval", check_scenes=True)
     trained, notes, components, which = loaded.trained, loaded.notes, loaded.components, loaded.weights
+    notes = [*notes, *check_splits_have_frames(cfg, components)]  # refused here: before the run folder is claimed
+    dataset_note = foreign_dataset_note(trained.overrides, list(task_overrides()))
+    notes = [dataset_note, *notes] if dataset_note else notes
     folder, record = claim_run_folder(cfg, dist, resuming=False)
     with folder:
         if dist.is_main:

@@ -26,7 +26,18 @@ from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.evaluation.curves import CURVE_KEYS, curve_points
 from gpnerf_core.runtime.io import atomic_write_json
-from gpnerf_core.engine.jobs import checkpoint_config, claim_run_folder, job, launch_from_checkpoint, plan_resume, start
+from gpnerf_core.config.overrides import foreign_dataset_note
+from gpnerf_core.engine.jobs import (
+    checkpoint_config,
+    claim_run_folder,
+    job,
+    launch_from_checkpoint,
+    plan_resume,
+    run_record,
+    shared_run_dir,
+    start,
+    task_overrides,
+)
 from gpnerf_core.model.checkpoint import format_differences, model_differences
 from gpnerf_core.model.weights import load_weights
 from gpnerf_core.engine.validation import check_data
@@ -38,7 +49,7 @@ def main(argv: list[str]) -> int:
 
 @job
 def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
-    from gpnerf_core.evaluation.evaluator import evaluate, print_summary
+    from gpnerf_core.evaluation.evaluator import check_splits_have_frames, evaluate, print_summary
     from gpnerf_core.training.callbacks import CurvePoints
     from gpnerf_core.training.trainer import Trainer
 
@@ -60,6 +71,9 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     if components.classes.from_checkpoint:
         notes.append(components.classes.note(str(cfg.dataset.name)))
     check_data(cfg, components, training=True)
+    check_splits_have_frames(cfg, components)  # the chosen scenes' held-out frames: a curve of no image is refused
+    dataset_note = foreign_dataset_note(trained.overrides, list(task_overrides()))
+    notes = [dataset_note, *notes] if dataset_note else notes
     start_weights, which = trained.weights(str(cfg.eval.weights))
     old_classes = trained.classes.num_classes if trained.classes is not None else None
     new_config = OmegaConf.to_yaml(cfg, resolve=True)
@@ -69,8 +83,12 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
         explain=lambda: format_differences(model_differences(trained.config_yaml, new_config))
         or "no key (a different plugin version?)",
     )
-    folder, record = claim_run_folder(cfg, dist, resuming=plan.resuming, replace_leftovers=plan.replace_leftovers)
-    run_dir = folder.path
+    record = run_record(cfg)
+    run_dir = shared_run_dir(cfg, dist)
+    trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record)  # resumes: refused before the claim
+    folder, record = claim_run_folder(
+        cfg, dist, resuming=plan.resuming, replace_leftovers=plan.replace_leftovers, record=record
+    )
     with folder:
         if dist.is_main:
             for note in (*notes, *plan.notes):
@@ -84,7 +102,6 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
                 )
             print(f"finetune: {', '.join(scenes)} from {checkpoint} (step {trained.step}, {which} weights); "
                   f"evaluating at steps {', '.join(map(str, points))}", file=sys.stderr)
-        trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record)
         started = time.perf_counter()
         curve = _curve_so_far(run_dir, trainer.step) if plan.resuming else []
         evaluation: dict[str, Any] = {}

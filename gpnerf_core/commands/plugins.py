@@ -7,9 +7,20 @@ from gpnerf_core.errors import GpnerfError
 from gpnerf_core.registry.components import get_registry
 
 
+USAGE = """usage: python -m gpnerf_core plugins
+
+Lists every registered component (kind, name, provider, version, description) and stress case, the plugins disabled
+by GPNERF_DISABLE_PLUGINS / GPNERF_DISABLE_PLUGIN_AUTOLOAD, and the problems of plugins that failed to load or whose
+components were rejected (a name two plugins register is one: choosing it is refused until all but one are disabled).
+Exit code 0, or 1 when there are problems."""
+
+
 def main(argv: list[str]) -> int:
+    if argv in (["-h"], ["--help"]):
+        print(USAGE)
+        return 0
     if argv:
-        raise GpnerfError(f"plugins takes no arguments, got {' '.join(argv)!r}")
+        raise GpnerfError(f"plugins takes no arguments (or --help), got {' '.join(argv)!r}")
     registry = get_registry()
     rows = [("kind", "name", "provider", "version", "description")]
     for kind, entries in registry.components.items():

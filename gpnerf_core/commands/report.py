@@ -3,6 +3,7 @@ seeds) beside the paper's Table 4, and optionally the accuracy-against-cost char
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from gpnerf_core.config.arguments import ArgumentParser
@@ -31,6 +32,10 @@ def main(argv: list[str]) -> int:
     if not rows:
         raise DataError(f"no run folders (metrics.json + config.yaml) under {', '.join(map(str, args.paths))}")
     print(format_table(rows))
+    without_metrics = [row for row in rows if row.state != "finished"]
+    if without_metrics:
+        print(f"note: {len(without_metrics)} of {len(rows)} run folder(s) have no metrics.json (failed or unfinished: "
+              "their rows say why); the table's numbers are the other runs'", file=sys.stderr)
     if args.chart is not None:
         groups = group_runs([with_parameter_count(row) for row in rows])
         methods = methods_from_groups(groups, method_labels(groups))

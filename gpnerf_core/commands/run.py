@@ -2,7 +2,9 @@
 unseen scenes, and write the run folder (the main job; ``-m`` sweeps).
 
 Runs as one process or as N under torchrun. Rank 0 alone writes the run folder, which it first locks
-(``jobs.claim_run_folder``); every other process learns the folder from rank 0.
+(``jobs.claim_run_folder``); every other process learns the folder from rank 0. Everything that can refuse the run
+(the config, the data, every check of the checkpoint it resumes from) happens before that claim: a refused command
+leaves the folder as it was.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from gpnerf_core.runtime.device import machine_info
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.evaluation.curves import curve_entry, eval_scalars
 from gpnerf_core.runtime.io import atomic_write_json
-from gpnerf_core.engine.jobs import claim_run_folder, job, launch, plan_resume, start
+from gpnerf_core.engine.jobs import claim_run_folder, job, launch, plan_resume, run_record, shared_run_dir, start
 from gpnerf_core.engine.validation import check_data
 
 
@@ -46,10 +48,13 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
         report = init_weights(components.model, Path(cfg.model.init), strict=bool(cfg.model.init_strict))
         if dist.is_main:
             print(report, file=sys.stderr)
-    folder, record = claim_run_folder(cfg, dist, resuming=resuming, replace_leftovers=plan.replace_leftovers)
-    run_dir = folder.path
+    record = run_record(cfg)
+    run_dir = shared_run_dir(cfg, dist)
+    trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record)  # resumes: its checks refuse here
+    folder, record = claim_run_folder(
+        cfg, dist, resuming=resuming, replace_leftovers=plan.replace_leftovers, record=record
+    )
     with folder:
-        trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record)
         if dist.is_main:
             for note in (*plan.notes, *trainer.notes):
                 print(f"note: {note}", file=sys.stderr)

@@ -28,7 +28,7 @@ from gpnerf_core.config.overrides import RUN_SPECIFIC_KEYS, override_key
 from gpnerf_core.runtime.run_folder import LOCK_NAME, RunFolder
 from gpnerf_core.tools.sizing.costs import StaticCost, static_cost
 from gpnerf_core.tools.sizing.knobs import knob_levels, label_of
-from gpnerf_core.tools.sizing.options import SizeOptions, parse_size_options, resolve_metric
+from gpnerf_core.tools.sizing.options import SizeOptions, check_eval_splits, parse_size_options, resolve_metric
 from gpnerf_core.tools.sizing.report import describe_scene, draw_trials, sized_command, write_experiment, write_report
 from gpnerf_core.tools.sizing.scene import measure_scenes
 from gpnerf_core.tools.sizing.search import (
@@ -60,6 +60,7 @@ def main(argv: list[str]) -> int:
             raise ConfigError(f"size: {argument!r}: size takes Hydra overrides and size.<option>=<value>, not flags")
     cfg = compose_checked(overrides)
     metric, tolerance = resolve_metric(options, cfg.get("head") is not None)
+    check_eval_splits(metric, list(cfg.eval.splits))
     steps = options.steps or max(1, int(cfg.train.steps) // 2)
     out = Path(options.out or Path("outputs") / "size" / time.strftime("%Y-%m-%d_%H-%M-%S"))
     request = {"overrides": overrides, **options.request(), "metric": metric, "tolerance": tolerance, "steps": steps,

@@ -3,14 +3,18 @@
 Serves an interactive web viewer of a trained model (``gpnerf_core.tools.viewer``): the scene's cameras and depth points,
 and the model's novel view for the browser's camera (RGB, depth, semantic classes or instances, PCA of the rendered
 features), rendered progressively. Binds 127.0.0.1 unless ``view.host`` says otherwise; prints the URL; serves until
-Ctrl-C or SIGTERM. Writes nothing: the folder Hydra creates for the job is removed again when it stays empty.
+Ctrl-C or SIGTERM (exit code 130 or 143, one line), also when started in the background by a script (which leaves SIGINT
+ignored: the viewer installs its own handlers). Writes nothing: the folder Hydra creates for the job is removed again
+when it stays empty.
 """
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import sys
 import threading
+from collections.abc import Iterator
 from typing import Any
 
 from omegaconf import DictConfig
@@ -19,6 +23,7 @@ from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError, GpnerfError
 from gpnerf_core.engine.jobs import job, launch_from_checkpoint, model_from_checkpoint, run_dir
 from gpnerf_core.interfaces.head import Predicts
+from gpnerf_core.runtime.signals import Terminated
 
 
 def main(argv: list[str]) -> int:
@@ -27,6 +32,32 @@ def main(argv: list[str]) -> int:
 
 @job
 def view_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
+    with _stopped_by_signals():
+        return _serve(cfg, dist)
+
+
+@contextlib.contextmanager
+def _stopped_by_signals() -> Iterator[None]:
+    """For the viewer's lifetime SIGINT raises ``KeyboardInterrupt`` and SIGTERM ``Terminated``, whatever the process
+    inherited: started in the background by a script, it inherits SIGINT ignored, which Python leaves so."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
+def _raise_terminated(signum: int, frame: Any) -> None:
+    raise Terminated()
+
+
+def _serve(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.model.feature_cache import SourceFeatureCache
     from gpnerf_core.data.frames import FrameCache
     from gpnerf_core.tools.viewer.server import ViewerOptions, ViewerServer, check_port_free, serve_until_stopped
@@ -59,10 +90,8 @@ def view_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             preview_stride=int(cfg.view.preview_stride), source_views=int(cfg.view.source_views),
             class_names=tuple(components.classes.names) if semantic else (),
         )
-        stop = threading.Event()
-        signal.signal(signal.SIGTERM, lambda *_: stop.set())
         server = ViewerServer(renderer, options).start()
-        serve_until_stopped(server, stop)
+        serve_until_stopped(server, threading.Event())
         return {"url": server.url if server.server else f"http://{host}:{port}", "frames": server.frames_delivered}
     finally:
         _remove_empty_job_folder(cfg)

@@ -139,7 +139,7 @@ class RenderConfig:
     focus: float = 2.0
     """``spiral``: distance to the point looked at, metres."""
     fps: int = 10
-    """Frames per second of the MP4 and GIF."""
+    """Frames per second of the MP4 and GIF, an integer in [1, 50] (``render`` checks it)."""
     feature_cache_mb: float = 512.0
     """Encoded source features kept between frames of the trajectory (``feature_cache``), megabytes; 0 = encode the
     sources of every frame again."""

@@ -10,6 +10,7 @@ each scene once it is read. A dataset subclasses it and says only how its layout
 
 from __future__ import annotations
 
+import math
 from abc import abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,17 +49,30 @@ class DatasetConfig:
     full (also decode every frame and check its labels) or off."""
 
 
+MAX_FAR = 1e6
+"""The largest ``far`` in metres (1000 km): past it no scene is reconstructed, and a far like 1e30 puts float32 sample
+points where their squares overflow (a nan loss in training instead of a refusal)."""
+
+
 def check_depth_range(near: float, far: float, *, automatic: bool = False) -> tuple[float, float]:
-    """``(near, far)`` in metres when ``0 < near < far``; with ``automatic`` both 0 (taken from the data) also passes.
+    """``(near, far)`` in metres when ``0 < near < far <= MAX_FAR``; with ``automatic`` both 0 (taken from the data)
+    also passes.
 
     Raises:
-        ConfigError: naming ``dataset.near`` and ``dataset.far``.
+        ConfigError: naming the key at fault (``dataset.near``, ``dataset.far``, or both when near >= far) and what is
+            expected.
     """
     if automatic and near == 0 and far == 0:
         return 0.0, 0.0
-    if not 0.0 < near < far or far == float("inf"):
-        expected = "both 0 (from the data) or 0 < near < far" if automatic else "0 < near < far"
-        raise ConfigError(f"dataset.near={near}, dataset.far={far}; expected {expected} (metres)")
+    both = "both 0 (from the data) or " if automatic else ""
+    if automatic and (near == 0) != (far == 0):
+        raise ConfigError(f"dataset.near={near}, dataset.far={far}: expected {both}both set, 0 < near < far (metres)")
+    if not math.isfinite(near) or near <= 0:
+        raise ConfigError(f"dataset.near={near}: expected {both}a finite distance > 0 (metres)")
+    if not math.isfinite(far) or not 0 < far <= MAX_FAR:
+        raise ConfigError(f"dataset.far={far}: expected {both}a finite distance in (dataset.near={near}, {MAX_FAR:g}] (metres)")
+    if near >= far:
+        raise ConfigError(f"dataset.near={near}, dataset.far={far}: expected {both}near < far (metres)")
     return float(near), float(far)
 
 

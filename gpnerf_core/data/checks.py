@@ -1,9 +1,12 @@
-"""The generic check of a dataset's files before training (``SceneDataset.check_files``).
+"""The generic check of a dataset's files before training (``SceneDataset.check_files``), and the value checks that it
+and the layout checkers of ``data check`` share (``far_away_cameras``, ``depth_problem``): one implementation, whichever
+way a dataset is checked.
 
 ``quick``: every scene loads (its reader indexes the files and reads the image headers and poses), every camera
-pose is a finite rigid transform and the cameras' scale fits the scene's near/far (``gpnerf_core.geometry.pose_sanity``).
-``full``: also every training and evaluation frame decodes, its colours lie in [0, 1], its depth is finite and
-non-negative and its labels are class ids or the ignore index. ``off``: nothing.
+pose is a finite rigid transform, no camera centre is absurdly far from the others, the cameras' scale fits the scene's
+near/far (``gpnerf_core.geometry.pose_sanity``), and ``QUICK_FRAMES`` frames per scene, spread over it, decode with
+valid values (below). ``full``: every training and evaluation frame decodes with valid values: colours in [0, 1],
+depth finite, non-negative and not all beyond ``far``, labels class ids or the ignore index. ``off``: nothing.
 
 ``check_scene_files`` returns the problems that refuse training; ``pose_warnings`` the pose findings that do not (an
 outlier, isolated or turned-away camera, a doubtful scale), which the pre-training check prints as notes.
@@ -11,9 +14,12 @@ outlier, isolated or turned-away camera, a doubtful scale), which the pre-traini
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Protocol, Sequence
 
+import numpy as np
 import torch
+from torch import Tensor
 
 from gpnerf_core.errors import ConfigError, GpnerfError
 from gpnerf_core.geometry.poses import EXPECTED_RIGID, rigid_transform_problem
@@ -34,6 +40,22 @@ class CheckedDataset(Protocol):
 
 
 VALIDATION_LEVELS = ("quick", "full", "off")
+
+QUICK_FRAMES = 8
+"""Frames per scene that ``quick`` decodes and checks like ``full`` does (spread evenly over the frames the scene uses,
+the first and last included): a badly converted scene (depth in other units or in 8 bits, labels outside the classes)
+shows on every frame, and 8 decodes per scene keep ``quick`` a small part of a run's start."""
+
+
+@dataclass(frozen=True)
+class ValueProblem:
+    """A value a check refuses: what was ``found`` and what is ``expected`` (the caller says where: file, frame)."""
+
+    found: str
+    expected: str
+
+    def __str__(self) -> str:
+        return f"{self.found}; expected {self.expected}"
 
 
 def check_validation_level(level: str) -> str:
@@ -62,10 +84,19 @@ def check_scene_files(dataset: CheckedDataset, scenes: Sequence[str], level: str
                 problems += [_located(name, f) for f in scene_pose_findings(scene) if f.refuses]
             except GpnerfError as exc:
                 problems.append(f"scene {name!r} {exc}")
-        if level == "full":
-            for index in sorted(set(scene.train_frames) | set(scene.eval_frames)):
-                problems += _frame_problems(dataset, scene, index)
+        for index in frames_to_check(scene, level):
+            problems += _frame_problems(dataset, scene, index)
     return problems
+
+
+def frames_to_check(scene: Scene, level: str) -> list[int]:
+    """The frames whose values ``level`` checks: every frame the scene uses (``full``), else ``QUICK_FRAMES`` of them
+    spread evenly (``quick``)."""
+    used = sorted(set(scene.train_frames) | set(scene.eval_frames))
+    if level == "full" or len(used) <= QUICK_FRAMES:
+        return used
+    step = (len(used) - 1) / (QUICK_FRAMES - 1)
+    return sorted({used[round(k * step)] for k in range(QUICK_FRAMES)})
 
 
 def pose_warnings(dataset: CheckedDataset, scenes: Sequence[str], level: str) -> list[str]:
@@ -119,13 +150,42 @@ FAR_AWAY = 1e4
 reach what the other cameras see (a pose in other units, or a corrupt value; float32 points there lose all precision)."""
 
 
-def _far_away_problems(name: str, scene: Scene) -> list[str]:
-    centres = scene.c2w[:, :3, 3].double()
+def far_away_cameras(c2w: Tensor | np.ndarray | Sequence[np.ndarray], far: float) -> dict[int, ValueProblem]:
+    """The cameras (by position in ``c2w``, ``[N, 4, 4]`` finite camera-to-world poses) whose centre is more than
+    ``FAR_AWAY`` x ``far`` (metres) from the median centre of all of them."""
+    poses = torch.as_tensor(np.asarray(c2w) if not isinstance(c2w, Tensor) else c2w).double()
+    if poses.shape[0] == 0:
+        return {}
+    centres = poses[:, :3, 3]
     distances = (centres - centres.median(dim=0).values).norm(dim=-1)
-    limit = FAR_AWAY * float(scene.far)
-    return [f"scene {name!r} frame {index}: camera centre {float(distances[index]):.3g} m from the scene's median "
-            f"centre, more than {FAR_AWAY:g} x far = {limit:.3g} m; expected poses in the units of near/far"
-            for index in range(len(centres)) if float(distances[index]) > limit]
+    limit = FAR_AWAY * float(far)
+    return {
+        index: ValueProblem(
+            f"camera centre {float(distances[index]):.3g} m from the scene's median centre, more than {FAR_AWAY:g} x "
+            f"far = {limit:.3g} m",
+            "poses in the units of near/far",
+        )
+        for index in range(len(centres))
+        if float(distances[index]) > limit
+    }
+
+
+def _far_away_problems(name: str, scene: Scene) -> list[str]:
+    found = far_away_cameras(scene.c2w, scene.far)
+    return [f"scene {name!r} frame {index}: {problem}" for index, problem in found.items()]
+
+
+def depth_problem(depth: Tensor | np.ndarray, far: float) -> ValueProblem | None:
+    """What is wrong with a ``[H, W]`` depth map in metres (0 = unknown): a negative or non-finite value, or every
+    known depth beyond ``far`` (depth in other units than the poses and near/far); None when nothing is."""
+    depth = torch.as_tensor(depth)
+    if not torch.isfinite(depth).all() or bool((depth < 0).any()):
+        return ValueProblem("depth negative or not finite", "metres >= 0 (0 = unknown)")
+    known = depth[depth > 0]
+    if known.numel() and float(known.min()) > float(far):
+        return ValueProblem(f"every known depth is beyond far={float(far):g} (nearest {float(known.min()):.3g})",
+                            "depth in the units of the poses and near/far")
+    return None
 
 
 def _frame_problems(dataset: CheckedDataset, scene: Scene, index: int) -> list[str]:
@@ -138,12 +198,9 @@ def _frame_problems(dataset: CheckedDataset, scene: Scene, index: int) -> list[s
     rgb = frame.rgb
     if not torch.isfinite(rgb).all() or rgb.min() < 0 or rgb.max() > 1:
         problems.append(f"{where}: colours outside [0, 1] or not finite; expected RGB in [0, 1]")
-    if not torch.isfinite(frame.depth).all() or frame.depth.min() < 0:
-        problems.append(f"{where}: depth negative or not finite; expected metres >= 0 (0 = unknown)")
-    elif bool((frame.depth > 0).any()) and float(frame.depth[frame.depth > 0].min()) > float(scene.far):
-        problems.append(f"{where}: every known depth is beyond far={float(scene.far):g} (nearest "
-                        f"{float(frame.depth[frame.depth > 0].min()):.3g}); expected depth in the units of the poses and "
-                        "near/far")
+    depth = depth_problem(frame.depth, scene.far)
+    if depth is not None:
+        problems.append(f"{where}: {depth}")
     labels = frame.semantic
     bad = (labels != dataset.ignore_index) & ((labels < 0) | (labels >= dataset.num_classes))
     if bool(bad.any()):

@@ -7,13 +7,18 @@ A Hydra command (``run``, ``eval``, ``finetune``, ``render``) goes through these
    Guarantee: a bad override or value is one line and exit code 2, and nothing is written.
 2. ``@job`` around the task: joins the torchrun process group (if any) and turns every error caused by input or
    environment into one line on stderr and an exit code, never a traceback (``GPNERF_DEBUG=1`` re-raises).
-   In a ``-m`` sweep a failing job writes ``error.json`` into its own folder and the others go on; the command
-   exits 2 after the sweep (``FAILED_SWEEP_JOBS``). A job refused before training leaves no folder behind.
+   An exception raised in a component's own code (a plugin's bug) is one line naming the component, its plugin and
+   distribution, exit code 1. In a ``-m`` sweep a failing job writes ``error.json`` into its own folder (never into
+   a folder it was refused for) and the others go on; the command exits 2 after the sweep (``FAILED_SWEEP_JOBS``,
+   one entry per failed job). A failed job removes only what it created: the run files it wrote before a
+   checkpoint, and the folders it made; a refusal removes nothing else.
 3. ``start(cfg)`` inside the task: validates again (a sweep's jobs were not prechecked), refuses a fixed ``out_dir``
    shared by a sweep's jobs, sets the thread count and the seed (which fixes the model's initialisation).
 4. ``plan_resume(cfg, dist)`` (``run``): turns ``train.resume=auto`` into the newest intact checkpoint of ``out_dir`` (or a
-   fresh start) and refuses a resume the checkpoint cannot honour (another seed, fewer steps than it reached).
-5. ``claim_run_folder(cfg, dist, resuming=...)``: rank 0 locks the run folder (refusing a live one, and a finished one
+   fresh start) and refuses a resume the checkpoint cannot honour (another seed, fewer steps than it reached,
+   another model or loss); ``run`` then builds its trainer, whose own resume checks refuse before step 5 too.
+5. ``claim_run_folder(cfg, dist, resuming=...)``, the first write into the run folder, once nothing can refuse the
+   command any more: rank 0 locks the run folder (refusing a live one, and a finished one
    unless resuming or ``overwrite=true``) and writes what the run is made from (``config.yaml``, its hash,
    ``overrides.yaml``, ``plugins.json``); every other rank learns the folder from rank 0 and writes nothing.
 
@@ -48,14 +53,21 @@ from gpnerf_core.config.overrides import (
     quoted_for_hydra,
 )
 from gpnerf_core.runtime.signals import Terminated, interrupted_by, interruption
-from gpnerf_core.runtime.run_folder import RunFolder, RunFolderError, remove_untrained_run
-from gpnerf_core.model.checkpoint import RunRecord
-from gpnerf_core.model.trained import TrainedModel, load_trained, restore_model_settings
+from gpnerf_core.runtime.run_folder import (
+    RunFolder,
+    RunFolderError,
+    adopt_new_folder,
+    made_by_this_command,
+    make_folder,
+    remove_made_folders,
+)
+from gpnerf_core.model.checkpoint import RunRecord, check_recorded_components, check_resume_config
+from gpnerf_core.model.trained import TrainedModel, checked_checkpoint_path, load_trained, restore_model_settings
 from gpnerf_core.model.weights import load_weights
 from gpnerf_core.training.interrupt import TrainingInterrupted
 from gpnerf_core.training.resume import newest_intact_checkpoint
-from gpnerf_core.engine.setup import check_component_choices, compose_checked, setup_process
-from gpnerf_core.engine.validation import check_data, validate_config
+from gpnerf_core.engine.setup import check_component_choices, check_config, compose_checked, setup_process
+from gpnerf_core.engine.validation import check_data
 
 FAILED_SWEEP_JOBS: list[str] = []
 """Run folders of the jobs of this process's ``-m`` sweep that failed (the command exits 2 after the sweep)."""
@@ -97,17 +109,21 @@ def launch_from_checkpoint(task: Callable[[DictConfig], Any], argv: list[str], c
 
     The model settings a default change would alter are restored from the checkpoint inside the task
     (``checkpoint_config``)."""
+    if "--help" in argv or "-h" in argv:  # Hydra's help (config groups and options): no checkpoint needed
+        return launch(task, argv, f"gpnerf_core {command}")
     given = [a for a in argv if a.startswith("checkpoint=")]
     if not given:
         raise GpnerfError(f"{command} needs checkpoint=<path to a .pt file written by run>")
-    stored = load_trained(given[-1].split("=", 1)[1]).overrides  # the task reads the same file: not read again
-    return launch(task, merge_overrides(stored, argv), f"gpnerf_core {command}")
+    trained = load_trained(given[-1].split("=", 1)[1])  # the task reads the same file: not read again
+    check_recorded_components(trained.state, trained.path)
+    return launch(task, merge_overrides(trained.overrides, argv), f"gpnerf_core {command}")
 
 
 def precheck(argv: list[str]) -> None:
     """Compose and validate the config before Hydra starts (and creates the run folder), so a bad override or value
-    is one line and exit code 2. Sweeps (``-m``) and Hydra's own flags are left to Hydra; every job validates too."""
-    if any(argument.startswith("-") for argument in argv):
+    is one line and exit code 2. Sweeps (``-m``), Hydra's own flags and ``${hydra:...}`` values (which only resolve
+    inside a job) are left to Hydra; every job validates too."""
+    if any(argument.startswith("-") or "${hydra:" in argument for argument in argv):
         return
     overrides = [a for a in argv if not a.lstrip("+~").startswith(("hydra.", "hydra/")) or is_search_path(a)]
     cfg = compose_checked(overrides)
@@ -133,9 +149,10 @@ def check_default_output_root(root: Path) -> None:
 
 
 def check_writable_folder(path: Path) -> None:
-    """Create ``path`` (Hydra would, with a traceback on failure): one line naming it when that is impossible."""
+    """Create ``path`` (Hydra would, with a traceback on failure): one line naming it when that is impossible. The
+    folders made are remembered: a refused or failed command removes them again (``remove_made_folders``)."""
     try:
-        path.mkdir(parents=True, exist_ok=True)
+        make_folder(path)
     except OSError as exc:
         raise RunFolderError(
             f"out_dir={path} cannot be created ({exc.strerror or exc}); choose a writable out_dir"
@@ -165,36 +182,47 @@ def distributed(task: Callable[[DictConfig, Distributed], Any]) -> Callable[[Dic
 
 
 def guarded(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
-    """Errors caused by input or environment, and interruptions, become one line on stderr and an exit code.
+    """Errors caused by input or environment, faults of a plugin's code, and interruptions become one line on stderr
+    and an exit code.
 
-    Exit codes: 2 for a refused input or an environment fault (full disk, read-only folder), the signal's code for an
-    interruption during training (after the checkpoint it wrote and the command that resumes from it are printed),
-    130 for Ctrl-C outside training. In a ``-m`` sweep a failing job does not stop the others: its error goes to
-    ``error.json`` in its folder and the command exits 2 once the sweep is done. A job refused before training
-    leaves no run folder behind.
+    Exit codes: 2 for a refused input or an environment fault (full disk, read-only folder); 1 for an exception raised
+    in a component's code (a plugin's bug: the line names the component, its plugin and distribution); the signal's
+    code for an interruption during training (after the checkpoint it wrote and the command that resumes from it are
+    printed), 130 for Ctrl-C outside training. An exception raised in gpnerf-core's own code keeps its traceback. In
+    a ``-m`` sweep a failing job does not stop the others: its error goes to ``error.json`` in its folder (never into
+    a folder it was refused for) and the command exits 2 once the sweep is done. A failed job removes only what it
+    created: the run files written before its first checkpoint, and the folders it made.
     """
 
     def wrapper(cfg: DictConfig) -> Any:
+        hydra = hydra_config()
+        if hydra is not None:
+            adopt_new_folder(Path(hydra.runtime.output_dir))  # made by Hydra for this job
         try:
             return task(cfg)
         except (GpnerfError, OSError) as exc:
             if os.environ.get("GPNERF_DEBUG"):
+                _remove_made_run_folder(cfg)
                 raise
+            message = str(exc)
             if isinstance(exc, OSError):  # an environment fault: a full disk, a vanished or read-only folder
                 where = f"{exc.filename}: " if exc.filename else ""
-                exc = f"{where}{exc.strerror or exc}; the run stopped (free space, fix permissions or choose another folder)"
-            print(f"error: {exc}", file=sys.stderr)
-            if in_sweep() and record_sweep_failure(cfg, str(exc)):
-                return None
-            _remove_if_empty(cfg)
-            sys.exit(2)
+                message = f"{where}{exc.strerror or exc}; the run stopped (free space, fix permissions or choose another folder)"
+            return _fail(cfg, message, 2, refused_folder=isinstance(exc, RunFolderError))
         except RuntimeError as exc:
-            if not lost_peer(exc) or os.environ.get("GPNERF_DEBUG"):
+            if os.environ.get("GPNERF_DEBUG"):
+                _remove_made_run_folder(cfg)
                 raise
-            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            print(f"error: another process of the job stopped ({first[:160]}); under torchrun --max-restarts=N with "
-                  "train.resume=auto the group restarts from the newest checkpoint", file=sys.stderr)
-            sys.exit(1)
+            if lost_peer(exc):
+                first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+                print(f"error: another process of the job stopped ({first[:160]}); under torchrun --max-restarts=N "
+                      "with train.resume=auto the group restarts from the newest checkpoint", file=sys.stderr)
+                sys.exit(1)
+            fault = component_fault(cfg, exc)
+            if fault is None:
+                _remove_made_run_folder(cfg)
+                raise
+            return _fail(cfg, fault, 1)
         except TrainingInterrupted as stop:
             if stop.checkpoint is not None:
                 print(
@@ -207,13 +235,89 @@ def guarded(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
             # An Exception here may be a library's own error raised while an interruption unwound through it.
             stop = interrupted_by(exc)
             if stop is None:
-                raise
+                fault = None if os.environ.get("GPNERF_DEBUG") else component_fault(cfg, exc)
+                if fault is None:
+                    _remove_made_run_folder(cfg)
+                    raise
+                return _fail(cfg, fault, 1)
             name, code = interruption(stop)
             print(f"interrupted ({name}) outside the training loop; files already written stay", file=sys.stderr)
             sys.exit(code)
 
     wrapper.__name__ = task.__name__
     return wrapper
+
+
+def _fail(cfg: DictConfig, message: str, code: int, *, refused_folder: bool = False) -> None:
+    """Print ``message`` as the job's one line; in a sweep record it and go on, else remove the folders this command
+    made (left empty) and exit with ``code``. ``refused_folder``: the job was refused the run folder itself."""
+    print(f"error: {message}", file=sys.stderr)
+    if in_sweep() and record_sweep_failure(cfg, message, refused_folder=refused_folder):
+        return None
+    _remove_made_run_folder(cfg)
+    sys.exit(code)
+
+
+def _remove_made_run_folder(cfg: DictConfig) -> None:
+    """Remove the job's run folder if this command made it and it is empty (``remove_made_folders``)."""
+    try:
+        remove_made_folders(run_dir(cfg))
+    except GpnerfError:
+        pass
+
+
+def component_fault(cfg: DictConfig, exc: BaseException) -> str | None:
+    """The line for an exception raised in the code of a component ``cfg`` uses (a plugin's bug), naming the component,
+    the plugin and the distribution that provide it and the exception's own first line; None when no component's code
+    is in its traceback (a fault of gpnerf-core keeps its traceback), for an out-of-memory error and for an error
+    raised while an interruption unwound (which stays an interruption)."""
+    from gpnerf_core.registry.plugins import one_line
+
+    if isinstance(exc, (MemoryError, torch.cuda.OutOfMemoryError)) or interrupted_by(exc) is not None:
+        return None
+    entry = _raising_component(exc, components_of(cfg))
+    if entry is None:
+        return None
+    return (
+        f"{entry.where} raised {type(exc).__name__}: {one_line(exc)}; a fault in that plugin's code: "
+        "GPNERF_DEBUG=1 shows the traceback to report to its authors"
+    )
+
+
+def components_of(cfg: DictConfig) -> dict[str, Any]:
+    """``kind -> RegisteredComponent`` of the components ``cfg`` selects."""
+    from gpnerf_core.registry.components import get_registry
+    from gpnerf_core.registry.kinds import KINDS
+
+    registry = get_registry()
+    found = {}
+    for kind in KINDS:
+        node = cfg.get(kind)
+        if node is not None and "name" in node and str(node.name) in registry.components[kind]:
+            found[kind] = registry.components[kind][str(node.name)]
+    return found
+
+
+def _raising_component(exc: BaseException, components: dict[str, Any]) -> Any:
+    """The component whose code the innermost frame of ``exc``'s traceback that lies in any component's code belongs
+    to: a method of an instance of its class, or its factory's module, else its factory's package (None: none)."""
+    frames = []
+    tb = exc.__traceback__
+    while tb is not None:
+        frames.append(tb.tb_frame)
+        tb = tb.tb_next
+    factories = {kind: entry.spec.factory for kind, entry in components.items()}
+    for frame in reversed(frames):
+        module = str(frame.f_globals.get("__name__", ""))
+        owner = frame.f_locals.get("self")
+        for kind, factory in factories.items():
+            if isinstance(factory, type) and isinstance(owner, factory) or module == factory.__module__:
+                return components[kind]
+        for kind, factory in factories.items():
+            package = factory.__module__.rpartition(".")[0] or factory.__module__
+            if module == package or module.startswith(package + "."):
+                return components[kind]
+    return None
 
 
 class SweepFailures(Callback):
@@ -258,32 +362,48 @@ def in_sweep() -> bool:
     return hydra is not None and hydra.mode == RunMode.MULTIRUN
 
 
-def record_sweep_failure(cfg: DictConfig, message: str) -> bool:
-    """Write ``error.json`` (the error and the job's overrides) into the job's folder; False if that is impossible."""
-    try:
-        folder = run_dir(cfg)
-        folder.mkdir(parents=True, exist_ok=True)
-        record = {"error": message, "overrides": list(task_overrides())}
-        atomic_write_json(folder / ERROR_FILE, record)
-        hydra = hydra_config()
-        job_dir = Path(hydra.runtime.output_dir) if hydra is not None else folder
-        if job_dir.resolve() != folder.resolve():  # the sweep's own folder of this job: SweepFailures looks there
-            atomic_write_json(job_dir / ERROR_FILE, record | {"run_folder": str(folder)})
-        if not (folder / "config.yaml").exists():
-            atomic_write_text(folder / "config.yaml", OmegaConf.to_yaml(cfg, resolve=False))
-    except (GpnerfError, OSError, ValueError):
-        return False
-    FAILED_SWEEP_JOBS.append(str(folder))
-    return True
+def record_sweep_failure(cfg: DictConfig, message: str, *, refused_folder: bool = False) -> bool:
+    """Record a failed job of a sweep: ``error.json`` (the error and the job's overrides) into its run folder, and
+    into Hydra's folder of the job when that is another; the job counts once in ``FAILED_SWEEP_JOBS``. False when
+    writing failed.
 
-
-def _remove_if_empty(cfg: DictConfig) -> None:
-    """Hydra creates the run folder before the job starts: a job refused before training leaves none behind."""
+    The run folder gets the record (and the job's ``config.yaml``, if it has none) only when the job may write
+    there: not when it was refused that folder (``refused_folder``: shared by the sweep's jobs, held by a run,
+    not empty), and only a folder this command made or claimed (a finished run's folder is not marked failed).
+    """
+    record = {"error": message, "overrides": list(task_overrides())}
+    hydra = hydra_config()
+    job_dir = Path(hydra.runtime.output_dir) if hydra is not None else None
     try:
         folder = run_dir(cfg)
     except GpnerfError:
-        return
-    remove_untrained_run(folder)
+        folder = None
+    written = None
+    try:
+        if folder is not None and not refused_folder and _may_record_into(folder):
+            make_folder(folder)
+            atomic_write_json(folder / ERROR_FILE, record)
+            if not (folder / "config.yaml").exists():
+                atomic_write_text(folder / "config.yaml", OmegaConf.to_yaml(cfg, resolve=False))
+            written = folder
+        if job_dir is not None and (folder is None or job_dir.resolve() != folder.resolve()):
+            # Hydra's folder of this job, where SweepFailures looks: it names the run folder holding the record
+            atomic_write_json(job_dir / ERROR_FILE, record | ({"run_folder": str(written)} if written else {}))
+            written = written or job_dir
+    except (GpnerfError, OSError, ValueError):
+        return False
+    FAILED_SWEEP_JOBS.append(str(written) if written else f"{folder or job_dir} (refused: no {ERROR_FILE} written)")
+    return True
+
+
+def _may_record_into(folder: Path) -> bool:
+    """A failed job writes its record only into a folder that does not exist yet, or that this command made or
+    claimed."""
+    return not folder.exists() or made_by_this_command(folder) or folder.absolute() in _CLAIMED_FOLDERS
+
+
+_CLAIMED_FOLDERS: set[Path] = set()
+"""Run folders this process claimed (``claim_run_folder``)."""
 
 
 def resume_command(folder: Path, checkpoint: Path | None) -> str:
@@ -307,7 +427,7 @@ def resume_command(folder: Path, checkpoint: Path | None) -> str:
 
 def start(cfg: DictConfig) -> None:
     """Refuse bad values before any work (a sweep's jobs share no fixed ``out_dir``), then ``setup_process``."""
-    validate_config(cfg)
+    check_config(cfg)
     _refuse_shared_out_dir(cfg)
     setup_process(cfg)
 
@@ -318,7 +438,7 @@ def _refuse_shared_out_dir(cfg: DictConfig) -> None:
         return
     raw = OmegaConf.to_container(cfg, resolve=False).get("out_dir")  # the interpolation as typed, before resolving
     if "${" not in str(raw):
-        raise ConfigError(
+        raise RunFolderError(
             f"out_dir={cfg.out_dir} with -m: every job of the sweep would write that one folder; leave out_dir "
             "unset (jobs go under hydra.sweep.dir) or make it depend on the job, e.g. 'out_dir=runs/${hydra:job.num}'"
         )
@@ -343,10 +463,15 @@ def plan_resume(cfg: DictConfig, dist: Distributed) -> ResumePlan:
     """Resolve ``train.resume`` (``auto``: rank 0 picks the newest intact checkpoint of ``out_dir`` and every rank takes
     the same) and check that the checkpoint can continue this config; ``cfg.train.resume`` becomes the path chosen.
 
+    Every check of the checkpoint that refuses the resume runs before the run folder is touched: here the seed, the
+    steps and (``train.resume_strict``) the model and loss config; the trainer's own (weights, optimizer state, weight
+    average) run when it is built, which ``run`` does before it claims the folder.
+
     Raises:
         ConfigError: ``auto`` without ``out_dir``; another ``seed`` than the checkpoint's (its random streams go on,
-            the new seed would be recorded but not used); ``train.steps`` below the checkpoint's step.
-        DataError: the checkpoint is missing or damaged; ``auto`` found only damaged ones.
+            the new seed would be recorded but not used); ``train.steps`` below the checkpoint's step; another model
+            or loss config (``check_resume_config``, unless ``train.resume_strict=false``).
+        DataError: the checkpoint is missing, a folder or damaged; ``auto`` found only damaged ones.
     """
     value = cfg.train.resume
     if not value:
@@ -365,10 +490,8 @@ def plan_resume(cfg: DictConfig, dist: Distributed) -> ResumePlan:
             notes.append(f"train.resume=auto: no checkpoint in {cfg.out_dir}; training from the start")
             return ResumePlan(None, tuple(notes), replace_leftovers=True)
         notes.append(f"train.resume=auto: resuming from {found}")
-    path = Path(str(cfg.train.resume))
-    if not path.is_file():
-        raise DataError(f"train.resume={path}: no such file; expected a checkpoint written by run (checkpoints/)")
-    state = load_trained(path).state  # the trainer reads the same file: not read again
+    path = checked_checkpoint_path(str(cfg.train.resume), "train.resume")
+    state = load_trained(path, "train.resume").state  # the trainer reads the same file: not read again
     written = OmegaConf.create(state["config"]) if state.get("config") else OmegaConf.create({})
     if "seed" in written and int(written.seed) != int(cfg.seed):
         raise ConfigError(
@@ -380,6 +503,8 @@ def plan_resume(cfg: DictConfig, dist: Distributed) -> ResumePlan:
             f"train.resume={path}: train.steps={int(cfg.train.steps)} is below the step {int(state['step'])} the "
             "checkpoint reached; give train.steps >= that step (equal: evaluate it again)"
         )
+    if cfg.train.resume_strict:  # another model or loss: refused here, before anything is written
+        check_resume_config(path, state["config"], OmegaConf.to_yaml(cfg, resolve=True), True)
     return ResumePlan(path, tuple(notes))
 
 
@@ -395,16 +520,29 @@ def _find_auto_checkpoint(folder: Path) -> tuple[str, Any, Any]:
     return ("ok", None if found is None else str(found), notes)
 
 
+def shared_run_dir(cfg: DictConfig, dist: Distributed) -> Path:
+    """The run folder, as rank 0 names it (``run_dir``), on every rank; nothing is created."""
+    return Path(dist.broadcast_object(str(run_dir(cfg)) if dist.is_main else None))
+
+
 def claim_run_folder(
-    cfg: DictConfig, dist: Distributed, *, resuming: bool, replace_leftovers: bool = False
+    cfg: DictConfig,
+    dist: Distributed,
+    *,
+    resuming: bool,
+    replace_leftovers: bool = False,
+    record: RunRecord | None = None,
 ) -> tuple[RunFolder, RunRecord]:
     """Rank 0 claims (locks) the run folder and writes what the run is made from; every rank gets the same folder.
 
-    Returns the claimed folder (a context manager that releases the lock) and the run's record (config YAML, its
-    hash, overrides, components with providers and versions). A refusal (a live run holds the folder; a finished
+    Call it once every check that can refuse the command has passed: it is the first write into the folder.
+
+    Returns the claimed folder (a context manager that releases the lock and, on an error, removes the run files this
+    command wrote before a checkpoint) and the run's record (config YAML, its hash, overrides, components with
+    providers and versions; ``record``, or ``run_record(cfg)``). A refusal (a live run holds the folder; a finished
     run is there and neither resuming nor ``overwrite=true``) is raised on every rank as one ``RunFolderError``.
     """
-    folder_path = Path(dist.broadcast_object(str(run_dir(cfg)) if dist.is_main else None))
+    folder_path = shared_run_dir(cfg, dist)
     folder = RunFolder(folder_path)
     outcome: tuple[str, Any] = ("ok", [])
     if dist.is_main:
@@ -416,14 +554,15 @@ def claim_run_folder(
     outcome = dist.broadcast_object(outcome)
     if outcome[0] == "error":
         raise RunFolderError(outcome[1])
-    record = run_record(cfg)
+    record = record or run_record(cfg)
     if dist.is_main:
+        _CLAIMED_FOLDERS.add(folder_path.absolute())
         for note in outcome[1]:
             print(f"note: {note}", file=sys.stderr)
         try:
             _write_run_files(folder_path, record)
-        except BaseException:
-            folder.release()
+        except BaseException as exc:
+            folder.__exit__(type(exc), exc, exc.__traceback__)
             raise
     return folder, record
 
@@ -436,16 +575,11 @@ def command_inputs(cfg: DictConfig) -> list[Path]:
 
 def run_record(cfg: DictConfig) -> RunRecord:
     """The run's config (resolved), overrides and the components it uses with their providers and versions."""
-    from gpnerf_core.registry.components import get_registry
-    from gpnerf_core.registry.kinds import KINDS
-
-    registry = get_registry()
-    components = {}
-    for kind in KINDS:
-        node = cfg.get(kind)
-        if node is not None and "name" in node and str(node.name) in registry.components[kind]:
-            entry = registry.components[kind][str(node.name)]
-            components[kind] = {"name": entry.spec.name, "provider": entry.provider, "version": entry.version}
+    components = {
+        kind: {"name": entry.spec.name, "provider": entry.provider, "version": entry.version,
+               "distribution": entry.distribution}
+        for kind, entry in components_of(cfg).items()
+    }
     return RunRecord(
         config_yaml=OmegaConf.to_yaml(cfg, resolve=True), overrides=task_overrides(), components=components
     )

@@ -10,7 +10,8 @@ from __future__ import annotations
 from typing import Any
 
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import InterpolationResolutionError
 
 from gpnerf_core.config.compose import compose
 from gpnerf_core.engine.validation import validate_config
@@ -24,14 +25,69 @@ def compose_checked(overrides: list[str]) -> DictConfig:
     """The config ``overrides`` compose, validated; an unknown component, an override Hydra cannot apply and a value
     the schema refuses are each one ``GpnerfError`` (for ``precheck`` and the commands that are not Hydra jobs)."""
     check_component_choices(overrides, get_registry())
+    check_override_grammar(overrides)
     try:
         cfg = compose(overrides)
     except GpnerfError:
         raise
     except Exception as exc:
         raise ConfigError(hydra_message(exc)) from None
-    validate_config(cfg)
+    check_config(cfg)
     return cfg
+
+
+def check_config(cfg: DictConfig) -> None:
+    """``validate_config``, after every interpolation resolves: one that does not (``train.steps=${oops}``) is one
+    ``ConfigError`` naming the key, the value as typed and why."""
+    problem = unresolvable_interpolation(cfg)
+    if problem is not None:
+        key, raw, reason = problem
+        raise ConfigError(f"{key}={raw}: the interpolation cannot be resolved ({reason}); "
+                          "${...} must name a key of the config, e.g. ${train.rays}")
+    try:
+        validate_config(cfg)
+    except InterpolationResolutionError as exc:  # one unresolvable_interpolation does not reach (a resolver's own)
+        raise ConfigError(hydra_message(exc)) from None
+
+
+def unresolvable_interpolation(node: Any, prefix: str = "") -> tuple[str, str, str] | None:
+    """``(dotted key, value as typed, reason)`` of the first interpolation in ``node`` that does not resolve (None:
+    all do). ``${hydra:...}`` is skipped outside a Hydra job, where it cannot resolve yet."""
+    keys = node.keys() if isinstance(node, DictConfig) else range(len(node)) if isinstance(node, ListConfig) else ()
+    for key in keys:
+        path = f"{prefix}{key}" if isinstance(node, DictConfig) else f"{prefix.rstrip('.')}[{key}]"
+        if OmegaConf.is_interpolation(node, key):
+            raw = str(node._get_node(key)._value())
+            if "${hydra:" in raw.replace(" ", ""):
+                continue
+            try:
+                node[key]
+            except InterpolationResolutionError as exc:
+                return path, raw, hydra_message(exc)
+            continue
+        child = node._get_node(key)
+        if isinstance(child, (DictConfig, ListConfig)) and not child._is_missing() and not child._is_none():
+            found = unresolvable_interpolation(child, f"{path}.")
+            if found is not None:
+                return found
+    return None
+
+
+def check_override_grammar(overrides: list[str]) -> None:
+    """Refuse an override Hydra's grammar cannot read in one line naming it and how to quote it (Hydra's own message
+    names neither)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parser = OverridesParser.create()
+    for override in overrides:
+        try:
+            parser.parse_override(override)
+        except Exception as exc:
+            key, sep, value = override.partition("=")
+            first = (str(exc).strip().splitlines() or [type(exc).__name__])[0].split(" See https://")[0]
+            advice = (f"put the value in quotes, as one shell argument: \"{key}='{value}'\"" if sep and value
+                      else "expected key=value")
+            raise ConfigError(f"{override}: Hydra's override grammar cannot read it ({first}); {advice}") from None
 
 
 def check_component_choices(argv: list[str], registry: Any) -> None:
@@ -64,7 +120,7 @@ def hydra_message(exc: BaseException) -> str:
 def setup_process(cfg: DictConfig) -> torch.device:
     """Validate ``cfg`` (``validate_config``), give torch ``cfg.threads`` threads (0: its default) and seed it with
     ``cfg.seed`` (which fixes every model's initialisation); returns the device ``cfg.device`` resolves to."""
-    validate_config(cfg)
+    check_config(cfg)
     if cfg.threads:
         torch.set_num_threads(int(cfg.threads))
     torch.manual_seed(int(cfg.seed))

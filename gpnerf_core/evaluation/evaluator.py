@@ -168,6 +168,38 @@ def evaluate(
     }
 
 
+def check_splits_have_frames(cfg: Any, components: Components) -> list[str]:
+    """Refuse ``eval.splits`` that select no frame of the dataset at all, before anything is evaluated or written; the
+    notes (one line each) for the splits that are empty while another is not.
+
+    A split's frames are the ``eval_frames`` of its scenes (the held-out frames of the ``train`` scenes; those of the
+    ``unseen`` scenes).
+
+    Raises:
+        ConfigError: ``eval.splits`` empty, or every split in it without frames (naming each split, what it has, the
+            dataset and what is expected).
+    """
+    splits = [str(split) for split in cfg.eval.splits]
+    if not splits:
+        raise ConfigError(f"eval.splits=[]: nothing to evaluate; expected some of {', '.join(SPLIT_LABELS)}")
+    dataset = components.dataset
+    empty = {}
+    for split in splits:
+        scenes = dataset.scenes(split)
+        frames = sum(len(dataset.load_scene(name).eval_frames) for name in scenes)
+        if not frames:
+            empty[split] = (f"split {split!r} has {len(scenes)} scene(s) and no evaluation frame in them" if scenes
+                            else f"split {split!r} has no scene")
+    where = f"dataset {cfg.dataset.name!r}" + (f" (dataset.root={cfg.dataset.root})" if cfg.dataset.get("root") else "")
+    if len(empty) == len(splits):
+        raise ConfigError(
+            f"eval.splits=[{', '.join(splits)}] select no frame of {where}: {'; '.join(empty.values())}; expected "
+            "held-out frames in the training scenes (split 'train') or unseen scenes (split 'unseen'): change the "
+            "dataset's split options (its held-out frames, dataset.unseen_scenes) or eval.splits"
+        )
+    return [f"{reason} in {where}: {SPLIT_LABELS[split]} scores no image" for split, reason in empty.items()]
+
+
 def _targets(cfg: Any, components: Components, frames: FrameCache, split: str) -> list[tuple[Scene, int]]:
     """The split's evaluation views in a fixed order (capped per scene by ``eval.max_views_per_scene``)."""
     cap = int(cfg.eval.max_views_per_scene)
@@ -437,6 +469,9 @@ def print_summary(metrics: dict[str, Any], run_dir: Path) -> None:
         )
     for split, values in metrics.get("eval", {}).items():
         parts = [f"{split:>14}:"]
+        if values.get("count/images") == 0:
+            lines.append(f"{split:>14}: no images ({values.get('note', 'no evaluation frames')})")
+            continue
         reason = values.get(M.LABELS_UNAVAILABLE_REASON)
         if reason is not None:
             parts.append(f"labels: not available ({reason})")

@@ -14,6 +14,7 @@ from gpnerf_core.interfaces.head import Predicts
 from gpnerf_core.interfaces.model import ModelFamily, ModelParts
 from gpnerf_core.model.classes import ClassList
 from gpnerf_core.registry.components import Registry, get_registry
+from gpnerf_core.registry.guards import guard_outputs
 from gpnerf_core.registry.kinds import KINDS
 
 
@@ -51,7 +52,10 @@ def head_outputs(head_cfg: Any, num_classes: int, registry: Registry) -> int:
 
 
 class ConfiguredParts(ModelParts):
-    """``ModelParts`` of a composed config: a model family builds the components the config selects through it."""
+    """``ModelParts`` of a composed config: a model family builds the components the config selects through it.
+
+    A head's or feature extractor's output is checked where it is made (``registry.guards``): the wrong shape or a
+    NaN stops the run naming that component and its plugin."""
 
     def __init__(self, cfg: Any, num_classes: int, registry: Registry) -> None:
         self._cfg = cfg
@@ -82,6 +86,7 @@ class ConfiguredParts(ModelParts):
             raise ConfigError(f"model {self._cfg.model.name!r} needs a {kind}; the config selects none "
                               f"(known: {', '.join(self._registry.names(kind))})")
         component = self._registry.build(kind, self._cfg[kind], **runtime)
+        guard_outputs(kind, component, self._registry.get(kind, self.name(kind)).where)
         self.built.append(component)
         return component
 

@@ -15,6 +15,7 @@ otherwise load, evaluate and resume without a word. Checkpoints written before t
 from __future__ import annotations
 
 import hashlib
+import importlib.metadata
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Mapping
@@ -24,7 +25,7 @@ import yaml
 
 from gpnerf_core.config.legacy import upgrade_config_yaml, upgrade_overrides
 from gpnerf_core.config.schema import ModelConfig
-from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.errors import ConfigError, DataError, PluginError
 from gpnerf_core.model.classes import ClassList
 from gpnerf_core.registry.components import get_registry
 from gpnerf_core.registry.kinds import KINDS
@@ -150,14 +151,18 @@ def _digest_value(digest: Any, value: Any) -> None:
         digest.update(f"{type(value).__name__}:{value!r};".encode())
 
 
-def verify_content(state: Mapping[str, Any], path: str | Path) -> None:
-    """Raise DataError naming ``path`` when the checkpoint's contents differ from the hash written with them."""
+def verify_content(state: Mapping[str, Any], path: str | Path, label: str | None = None) -> None:
+    """Raise DataError naming ``path`` when the checkpoint's contents differ from the hash written with them.
+
+    Args:
+        label: how the file is named in the error (default ``checkpoint <path>``; ``model.init=<path>``).
+    """
     stored = state.get(DIGEST_KEY)
     if stored is None:
         return
     if content_digest(state) != stored:
         raise DataError(
-            f"checkpoint {path} is damaged: its contents do not match the content_sha256 written with it "
+            f"{label or f'checkpoint {path}'} is damaged: its contents do not match the content_sha256 written with it "
             "(changed or corrupted bytes); use an earlier checkpoint of the run"
         )
 
@@ -168,22 +173,65 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     return checked_state(read_torch_file(path), path)
 
 
-def checked_state(state: Any, path: str | Path) -> dict[str, Any]:
+def checked_state(state: Any, path: str | Path, label: str | None = None) -> dict[str, Any]:
     """What every reader of a gpnerf-core checkpoint checks of its dictionary: a checkpoint, of this format version, its
-    contents matching their hash; configs written by earlier versions are then brought to today's keys."""
+    contents matching their hash; configs written by earlier versions are then brought to today's keys.
+
+    Args:
+        label: how the file is named in errors (default ``checkpoint <path>``; ``model.init=<path>``).
+    """
+    label = label or f"checkpoint {path}"
     if not isinstance(state, dict) or "format" not in state:
-        raise DataError(f"checkpoint {path} is not a gpnerf-core checkpoint (no 'format' key)")
+        raise DataError(f"{label} is not a gpnerf-core checkpoint (no 'format' key)")
     if state["format"] != FORMAT_VERSION:
         raise DataError(
-            f"checkpoint {path} has format {state['format']!r}; this gpnerf-core reads format {FORMAT_VERSION} "
+            f"{label} has format {state['format']!r}; this gpnerf-core reads format {FORMAT_VERSION} "
             "(it was written by another version: evaluate it with that version, or retrain)"
         )
-    verify_content(state, path)
+    verify_content(state, path, label)
     if isinstance(state.get("config"), str):
         state["config"] = upgrade_config_yaml(state["config"])
     if isinstance(state.get("overrides"), list):
         state["overrides"] = upgrade_overrides([str(o) for o in state["overrides"]])
     return state
+
+
+def check_recorded_components(state: Mapping[str, Any], path: str | Path) -> None:
+    """Refuse a checkpoint whose components (``RunRecord.components``) no loaded plugin registers, in one line naming
+    the distribution and version it recorded and how to get it back (before Hydra says only "unknown head").
+
+    Raises:
+        PluginError: a recorded component is not registered here (uninstalled, disabled or failed to load).
+    """
+    registry = get_registry()
+    for kind, used in (state.get("components") or {}).items():
+        if kind not in registry.components or not isinstance(used, Mapping) or "name" not in used:
+            continue
+        name = str(used["name"])
+        if name in registry.components[kind] or f"{kind}/{name}" in registry.clashes:
+            continue
+        provider, version = str(used.get("provider", "unknown")), str(used.get("version", "unknown"))
+        distribution = str(used.get("distribution") or provider)
+        raise PluginError(f"{kind} {name!r} of checkpoint {path} comes from {distribution} {version} (plugin "
+                          f"{provider}), {_why_missing(registry, provider, distribution, version)}")
+
+
+def _why_missing(registry: Any, provider: str, distribution: str, version: str) -> str:
+    """Why a recorded plugin registers nothing here: not installed, disabled, failed to load, or another version; and
+    the fix."""
+    pinned = f"'{distribution}=={version}'" if version not in ("unknown", "") else f"'{distribution}'"
+    try:
+        installed = importlib.metadata.version(distribution)
+    except (importlib.metadata.PackageNotFoundError, ValueError):
+        return f"which is not installed; pip install {pinned}"
+    disabled = [d for d in registry.disabled if d == provider or d.startswith((f"{provider} ", "every entry point"))]
+    if disabled:
+        return (f"which is installed but disabled here ({disabled[0]}): unset GPNERF_DISABLE_PLUGINS / "
+                "GPNERF_DISABLE_PLUGIN_AUTOLOAD")
+    failed = [p for p in registry.problems if p.plugin.name == provider and p.component is None]
+    if failed:
+        return f"which failed to load: {failed[0].reason}"
+    return f"but the installed {distribution} {installed} does not register it; pip install {pinned}"
 
 
 WEIGHT_CHOICES = ("average", "trained")
@@ -207,10 +255,12 @@ def evaluation_weights(state: Mapping[str, Any], choice: str = "average") -> tup
     return dict(state["model"]), "trained"
 
 
-def read_torch_file(path: Path) -> Any:
-    """``torch.load(path, weights_only=True)`` on the CPU; a missing, truncated or foreign file is one line."""
+def read_torch_file(path: Path, label: str | None = None) -> Any:
+    """``torch.load(path, weights_only=True)`` on the CPU; a missing, truncated or foreign file is one line naming it as
+    ``label`` says (default ``checkpoint <path>``; ``model.init=<path>``)."""
+    label = label or f"checkpoint {path}"
     if not path.is_file():
-        raise DataError(f"checkpoint {path} does not exist")
+        raise DataError(f"{label} does not exist")
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:
@@ -218,7 +268,7 @@ def read_torch_file(path: Path) -> Any:
         reason = text.splitlines()[0].split(". ")[0] if text else type(exc).__name__
         if "weights_only" in str(exc) or "Unsupported global" in str(exc):
             reason = "it holds Python objects that are not weights (only tensors and plain containers load safely)"
-        raise DataError(f"checkpoint {path} could not be read: {reason} (truncated or not a torch file?)") from None
+        raise DataError(f"{label} could not be read: {reason} (truncated or not a torch file?)") from None
 
 
 def config_differences(

@@ -74,24 +74,48 @@ _LAST: tuple[tuple[Any, ...], TrainedModel] | None = None
 """The last checkpoint read, by file identity: the launcher's read serves the task, ``plan_resume``'s the trainer."""
 
 
-def load_trained(path: str | Path) -> TrainedModel:
+def load_trained(path: str | Path, key: str = "checkpoint") -> TrainedModel:
     """The trained model in ``path``, read and verified once per file (the same file read again is not read).
 
+    Args:
+        key: the option that named ``path`` (``checkpoint``, ``train.resume``), for the error lines.
+
     Raises:
-        DataError: missing, not a file, unreadable, of another format version, or damaged (content hash).
+        DataError: empty, missing, a folder, unreadable, of another format version, or damaged (content hash).
     """
     global _LAST
-    path = Path(path)
-    if not str(path).strip() or str(path) == ".":
-        raise DataError("checkpoint path is empty; expected checkpoint=<path to a .pt file written by run>")
-    if path.is_dir():
-        raise DataError(f"checkpoint {path} is a folder; expected a .pt file written by run (in <run>/checkpoints/)")
+    path = checked_checkpoint_path(path, key)
     identity = _identity(path)
     if _LAST is not None and identity is not None and _LAST[0] == identity:
         return _LAST[1]
     trained = TrainedModel(path, read_checkpoint(path))
     _LAST = (identity, trained) if identity is not None else None
     return trained
+
+
+def checked_checkpoint_path(value: str | Path, key: str = "checkpoint") -> Path:
+    """``value`` as the path of a checkpoint file; an empty value, a folder (naming the newest checkpoint in it, if
+    any) and a missing file are each one ``DataError`` naming ``key``."""
+    text = str(value).strip()
+    if not text or text == ".":
+        raise DataError(f"{key}= is empty; expected {key}=<path to a .pt file written by run, in <run>/checkpoints/>")
+    path = Path(value)
+    if path.is_dir():
+        newest = newest_checkpoint_file(path)
+        if newest is None:
+            raise DataError(f"{key}={path} is a folder, with no checkpoint in it; expected a .pt file written by run "
+                            "(e.g. <run>/checkpoints/step_XXXXXXX.pt)")
+        raise DataError(f"{key}={path} is a folder; expected a .pt file (e.g. {newest}, the newest checkpoint in it)")
+    if not path.is_file():
+        raise DataError(f"{key}={path}: no such file; expected a .pt file written by run (in <run>/checkpoints/)")
+    return path
+
+
+def newest_checkpoint_file(folder: Path) -> Path | None:
+    """The newest ``step_<step>.pt`` in ``folder`` or in its ``checkpoints/`` (None: none)."""
+    found = [p for where in (folder, folder / "checkpoints") for p in where.glob("step_*.pt") if p.is_file()]
+    steps = [(int(p.stem[5:]), p) for p in found if p.stem[5:].isdigit()]
+    return max(steps)[1] if steps else None
 
 
 def release_trained() -> None:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 import torch
 from torch import Tensor
@@ -44,7 +44,8 @@ def load_weights(
         explain: what a shape mismatch is attributed to (the config keys that differ), for the error.
 
     Raises:
-        DataError: a missing, extra (unless ``partial``) or differently shaped tensor, in one line.
+        DataError: a missing, extra (unless ``partial``) or differently shaped tensor, or one holding NaN or Inf, in
+            one line.
         ConfigError: a differently shaped tensor when ``explain`` is given (the model config differs).
     """
     own = module.state_dict()
@@ -68,9 +69,26 @@ def load_weights(
         if explain is not None:
             raise ConfigError(f"{source}: {found}; the model config differs from the checkpoint's: {explain()}")
         raise DataError(f"{source}: {found} (a different model size?)")
+    check_finite(weights, source, skip=reinitialised)
     loaded = {key: own[key] if key in reinitialised else value for key, value in weights.items()}
     module.load_state_dict(loaded, strict=not partial)
     return reinitialised
+
+
+def check_finite(weights: Mapping[str, Tensor], source: str, skip: Sequence[str] = ()) -> None:
+    """Refuse weights holding NaN or Inf, naming the first such tensor: loaded, they would surface only later as a
+    non-finite loss or a blank picture, blamed on whatever read them first."""
+    for key, value in weights.items():
+        if key in skip or not (value.is_floating_point() or value.is_complex()):
+            continue
+        finite = torch.isfinite(value)
+        if bool(finite.all()):
+            continue
+        nan = int(torch.isnan(value).sum())
+        raise DataError(
+            f"{source}: tensor {key!r} is not finite ({nan} NaN, {int((~finite).sum()) - nan} Inf of {value.numel()} "
+            "values); the file's weights are damaged (saved from a diverged model?): use another checkpoint"
+        )
 
 
 def _class_dimension(found: torch.Size, expected: tuple[int, ...], classes: tuple[int, int]) -> bool:
@@ -120,18 +138,23 @@ def init_weights(model: ModelFamily, path: Path, *, strict: bool = True) -> Init
         strict: refuse a file holding keys no part takes (False: load the rest, report them).
 
     Raises:
-        DataError: unreadable or damaged file, a format the model does not read, a key no part takes (``strict``), or
-            a tensor whose shape differs from the model's (always), each in one line naming the file and the key.
+        DataError: unreadable or damaged file (content hash, or a tensor holding NaN or Inf), a format the model does
+            not read, a key no part takes (``strict``), or a tensor whose shape differs from the model's (always), each
+            in one line naming ``model.init=<file>`` and the key.
     """
+    if path.is_dir():
+        raise DataError(f"model.init={path} is a folder; expected a file: a gpnerf-core checkpoint (e.g. "
+                        f"<run>/checkpoints/step_XXXXXXX.pt) or weights {type(model).__name__} reads")
     if not path.is_file():
         raise DataError(f"model.init={path}: no such file; expected a gpnerf-core checkpoint or one model "
                         f"{type(model).__name__} reads")
-    checkpoint = read_torch_file(path)
+    label = f"model.init={path}"
+    checkpoint = read_torch_file(path, label)
     if not isinstance(checkpoint, Mapping):
         raise DataError(f"model.init={path}: holds a {type(checkpoint).__name__}, not a checkpoint dictionary")
     if "format" in checkpoint and "model" in checkpoint:
         report = InitReport(path=path, fmt="gpnerf")
-        plan, offered = _gpnerf_plan(checked_state(dict(checkpoint), path))
+        plan, offered = _gpnerf_plan(checked_state(dict(checkpoint), path, label))
     else:
         foreign = model.read_foreign(checkpoint)
         if foreign is None:
@@ -158,7 +181,7 @@ def init_weights(model: ModelFamily, path: Path, *, strict: bool = True) -> Init
                 f"{list(own[key].shape)} (a model of another size?)"
             )
         loadable[key] = tensor
-    load_weights(model, loadable, f"model.init={path}", partial=True)
+    load_weights(model, loadable, label, partial=True)
     report.loaded = list(loadable)
     report.missing = [key for key in own if key not in loadable]
     return report

@@ -1,8 +1,9 @@
 """Component registry: collects specs from the loaded plugins, builds components from configs.
 
 A plugin that returns a bad spec, registers a name another plugin already has, or offers a factory the core cannot
-call is recorded as a ``PluginProblem`` and left out; every other plugin keeps working, and a taken name is never
-replaced. ``python -m gpnerf_core plugins`` lists the
+call is recorded as a ``PluginProblem`` and left out; every other plugin keeps working. A name two plugins register is
+never resolved silently: choosing it is refused in one line naming both providers and how to keep one
+(``GPNERF_DISABLE_PLUGINS``), until all but one are disabled. ``python -m gpnerf_core plugins`` lists the
 problems (and exits 1 when there are any).
 """
 
@@ -19,7 +20,9 @@ from typing import Any, Mapping
 from gpnerf_core.errors import ConfigError, GpnerfError, PluginError
 from gpnerf_core.interfaces import StressCase
 from gpnerf_core.registry.kinds import KINDS
-from gpnerf_core.registry.plugins import LoadedPlugins, PluginInfo, PluginProblem, make_plugin_manager, one_line
+from gpnerf_core.registry.plugins import (
+    CORE_DISTRIBUTION, DISABLE_PLUGINS_ENV, LoadedPlugins, PluginInfo, PluginProblem, make_plugin_manager, one_line,
+)
 from gpnerf_core.registry.specs import ComponentSpec, DataTool
 
 NAME_PATTERN = re.compile(r"^[a-z][a-z0-9_]*$")
@@ -28,10 +31,36 @@ NAME_PATTERN = re.compile(r"^[a-z][a-z0-9_]*$")
 
 @dataclass(frozen=True)
 class RegisteredComponent:
+    """A registered component: its kind, spec, and the plugin (entry-point or module name) and distribution behind it."""
+
     kind: str
     spec: ComponentSpec
     provider: str
     version: str
+    distribution: str = "unknown"
+
+    @property
+    def where(self) -> str:
+        """``head 'unet' (plugin gpnerf_plugins.heads.plugin, gpnerf-core 0.1.0)``: for errors about it."""
+        return f"{self.kind} {self.spec.name!r} (plugin {self.provider}, {self.distribution} {self.version})"
+
+
+def disable_name(plugin: PluginInfo) -> str:
+    """What ``GPNERF_DISABLE_PLUGINS`` takes to leave ``plugin`` out: a built-in's module name, else its distribution."""
+    if plugin.distribution in (CORE_DISTRIBUTION, "unknown"):
+        return plugin.name
+    return plugin.distribution
+
+
+def clash_message(what: str, providers: list[PluginInfo]) -> str:
+    """One line: ``what`` (``head 'unet'``) is offered by each of ``providers``, and how to keep one of them."""
+    offered = " and ".join(str(p) for p in providers)
+    keep = "; ".join(
+        f"to use {p.name}'s: {DISABLE_PLUGINS_ENV}={','.join(disable_name(o) for o in providers if o is not p)}"
+        for p in providers
+    )
+    return (f"{what} is offered by {len(providers)} plugins, {offered}, and gpnerf-core does not pick one; "
+            f"disable all but one ({keep})")
 
 
 @dataclass
@@ -45,6 +74,8 @@ class Registry:
     data_tools: dict[str, tuple[DataTool, str]] = field(default_factory=dict)
     stress_cases: dict[str, tuple[Any, str]] = field(default_factory=dict)
     """``name -> (StressCase, plugin name)``."""
+    clashes: dict[str, list[PluginInfo]] = field(default_factory=dict)
+    """``kind/name -> the plugins that each register it`` (first registered first); choosing one is refused."""
 
     def names(self, kind: str) -> list[str]:
         return sorted(self.components[kind])
@@ -53,6 +84,9 @@ class Registry:
         """The component ``name`` of ``kind``; an unknown name lists the known ones and what failed to load."""
         if kind not in self.components:
             raise ConfigError(f"unknown component kind {kind!r}; known kinds: {', '.join(KINDS)}")
+        clash = self.clashes.get(f"{kind}/{name}")
+        if clash is not None:
+            raise PluginError(clash_message(f"{kind} {name!r}", clash))
         if name in self.components[kind]:
             return self.components[kind][name]
         rejected = [p for p in self.problems if p.component == f"{kind}/{name}"]
@@ -90,7 +124,7 @@ class Registry:
             )
         defaults = entry.spec.config()
         kwargs = {name: given.get(name, getattr(defaults, name)) for name in sorted(expected)}
-        where = f"{kind} {entry.spec.name!r} (plugin {entry.provider} {entry.version})"
+        where = entry.where
         try:
             component = entry.spec.factory(**kwargs, **runtime)
         except GpnerfError:
@@ -111,8 +145,26 @@ class Registry:
         except PluginError as exc:
             name = getattr(spec, "name", None)
             self.problems.append(PluginProblem(plugin, str(exc), f"{kind}/{name}" if isinstance(name, str) else kind))
+            existing = self.components[kind].get(name) if isinstance(name, str) else None
+            if existing is not None:
+                self.clashes.setdefault(f"{kind}/{name}", [self.provider_of(existing)]).append(plugin)
             return
-        self.components[kind][spec.name] = RegisteredComponent(kind, spec, plugin.name, plugin.version)
+        self.components[kind][spec.name] = RegisteredComponent(
+            kind, spec, plugin.name, plugin.version, plugin.distribution
+        )
+
+    def record_clash(self, kind: str, name: str, first: tuple[Any, str] | None, plugin: PluginInfo) -> list[PluginInfo]:
+        """Record that ``plugin`` registers ``kind/name`` too (a data tool or stress case, whose registered ``first``,
+        ``(record, plugin name)``, was just taken out, so neither runs); returns every plugin that registers it."""
+        clash = self.clashes.setdefault(f"{kind}/{name}", [])
+        if first is not None:
+            clash.append(self.plugins.get(first[1], PluginInfo(first[1])))
+        clash.append(plugin)
+        return clash
+
+    def provider_of(self, entry: RegisteredComponent) -> PluginInfo:
+        """The plugin that registered ``entry``."""
+        return self.plugins.get(entry.provider, PluginInfo(entry.provider, entry.distribution, entry.version))
 
     def _check(self, kind: str, spec: Any, plugin: PluginInfo) -> None:
         if not isinstance(spec, ComponentSpec):
@@ -121,7 +173,11 @@ class Registry:
             raise PluginError(f"name {spec.name!r} is not snake_case (lower-case letters, digits, underscores)")
         existing = self.components[kind].get(spec.name)
         if existing is not None:
-            raise PluginError(f"the name is taken by {existing.provider!r}; a plugin never replaces another's component")
+            raise PluginError(
+                f"the name is taken by {existing.provider!r} ({existing.distribution} {existing.version}); "
+                f"{kind}={spec.name} is refused until all but one of them are disabled "
+                f"({DISABLE_PLUGINS_ENV}={disable_name(plugin)} keeps {existing.provider}'s)"
+            )
         if not dataclasses.is_dataclass(spec.config) or not isinstance(spec.config, type):
             raise PluginError(f"config {spec.config!r} is not a dataclass type")
         fields = {f.name: f for f in dataclasses.fields(spec.config)}
@@ -199,9 +255,10 @@ def collect(loaded: LoadedPlugins) -> Registry:
         for tool in tools or ():
             if not isinstance(tool, DataTool):
                 registry.problems.append(PluginProblem(info, f"data tool {tool!r} is not a DataTool", "data"))
-            elif tool.name in registry.data_tools:
-                owner = registry.data_tools[tool.name][1]
-                registry.problems.append(PluginProblem(info, f"the name is taken by {owner!r}", f"data/{tool.name}"))
+            elif tool.name in registry.data_tools or f"data/{tool.name}" in registry.clashes:
+                clash = registry.record_clash("data", tool.name, registry.data_tools.pop(tool.name, None), info)
+                registry.problems.append(
+                    PluginProblem(info, clash_message(f"data tool {tool.name!r}", clash), f"data/{tool.name}"))
             else:
                 registry.data_tools[tool.name] = (tool, impl.plugin_name)
     _collect_stress_cases(loaded, registry)
@@ -220,8 +277,9 @@ def _collect_stress_cases(loaded: LoadedPlugins, registry: Registry) -> None:
         for case in cases or ():
             problem = stress_case_problem(case)
             name = getattr(case, "name", "?")
-            if problem is None and name in registry.stress_cases:
-                problem = f"the name is taken by {registry.stress_cases[name][1]!r}"
+            if problem is None and (name in registry.stress_cases or f"stress/{name}" in registry.clashes):
+                clash = registry.record_clash("stress", name, registry.stress_cases.pop(name, None), info)
+                problem = clash_message(f"stress case {name!r}", clash)
             if problem is not None:
                 registry.problems.append(PluginProblem(info, problem, f"stress/{name}"))
             else:

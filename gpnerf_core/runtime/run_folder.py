@@ -4,6 +4,10 @@
 and refuses a folder that already holds a run unless the run resumes or ``overwrite=true`` replaces it. A lock
 left by a process that no longer runs on this host is taken over; one from another host is not (its process
 cannot be checked from here), and the error says which file to delete.
+
+A command that fails removes only what it created itself: the run files it wrote before the run's first checkpoint
+(``RunFolder`` leaving its ``with`` block on an error) and the folders it made that are left empty
+(``remove_made_folders``). A refusal removes nothing it did not create in that same call.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from pathlib import Path
 from typing import Sequence
 
 from gpnerf_core.errors import GpnerfError
+from gpnerf_core.runtime.signals import interrupted_by
 
 LOCK_NAME = ".gpnerf.lock"
 
@@ -36,6 +41,49 @@ RUN_FILES = (
 RUN_FOLDERS = ("checkpoints", "images", "tensorboard")
 """What a run writes; ``overwrite=true`` deletes exactly these."""
 
+_STARTED = time.time()
+"""When this process imported the module: a folder made after it, still empty, was made for this command."""
+_MADE_FOLDERS: list[Path] = []
+"""Folders this process created for its runs (``make_folder``, ``adopt_new_folder``), outermost first."""
+
+
+def make_folder(path: Path) -> None:
+    """``mkdir -p path``, remembering every level it creates: the only folders a failed command removes."""
+    path = Path(path).absolute()
+    missing = [level for level in (path, *path.parents) if not level.exists()]
+    path.mkdir(parents=True, exist_ok=True)
+    _MADE_FOLDERS.extend(level for level in reversed(missing) if level not in _MADE_FOLDERS)
+
+
+def adopt_new_folder(path: Path) -> None:
+    """Count ``path`` as made by this command when it is empty and was made after this process started (the run
+    folder Hydra creates just before a job starts)."""
+    path = Path(path).absolute()
+    try:
+        if path in _MADE_FOLDERS or any(path.iterdir()) or path.stat().st_mtime < _STARTED:
+            return
+    except OSError:
+        return
+    _MADE_FOLDERS.append(path)
+
+
+def made_by_this_command(path: Path) -> bool:
+    """True when this process created ``path`` (``make_folder``, ``adopt_new_folder``)."""
+    return Path(path).absolute() in _MADE_FOLDERS
+
+
+def remove_made_folders(path: Path) -> None:
+    """Remove ``path``, and the parents made with it, if this command made them and they are empty; a folder it did
+    not make, or one holding anything, stays as it is."""
+    level = Path(path).absolute()
+    while level in _MADE_FOLDERS:
+        try:
+            level.rmdir()
+        except OSError:  # not empty (or gone): what is in it is not this command's to remove
+            return
+        _MADE_FOLDERS.remove(level)
+        level = level.parent
+
 
 class RunFolderError(GpnerfError):
     """The run folder cannot be used: held by another run, holding a finished run, or not writable."""
@@ -52,6 +100,10 @@ class RunFolder:
         self.path = Path(path)
         self.lock_path = self.path / LOCK_NAME
         self._held = False
+        self._found: dict[str, tuple[int, int, int]] = {}
+        """The run files in the folder when it was claimed (relative path -> identity)."""
+        self._found_folders: set[Path] = set()
+        """The folders under ``RUN_FOLDERS`` (and those) there when it was claimed."""
 
     def claim(self, *, resuming: bool, overwrite: bool, inputs: Sequence[Path] = ()) -> list[str]:
         """Create and lock the folder; returns notes to print (a stale lock taken over, a run replaced).
@@ -66,7 +118,7 @@ class RunFolder:
         """
         notes = []
         try:
-            self.path.mkdir(parents=True, exist_ok=True)
+            make_folder(self.path)
         except OSError as exc:
             raise RunFolderError(
                 f"run folder {self.path} cannot be created ({exc.strerror or exc}); choose a writable out_dir"
@@ -99,6 +151,8 @@ class RunFolder:
                     )
                 self._remove_run_files()
                 notes.append(f"overwrite=true: removed the previous run's files from {self.path}")
+            self._found = _run_file_identities(self.path)
+            self._found_folders = _run_folders(self.path)
         except BaseException:
             self.release()
             raise
@@ -116,8 +170,31 @@ class RunFolder:
     def __enter__(self) -> "RunFolder":
         return self
 
-    def __exit__(self, *exc_info: object) -> None:
-        self.release()
+    def __exit__(self, exc_type: object, exc: BaseException | None, traceback: object) -> None:
+        """Release the lock; on an error (not an interruption, whose files stay) first ``discard_written``."""
+        try:
+            if exc is not None and self._held and interrupted_by(exc) is None:
+                self.discard_written()
+        finally:
+            self.release()
+
+    def discard_written(self) -> list[Path]:
+        """Remove the run files (``RUN_FILES``, files under ``images``/``tensorboard``) this command wrote, unless the
+        folder holds a checkpoint (a run that can resume keeps everything). Files that were there when the folder
+        was claimed, and files no run writes (a diagnostic an error names), stay. Returns what was removed."""
+        if any((self.path / "checkpoints").glob("step_*.pt")):
+            return []
+        removed = []
+        for relative, identity in _run_file_identities(self.path).items():
+            if self._found.get(relative) != identity:
+                (self.path / relative).unlink(missing_ok=True)
+                removed.append(self.path / relative)
+        for folder in sorted(_run_folders(self.path) - self._found_folders, reverse=True):  # deepest first
+            try:
+                folder.rmdir()
+            except OSError:  # not empty: it holds what this command did not write
+                pass
+        return removed
 
     def _take_lock(self) -> str | None:
         holder = {
@@ -186,27 +263,29 @@ class RunFolder:
             shutil.rmtree(self.path / name, ignore_errors=True)
 
 
-LEFTOVERS = ("scalars.csv", "training_curves.json", "training_curves.png", "tensorboard", "images")
-"""What a run that failed before its first checkpoint may have written besides the setup files."""
+def _run_file_identities(folder: Path) -> dict[str, tuple[int, int, int]]:
+    """``relative path -> (inode, mtime ns, size)`` of the run files ``discard_written`` may remove: ``RUN_FILES``
+    and the files under ``images`` and ``tensorboard`` (never checkpoints)."""
+    paths = [folder / name for name in RUN_FILES]
+    for name in ("images", "tensorboard"):
+        if (folder / name).is_dir() and not (folder / name).is_symlink():
+            paths += [p for p in (folder / name).rglob("*")]
+    found = {}
+    for path in paths:
+        try:
+            stat = path.lstat()
+        except OSError:
+            continue
+        if path.is_file() and not path.is_symlink():
+            found[str(path.relative_to(folder))] = (stat.st_ino, stat.st_mtime_ns, stat.st_size)
+    return found
 
 
-def remove_untrained_run(path: Path) -> None:
-    """Delete what a run that failed before its first checkpoint left in ``path`` (the setup files, the logs opened
-    before training, the folder itself once empty). A folder holding anything else (a checkpoint, metrics, files no
-    run writes) or locked by a live run is left untouched."""
-    path = Path(path)
-    try:
-        entries = list(path.iterdir())
-    except OSError:
-        return
-    if (path / LOCK_NAME).exists() or any(entry.name not in (*SETUP_FILES, *LEFTOVERS) for entry in entries):
-        return
-    for entry in entries:
-        if entry.is_dir() and not entry.is_symlink():
-            shutil.rmtree(entry, ignore_errors=True)
-        else:
-            entry.unlink(missing_ok=True)
-    try:
-        path.rmdir()
-    except OSError:
-        pass
+def _run_folders(folder: Path) -> set[Path]:
+    """``RUN_FOLDERS`` in ``folder`` and every folder under them."""
+    found = set()
+    for name in RUN_FOLDERS:
+        root = folder / name
+        if root.is_dir() and not root.is_symlink():
+            found |= {root, *(p for p in root.rglob("*") if p.is_dir() and not p.is_symlink())}
+    return found

@@ -23,7 +23,7 @@ from torch.nn.parallel import DistributedDataParallel
 from gpnerf_core.model.build import Components
 from gpnerf_core.runtime.device import autocast, check_precision, peak_memory_mb
 from gpnerf_core.runtime.distributed import Distributed
-from gpnerf_core.errors import ConfigError, DataError, NonFiniteError
+from gpnerf_core.errors import ConfigError, NonFiniteError
 from gpnerf_core.data.frames import FrameCache
 from gpnerf_core.runtime.profiling import stage
 from gpnerf_core.model.checkpoint import RunRecord, check_resume_config, save_checkpoint
@@ -88,6 +88,11 @@ def loss_inputs(view: TargetView, output: ViewOutput, ignore_index: int) -> Loss
         instances=view.instances[None] if output.logits is not None and view.instances is not None else None,
         labels_at_rays=view.labels[rows, cols] if output.last.logits is not None else None,
     )
+
+
+def _views(batch: StepBatch) -> str:
+    """``scene 'a' frame 3, ...``: the target views of a step, for errors."""
+    return ", ".join(f"scene {v.scene!r} frame {v.frame}" for v in batch.views)
 
 
 def process_seed(seed: int, rank: int) -> int:
@@ -236,13 +241,16 @@ class Trainer:
         """
         with stage("sample batch"):
             batch = self.sampler.next_batch()
-        with autocast(self.device, self.cfg.train.precision):
-            output = self.wrapped(
-                batch, semantics=self.loss.needs_semantics, sample_semantics=self.loss.needs_sample_semantics
-            )
-            with stage("loss"):
-                terms = self._loss_terms(batch, output)
-        stop_signal = self._check_and_agree(terms, batch, stop)
+        try:
+            with autocast(self.device, self.cfg.train.precision):
+                output = self.wrapped(
+                    batch, semantics=self.loss.needs_semantics, sample_semantics=self.loss.needs_sample_semantics
+                )
+                with stage("loss"):
+                    terms = self._loss_terms(batch, output)
+        except NonFiniteError as exc:  # a component's output (registry.guards), named where it was made
+            self._stop_everywhere(f"{exc} ({_views(batch)})")
+        stop_signal = self._check_and_agree(terms, batch, stop, output)
         total: Tensor = sum(terms.values())
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
@@ -266,7 +274,9 @@ class Trainer:
         ]
         return {name: sum(terms[name].float() for terms in per_view) / len(per_view) for name in per_view[0]}
 
-    def _check_and_agree(self, terms: dict[str, Tensor], batch: StepBatch, stop: StopRequest | None) -> int | None:
+    def _check_and_agree(
+        self, terms: dict[str, Tensor], batch: StepBatch, stop: StopRequest | None, output: StepOutput
+    ) -> int | None:
         """Stop every process on a non-finite term anywhere, and agree on a stop signal, before backward."""
         bad = next((name for name, value in terms.items() if not torch.isfinite(value).all()), None)
         flags = torch.tensor(
@@ -274,13 +284,43 @@ class Trainer:
         )
         self.dist.all_reduce(flags, op="max")
         if bad is not None:
-            views = ", ".join(f"scene {v.scene!r} frame {v.frame}" for v in batch.views)
             raise NonFiniteError(
-                f"step {self.step}: loss term {bad!r} is {terms[bad].item()} ({views}); training stopped"
+                f"step {self.step}: loss term {bad!r} is {terms[bad].item()} ({_views(batch)}) in "
+                f"{self._loss_where()}; {self._non_finite_inputs(batch, output)}; training stopped"
             )
         if flags[0] > 0:
-            raise NonFiniteError(f"step {self.step}: a loss term is not finite on another process; training stopped")
+            raise NonFiniteError(f"step {self.step}: a loss term or a component's output is not finite on another "
+                                 "process; training stopped")
         return int(flags[1]) or None
+
+    def _stop_everywhere(self, reason: str) -> None:
+        """Raise ``reason`` here, after telling every other process to stop (the flag ``_check_and_agree`` reduces)."""
+        self.dist.all_reduce(torch.tensor([1.0, 0.0], device=self.device), op="max")
+        raise NonFiniteError(f"step {self.step}: {reason}; training stopped")
+
+    def _loss_where(self) -> str:
+        """``loss 'dgs' (plugin gpnerf_plugins.losses.plugin 0.1.0)``: the loss set, from the run record."""
+        used = self.record.components.get("loss") or {}
+        name = used.get("name", type(self.loss).__name__)
+        return f"loss {name!r} (plugin {used.get('provider', 'unknown')} {used.get('version', 'unknown')})"
+
+    def _non_finite_inputs(self, batch: StepBatch, output: StepOutput) -> str:
+        """Which ``LossInputs`` fields were not finite (looked at only once a term is): the model's fault, not the
+        loss set's, when any is."""
+        fields = []
+        for view, out in zip(batch.views, output.views):
+            inputs = loss_inputs(view, out, self.ignore_index)
+            named = {"logits": inputs.logits, "teacher_at_rays": inputs.teacher_at_rays}
+            for rays_name, rays in (("coarse", inputs.coarse), ("fine", inputs.fine)):
+                if rays is not None:
+                    named |= {f"{rays_name}.{f}": getattr(rays, f, None)
+                              for f in ("rgb", "depth", "semantic", "sample_semantic", "logits")}
+            fields += [name for name, value in named.items() if isinstance(value, Tensor) and value.is_floating_point()
+                       and not bool(torch.isfinite(value.detach()).all()) and name not in fields]
+        if not fields:
+            return "its inputs were finite: the loss set made it"
+        return (f"its inputs {', '.join(fields)} from model {self.cfg.model.name!r} were not finite already: "
+                "the model made it")
 
     # ---- the loop ----------------------------------------------------------------------------------------------
 
@@ -448,9 +488,9 @@ class Trainer:
         return path
 
     def _resume(self, path: Path) -> None:
-        if not path.is_file():
-            raise DataError(f"train.resume={path}: no such file; expected a checkpoint written by run (checkpoints/)")
-        state = load_trained(path).state  # plan_resume read it already: not read again
+        """Continue from the checkpoint ``path``; every refusal (another model or loss, weights or optimizer state that
+        do not fit, no weight average) is raised here, in the constructor, before ``run`` claims its folder."""
+        state = load_trained(path, "train.resume").state  # plan_resume read it already: not read again
         self.notes += check_resume_config(path, state["config"], self.record.config_yaml, self.cfg.train.resume_strict)
         load_weights(self.model, state["model"], f"checkpoint {path}")
         try:

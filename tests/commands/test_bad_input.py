@@ -46,6 +46,7 @@ CASES = {
     "cache under a file": (["GPNERF_CACHE={ws}/a_file"], "cannot write the embedded scenes (Not a directory)"),
     "bad validation level": (["dataset.validate=fast"], "dataset.validate='fast': expected one of quick, full, off"),
     "missing init file": (["model.init={ws}/nope.pth"], "model.init={ws}/nope.pth: no such file"),
+    "init file a folder": (["model.init={ws}"], "model.init={ws} is a folder; expected a file"),
     "resume missing": (["train.resume={ws}/nope.pt"], "train.resume={ws}/nope.pt: no such file"),
     "bad schedule": (["train.lr_schedule=linear"], "train.lr_schedule='linear': expected one of exponential, cosine"),
     "instance loss on a class head": (["loss=instance"], "loss 'instance' trains instances but head 'unet' predicts"),

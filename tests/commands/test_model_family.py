@@ -51,7 +51,8 @@ def test_the_contract_kit_passes_the_second_family():
 def test_run_trains_and_scores_it_and_eval_scores_its_checkpoint_the_same(trained):
     metrics = json.loads((trained / "metrics.json").read_text())
     plugins = json.loads((trained / "plugins.json").read_text())
-    assert plugins["used"]["model"] == {"name": "pooled_views", "provider": "gpnerf_test_family", "version": "0.1"}
+    assert plugins["used"]["model"] == {"name": "pooled_views", "provider": "gpnerf_test_family", "version": "0.1",
+                                        "distribution": model_family.DISTRIBUTION}
     for split in ("train_heldout", "unseen"):
         assert 0.0 <= metrics["eval"][split]["miou/image_mean_present"] <= 1.0  # label rendering is scored
     checkpoint = trained / "checkpoints" / "step_0000002.pt"

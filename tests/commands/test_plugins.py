@@ -150,7 +150,8 @@ def test_good_and_built_in_components_still_train_beside_broken_plugins(plugin_p
     wrong = gpnerf("run", "+head=small_head", *tiny, f"out_dir={tmp_path / 'small'}", plugin_path=plugin_path,
                    cwd=tmp_path)
     assert wrong.returncode == 2 and "Traceback" not in wrong.stderr
-    assert "head Head returned [1, 9, 16, 24]; the PerceptionHead contract is HeadOutput(logits=[N, num_outputs, " \
+    assert "head 'small_head' (plugin gpnerf_test_wrong_output_size, gpnerf-test-wrong-output-size 0.17) returned " \
+           "logits [1, 9, 16, 24]; the PerceptionHead contract is HeadOutput(logits=[N, num_outputs, " \
            "*output_size]) = [1, 9, 32, 48]" in wrong.stderr
 
 

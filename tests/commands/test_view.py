@@ -44,8 +44,9 @@ def test_serves_until_sigterm_and_writes_nothing(checkpoint, tmp_path):
         assert url is not None, "no URL printed"
         assert "<html" in urllib.request.urlopen(url, timeout=10).read().decode().lower()
         process.send_signal(signal.SIGTERM)
-        assert process.wait(timeout=60) == 0
-        assert "Traceback" not in process.stderr.read()
+        assert process.wait(timeout=60) == 143
+        stderr = process.stderr.read()
+        assert "Traceback" not in stderr and stderr.strip().splitlines()[-1].startswith("interrupted (SIGTERM)")
     finally:
         if process.poll() is None:
             process.kill()

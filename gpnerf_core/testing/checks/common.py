@@ -83,7 +83,7 @@ class Subject:
         try:
             return self.registry.build(self.kind, node, **arguments)
         except Exception as exc:
-            message = one_line(exc).removeprefix(f"{self.label} failed to build: ")
+            message = one_line(exc).removeprefix(f"{self.entry.where} failed to build: ")
             raise CheckFailed(f"{where} raised {message if message != one_line(exc) else _named(exc)}") from exc
 
 

@@ -1,7 +1,10 @@
 """Run folders read back: one table from many of them (a sweep, an ablation, seeds), for ``report``, ``stress`` and
 ``size``.
 
-Rows are the run folders found below the given paths (any folder holding ``metrics.json`` and ``config.yaml``). Runs
+Rows are the run folders found below the given paths (any folder holding ``metrics.json`` and ``config.yaml``); a
+folder holding ``config.yaml`` without ``metrics.json`` is a row of its own, ``failed`` (a sweep job's ``error.json``)
+or ``unfinished`` (a run that failed, was stopped or killed, or still runs: ``unfinished_reason`` says which its files
+show), never left out in silence. Runs
 whose configs differ only by ``seed`` (and by where or how they ran: ``out_dir``, ``threads``, ``device``, ...) form
 one row: each cell is the mean +- sample standard deviation over its runs, with n. Metric columns are keyed on the
 evaluator's protocol ids (``miou/image_mean_present``, ``psnr/clamped``). A row gets the paper's Table 4 ID and
@@ -13,6 +16,8 @@ numbers are ScanNet at full size: context, not a target for CPU-sized runs.
 from __future__ import annotations
 
 import json
+import os
+import socket
 import statistics
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +27,8 @@ import yaml
 
 from gpnerf_core.config.legacy import upgrade_config_yaml
 from gpnerf_core.errors import DataError
+from gpnerf_core.runtime.run_folder import LOCK_NAME
+from gpnerf_core.training.resume import run_checkpoints
 
 # Table 4 of the paper: (joint attention, S.D, gradient block, D.G) -> (ID, mIoU, PSNR) on ScanNet.
 PAPER_TABLE4 = {
@@ -54,7 +61,10 @@ class RunRow:
     config: dict[str, Any]
     metrics: dict[str, Any]
     error: str | None = None
-    """A sweep job that failed: its ``error.json`` message (no metrics)."""
+    """Why a run has no metrics: a failed sweep job's ``error.json`` message, or what the files of an unfinished run
+    folder show (``unfinished_reason``)."""
+    state: str = "finished"
+    """``finished`` (``metrics.json``), ``failed`` (``error.json``) or ``unfinished`` (neither)."""
 
     def switches(self) -> tuple[bool, bool, bool, bool] | None:
         """Table 4's switches (joint attention, S.D, gradient block, D.G) of any run whose loss config carries them
@@ -173,7 +183,8 @@ def find_runs(paths: list[Path]) -> list[RunRow]:
                 config = yaml.safe_load(upgrade_config_yaml((folder / "config.yaml").read_text())) or {}
             except (json.JSONDecodeError, yaml.YAMLError, AttributeError):
                 message, config = f"{error_file} could not be parsed", {}
-            rows.append(RunRow(folder, config if isinstance(config, dict) else {}, {}, error=message))
+            rows.append(RunRow(folder, config if isinstance(config, dict) else {}, {}, error=message, state="failed"))
+        rows += _unfinished_runs(path)
         for metrics_file in sorted(path.rglob("metrics.json")):
             folder = metrics_file.parent
             config_file = folder / "config.yaml"
@@ -191,6 +202,64 @@ def find_runs(paths: list[Path]) -> list[RunRow]:
                                 "or finetune writes")
             rows.append(RunRow(folder, config, metrics))
     return sorted(rows, key=lambda row: str(row.folder))
+
+
+OTHER_RECORDS = ("metrics.json", "error.json", "render.json", "bench.json")
+"""Files that make a folder with ``config.yaml`` something other than an unfinished run: a finished run or eval, a
+failed sweep job, a render, a benchmark."""
+
+
+def _unfinished_runs(path: Path) -> list[RunRow]:
+    """Rows of the run folders below ``path`` that hold ``config.yaml`` but none of ``OTHER_RECORDS``."""
+    rows = []
+    for config_file in sorted(path.rglob("config.yaml")):
+        folder = config_file.parent
+        if any((folder / name).exists() for name in OTHER_RECORDS):
+            continue
+        try:
+            config = yaml.safe_load(upgrade_config_yaml(config_file.read_text()))
+        except (yaml.YAMLError, UnicodeDecodeError, OSError):
+            config = None
+        if not isinstance(config, dict) or "train" not in config:
+            continue  # not a run's config (Hydra's own, another program's)
+        rows.append(RunRow(folder, config, {}, error=unfinished_reason(folder, config), state="unfinished"))
+    return rows
+
+
+def unfinished_reason(folder: Path, config: dict[str, Any]) -> str:
+    """What the files of a run folder without ``metrics.json`` show: still running, or stopped before its first
+    checkpoint, during training (at which step) or after training (in evaluation)."""
+    running = _live_holder(folder)
+    if running:
+        return f"no metrics.json yet: {running}"
+    checkpoints = run_checkpoints(folder)
+    if not checkpoints:
+        return "no metrics.json and no checkpoint: it stopped (failed, interrupted or killed) before its first checkpoint"
+    step, newest = checkpoints[-1]
+    steps = (config.get("train") or {}).get("steps")
+    if isinstance(steps, int) and step < steps:
+        return (f"no metrics.json: training stopped at step {step} of {steps} (newest checkpoint "
+                f"{newest.relative_to(folder)}); resume it with train.resume=auto out_dir={folder}")
+    return (f"no metrics.json: training finished ({newest.relative_to(folder)}) but evaluation did not (failed, "
+            "interrupted or killed)")
+
+
+def _live_holder(folder: Path) -> str | None:
+    """``held by a running process (pid N ...)`` when ``folder``'s lock names a live process of this machine."""
+    try:
+        holder = json.loads((folder / LOCK_NAME).read_text())
+        pid, host = int(holder["pid"]), str(holder.get("host"))
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if host != socket.gethostname():
+        return f"locked by pid {pid} on {host} (running there, or killed without releasing {LOCK_NAME})"
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return None
+    except PermissionError:
+        pass  # another user's live process
+    return f"held by a running process (pid {pid}, since {holder.get('started', '?')})"
 
 
 NUMBER_OR_NONE = (int, float, type(None))
@@ -230,7 +299,7 @@ def group_runs(rows: list[RunRow]) -> list[RowGroup]:
     """Runs grouped by ``method_key``, in the order their first run was found."""
     groups: dict[str, list[RunRow]] = {}
     for row in rows:
-        key = f"failed:{row.folder}" if row.error is not None else row.method_key()
+        key = f"{row.state}:{row.folder}" if row.error is not None else row.method_key()
         groups.setdefault(key, []).append(row)
     return [RowGroup(tuple(runs)) for runs in groups.values()]
 
@@ -262,7 +331,7 @@ def format_table(rows: list[RunRow]) -> str:
     for group in group_runs(rows):
         first = group.runs[0]
         if first.error is not None:
-            lines.append(f"| {group.label} | " + f"failed: {first.error}".replace("|", "/") + " |" + " |" * (width - 2))
+            lines.append(f"| {group.label} | " + f"{first.state}: {first.error}".replace("|", "/") + " |" + " |" * (width - 2))
             continue
         switches = first.switches()
         paper = PAPER_TABLE4.get(first.paper_switches()) if first.paper_switches() else None
@@ -377,4 +446,4 @@ def with_parameter_count(row: RunRow) -> RunRow:
         return row
     state = state.get("model", {}) if isinstance(state, dict) else {}
     total = sum(t.numel() for t in state.values() if hasattr(t, "numel"))
-    return RunRow(row.folder, row.config, {**row.metrics, "parameters": {"total": total}}, row.error)
+    return RunRow(row.folder, row.config, {**row.metrics, "parameters": {"total": total}}, row.error, row.state)

@@ -7,6 +7,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from gpnerf_core.errors import ConfigError
+from gpnerf_core.evaluation.evaluator import SPLIT_LABELS
 from gpnerf_core.tools.sizing.knobs import KNOBS
 
 METRICS = {"miou": ("train_heldout", "miou/image_mean_present"), "psnr": ("train_heldout", "psnr/clamped")}
@@ -33,7 +34,7 @@ class SizeOptions:
         min_coverage: fewest source views tried: those that show at least this fraction of a target's pixels
             to two or more of them (the scene measurement).
         depth_margin: the measured depth range is widened by this fraction on each side for near/far.
-        knobs: which knobs to size (keys or labels; empty = all).
+        knobs: which knobs to size (keys or labels); left out = every knob (an empty list is refused).
         max_parameters, max_flops_per_ray, max_seconds_per_frame, max_memory_mb: budgets the chosen configuration
             must meet (0 = none).
         overwrite: replace a sizing of another request in ``out``.
@@ -108,12 +109,25 @@ def parse_size_options(argv: list[str]) -> tuple[SizeOptions, list[str]]:
 
 def _knobs(text: str) -> list[str]:
     names = [n.strip() for n in text.strip("[]").split(",") if n.strip()]
+    if not names:
+        raise ConfigError(f"size.knobs={text!r}: expected at least one knob of {', '.join(k.key for k in KNOBS)} "
+                          "(leave size.knobs out to size every knob)")
     by_name = {k.key: k.key for k in KNOBS} | {k.label.replace(" ", "_"): k.key for k in KNOBS}
     unknown = [n for n in names if n not in by_name]
     if unknown:
         raise ConfigError(f"size.knobs: unknown knob {unknown[0]!r}; known: {', '.join(k.key for k in KNOBS)} "
                           f"(or {', '.join(k.label.replace(' ', '_') for k in KNOBS)})")
     return [by_name[n] for n in names]
+
+
+def check_eval_splits(metric: str, splits: list[str]) -> None:
+    """Refuse ``eval.splits`` without the split every trial is compared on (before anything is written or trained)."""
+    label = METRICS[metric][0]
+    needed = next(split for split, name in SPLIT_LABELS.items() if name == label)
+    if needed not in splits:
+        raise ConfigError(f"eval.splits=[{','.join(splits)}]: size compares trials by {metric} on the held-out views "
+                          f"of the training scenes; expected eval.splits to contain {needed!r} "
+                          f"(e.g. eval.splits=[{','.join([needed, *splits])}], or leave eval.splits out)")
 
 
 def resolve_metric(options: SizeOptions, has_head: bool) -> tuple[str, float]:

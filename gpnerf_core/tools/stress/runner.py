@@ -20,7 +20,7 @@ import torch
 import yaml
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from gpnerf_core.errors import ConfigError, DataError, NonFiniteError
+from gpnerf_core.errors import ConfigError, DataError, NonFiniteError, PluginError
 from gpnerf_core.interfaces import StressCase
 
 METRICS = {"miou": "miou/image_mean_present", "accuracy": "acc/image_total", "psnr": "psnr/clamped"}
@@ -70,6 +70,7 @@ def models_from_paths(paths: Sequence[Path]) -> list[ModelUnderTest]:
 
     rows: list[RunRow] = []
     checkpoints: dict[Path, Path] = {}
+    skipped: list[str] = []
     for path in paths:
         if path.is_file():
             row = RunRow(path.parent.parent if path.parent.name == "checkpoints" else path.parent,
@@ -78,18 +79,18 @@ def models_from_paths(paths: Sequence[Path]) -> list[ModelUnderTest]:
             checkpoints[row.folder] = path
             continue
         for row in find_runs([path]):
-            if row.error is not None:
-                print(f"stress: skipping {row.folder}: it failed ({row.error})", file=sys.stderr)
-                continue
-            checkpoint = _run_checkpoint(row.folder, row.metrics)
+            checkpoint, reason = _usable_checkpoint(row)
             if checkpoint is None:
-                print(f"stress: skipping {row.folder}: no checkpoint in {row.folder / 'checkpoints'} (an eval "
-                      "folder, or a copy without its checkpoints)", file=sys.stderr)
+                skipped.append(f"{row.folder}: {reason}")
+                print(f"stress: skipping {skipped[-1]}", file=sys.stderr)
                 continue
+            if reason:
+                print(f"stress: note: {row.folder}: {reason}", file=sys.stderr)
             rows.append(row)
             checkpoints[row.folder] = checkpoint
     if not rows:
-        raise DataError(f"no trained runs or checkpoints under {', '.join(map(str, paths))}")
+        why = f" (skipped {skipped[0]}{f'; {len(skipped) - 1} more above' if len(skipped) > 1 else ''})" if skipped else ""
+        raise DataError(f"no trained runs or checkpoints under {', '.join(map(str, paths))}{why}")
     groups = group_runs(rows)
     labels = method_labels(groups)
     models = []
@@ -98,6 +99,32 @@ def models_from_paths(paths: Sequence[Path]) -> list[ModelUnderTest]:
             models.append(ModelUnderTest(checkpoints[row.folder], row.config, label, row.config.get("seed"),
                                          row.folder.name))
     return models
+
+
+def _usable_checkpoint(row: Any) -> tuple[Path | None, str]:
+    """The checkpoint to stress of a ``find_runs`` row, with a note; or None and why the row is skipped.
+
+    A finished run gives its final checkpoint. An unfinished one (no ``metrics.json``) whose newest checkpoint is at
+    its ``train.steps`` finished training and stopped in evaluation: that checkpoint is the trained model. One that
+    stopped earlier is a partly trained model, skipped (its checkpoint may be given as a path itself)."""
+    from gpnerf_core.training.resume import run_checkpoints
+
+    if row.state == "failed":
+        return None, f"it failed ({row.error})"
+    if row.state == "finished":
+        checkpoint = _run_checkpoint(row.folder, row.metrics)
+        return checkpoint, ("" if checkpoint is not None else
+                            f"no checkpoint in {row.folder / 'checkpoints'} (an eval folder, or a copy without its "
+                            "checkpoints)")
+    found = run_checkpoints(row.folder)
+    steps = (row.config.get("train") or {}).get("steps")
+    if not found:
+        return None, row.error
+    step, newest = found[-1]
+    if isinstance(steps, int) and step < steps:
+        return None, (f"{row.error}; a partly trained model is not stressed unless its checkpoint is given: "
+                      f"stress {newest} ...")
+    return newest, f"{row.error}; stressing its final checkpoint {newest.name} (step {step})"
 
 
 def _run_checkpoint(folder: Path, metrics: dict[str, Any]) -> Path | None:
@@ -116,9 +143,12 @@ def _run_checkpoint(folder: Path, metrics: dict[str, Any]) -> Path | None:
 
 def choose_cases(names: Sequence[str] | None) -> list[StressCase]:
     """The registered cases named (all when None), in registration order; an unknown name lists the known."""
-    from gpnerf_core.registry.components import get_registry
+    from gpnerf_core.registry.components import clash_message, get_registry
 
     registered = {name: case for name, (case, _) in get_registry().stress_cases.items()}
+    for key, providers in get_registry().clashes.items():  # two plugins' case of one name: neither runs silently
+        if key.startswith("stress/") and (not names or key[len("stress/"):] in names):
+            raise PluginError(clash_message(f"stress case {key[len('stress/'):]!r}", providers))
     if not names:
         return list(registered.values())
     unknown = [n for n in names if n not in registered]
@@ -242,7 +272,7 @@ def run_suite(
                 reason = _unavailable(case, level, evaluator)
                 if reason is not None:
                     outcome.skipped = reason
-                    print(f"stress: {model.name} {case.name} {case.label(level)}: skipped: {reason}", file=sys.stderr)
+                    shown = f"skipped: {reason}"
                 else:
                     started = time.perf_counter()
                     try:
@@ -251,8 +281,8 @@ def run_suite(
                         outcome.error = str(exc)
                     outcome.seconds = time.perf_counter() - started
                     shown = _shown(outcome.metrics) if outcome.error is None else f"NOT FINITE: {outcome.error}"
-                    print(f"stress: {model.name} {case.name} {case.label(level)}: {shown}", file=sys.stderr)
-                outcomes.append(outcome)
+                outcomes.append(outcome)  # before its line: an interruption after the line keeps what it reports
+                print(f"stress: {model.name} {case.name} {case.label(level)}: {shown}", file=sys.stderr)
     return outcomes
 
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import errno
 import socket
-import sys
 import threading
 from dataclasses import dataclass, field
 from typing import Any, Sequence
@@ -385,12 +384,11 @@ class ViewerServer:
 
 
 def serve_until_stopped(server: ViewerServer, stop: threading.Event) -> None:
-    """Print the URL and serve until ``stop`` is set (or Ctrl-C); then stop the server."""
+    """Print the URL and serve until ``stop`` is set; then stop the server. An interruption (Ctrl-C, SIGTERM: the
+    command's handlers raise it) stops the server and goes on up, so the command exits 130 or 143 with one line."""
     print(f"viewer: open {server.url} in a browser (Ctrl-C stops it)", flush=True)
     try:
         while not stop.wait(0.5):
             pass
-    except KeyboardInterrupt:
-        print("viewer: stopping", file=sys.stderr)
     finally:
         server.stop()

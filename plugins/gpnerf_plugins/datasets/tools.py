@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable
 
-from gpnerf_core import ArgumentParser, ConfigError, DataError
+from gpnerf_core import MAX_FAR, ArgumentParser, ConfigError, DataError
 from gpnerf_plugins.datasets.common.layout_check import LayoutReport
 from gpnerf_plugins.datasets.common.pose_report import RayRange
 
@@ -42,8 +42,8 @@ def layout_checkers() -> dict[str, Callable[[Path, float | None, float | None], 
 
 def _rays(default_near: float, default_far: float, near: float | None, far: float | None) -> RayRange:
     rays = RayRange(default_near if near is None else near, default_far if far is None else far)
-    if not 0.0 < rays.near < rays.far < float("inf"):
-        raise ConfigError(f"--near {rays.near:g} --far {rays.far:g}: expected 0 < near < far (metres)")
+    if not 0.0 < rays.near < rays.far <= MAX_FAR:
+        raise ConfigError(f"--near {rays.near:g} --far {rays.far:g}: expected 0 < near < far <= {MAX_FAR:g} (metres)")
     return rays
 
 

@@ -60,13 +60,23 @@ EXACT_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"
 
 
 def load_pycolmap() -> Any:
-    """The ``pycolmap`` module, imported on first use (listing the data tools does not need it)."""
+    """The ``pycolmap`` module, imported on first use (listing the data tools does not need it).
+
+    Importing it installs glog's SIGTERM handler (a native stack dump, then death, with no ``finally`` run); the
+    Python handler in place before (the command line's: SIGTERM unwinds as an exception) is put back."""
+    import signal
+    import threading
+
+    previous = signal.getsignal(signal.SIGTERM) if threading.current_thread() is threading.main_thread() else None
     try:
         import pycolmap
     except ImportError as exc:
         raise ConfigError(
             f"pycolmap is not importable ({exc}); expected it installed: pip install 'pycolmap>=4.2'"
         ) from None
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     return pycolmap
 
 

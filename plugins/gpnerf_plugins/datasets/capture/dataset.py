@@ -9,6 +9,7 @@ its frames' labels are all the ignore index, and label metrics are not computed 
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -17,6 +18,7 @@ import numpy as np
 import torch
 
 from gpnerf_core import (
+    MAX_FAR,
     ConfigError,
     DataError,
     DatasetBase,
@@ -249,11 +251,21 @@ class CaptureScenes(DatasetBase):
         return tuple(i for i in range(len(names)) if i not in held), held
 
     def _depth_bounds(self, name: str, capture: CaptureFile, reader: "_FrameReader") -> tuple[float, float]:
-        """``dataset.near/far`` if set; else, in this order, the frames' bounds from the file, the depth maps' (see
-        ``DEPTH_PERCENTILES``, ``DEPTH_MARGIN``), or the sparse points' (``ply_file_path``: each frame's bounds from
-        the points in front of it and inside its image, by ``import-colmap``'s rule); metres after ``scale``."""
+        """``dataset.near/far`` if set (checked when the dataset was built); else the capture's own (``_found_bounds``),
+        refused unless ``0 < near < far <= MAX_FAR`` (a far like 1e30 in the file would train on nan)."""
         if self.bounds != (0.0, 0.0):
             return self.bounds
+        near, far = self._found_bounds(name, capture, reader)
+        if not (math.isfinite(near) and math.isfinite(far) and 0 < near < far <= MAX_FAR):
+            raise DataError(f"capture {name!r} ({capture.path}): its depth bounds are near={near:g}, far={far:g} m "
+                            f"(after dataset.scale={self.scale:g}); expected 0 < near < far <= {MAX_FAR:g} m: fix the "
+                            "frames' near/far or depth maps, or set dataset.near and dataset.far")
+        return near, far
+
+    def _found_bounds(self, name: str, capture: CaptureFile, reader: "_FrameReader") -> tuple[float, float]:
+        """In this order, the frames' bounds from the file, the depth maps' (see ``DEPTH_PERCENTILES``,
+        ``DEPTH_MARGIN``), or the sparse points' (``ply_file_path``: each frame's bounds from the points in front of it
+        and inside its image, by ``import-colmap``'s rule); metres after ``scale``."""
         frames = capture.frames
         nears = [f.near for f in frames if f.near is not None]
         fars = [f.far for f in frames if f.far is not None]

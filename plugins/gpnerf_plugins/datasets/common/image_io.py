@@ -37,14 +37,19 @@ class ImageError(DataError):
         super().__init__(f"{path}: unreadable image ({self.reason}); expected {expected}")
 
 
-def image_size(path: Path, expected: str = "a PNG") -> tuple[int, int]:
-    """``(H, W)`` from the image header, without decoding the pixels."""
+def image_header(path: Path, expected: str = "a PNG") -> tuple[tuple[int, int], str]:
+    """``((H, W), PIL mode)`` from the image header, without decoding the pixels."""
     try:
         with Image.open(path) as image:
-            width, height = image.size
+            (width, height), mode = image.size, image.mode
     except Exception as exc:
         raise ImageError(path, exc, expected) from None
-    return height, width
+    return (height, width), mode
+
+
+def image_size(path: Path, expected: str = "a PNG") -> tuple[int, int]:
+    """``(H, W)`` from the image header, without decoding the pixels."""
+    return image_header(path, expected)[0]
 
 
 def decode_image(path: Path, expected: str = "an image") -> Image.Image:
@@ -90,6 +95,21 @@ def read_rgb_png(path: Path) -> np.ndarray:
 
 EIGHT_BIT_DEPTH = "an 8-bit PNG (at most 255 units: 0.255 m in millimetres); expected a 16-bit depth PNG"
 """Why an 8-bit depth PNG is refused: its values cannot hold depth in the units depth PNGs use."""
+
+
+EIGHT_BIT_MODES = ("1", "L", "P")
+"""PIL modes of a single-channel PNG of at most 8 bits."""
+
+
+def check_depth_mode(path: Path, mode: str) -> None:
+    """Refuse a depth PNG whose header (PIL ``mode``) says 8 bits, before any pixel is decoded (other wrong formats,
+    several channels, are refused when the frame decodes).
+
+    Raises:
+        DataError: naming ``path``, what it is and what is expected.
+    """
+    if mode in EIGHT_BIT_MODES:
+        raise DataError(f"{path}: {EIGHT_BIT_DEPTH}")
 
 
 def read_integer_png(path: Path, what: str, *, depth: bool = False) -> np.ndarray:

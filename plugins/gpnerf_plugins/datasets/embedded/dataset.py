@@ -134,7 +134,8 @@ class EmbeddedScenes(DatasetBase):
         return self._set_folder
 
     def check_files(self, scenes: Sequence[str], level: str) -> list[str]:
-        """The generic check, after comparing the files with the generator's checksum list.
+        """The generic check, after comparing the files with the generator's checksum list (sizes and contents, at
+        ``quick`` as at ``full``).
 
         A damaged set in the cache is regenerated (with a note on stderr); a damaged set in ``dataset.root`` is reported
         with how to regenerate it.
@@ -142,14 +143,14 @@ class EmbeddedScenes(DatasetBase):
         if level == "off":
             return []
         root = self.prepare()
-        damaged = damaged_files(root, list(scenes), full=level == "full")
+        damaged = damaged_files(root, list(scenes))
         if damaged and self._set_given is None:
             print(f"note: the cached embedded scenes in {root} are damaged ({damaged[0]}); regenerating", file=sys.stderr)
             shutil.rmtree(root)
             self._set_folder = None
             self.forget_scenes()
             root = self.prepare()
-            damaged = damaged_files(root, list(scenes), full=level == "full")
+            damaged = damaged_files(root, list(scenes))
         if damaged:
             fix = f"regenerate: delete {root} and run again (it is rendered into an empty folder)"
             return [f"{problem}; {fix}" for problem in damaged]

@@ -2,7 +2,9 @@
 
 They walk every scene (and sequence), decode every file and report each problem with its file, frame, what the
 layout expects and what was found, instead of stopping at the first one as the loaders do. Given the ray range, they
-also report each sequence's pose findings (``gpnerf_core.geometry.pose_sanity``) with the frame numbers.
+also report each sequence's pose findings (``gpnerf_core.geometry.pose_sanity``) with the frame numbers, and refuse what
+``dataset.validate`` refuses (``gpnerf_core.data.checks``): a camera absurdly far from the others, a depth map beyond
+``far`` everywhere.
 """
 
 from __future__ import annotations
@@ -12,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gpnerf_core import EXPECTED_RIGID, rigid_transform_problem
+from gpnerf_core import EXPECTED_RIGID, depth_problem, far_away_cameras, rigid_transform_problem
+from gpnerf_plugins.datasets.common.decoding import DEPTH_UNITS_PER_METRE
 from gpnerf_plugins.datasets.common.image_io import ImageError, describe, is_integer_map, is_rgb8, one_line_error, read_png
 from gpnerf_plugins.datasets.common.layout_check import LayoutReport, Problem
 from gpnerf_plugins.datasets.common.pose_report import RayRange, report_poses
@@ -120,6 +123,10 @@ class _Walk:
             expected = f"a {size[0]}x{size[1]} (HxW) image like the rgb frames"
             self.problem(path, frame, expected, f"{image.shape[0]}x{image.shape[1]}")
             return None
+        if kind == DEPTH_DIR and self.rays is not None:
+            problem = depth_problem(image.astype(np.float64) / DEPTH_UNITS_PER_METRE, self.rays.far)
+            if problem is not None:
+                self.problem(path, frame, f"{problem.expected} (--far {self.rays.far:g})", problem.found)
         return image
 
     def labels(self, path: Path, frame: int, raw: np.ndarray) -> None:
@@ -186,6 +193,12 @@ class _Walk:
         if INSTANCE_DIR in others:
             self.report.notes.append(f"{folder}: {len(instance_ids)} distinct instance ids")
         usable = rows == len(rgb) and all(pose is not None for pose in self.poses)
+        if self.rays is not None and usable:
+            far_away = far_away_cameras(self.poses, self.rays.far)
+            for index, problem in far_away.items():
+                expected = f"{problem.expected} (--far {self.rays.far:g})"
+                self.problem(folder / TRAJECTORY_FILE, numbers[index], expected, problem.found)
+            usable = not far_away  # pose sanity of such a scale says nothing more
         if self.rays is not None and self.hfov_deg is not None and size is not None and usable:
             intrinsics = hfov_intrinsics(size[0], size[1], self.hfov_deg)
             names = [str(number) for number in numbers]

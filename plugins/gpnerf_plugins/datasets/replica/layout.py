@@ -27,7 +27,7 @@ import torch
 
 from gpnerf_core import EXPECTED_RIGID, ConfigError, DataError, Frame, Scene, check_depth_range, rigid_transform_problem
 from gpnerf_plugins.datasets.common.decoding import FrameDecoder, FrameFiles
-from gpnerf_plugins.datasets.common.image_io import image_size
+from gpnerf_plugins.datasets.common.image_io import check_depth_mode, image_header, image_size
 
 TRAJECTORY_FILE = "traj_w_c.txt"
 RGB_DIR, DEPTH_DIR, CLASS_DIR, INSTANCE_DIR = "rgb", "depth", "semantic_class", "semantic_instance"
@@ -231,12 +231,16 @@ class ReplicaSequence:
         return len(self.files)
 
     def _check_sizes(self) -> tuple[int, int]:
+        """The frames' common ``(H, W)``, from every file's header; a depth PNG's header must also say 16 bits (an
+        8-bit depth map is refused here, before training, at the cost of the header read that is done anyway)."""
         expected = image_size(self.files[0].rgb)
         for frame in self.files:
             for path in (frame.rgb, frame.depth, frame.semantic, frame.instance):
                 if path is None:
                     continue
-                found = image_size(path)
+                found, mode = image_header(path)
+                if path is frame.depth:
+                    check_depth_mode(path, mode)
                 if found != expected:
                     raise DataError(
                         f"{path}: image is {found[0]}x{found[1]} (HxW); "

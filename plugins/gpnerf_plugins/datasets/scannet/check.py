@@ -8,13 +8,14 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from gpnerf_core import DataError
+from gpnerf_core import DataError, depth_problem, far_away_cameras
 from gpnerf_plugins.datasets.common.image_io import one_line_error
 from gpnerf_plugins.datasets.common.layout_check import LayoutReport
 from gpnerf_plugins.datasets.common.pose_report import RayRange, report_poses
 from gpnerf_plugins.datasets.scannet.files import (
     COLOR_DIR,
     DEPTH_DIR,
+    DEPTH_SCALE,
     INSTANCE_DIR,
     INTEGER_MODES,
     INTRINSIC_COLOR,
@@ -68,6 +69,8 @@ def _png_complete(path: Path, frame: str, kind: str) -> tuple[int, int]:
         raise LayoutError(path, f"a {kind} PNG", f"a {fmt} file", frame)
     if mode not in INTEGER_MODES:
         raise LayoutError(path, f"a single-channel integer {kind} PNG", f"mode {mode}", frame)
+    if kind == "depth" and mode == "L":
+        raise LayoutError(path, "a 16-bit depth PNG (millimetres)", "an 8-bit PNG (at most 0.255 m)", frame)
     return height, width
 
 
@@ -118,7 +121,8 @@ class _SceneCheck:
         reference = None
         for position, files in enumerate(frames):
             reference = self.frame(files, position, reference)
-        if self.rays is not None and intrinsic is not None and reference is not None:
+        if self.rays is not None and self.poses and not self.far_away_cameras() and intrinsic is not None \
+                and reference is not None:
             tokens = list(self.poses)
             poses = [self.poses[token] for token in tokens]
             report_poses(self.report, self.path / POSE_DIR, poses, intrinsic, reference, self.rays, tokens)
@@ -163,7 +167,7 @@ class _SceneCheck:
                 )
         except LayoutError as error:
             self.problem(error)
-        label_ok = False
+        label_ok = depth_ok = False
         images = [(files.depth, "depth"), (files.label, "label")]
         if files.instance is not None:
             images.append((files.instance, "instance"))
@@ -178,11 +182,38 @@ class _SceneCheck:
                         files.token,
                     )
                 label_ok = label_ok or kind == "label"
+                depth_ok = depth_ok or kind == "depth"
             except LayoutError as error:
                 self.problem(error)
         if label_ok and self.label_map is not None and position % self.every == 0:
             self.histogram(files)
+        if depth_ok and self.rays is not None and position % self.every == 0:
+            self.depth_values(files)
         return reference
+
+    def far_away_cameras(self) -> bool:
+        """Report the cameras absurdly far from the others (``gpnerf_core.data.checks``); True if there are any."""
+        assert self.rays is not None
+        tokens = list(self.poses)
+        found = far_away_cameras([self.poses[token] for token in tokens], self.rays.far)
+        for index, problem in found.items():
+            expected = f"{problem.expected} (--far {self.rays.far:g})"
+            path = self.path / POSE_DIR / f"{tokens[index]}.txt"
+            self.problem(LayoutError(path, expected, problem.found, tokens[index]))
+        return bool(found)
+
+    def depth_values(self, files: FrameFiles) -> None:
+        """The depth map's values as ``dataset.validate`` checks them (``gpnerf_core.data.checks.depth_problem``)."""
+        assert self.rays is not None
+        try:
+            stored = read_integer_image(files.depth, files.token, "depth")
+        except LayoutError as error:
+            self.problem(error)
+            return
+        problem = depth_problem(stored.astype(np.float64) / DEPTH_SCALE, self.rays.far)
+        if problem is not None:
+            expected = f"{problem.expected} (--far {self.rays.far:g})"
+            self.problem(LayoutError(files.depth, expected, problem.found, files.token))
 
     def histogram(self, files: FrameFiles) -> None:
         try:
@@ -212,11 +243,14 @@ def check_scannet_layout(
 
     Every frame's four files (and its ``instance-filt`` PNG where the scene has that folder) are checked without
     decoding pixels (headers, PNG CRCs, the JPEG end marker, pose and intrinsic numbers); labels of every
-    ``histogram_every``-th frame of each scene are decoded for the class histogram (20 classes + ignore). A scene
+    ``histogram_every``-th frame of each scene are decoded for the class histogram (20 classes + ignore), and with
+    ``rays`` their depth maps too (refused when every known depth is beyond ``far``; an 8-bit depth PNG is refused from
+    its header). A scene
     whose ``instance-filt/`` lacks a frame's PNG is a problem; a scene without the folder is fine. Invalid poses
     and label ids the tsv lacks are notes, not problems: the loader handles them. With ``rays``, the frames with a
     valid pose get pose sanity (``gpnerf_core.geometry.pose_sanity``, colour intrinsics at the colour size): a scale that
-    refuses is a problem, other findings are notes naming the frame.
+    refuses is a problem, other findings are notes naming the frame; a camera absurdly far from the others
+    (``gpnerf_core.data.checks.far_away_cameras``) is a problem, as ``dataset.validate`` has it.
 
     Args:
         root: the dataset folder.
