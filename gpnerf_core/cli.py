@@ -74,5 +74,5 @@ def main(argv: list[str] | None = None) -> int:
 
 def _interrupted(command: str, exc: BaseException) -> int:
     name, code = interruption(exc)
-    print(f"interrupted ({name}): {command} stopped; what it had finished and written stays", file=sys.stderr)
+    print(f"interrupted ({name}): {command} stopped; the files it had completed stay", file=sys.stderr)
     return code

@@ -67,12 +67,25 @@ def default_dataset() -> str:
 
 def foreign_dataset_options(stored: list[str], given: list[str]) -> list[str]:
     """The ``dataset.*`` options of ``stored`` (a checkpoint's overrides) that ``given`` leaves behind by choosing
-    another dataset than ``stored`` composed: a dataset's options belong to it (another dataset's schema refuses them).
-    Empty when ``given`` keeps the dataset."""
+    another dataset than ``stored`` composed: those the chosen dataset's config does not have (its schema would refuse
+    them). Options both datasets have (image size, frames, ...) carry over, as every other option of the checkpoint
+    does. Empty when ``given`` keeps the dataset."""
     chosen = dataset_choice(given)
     if chosen is None or chosen == (dataset_choice(stored) or default_dataset()):
         return []
-    return [o for o in stored if override_key(o).startswith("dataset.")]
+    options = _dataset_options(chosen)
+    return [o for o in stored
+            if override_key(o).startswith("dataset.") and override_key(o).split(".")[1] not in options]
+
+
+def _dataset_options(name: str) -> set[str]:
+    """The top-level options of dataset ``name``'s config (none for a dataset no plugin registers: it is refused)."""
+    import dataclasses
+
+    from gpnerf_core.registry.components import get_registry
+
+    entry = get_registry().components.get("dataset", {}).get(name)
+    return {field.name for field in dataclasses.fields(entry.spec.config)} if entry is not None else set()
 
 
 def foreign_dataset_note(stored: list[str], given: list[str]) -> str | None:
@@ -83,7 +96,7 @@ def foreign_dataset_note(stored: list[str], given: list[str]) -> str | None:
         return None
     trained_on = dataset_choice(stored) or default_dataset()
     return (f"dataset={dataset_choice(given)} is not the checkpoint's dataset ({trained_on}): its options "
-            f"{', '.join(dropped)} are not carried over")
+            f"{', '.join(dropped)} are not options of {dataset_choice(given)} and are not carried over")
 
 
 def quoted_for_hydra(override: str) -> str:

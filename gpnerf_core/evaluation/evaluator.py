@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from gpnerf_core.model.build import Components
 from gpnerf_core.runtime.device import peak_memory_mb
 from gpnerf_core.runtime.distributed import Distributed
-from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.errors import ConfigError, DataError, NonFiniteError
 from gpnerf_core.evaluation import instances as I
 from gpnerf_core.evaluation import metrics as M
 from gpnerf_core.evaluation import pictures as P
@@ -238,13 +238,17 @@ def _evaluate_view(
     else:
         sources = None
     started = time.perf_counter()
-    prediction = model.predict(
-        frames.camera(scene, target),
-        sources,
-        stride=int(cfg.eval.render_stride),
-        chunk_rays=int(cfg.eval.chunk_rays),
-    )
-    prediction.check_finite(model.output_owners(component_names(cfg)), f"scene {scene.name!r} frame {index}")
+    where = f"scene {scene.name!r} frame {index}"
+    try:
+        prediction = model.predict(
+            frames.camera(scene, target),
+            sources,
+            stride=int(cfg.eval.render_stride),
+            chunk_rays=int(cfg.eval.chunk_rays),
+        )
+    except NonFiniteError as exc:  # a component's output check (registry.guards) names the component, not the view
+        raise NonFiniteError(f"{where}: {exc}; nothing was scored") from None
+    prediction.check_finite(model.output_owners(component_names(cfg)), where)
     instance_head = predicts(components) is Predicts.INSTANCES
     classes = None
     if prediction.logits is not None and not instance_head:

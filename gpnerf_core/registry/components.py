@@ -54,6 +54,9 @@ def disable_name(plugin: PluginInfo) -> str:
 
 def clash_message(what: str, providers: list[PluginInfo]) -> str:
     """One line: ``what`` (``head 'unet'``) is offered by each of ``providers``, and how to keep one of them."""
+    if len(set(providers)) == 1:
+        return (f"{what} is registered {len(providers)} times by {providers[0]}, and gpnerf-core does not pick one; "
+                "the plugin must register each name once")
     offered = " and ".join(str(p) for p in providers)
     keep = "; ".join(
         f"to use {p.name}'s: {DISABLE_PLUGINS_ENV}={','.join(disable_name(o) for o in providers if o is not p)}"

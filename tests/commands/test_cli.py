@@ -71,7 +71,7 @@ def test_an_interruption_a_library_turned_into_its_own_error_still_stops_as_an_i
 
     monkeypatch.setitem(sys.modules, "gpnerf_core.commands.report", types.SimpleNamespace(main=main))
     assert cli.main(["report"]) == 143
-    assert capsys.readouterr().err == "interrupted (SIGTERM): report stopped; what it had finished and written stays\n"
+    assert capsys.readouterr().err == "interrupted (SIGTERM): report stopped; the files it had completed stay\n"
 
     plain = ValueError("no interruption here")
     assert interrupted_by(plain) is None and interrupted_by(None) is None

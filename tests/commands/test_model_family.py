@@ -82,7 +82,7 @@ def test_render_writes_its_trajectory_and_view_serves_it(trained):
             url = found.group(1) if found else None
         assert url is not None and "<html" in urllib.request.urlopen(url, timeout=10).read().decode().lower()
         process.send_signal(signal.SIGTERM)
-        assert process.wait(timeout=60) == 0
+        assert process.wait(timeout=60) == 143  # SIGTERM's exit code
     finally:
         if process.poll() is None:
             process.kill()

@@ -13,7 +13,8 @@ from pipeline_check import TINY_MODEL, TINY_SCENES
 
 
 @pytest.mark.parametrize("poisoned, named", [
-    ("head", r"the head 'unet' gave NaN or Inf \(logits\)"),
+    ("head", r"head 'unet' \(plugin gpnerf_plugins.heads.plugin, gpnerf-core [^)]*\) returned logits that are not "
+             r"finite .* from finite input features; nothing was scored"),
     ("ray", r"ray aggregator 'gnt_ray' gave NaN or Inf \(colour\)"),
 ])
 def test_non_finite_outputs_stop_evaluation_naming_the_component(tmp_path, poisoned, named):

@@ -331,10 +331,11 @@ def test_a_captures_own_far_of_1e30_is_refused_naming_the_capture(tmp_path, monk
 def test_another_dataset_drops_the_checkpoints_dataset_options():
     stored = ["+head=unet", "dataset.num_train_scenes=16", "dataset.height=32", "train.steps=10"]
     merged = merge_overrides(stored, ["dataset=replica", "dataset.root=/r"])
-    assert merged == ["+head=unet", "train.steps=10", "dataset=replica", "dataset.root=/r"]
+    # the options replica has too (the image size) carry over like every other option of the checkpoint
+    assert merged == ["+head=unet", "dataset.height=32", "train.steps=10", "dataset=replica", "dataset.root=/r"]
     assert foreign_dataset_note(stored, merged) == (
-        "dataset=replica is not the checkpoint's dataset (embedded): its options dataset.num_train_scenes=16, "
-        "dataset.height=32 are not carried over")
+        "dataset=replica is not the checkpoint's dataset (embedded): its options dataset.num_train_scenes=16 are "
+        "not options of replica and are not carried over")
     assert merge_overrides(stored, ["dataset=embedded"]) == [*stored, "dataset=embedded"]  # the same dataset keeps them
     assert foreign_dataset_note(stored, [*stored, "dataset=embedded"]) is None
     replica_stored = ["dataset=replica", "dataset.protocol=paper_parity"]
