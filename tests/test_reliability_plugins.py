@@ -324,6 +324,38 @@ def test_help_and_usage_errors_import_no_third_party_plugin(tmp_path):
     assert gpnerf("plugins", cwd=tmp_path, plugin_path=tmp_path).returncode == 0 and mark.exists()  # it lists them
 
 
+SLOW_PLUGIN = """
+    import time
+    from gpnerf_core import DataTool, hookimpl
+
+    open({mark!r}, "a").write("imported\\n")
+
+    @hookimpl
+    def gpnerf_register_data_tools():
+        return [DataTool("greet", lambda argv: print("hello", *argv) or 0, "say hello")]
+"""
+
+
+def test_listing_commands_import_a_plugin_only_until_the_index_knows_it(tmp_path):
+    mark = tmp_path / "imported"
+    write_distribution(tmp_path, "slow", SLOW_PLUGIN.format(mark=str(mark)))
+    first = gpnerf("data", cwd=tmp_path, plugin_path=tmp_path)  # not indexed yet: every plugin is loaded
+    assert first.returncode == 0 and "greet" in first.stdout and mark.read_text().count("imported") == 1
+    assert (tmp_path / "cache" / "plugin_index.json").is_file()
+    for args in (["data"], ["data", "check", "--help"], ["stress", "--list"]):
+        result = gpnerf(*args, cwd=tmp_path, plugin_path=tmp_path)
+        assert result.returncode == 0, (args, result.stderr[-1000:])
+        assert mark.read_text().count("imported") == 1, f"{args} imported the plugin"
+    assert "say hello" in gpnerf("data", cwd=tmp_path, plugin_path=tmp_path).stdout  # listed from the index
+    greeted = gpnerf("data", "greet", "you", cwd=tmp_path, plugin_path=tmp_path)  # its own tool: imported to run
+    assert greeted.returncode == 0 and greeted.stdout.strip() == "hello you"
+    assert mark.read_text().count("imported") == 2
+    source = tmp_path / "gpnerf_test_slow.py"  # an edited plugin module: its record is stale, it is loaded again
+    source.write_text(source.read_text().replace("say hello", "say hello again"))
+    assert "say hello again" in gpnerf("data", cwd=tmp_path, plugin_path=tmp_path).stdout
+    assert mark.read_text().count("imported") == 3
+
+
 # -- 9. the viewer stops on SIGINT (even inherited ignored) and SIGTERM ----------------------------------------------
 
 

@@ -39,12 +39,18 @@ def parser() -> argparse.ArgumentParser:
 
 
 def list_cases() -> str:
+    """Every registered case; from the plugin index where it knows every plugin (``registry.catalog``: no import)."""
+    from gpnerf_core.registry.catalog import stress_levels_text
+    from gpnerf_core.registry.listing import listing
     from gpnerf_core.registry.components import get_registry
 
-    lines = []
-    for name, (case, provider) in get_registry().stress_cases.items():
-        levels = ", ".join(case.label(level) for level in case.levels)
-        lines.append(f"  {name:<18} [{provider}] {case.description}\n  {'':<18} levels: {levels}")
+    known = listing()
+    cases = known.stress_cases() if known is not None else {
+        name: (case.description, stress_levels_text(case), provider)
+        for name, (case, provider) in get_registry().stress_cases.items()
+    }
+    lines = [f"  {name:<18} [{provider}] {description}\n  {'':<18} levels: {levels}"
+             for name, (description, levels, provider) in cases.items()]
     return "stress cases:\n" + "\n".join(lines)
 
 

@@ -327,6 +327,9 @@ def register_config_options(registry: Registry) -> None:
 @functools.cache
 def get_registry() -> Registry:
     """The process-wide registry (built once; Hydra launcher workers rebuild it lazily)."""
+    from gpnerf_core.registry.catalog import remember_registrations
+
     registry = collect(make_plugin_manager())
     register_config_options(registry)
+    remember_registrations(registry)  # lets listing commands skip the import next time (registry.catalog)
     return registry

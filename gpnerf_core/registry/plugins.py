@@ -138,7 +138,6 @@ def make_plugin_manager(
     pm.add_hookspecs(hookspecs)
     loaded = LoadedPlugins(pm)
     blocked_names = {*blocked, *_env_list(DISABLE_PLUGINS_ENV)}
-    blocked_distributions = {normalize_distribution(name) for name in blocked_names}
     core_version = _distribution_version(CORE_DISTRIBUTION)
     for module_name in builtins:
         info = PluginInfo(module_name, CORE_DISTRIBUTION, core_version)
@@ -154,12 +153,10 @@ def make_plugin_manager(
     if autoload and os.environ.get(DISABLE_AUTOLOAD_ENV):
         loaded.disabled.append(f"every entry point ({DISABLE_AUTOLOAD_ENV} is set)")
     elif autoload:
-        for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
-            distribution = ep.dist.name if ep.dist is not None else "unknown"
-            info = PluginInfo(ep.name, distribution, ep.dist.version if ep.dist is not None else "unknown")
-            if ep.name in blocked_names or normalize_distribution(distribution) in blocked_distributions:
-                loaded.disabled.append(str(info))
-                continue
+        enabled, disabled = enabled_entry_points(blocked)
+        loaded.disabled.extend(str(info) for info in disabled)
+        for ep in enabled:
+            info = entry_point_info(ep)
             if ep.name in loaded.plugins or pm.has_plugin(ep.name):
                 loaded.problems.append(PluginProblem(info, f"entry point name {ep.name!r} is taken by another plugin"))
                 continue
@@ -170,6 +167,32 @@ def make_plugin_manager(
                 continue
             loaded.register(plugin, info)
     return loaded
+
+
+def entry_point_info(ep: importlib.metadata.EntryPoint) -> PluginInfo:
+    """The plugin an entry point names: its name, distribution and version."""
+    if ep.dist is None:
+        return PluginInfo(ep.name)
+    return PluginInfo(ep.name, ep.dist.name, ep.dist.version)
+
+
+def enabled_entry_points(
+    blocked: tuple[str, ...] = (),
+) -> tuple[list[importlib.metadata.EntryPoint], list[PluginInfo]]:
+    """The ``gpnerf`` entry points to load and those ``GPNERF_DISABLE_PLUGINS`` (or ``blocked``) leaves out; none at
+    all under ``GPNERF_DISABLE_PLUGIN_AUTOLOAD``."""
+    if os.environ.get(DISABLE_AUTOLOAD_ENV):
+        return [], []
+    blocked_names = {*blocked, *_env_list(DISABLE_PLUGINS_ENV)}
+    blocked_distributions = {normalize_distribution(name) for name in blocked_names}
+    enabled, disabled = [], []
+    for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
+        info = entry_point_info(ep)
+        if ep.name in blocked_names or normalize_distribution(info.distribution) in blocked_distributions:
+            disabled.append(info)
+        else:
+            enabled.append(ep)
+    return enabled, disabled
 
 
 def import_problem(info: PluginInfo, exc: Exception) -> PluginProblem:
