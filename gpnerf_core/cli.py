@@ -25,6 +25,8 @@ commands:
             `finetune checkpoint=<path> dataset.scenes=[<scene>] train.steps=N [finetune.points=4]`
   render    render a novel-view trajectory to MP4, GIF and PNG frames (RGB, depth, semantics side by side):
             `render checkpoint=<path> [render.scene=<name>] [render.path=interpolate|spiral] [render.frames=N]`
+  export    the points the model sees in a scene's frames, fused over views, as a PLY point cloud (colour, class):
+            `export checkpoint=<path> [export.scene=<name>] [export.frames=eval|train|all] [export.voxel=0.02]`
   view      serve an interactive web viewer of a checkpoint's novel views (RGB, depth, semantics) on localhost:
             `view checkpoint=<path> [view.scene=<name>] [view.port=8080] [view.host=127.0.0.1]`
   report    tabulate run folders (a sweep, the Table 4 ablation) beside the paper's numbers
@@ -39,7 +41,7 @@ commands:
 
 
 COMMANDS = (
-    "run", "eval", "finetune", "render", "view", "report", "stress", "size", "bench", "data", "plugins",
+    "run", "eval", "finetune", "render", "export", "view", "report", "stress", "size", "bench", "data", "plugins",
 )
 """The commands, in the order ``--help`` lists them; each is ``gpnerf_core.commands.<name>``."""
 

@@ -15,15 +15,13 @@ from __future__ import annotations
 
 import errno
 import math
-import shutil
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from functools import partial
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from omegaconf import DictConfig
@@ -34,6 +32,7 @@ from gpnerf_core.model.feature_cache import SourceFeatureCache
 from gpnerf_core.model.view_inputs import view_inputs
 from gpnerf_core.geometry.trajectories import trajectory
 from gpnerf_core.engine.jobs import claim_run_folder, job, launch_from_checkpoint, model_from_checkpoint
+from gpnerf_core.runtime.staging import Write, write_staged
 
 
 MAX_FPS = 50
@@ -62,6 +61,7 @@ def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.evaluation import visualize as vis
     from gpnerf_core.evaluation.evaluator import component_names
     from gpnerf_core.evaluation.pictures import prediction_layers
+    from gpnerf_core.data.dataset import chosen_scene
     from gpnerf_core.data.frames import FrameCache
     from gpnerf_core.interfaces.head import Predicts
 
@@ -77,10 +77,7 @@ def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     semantic = output is not None and output.predicts is Predicts.CLASSES
     frames = FrameCache(components.dataset, dist.device)
     feature_cache = SourceFeatureCache(budget) if budget > 0 else None
-    split_scenes = list(components.dataset.scenes("unseen")) + list(components.dataset.scenes("train"))
-    name = str(cfg.render.scene) or (split_scenes[0] if split_scenes else "")
-    if name not in split_scenes:
-        raise ConfigError(f"render.scene={name!r} is not a scene of this dataset; known: {', '.join(split_scenes)}")
+    name = chosen_scene(components.dataset, "render.scene", str(cfg.render.scene))
     scene = frames.scene(name)
     poses = trajectory(scene, cfg.render)
     reference = frames.frame(scene, scene.train_frames[0])
@@ -122,37 +119,14 @@ def _write_outputs(run_dir: Path, pictures: list[np.ndarray], fps: int, legend: 
     from gpnerf_core.evaluation import visualize as vis
     from gpnerf_core.runtime.io import atomic_write_json
 
-    writes: list[tuple[str, Callable[[Path], Any]]] = [
+    writes: list[tuple[str, Write]] = [
         *((f"frames/{index:04d}.png", partial(vis.save_image, image=picture)) for index, picture in enumerate(pictures)),
         ("trajectory.mp4", partial(write_mp4, pictures=pictures, fps=fps)),
         ("trajectory.gif", partial(write_gif, pictures=pictures, fps=fps)),
         *([("legend.png", partial(vis.save_image, image=legend))] if legend is not None else []),
         ("render.json", partial(atomic_write_json, obj=result)),
     ]
-    staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=run_dir))
-    moved: list[Path] = []
-    try:
-        for name, write in writes:
-            _write_named(write, staging / name, run_dir / name)
-        for name in dict.fromkeys(name.split("/")[0] for name, _ in writes):
-            (staging / name).replace(run_dir / name)
-            moved.append(run_dir / name)
-    except BaseException:
-        for path in moved:
-            shutil.rmtree(path) if path.is_dir() else path.unlink(missing_ok=True)
-        raise
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
-
-
-def _write_named(write: Callable[[Path], Any], target: Path, shown: Path) -> None:
-    """``write(target)``; an error names ``shown`` (the file the user will look for), not the staging path."""
-    try:
-        write(target)
-    except OSError as exc:
-        raise OSError(exc.errno, exc.strerror or str(exc), str(shown)) from None
-    except GpnerfError as exc:
-        raise GpnerfError(f"{shown}: {exc}") from None
+    write_staged(run_dir, writes, STAGING_PREFIX)
 
 
 def gif_delays_ms(frames: int, fps: int) -> list[int]:

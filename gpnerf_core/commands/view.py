@@ -20,7 +20,7 @@ from typing import Any
 from omegaconf import DictConfig
 
 from gpnerf_core.runtime.distributed import Distributed
-from gpnerf_core.errors import ConfigError, GpnerfError
+from gpnerf_core.errors import GpnerfError
 from gpnerf_core.engine.jobs import job, launch_from_checkpoint, model_from_checkpoint, run_dir
 from gpnerf_core.interfaces.head import Predicts
 from gpnerf_core.runtime.signals import Terminated
@@ -59,6 +59,7 @@ def _raise_terminated(signum: int, frame: Any) -> None:
 
 def _serve(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.model.feature_cache import SourceFeatureCache
+    from gpnerf_core.data.dataset import chosen_scene, shown_scenes
     from gpnerf_core.data.frames import FrameCache
     from gpnerf_core.tools.viewer.server import ViewerOptions, ViewerServer, check_port_free, serve_until_stopped
     from gpnerf_core.tools.viewer.renderer import SceneRenderer
@@ -72,10 +73,8 @@ def _serve(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
         for note in loaded.notes:
             print(f"note: {note}", file=sys.stderr)
         model = components.model.eval()
-        scenes = list(components.dataset.scenes("unseen")) + list(components.dataset.scenes("train"))
-        first = str(cfg.view.scene) or (scenes[0] if scenes else "")
-        if first not in scenes:
-            raise ConfigError(f"view.scene={first!r} is not a scene of this dataset; known: {', '.join(scenes)}")
+        scenes = shown_scenes(components.dataset)
+        first = chosen_scene(components.dataset, "view.scene", str(cfg.view.scene))
         budget = float(cfg.view.feature_cache_mb)
         renderer = SceneRenderer(
             model, FrameCache(components.dataset, dist.device), components.view_selector,

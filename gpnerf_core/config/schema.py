@@ -146,6 +146,27 @@ class RenderConfig:
 
 
 @dataclass
+class ExportConfig:
+    scene: str = ""
+    """``export``: the scene to export ("" = the first unseen scene, else the first training scene)."""
+    frames: str = "eval"
+    """Which of the scene's frames are rendered at their cameras: ``eval`` (held-out), ``train`` or ``all``; each
+    takes its source views from the training frames but itself."""
+    every: int = 1
+    """Every ``every``-th of those frames, from the first."""
+    stride: int = 0
+    """Pixels per rendered cell (one point per cell); 0 = ``eval.render_stride``."""
+    min_views: int = 1
+    """A point is kept where at least this many of the other exported views rendered a surface at its depth
+    (``tolerance``); 0 keeps every point inside the scene's depth bounds."""
+    tolerance: float = 0.05
+    """Relative depth difference under which another view agrees with a point (0.05 = 5 %; another view's depth is
+    read at its nearest rendered cell, so a slanted surface differs by a cell's footprint there)."""
+    voxel: float = 0.0
+    """Merge the points of each cube of this side, metres (mean position and colour, most frequent label); 0 = none."""
+
+
+@dataclass
 class ViewConfig:
     port: int = 8080
     """``view``: TCP port of the web viewer (0 = any free port; a port in use is refused)."""
@@ -186,6 +207,7 @@ class RootConfig:
     finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     view: ViewConfig = field(default_factory=ViewConfig)
+    export: ExportConfig = field(default_factory=ExportConfig)
     out_dir: str = ""
     """Run folder; empty = Hydra's output directory. Nothing is written under ``outputs/`` when it is set."""
     overwrite: bool = False

@@ -6,6 +6,7 @@ from abc import ABC, abstractmethod
 from typing import Sequence
 
 from gpnerf_core.data.checks import check_scene_files
+from gpnerf_core.errors import ConfigError
 from gpnerf_core.types import Scene
 
 SPLITS = ("train", "unseen")
@@ -54,3 +55,21 @@ class SceneDataset(ABC):
         a dataset may check more (checksums) or faster.
         """
         return check_scene_files(self, scenes, level)
+
+
+def shown_scenes(dataset: SceneDataset) -> list[str]:
+    """The scenes a command that shows one may choose from: the unseen ones first, then the training ones."""
+    return list(dataset.scenes("unseen")) + list(dataset.scenes("train"))
+
+
+def chosen_scene(dataset: SceneDataset, key: str, value: str) -> str:
+    """The scene a command shows: ``value``, or "" for the first unseen scene, else the first training scene.
+
+    Raises:
+        ConfigError: ``value`` names no scene of the dataset (the message lists them, naming ``key``).
+    """
+    scenes = shown_scenes(dataset)
+    name = value or (scenes[0] if scenes else "")
+    if name not in scenes:
+        raise ConfigError(f"{key}={name!r} is not a scene of this dataset; known: {', '.join(scenes)}")
+    return name

@@ -91,6 +91,11 @@ RULES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("view.preview_stride", _count(1), COUNT),
     ("view.source_views", _count(0), f"{COUNT0} (0 = model.num_source_views)"),
     ("view.feature_cache_mb", _non_negative, "megabytes >= 0 (0 = no feature cache)"),
+    ("export.every", _count(1), COUNT),
+    ("export.stride", _count(0), f"{COUNT0} (0 = eval.render_stride)"),
+    ("export.min_views", _count(0), f"{COUNT0} (0 = keep every point inside the depth bounds)"),
+    ("export.tolerance", _positive, "a finite relative depth difference > 0"),
+    ("export.voxel", _non_negative, "a finite side in metres >= 0 (0 = no merging)"),
 )
 """(key, check, what is expected) for every numeric key of the schema (``gpnerf_core/config/schema.py``)."""
 

@@ -229,11 +229,13 @@ def test_report_lists_runs_without_metrics_with_what_their_files_show(tmp_path, 
                                                       "started": "2026-01-01 00:00:00"}))
     render_folder = write_config(tmp_path / "runs" / "a_render")
     (render_folder / "render.json").write_text("{}")
+    export_folder = write_config(tmp_path / "runs" / "an_export")
+    (export_folder / "export.json").write_text("{}")
 
     assert cli_main(["report", str(tmp_path / "runs")]) == 0
     captured = capsys.readouterr()
     rows = {line.split(" | ")[0].strip("| "): line for line in captured.out.splitlines()[2:]}
-    assert set(rows) == {"finished", "died_early", "in_training", "in_eval", "running"}  # a render is no run
+    assert set(rows) == {"finished", "died_early", "in_training", "in_eval", "running"}  # a render, an export: no runs
     assert "| 50.00 |" in rows["finished"]
     assert "unfinished: no metrics.json and no checkpoint: it stopped" in rows["died_early"]
     assert "unfinished: no metrics.json: training stopped at step 2 of 4" in rows["in_training"]

@@ -1,11 +1,18 @@
-"""``render``: the MP4 / GIF / PNG frames of a trained model along a trajectory, and a bad path refused."""
+"""``render`` and ``export``: the MP4 / GIF / PNG frames of a trained model along a trajectory, its fused point
+cloud, and bad values refused."""
 
 import json
 import os
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import imageio.v2 as imageio
+import pytest
+import trimesh
+
+from gpnerf_core.commands.export import checked_min_views, exported_frames
+from gpnerf_core.errors import ConfigError
 
 TINY = [
     "dataset.height=32", "dataset.width=48", "dataset.frames_per_scene=6", "dataset.eval_every=3",
@@ -42,3 +49,31 @@ def test_render_writes_mp4_gif_and_frames(tmp_path):
     bad = gpnerf("render", f"checkpoint={checkpoint}", "render.path=orbit", f"out_dir={tmp_path / 'bad'}")
     assert bad.returncode == 2 and bad.stderr.strip() == "error: render.path='orbit'; expected one of: interpolate, spiral"
     assert not (tmp_path / "bad").exists()
+    # export: the same checkpoint's points of the unseen scene's held-out frames, fused, as a PLY trimesh reads
+    points = gpnerf("export", f"checkpoint={checkpoint}", "export.min_views=0", f"out_dir={tmp_path / 'points'}")
+    assert points.returncode == 0, points.stderr[-2000:]
+    exported = json.loads((tmp_path / "points" / "export.json").read_text())
+    assert exported["scene"] == "unseen_00" and exported["frames"] == [1, 4] and exported["labels"] == "classes"
+    cloud = trimesh.load(tmp_path / "points" / "points.ply")
+    labels = cloud.metadata["_ply_raw"]["vertex"]["data"]["label"]
+    assert len(cloud.vertices) == exported["points_written"] > 0 and 0 <= labels.min() and labels.max() < 9
+    assert len(trimesh.load(tmp_path / "points" / "points_labels.ply").vertices) == len(cloud.vertices)
+    assert not list((tmp_path / "points").glob(".*partial*"))
+    refused = gpnerf("export", f"checkpoint={checkpoint}", "export.min_views=2", f"out_dir={tmp_path / 'refused'}")
+    assert refused.returncode == 2 and refused.stderr.strip().startswith(
+        "error: export.min_views=2: only 2 frame(s) are exported"), refused.stderr[-500:]
+    assert not (tmp_path / "refused").exists()
+
+
+def test_export_chooses_frames_and_refuses_what_cannot_be_exported():
+    scene = SimpleNamespace(name="room", eval_frames=(1, 4, 7), train_frames=(0, 2, 3, 5, 6, 8), num_frames=9)
+    assert exported_frames(scene, "eval", 1) == [1, 4, 7]
+    assert exported_frames(scene, "train", 2) == [0, 3, 6]
+    assert exported_frames(scene, "all", 4) == [0, 4, 8]
+    with pytest.raises(ConfigError, match=r"^export.frames='some'; expected one of: eval, train, all$"):
+        exported_frames(scene, "some", 1)
+    with pytest.raises(ConfigError, match=r"^export.frames=eval: scene 'room' has no eval frames; choose train or all$"):
+        exported_frames(SimpleNamespace(**{**scene.__dict__, "eval_frames": ()}), "eval", 1)
+    assert checked_min_views(2, 3) == 2
+    with pytest.raises(ConfigError, match=r"^export.min_views=3: only 3 frame\(s\) are exported"):
+        checked_min_views(3, 3)

@@ -40,7 +40,7 @@ PAPER_TABLE4 = {
 }
 PAPER_HEADS = ("unet",)
 PAPER_LOSS_SETS = ("ce", "sd", "dgs")
-NOT_METHOD_KEYS = ("seed", "out_dir", "overwrite", "threads", "device", "checkpoint", "finetune", "render", "view")
+NOT_METHOD_KEYS = ("seed", "out_dir", "overwrite", "threads", "device", "checkpoint", "finetune", "render", "view", "export")
 """Top-level config keys that say where or how a run ran (or belong to other commands), not what it computes: runs
 differing only there group."""
 NOT_METHOD_TRAIN_KEYS = ("resume", "resume_strict", "loggers", "log_every")
@@ -204,9 +204,9 @@ def find_runs(paths: list[Path]) -> list[RunRow]:
     return sorted(rows, key=lambda row: str(row.folder))
 
 
-OTHER_RECORDS = ("metrics.json", "error.json", "render.json", "bench.json")
+OTHER_RECORDS = ("metrics.json", "error.json", "render.json", "export.json", "bench.json")
 """Files that make a folder with ``config.yaml`` something other than an unfinished run: a finished run or eval, a
-failed sweep job, a render, a benchmark."""
+failed sweep job, a render, an export, a benchmark."""
 
 
 def _unfinished_runs(path: Path) -> list[RunRow]:

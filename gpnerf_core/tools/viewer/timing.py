@@ -20,6 +20,7 @@ def measure(overrides: list[str], repeats: int = 3) -> dict[str, object]:
     from gpnerf_core.model.build import build_components
     from gpnerf_core.config.compose import compose
     from gpnerf_core.engine.setup import setup_process
+    from gpnerf_core.data.dataset import shown_scenes
     from gpnerf_core.model.feature_cache import SourceFeatureCache
     from gpnerf_core.data.frames import FrameCache
     from gpnerf_core.tools.viewer.camera import vertical_fov, viser_pose
@@ -29,7 +30,7 @@ def measure(overrides: list[str], repeats: int = 3) -> dict[str, object]:
     setup_process(cfg)
     components = build_components(cfg)
     model = components.model.eval()
-    scenes = list(components.dataset.scenes("unseen")) + list(components.dataset.scenes("train"))
+    scenes = shown_scenes(components.dataset)
     renderer = SceneRenderer(model, FrameCache(components.dataset, torch.device("cpu")), components.view_selector,
                              num_classes=components.classes.num_classes, chunk_rays=int(cfg.eval.chunk_rays),
                              default_source_views=int(cfg.model.num_source_views),

@@ -1,0 +1,238 @@
+"""``python -m gpnerf_core export checkpoint=<.pt> [export.scene=...] [export.frames=eval|train|all] [export.voxel=0.02]``.
+
+What the model sees, as a point cloud: the chosen frames of one scene are rendered at their own cameras (each from the
+training frames but itself, as evaluation does), every rendered cell becomes a point at its rendered depth with its
+rendered colour and predicted class (or instance slot), and the views are fused as multi-view stereo fuses depth maps:
+a point stays where at least ``export.min_views`` other exported views rendered a surface at the same depth (within
+``export.tolerance``), which drops the floaters and the empty-space depths a single view cannot tell apart; an
+optional voxel grid merges the rest (``export.voxel``). Writes into the run folder, all or none (staged):
+
+- ``points.ply``: binary PLY, ``x y z`` (float, metres, the dataset's world frame), ``red green blue`` (uchar, the
+  rendered colour) and ``label`` (int: the class id or instance slot, -1 for a model without scores), readable by
+  Open3D, MeshLab, CloudCompare, trimesh and viser's loaders (an unknown property is passed over);
+- ``points_labels.ply``: the same points coloured by label in the palette of ``render`` and the viewer (with scores);
+- ``legend.png`` (classes) and ``export.json``: the frames, the settings, the point counts, the class names.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from functools import partial
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from gpnerf_core.engine.jobs import claim_run_folder, job, launch_from_checkpoint, model_from_checkpoint
+from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.runtime.distributed import Distributed
+from gpnerf_core.runtime.staging import Write, write_staged
+
+FRAME_CHOICES = ("eval", "train", "all")
+STAGING_PREFIX = ".export.partial-"
+"""The folder inside the run folder that an export writes into before renaming its outputs into place."""
+
+
+def main(argv: list[str]) -> int:
+    return launch_from_checkpoint(export_task, argv, "export")
+
+
+def exported_frames(scene: Any, which: str, every: int) -> list[int]:
+    """The frame indices ``export.frames`` / ``export.every`` choose in ``scene``, in order."""
+    if which not in FRAME_CHOICES:
+        raise ConfigError(f"export.frames={which!r}; expected one of: {', '.join(FRAME_CHOICES)}")
+    chosen = {"eval": scene.eval_frames, "train": scene.train_frames,
+              "all": range(scene.num_frames)}[which]
+    indices = list(chosen)[::every]
+    if not indices:
+        raise ConfigError(f"export.frames={which}: scene {scene.name!r} has no {which} frames; "
+                          f"choose {' or '.join(c for c in FRAME_CHOICES if c != which)}")
+    return indices
+
+
+def checked_min_views(min_views: int, frames: int) -> int:
+    """``export.min_views``, refused where more views must agree than there are other exported views."""
+    if min_views > frames - 1:
+        raise ConfigError(f"export.min_views={min_views}: only {frames} frame(s) are exported, so a point can "
+                          f"agree with at most {frames - 1} other view(s); lower it (0 keeps every point) or "
+                          "export more frames (export.frames, export.every)")
+    return min_views
+
+
+@job
+def export_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
+    from tqdm import tqdm
+
+    from gpnerf_core.data.dataset import chosen_scene
+    from gpnerf_core.data.frames import FrameCache
+    from gpnerf_core.evaluation.evaluator import component_names
+    from gpnerf_core.geometry.point_fusion import agreeing_views, concatenate, voxel_merge
+    from gpnerf_core.model.view_inputs import view_inputs
+
+    settings = cfg.export
+    loaded = model_from_checkpoint(cfg, dist, "export", check_scenes=False)
+    components = loaded.components
+    model = components.model.eval()
+    frames = FrameCache(components.dataset, dist.device)
+    name = chosen_scene(components.dataset, "export.scene", str(settings.scene))
+    scene = frames.scene(name)
+    indices = exported_frames(scene, str(settings.frames), int(settings.every))
+    min_views = checked_min_views(int(settings.min_views), len(indices))
+    stride = int(settings.stride) or int(cfg.eval.render_stride)
+    owners = model.output_owners(component_names(cfg))
+    folder, _ = claim_run_folder(cfg, dist, resuming=False)
+    with folder:
+        for note in loaded.notes:
+            print(f"note: {note}", file=sys.stderr)
+        started = time.perf_counter()
+        views, clouds, sensor_depths = [], [], []
+        for index in tqdm(indices, desc="export", unit="frame", file=sys.stderr, dynamic_ncols=True):
+            frame = frames.frame(scene, index)
+            camera = frames.camera(scene, frame)
+            given = view_inputs(model, frames, components.view_selector, scene, camera.c2w,
+                                int(cfg.model.num_source_views), exclude=index)
+            with torch.no_grad():
+                prediction = model.predict(camera, given.sources, stride=stride, chunk_rays=int(cfg.eval.chunk_rays),
+                                           features=given.features)
+            prediction.check_finite(owners, f"export: scene {name!r} frame {index}")
+            view, cloud = rendered_points(prediction, camera, model.semantic_output)
+            views.append(view)
+            clouds.append(cloud)
+            sensor_depths.append(cell_depth(frame.depth.float().cpu(), prediction.stride, view.depth.shape))
+        agreeing = agreeing_views(views, float(settings.tolerance))
+        keeps = [(count >= min_views) & inside_bounds(view.depth.reshape(-1), scene)
+                 for count, view in zip(agreeing, views)]
+        kept = [cloud_subset(cloud, keep) for cloud, keep in zip(clouds, keeps)]
+        errors = depth_errors(views, sensor_depths, keeps)
+        rendered = sum(len(cloud) for cloud in clouds)
+        fused = concatenate(kept)
+        merged = voxel_merge(fused, float(settings.voxel))
+        if len(merged) == 0:
+            raise DataError(f"export: no point of scene {name!r} is inside its depth bounds and seen by "
+                            f"{min_views} other view(s) within {settings.tolerance:g}; lower export.min_views or raise "
+                            "export.tolerance")
+        seconds = time.perf_counter() - started
+        result = _result(cfg, loaded, components, name, indices, prediction.stride, rendered, len(fused), len(merged),
+                         seconds)
+        result["depth_error_m"] = errors
+        write_staged(folder.path, _writes(merged, result, components), STAGING_PREFIX)
+        print(f"exported {len(merged)} points of {name} from {len(indices)} frames ({rendered} rendered, "
+              f"{len(fused)} agreed by {min_views}+ views) to {folder.path / 'points.ply'}")
+    return result
+
+
+def rendered_points(prediction: Any, camera: Any, output: Any) -> tuple[Any, Any]:
+    """The rendered grid of one view as a ``DepthView`` and a ``PointCloud`` (one point per cell, row-major)."""
+    from gpnerf_core.evaluation.instances import slot_predictions
+    from gpnerf_core.geometry.point_fusion import DepthView, PointCloud, backproject
+    from gpnerf_core.geometry.rays import pixel_grid
+    from gpnerf_core.interfaces.head import Predicts
+
+    stride = prediction.stride
+    depth = prediction.depth.detach().float().cpu()
+    view = DepthView(depth=depth, pixels=pixel_grid(camera.height, camera.width, stride),
+                     intrinsics=camera.intrinsics.float().cpu(), c2w=camera.c2w.float().cpu(),
+                     height=camera.height, width=camera.width)
+    rgb = prediction.rgb.detach().float().cpu().clamp(0, 1).reshape(-1, 3)
+    if prediction.logits is None or output is None:
+        label = torch.full((rgb.shape[0],), -1, dtype=torch.long)
+    else:
+        scores = torch.nan_to_num(prediction.logits.detach().float().cpu())
+        cells = torch.nn.functional.avg_pool2d(scores, stride)[0] if stride > 1 else scores[0]  # a cell's mean score
+        cells = cells[:, : depth.shape[0], : depth.shape[1]]
+        if output.predicts is Predicts.INSTANCES:
+            label = slot_predictions(cells)[0].reshape(-1).long()
+        else:
+            label = cells.argmax(dim=0).reshape(-1)
+    return view, PointCloud(backproject(view), rgb, label)
+
+
+def cell_depth(depth: torch.Tensor, stride: int, grid: tuple[int, int]) -> torch.Tensor:
+    """A frame's depth ``[H, W]`` (0 = unknown) as the mean of each rendered cell's known pixels, ``grid``-shaped
+    (0 where the cell has none)."""
+    known = (depth > 0).float()[None, None]
+    total = torch.nn.functional.avg_pool2d((depth * known[0, 0])[None, None], stride)[0, 0]
+    share = torch.nn.functional.avg_pool2d(known, stride)[0, 0]
+    mean = torch.where(share > 0, total / share.clamp_min(1e-12), torch.zeros_like(total))
+    return mean[: grid[0], : grid[1]]
+
+
+def depth_errors(views: list[Any], sensor: list[torch.Tensor], keeps: list[torch.Tensor]) -> dict[str, Any] | None:
+    """How far the rendered depth is from the frames' own depth (where they have it), at the cells of all points and of
+    the points kept: median absolute error in metres and the share within 5 cm; None for frames without depth."""
+    rendered = torch.cat([view.depth.reshape(-1) for view in views])
+    measured = torch.cat([depth.reshape(-1) for depth in sensor])
+    kept = torch.cat(keeps)
+    known = measured > 0
+    if not bool(known.any()):
+        return None
+
+    def summary(mask: torch.Tensor) -> dict[str, Any]:
+        error = (rendered - measured)[mask & known].abs()
+        if error.numel() == 0:
+            return {"points": 0, "median": None, "within_5cm": None}
+        return {"points": int(error.numel()), "median": round(float(error.median()), 4),
+                "within_5cm": round(float((error <= 0.05).float().mean()), 4)}
+
+    return {"all": summary(torch.ones_like(kept)), "kept": summary(kept)}
+
+
+def inside_bounds(depth: torch.Tensor, scene: Any) -> torch.Tensor:
+    """``[N]`` bool: a finite depth strictly inside the scene's sampling bounds (a ray that met nothing renders a
+    depth at the far bound)."""
+    margin = 1e-3 * (scene.far - scene.near)
+    return torch.isfinite(depth) & (depth > scene.near + margin) & (depth < scene.far - margin)
+
+
+def cloud_subset(cloud: Any, keep: torch.Tensor) -> Any:
+    from gpnerf_core.geometry.point_fusion import PointCloud
+
+    return PointCloud(cloud.xyz[keep], cloud.rgb[keep], cloud.label[keep])
+
+
+def _result(cfg: DictConfig, loaded: Any, components: Any, scene: str, indices: list[int], stride: int,
+            rendered: int, agreed: int, written: int, seconds: float) -> dict[str, Any]:
+    from gpnerf_core.interfaces.head import Predicts
+
+    output = components.model.semantic_output
+    labels = None if output is None else ("instances" if output.predicts is Predicts.INSTANCES else "classes")
+    settings = cfg.export
+    return {
+        "checkpoint": str(loaded.trained.path), "scene": scene, "frames": indices, "stride": stride,
+        "min_views": int(settings.min_views), "tolerance": float(settings.tolerance), "voxel": float(settings.voxel),
+        "points_rendered": rendered, "points_agreed": agreed, "points_written": written, "labels": labels,
+        "classes": list(components.classes.names) if labels == "classes" else None,
+        "outputs": ["points.ply", *(["points_labels.ply"] if labels else []),
+                    *(["legend.png"] if labels == "classes" and components.classes.names else []), "export.json"],
+        "seconds": round(seconds, 3),
+    }
+
+
+def _writes(cloud: Any, result: dict[str, Any], components: Any) -> list[tuple[str, Write]]:
+    from gpnerf_core.evaluation import visualize as vis
+    from gpnerf_core.runtime.io import atomic_write_json
+    from gpnerf_core.runtime.ply import write_ply
+
+    xyz = cloud.xyz.numpy().astype(np.float32)
+    label = cloud.label.numpy().astype(np.int32)
+    comment = (f"gpnerf-core export of scene {result['scene']} from {result['checkpoint']}",)
+
+    def columns(colours: np.ndarray) -> dict[str, np.ndarray]:
+        return {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "red": colours[:, 0], "green": colours[:, 1],
+                "blue": colours[:, 2], "label": label}
+
+    rgb = (cloud.rgb.numpy() * 255).round().astype(np.uint8)
+    writes: list[tuple[str, Write]] = [("points.ply", partial(write_ply, columns=columns(rgb), comments=comment))]
+    if result["labels"] == "instances":
+        label_colours = vis.colorize_instances(cloud.label[None]).reshape(-1, 3)
+    elif result["labels"] == "classes":
+        label_colours = vis.colorize_labels(cloud.label[None], components.classes.num_classes).reshape(-1, 3)
+    if result["labels"]:
+        writes.append(("points_labels.ply", partial(write_ply, columns=columns(label_colours.astype(np.uint8)),
+                                                    comments=comment)))
+    if "legend.png" in result["outputs"]:
+        writes.append(("legend.png", partial(vis.save_image, image=vis.class_legend(components.classes.names))))
+    writes.append(("export.json", partial(atomic_write_json, obj=result)))
+    return writes
