@@ -44,7 +44,7 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     # geometry and checks a dataset or data tool uses
     "gpnerf_core.geometry": (
         "EXPECTED_RIGID", "Projector", "composite", "compositing_weights", "density_opacity", "importance_depths", "pixel_grid", "points_along_rays", "rays_through_pixels",
-        "rigid_transform_problem", "sampling_layout", "stratified_inverse_depths",
+        "rigid_transform_problem", "sampling_layout", "stratified_inverse_depths", "surface_depths",
     ),
     "gpnerf_core.geometry.pose_sanity": ("check_poses",),
     "gpnerf_core.data.checks": (
@@ -115,6 +115,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
         rigid_transform_problem,
         sampling_layout,
         stratified_inverse_depths,
+        surface_depths,
     )
     from gpnerf_core.geometry.pose_sanity import check_poses
     from gpnerf_core.data.dataset import SPLITS, SceneDataset

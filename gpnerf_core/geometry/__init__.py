@@ -4,7 +4,9 @@ from gpnerf_core.geometry.compositing import composite, compositing_weights, den
 from gpnerf_core.geometry.poses import EXPECTED_RIGID, rigid_transform_problem
 from gpnerf_core.geometry.projection import Projector, project_points, sampling_layout
 from gpnerf_core.geometry.rays import pixel_grid, rays_through_pixels
-from gpnerf_core.geometry.sampling import importance_depths, points_along_rays, stratified_inverse_depths
+from gpnerf_core.geometry.sampling import (
+    importance_depths, points_along_rays, stratified_inverse_depths, surface_depths,
+)
 
 __all__ = [
     "EXPECTED_RIGID",
@@ -20,4 +22,5 @@ __all__ = [
     "rigid_transform_problem",
     "sampling_layout",
     "stratified_inverse_depths",
+    "surface_depths",
 ]

@@ -66,3 +66,44 @@ def points_along_rays(rays: RayBatch, depths: Tensor) -> RaySamples:
     depths = torch.sort(depths, dim=-1).values
     points = rays.origins[:, None, :] + depths[..., None] * rays.directions[:, None, :]
     return RaySamples(depths=depths, points=points)
+
+
+def surface_depths(
+    rays: RayBatch,
+    depths: Tensor,
+    weights: Tensor,
+    num_samples: int,
+    *,
+    spread: float,
+    uncertainty: float,
+    perturb: bool,
+    generator: torch.Generator | None = None,
+) -> tuple[Tensor, Tensor]:
+    """``num_samples`` depths ``[R, N]`` where a first pass saw the surface, and ``[R]`` bool: the ray's depth was
+    certain (ENeRF's idea: a cheap depth, then a few samples around it, instead of samples along the whole ray).
+
+    From a pass over ``depths`` ``[R, S]`` with compositing ``weights`` ``[R, S]`` (detached; normalised here): the
+    expected depth ``d`` and the weights' spread ``sigma``. A certain ray (``sigma <= uncertainty * d``) gets its
+    samples evenly in ``d +- h``, ``h = max(spread * sigma, the first pass's bin width at d)``, clipped to the ray's
+    ``[near, far]``; an uncertain one (no surface, or several) falls back to samples uniform in inverse depth over the
+    whole ray. ``perturb`` jitters each sample inside its bin (training), as ``stratified_inverse_depths`` does.
+    """
+    w = weights.detach().clamp_min(0)
+    w = w / w.sum(dim=-1, keepdim=True).clamp_min(1e-8)
+    mean = (w * depths).sum(dim=-1)
+    sigma = (w * (depths - mean[:, None]) ** 2).sum(dim=-1).clamp_min(0).sqrt()
+    bins = depths.shape[-1] - 1
+    # inverse-depth bins are d^2 (1/near - 1/far) / bins wide at depth d
+    bin_width = mean**2 * (1.0 / rays.near - 1.0 / rays.far) / max(bins, 1)
+    half = torch.maximum(spread * sigma, bin_width)
+    low = torch.maximum(mean - half, rays.near)
+    high = torch.minimum(mean + half, rays.far)
+    steps = torch.linspace(0.0, 1.0, num_samples, device=depths.device, dtype=depths.dtype).expand(rays.num_rays, -1)
+    if perturb:
+        jitter = torch.rand((rays.num_rays, num_samples), generator=generator, device=depths.device, dtype=depths.dtype)
+        steps = (steps + jitter / max(num_samples - 1, 1)).clamp(max=1.0)
+    around = low[:, None] + (high - low)[:, None] * steps
+    certain = torch.isfinite(mean) & (sigma <= uncertainty * mean)
+    uniform = stratified_inverse_depths(rays, num_samples, perturb=perturb, generator=generator)
+    chosen = torch.where(certain[:, None], around, uniform)
+    return torch.sort(chosen, dim=-1).values.detach(), certain

@@ -52,8 +52,11 @@ def runtime_keys(config_yaml: str) -> tuple[str, ...]:
 
 
 def model_differences(old_yaml: str, new_yaml: str) -> list[tuple[str, Any, Any]]:
-    """``config_differences`` of the model sections, runtime keys left out."""
-    return config_differences(old_yaml, new_yaml, model_sections(), runtime_keys(new_yaml))
+    """``config_differences`` of the model sections, runtime keys left out, and keys the checkpoint predates left out:
+    an option added since takes its default, and a new option's default is the behaviour before it existed (the
+    project's rule for new options), so a checkpoint stays resumable and evaluable as it was trained."""
+    return [(key, old, new) for key, old, new in
+            config_differences(old_yaml, new_yaml, model_sections(), runtime_keys(new_yaml)) if old != ABSENT]
 
 
 @dataclass(frozen=True)
@@ -293,7 +296,8 @@ def config_differences(
     ]
 
 
-_ABSENT = "<absent>"
+ABSENT = "<absent>"
+"""A key one of two compared configs does not have (``config_differences``)."""
 
 
 def _leaf_differences(old: Any, new: Any, prefix: str) -> list[tuple[str, Any, Any]]:
@@ -301,7 +305,7 @@ def _leaf_differences(old: Any, new: Any, prefix: str) -> list[tuple[str, Any, A
         out = []
         for key in list(old) + [k for k in new if k not in old]:
             sub = f"{prefix}.{key}" if prefix else str(key)
-            out += _leaf_differences(old.get(key, _ABSENT), new.get(key, _ABSENT), sub)
+            out += _leaf_differences(old.get(key, ABSENT), new.get(key, ABSENT), sub)
         return out
     return [] if old == new else [(prefix, old, new)]
 

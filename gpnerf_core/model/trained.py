@@ -20,7 +20,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from gpnerf_core.config.compose import compose
 from gpnerf_core.config.overrides import merge_overrides, override_key
 from gpnerf_core.errors import DataError
-from gpnerf_core.model.checkpoint import evaluation_weights, model_differences, read_checkpoint
+from gpnerf_core.model.checkpoint import ABSENT, evaluation_weights, model_differences, read_checkpoint
 from gpnerf_core.model.classes import ClassList, checkpoint_classes
 
 
@@ -141,18 +141,19 @@ def restore_model_settings(cfg: DictConfig, trained: TrainedModel, typed: list[s
     checkpoint's values (and reported); keys the command set keep its value.
     """
     current = OmegaConf.to_yaml(cfg, resolve=True)
-    restored = []
-    for key, old, _ in model_differences(trained.config_yaml, current):
+    restored, dropped = [], []
+    for key, old, new in model_differences(trained.config_yaml, current):
         if any(key == t or key.startswith(t + ".") for t in typed):
             continue
+        if new == ABSENT:  # an option of the checkpoint this version no longer has
+            dropped.append(key)
+            continue
         with open_dict(cfg):
-            if old == "<absent>":
-                parent, _, leaf = key.rpartition(".")
-                node = OmegaConf.select(cfg, parent) if parent else cfg
-                node.pop(leaf, None)
-            else:
-                OmegaConf.update(cfg, key, old, merge=False)
+            OmegaConf.update(cfg, key, old, merge=False)
         restored.append(key)
-    if not restored:
-        return []
-    return [f"kept the checkpoint's value of {', '.join(restored)} (the defaults changed since it was written)"]
+    notes = []
+    if restored:
+        notes.append(f"kept the checkpoint's value of {', '.join(restored)} (the defaults changed since it was written)")
+    if dropped:
+        notes.append(f"the checkpoint's {', '.join(dropped)} is no option of this version (left out)")
+    return notes

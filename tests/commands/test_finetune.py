@@ -70,3 +70,24 @@ def test_finetune_on_an_unseen_scene_writes_the_curve(tmp_path):
     assert missing.returncode == 2 and not (tmp_path / "nope").exists()
     assert missing.stderr.strip() == ("error: finetune needs dataset.scenes=[<scene>, ...]: the scenes to fine-tune "
                                       "on (their held-out frames are evaluated, never trained on)")
+
+
+def test_a_checkpoint_older_than_an_option_takes_its_default_and_keeps_its_own_values():
+    """A checkpoint written before an option existed is evaluated and resumed with the option's default (a new
+    option's default is the old behaviour); a value it had is restored; an option it had that is gone is named."""
+    from types import SimpleNamespace
+
+    from gpnerf_core.model.trained import restore_model_settings
+
+    cfg = compose(["+head=unet", "+loss=dgs", *TINY])
+    old = OmegaConf.to_container(cfg, resolve=True)
+    del old["model"]["sampler"]
+    old["model"]["fine_samples"] = 3
+    old["model"]["retired_option"] = 1
+    old_yaml = OmegaConf.to_yaml(OmegaConf.create(old))
+    assert [key for key, _, _ in model_differences(old_yaml, OmegaConf.to_yaml(cfg))] == [
+        "model.fine_samples", "model.retired_option"]
+    notes = restore_model_settings(cfg, SimpleNamespace(config_yaml=old_yaml), typed=[])
+    assert cfg.model.fine_samples == 3 and cfg.model.sampler == "uniform"
+    assert notes == ["kept the checkpoint's value of model.fine_samples (the defaults changed since it was written)",
+                     "the checkpoint's model.retired_option is no option of this version (left out)"]

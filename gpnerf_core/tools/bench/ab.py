@@ -1,8 +1,8 @@
 """A/B of engine options inside one process: the variants alternate over training steps of one model, so both see
 the same machine state (load, caches, frequency), which two processes one after the other do not.
 
-    python -m gpnerf_core.tools.bench.ab [size=small] [rounds=4] [options=channels_last,compile] [threads=2]
-        [phase=train|render] [overrides...]
+    python -m gpnerf_core.tools.bench.ab [size=small] [rounds=4] [options=channels_last,compile,sampler] [threads=2]
+        [phase=train|render] [depth_samples=C+F] [overrides...]
 
 Prints per variant the minimum and median seconds of a training step (or of rendering one view, ``phase=render``) and the ratio of medians to the first variant; ``compile``
 reports its compile time (the first steps of each new shape) apart from the steps timed. The options:
@@ -10,12 +10,15 @@ reports its compile time (the first steps of each new shape) apart from the step
 - ``channels_last``: ``model.channels_last_maps`` false against true (the same float32 values; the model attribute
   is switched between steps).
 - ``compile``: the eager block pairs against ``torch.compile`` d ones (inductor).
+- ``sampler``: ``model.sampler`` uniform against depth (``gpnerf_core.geometry.surface_depths``), the depth variant
+  with ``depth_samples=C+F`` samples per ray (default: the configured counts).
 
 The transformers' dropout (a plugin's internals) has its own script on top of ``alternate``: examples/ab_dropout.py.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import statistics
 import sys
 import tempfile
@@ -52,9 +55,38 @@ def compile_variants(backend: str = "inductor") -> dict[str, Variant]:
     return {"eager": use(False), f"compiled ({backend})": use(True)}
 
 
-OPTIONS: dict[str, Callable[[], dict[str, Variant]]] = {
-    "channels_last": channels_last_variants,
-    "compile": compile_variants,
+def sampler_variants(depth_samples: str) -> dict[str, Variant]:
+    """``model.sampler`` uniform (the configured sample counts) against depth, with the counts ``depth_samples``
+    (``C+F``: coarse + fine; "" = the configured ones). The model is the same: only where it samples changes."""
+    configured: dict[str, int] = {}
+
+    def use(sampler: str) -> Variant:
+        def switch(trainer: Trainer) -> None:
+            model = trainer.model
+            configured.setdefault("coarse", model.coarse_samples)
+            configured.setdefault("fine", model.fine_samples)
+            coarse, fine = configured["coarse"], configured["fine"]
+            if sampler == "depth" and depth_samples:
+                coarse, fine = _sample_counts(depth_samples)
+            model.coarse_samples, model.fine_samples = coarse, fine
+            model.sampling = dataclasses.replace(model.sampling, sampler=sampler)
+        return switch
+
+    label = f" ({depth_samples} samples)" if depth_samples else ""
+    return {"uniform": use("uniform"), f"depth{label}": use("depth")}
+
+
+def _sample_counts(text: str) -> tuple[int, int]:
+    coarse, plus, fine = text.partition("+")
+    if not (plus and coarse.isdigit() and fine.isdigit() and int(coarse) >= 2 and int(fine) >= 1):
+        raise ConfigError(f"depth_samples={text!r}: expected C+F, coarse >= 2 and fine >= 1 samples per ray (e.g. 12+8)")
+    return int(coarse), int(fine)
+
+
+OPTIONS: dict[str, Callable[[dict[str, str]], dict[str, Variant]]] = {
+    "channels_last": lambda settings: channels_last_variants(),
+    "compile": lambda settings: compile_variants(),
+    "sampler": lambda settings: sampler_variants(settings["depth_samples"]),
 }
 
 
@@ -121,7 +153,8 @@ def timing_lines(times: dict[str, list[float]], warm_up: dict[str, float]) -> li
 
 
 def main(argv: list[str]) -> int:
-    settings = {"size": "small", "rounds": "4", "options": "channels_last,compile", "threads": "2", "phase": "train"}
+    settings = {"size": "small", "rounds": "4", "options": "channels_last,compile", "threads": "2", "phase": "train",
+                "depth_samples": ""}
     overrides = []
     for argument in argv:
         key, _, value = argument.partition("=")
@@ -141,7 +174,7 @@ def main(argv: list[str]) -> int:
               f"{cfg.model.fine_samples} samples, {cfg.model.num_source_views} views, {torch.get_num_threads()} threads, "
               f"{settings['rounds']} rounds, torch {torch.__version__}")
         for option in options:
-            times, warm_up = alternate(trainer, OPTIONS[option](), int(settings["rounds"]), settings["phase"])
+            times, warm_up = alternate(trainer, OPTIONS[option](settings), int(settings["rounds"]), settings["phase"])
             print(f"{option}:")
             print("\n".join(timing_lines(times, warm_up)), flush=True)
     return 0

@@ -6,7 +6,7 @@ from typing import Any
 
 from gpnerf_core import ConfigError, ModelParts, checked_compile_backend
 from gpnerf_plugins.families.gnt.config import GNTModelConfig, SemanticFieldConfig
-from gpnerf_plugins.families.gnt.model import GeneralizableNeRF
+from gpnerf_plugins.families.gnt.model import FineSampling, GeneralizableNeRF
 from gpnerf_plugins.families.gnt.semantic_field import SemanticFieldRenderer
 
 
@@ -15,6 +15,9 @@ def build_gnt(
     parts: ModelParts,
     coarse_samples: int = GNTModelConfig.coarse_samples,
     fine_samples: int = GNTModelConfig.fine_samples,
+    sampler: str = GNTModelConfig.sampler,
+    surface_spread: float = GNTModelConfig.surface_spread,
+    surface_uncertainty: float = GNTModelConfig.surface_uncertainty,
     detach_source_semantics: bool = GNTModelConfig.detach_source_semantics,
     semantic_field: SemanticFieldConfig | dict[str, Any] | None = None,
     fuse_rendered: bool = GNTModelConfig.fuse_rendered,
@@ -55,6 +58,7 @@ def build_gnt(
         semantic=semantic,
         coarse_samples=coarse_samples,
         fine_samples=fine_samples,
+        sampling=FineSampling(sampler, surface_spread, surface_uncertainty),
         detach_source_semantics=detach_source_semantics,
         fuse_rendered=fuse_rendered,
         checkpoint_blocks=checkpoint_blocks,

@@ -12,6 +12,8 @@ alone.
 from __future__ import annotations
 
 import functools
+import math
+from dataclasses import dataclass
 from typing import Any, Mapping
 
 import torch
@@ -54,6 +56,7 @@ from gpnerf_core import (
     sampling_layout,
     stage,
     stratified_inverse_depths,
+    surface_depths,
 )
 from gpnerf_plugins.families.gnt.config import SemanticFieldConfig
 from gpnerf_plugins.families.gnt.fusion import cells_of_pixels, fuse_rendered, gather_cells
@@ -73,6 +76,33 @@ def compiled_block_pair(backend: str, num_blocks: int):
     return torch.compile(GeneralizableNeRF._block_pair, backend=backend)
 
 
+SAMPLERS = ("uniform", "depth")
+
+
+@dataclass(frozen=True)
+class FineSampling:
+    """Where the fine pass's samples go (``model.sampler``, ``model.surface_spread``, ``model.surface_uncertainty``).
+
+    ``uniform``: the coarse samples plus importance samples from the coarse weights (GNT, GP-NeRF). ``depth``: only
+    samples around the coarse pass's depth, uniform along the ray where it is uncertain
+    (``gpnerf_core.geometry.surface_depths``): the fine pass, the one that renders semantics, sees a few samples where
+    the surface is instead of the coarse ones too.
+    """
+
+    sampler: str = "uniform"
+    spread: float = 2.0
+    uncertainty: float = 0.2
+
+    def __post_init__(self) -> None:
+        if self.sampler not in SAMPLERS:
+            raise ConfigError(f"model.sampler={self.sampler!r}; expected one of: {', '.join(SAMPLERS)}")
+        if not (math.isfinite(self.spread) and self.spread > 0):
+            raise ConfigError(f"model.surface_spread={self.spread!r}: expected a finite number of standard deviations > 0")
+        if not (math.isfinite(self.uncertainty) and self.uncertainty > 0):
+            raise ConfigError(f"model.surface_uncertainty={self.uncertainty!r}: expected a finite fraction of the "
+                              "depth > 0")
+
+
 class GeneralizableNeRF(ModelFamily):
     """Extractor -> projector -> field aggregator <-> ray aggregator -> semantic field -> fused map -> head.
 
@@ -80,8 +110,9 @@ class GeneralizableNeRF(ModelFamily):
         extractor, field, ray: the stages; the ray aggregator must have as many blocks as the field aggregator.
         head: perception head on the semantic map, or None (GNT alone).
         semantic: the semantic field renderer, or None (GNT alone).
-        coarse_samples: stratified samples per ray; fine_samples: importance samples added in the fine pass
-            (0 = one pass).
+        coarse_samples: stratified samples per ray; fine_samples: samples of the fine pass beside (``uniform``) or
+            instead of (``depth``) the coarse ones (0 = one pass).
+        sampling: where the fine samples go (``FineSampling``).
         detach_source_semantics: stop rendered-feature losses from training the extractor through the
             source views (the released code does, REFERENCE §3 (ii)).
         fuse_rendered: the head decodes the fused map in training (paper); False decodes the teacher map
@@ -106,6 +137,7 @@ class GeneralizableNeRF(ModelFamily):
         coarse_samples: int,
         fine_samples: int,
         detach_source_semantics: bool,
+        sampling: FineSampling = FineSampling(),
         fuse_rendered: bool,
         checkpoint_blocks: bool,
         channels_last_maps: bool = True,
@@ -120,6 +152,9 @@ class GeneralizableNeRF(ModelFamily):
             raise ConfigError(f"model.coarse_samples must be >= 2, got {coarse_samples}")
         if fine_samples < 0:
             raise ConfigError(f"model.fine_samples must be >= 0, got {fine_samples}")
+        if sampling.sampler == "depth" and fine_samples == 0:
+            raise ConfigError("model.sampler=depth places the fine pass's samples around the coarse depth; expected "
+                              "model.fine_samples >= 1 (0 = one pass, nothing to place)")
         self.extractor = extractor
         self.field = field
         self.ray = ray
@@ -127,6 +162,7 @@ class GeneralizableNeRF(ModelFamily):
         self.semantic = semantic
         self.coarse_samples = coarse_samples
         self.fine_samples = fine_samples
+        self.sampling = sampling
         self.detach_source_semantics = detach_source_semantics
         self.fuse_rendered = fuse_rendered
         self.checkpoint_blocks = checkpoint_blocks
@@ -339,7 +375,8 @@ class GeneralizableNeRF(ModelFamily):
         with_sample_semantic: bool = False,
         generator: torch.Generator | None = None,
     ) -> tuple[RenderedRays, RenderedRays | None]:
-        """Coarse pass, then (with fine samples) a fine pass on coarse + importance samples.
+        """Coarse pass, then (with fine samples) a fine pass on coarse + importance samples (``uniform``) or on samples
+        around the coarse depth (``depth``).
 
         Semantics are rendered in the last pass only. ``randomized`` jitters the samples (training).
         """
@@ -356,10 +393,18 @@ class GeneralizableNeRF(ModelFamily):
         )
         if one_pass:
             return coarse, None
-        extra = importance_depths(
-            coarse_samples.depths, coarse.weights, self.fine_samples, deterministic=not randomized, generator=generator
-        )
-        fine_samples = points_along_rays(rays, torch.cat([coarse_samples.depths, extra], dim=-1))
+        if self.sampling.sampler == "depth":
+            around, _ = surface_depths(
+                rays, coarse_samples.depths, coarse.weights, self.fine_samples, spread=self.sampling.spread,
+                uncertainty=self.sampling.uncertainty, perturb=randomized, generator=generator,
+            )
+            fine_samples = points_along_rays(rays, around)
+        else:
+            extra = importance_depths(
+                coarse_samples.depths, coarse.weights, self.fine_samples, deterministic=not randomized,
+                generator=generator,
+            )
+            fine_samples = points_along_rays(rays, torch.cat([coarse_samples.depths, extra], dim=-1))
         fine = self.render_pass(
             rays,
             fine_samples,
@@ -433,7 +478,8 @@ class GeneralizableNeRF(ModelFamily):
         """``maps`` channels-last (``sampling_layout``) when each view will be sampled at more points (``rays`` x all
         samples per ray) than the maps hold pixels: below that the copy costs more than it saves (measured:
         ``docs/benchmarks.md``, channels-last)."""
-        samples = rays * (self.coarse_samples + self.fine_samples)
+        per_ray = self.fine_samples + (0 if self.sampling.sampler == "depth" else self.coarse_samples)
+        samples = rays * max(self.coarse_samples, per_ray)
         if self.channels_last_maps and samples >= maps.shape[-2] * maps.shape[-1]:
             return sampling_layout(maps)
         return maps
