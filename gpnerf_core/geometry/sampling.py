@@ -85,8 +85,9 @@ def surface_depths(
     From a pass over ``depths`` ``[R, S]`` with compositing ``weights`` ``[R, S]`` (detached; normalised here): the
     expected depth ``d`` and the weights' spread ``sigma``. A certain ray (``sigma <= uncertainty * d``) gets its
     samples evenly in ``d +- h``, ``h = max(spread * sigma, the first pass's bin width at d)``, clipped to the ray's
-    ``[near, far]``; an uncertain one (no surface, or several) falls back to samples uniform in inverse depth over the
-    whole ray. ``perturb`` jitters each sample inside its bin (training), as ``stratified_inverse_depths`` does.
+    ``[near, far]``. An uncertain one (no surface, or several) falls back to importance samples of the first pass's
+    weights (``importance_depths``: along the whole ray where the weights are flat, around each mode where there are
+    several). ``perturb`` jitters each sample inside its bin (training), as ``stratified_inverse_depths`` does.
     """
     w = weights.detach().clamp_min(0)
     w = w / w.sum(dim=-1, keepdim=True).clamp_min(1e-8)
@@ -104,6 +105,6 @@ def surface_depths(
         steps = (steps + jitter / max(num_samples - 1, 1)).clamp(max=1.0)
     around = low[:, None] + (high - low)[:, None] * steps
     certain = torch.isfinite(mean) & (sigma <= uncertainty * mean)
-    uniform = stratified_inverse_depths(rays, num_samples, perturb=perturb, generator=generator)
-    chosen = torch.where(certain[:, None], around, uniform)
+    spread_out = importance_depths(depths, weights, num_samples, deterministic=not perturb, generator=generator)
+    chosen = torch.where(certain[:, None], around, spread_out)
     return torch.sort(chosen, dim=-1).values.detach(), certain

@@ -1,5 +1,5 @@
-"""Samples where the surfaces are (``model.sampler=depth``): around a first pass's depth where it is certain, along the
-whole ray where it is not; and the GNT family's fine pass built on them."""
+"""Samples where the surfaces are (``model.sampler=depth``): around a first pass's depth where it is certain, drawn from
+its weights where it is not; and the GNT family's fine pass built on them."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import torch
 
 from gpnerf_core.config.compose import compose
 from gpnerf_core.errors import ConfigError
-from gpnerf_core.geometry import stratified_inverse_depths, surface_depths
+from gpnerf_core.geometry import importance_depths, stratified_inverse_depths, surface_depths
 from gpnerf_core.model.build import build_components
 from gpnerf_core.types import RayBatch
 from pipeline_check import TINY_MODEL, TINY_SCENES
@@ -30,7 +30,9 @@ def test_a_peaked_ray_gets_its_samples_around_its_depth_and_a_flat_one_along_the
     assert chosen.shape == (2, 8) and certain.tolist() == [True, False]
     bin_width = depths[0, surface] ** 2 * (1 / 0.5 - 1 / 8.0) / 23
     assert (chosen[0] - depths[0, surface]).abs().max() <= bin_width * 1.01 + 1e-4
-    assert torch.equal(chosen[1], stratified_inverse_depths(rays, 8, perturb=False)[1])
+    # the uncertain ray: importance samples of its flat weights, spread along the whole ray
+    assert torch.equal(chosen[1], importance_depths(depths, weights, 8, deterministic=True)[1])
+    assert chosen[1, 0] < 0.7 and chosen[1, -1] > 6.0
     assert torch.all(chosen[:, 1:] >= chosen[:, :-1])
 
 

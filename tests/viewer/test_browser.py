@@ -86,6 +86,12 @@ def test_chromium_shows_the_rendered_scene(tiny, tmp_path):
         time.sleep(2.0)  # let the browser decode and draw the last frame
         text = devtools.evaluate("document.body.innerText") or ""
         assert "Render stride" in text and "full" in text, text[:500]  # the controls and the frame's status
+        # the page opens at the first training frame's own camera, compared with it, that frame's frustum hidden
+        first = renderer.frames.scene("layout_00").train_frames[0]
+        assert f"at frame {first}: PSNR" in text, text[:500]
+        (state,) = server._clients.values()
+        assert state.hidden_frustums == {first} and not state.frustums[first].visible
+        assert all(handle.visible for index, handle in enumerate(state.frustums) if index != first)
         shot = devtools.call("Page.captureScreenshot", format="png")["data"]
     finally:
         if devtools is not None:

@@ -127,6 +127,7 @@ class _ClientState:
     last_request: ViewRequest | None = None
     highlighted: list[Any] = field(default_factory=list)
     frustums: list[Any] = field(default_factory=list)
+    hidden_frustums: set[int] = field(default_factory=set)
     gui: dict[str, Any] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -192,15 +193,16 @@ class ViewerServer:
     # ---- clients ------------------------------------------------------------------------------------------------
 
     def _set_initial_camera(self, scene_name: str) -> None:
-        """Behind the first training frame, looking the same way, so its frustum is in view and not in the lens."""
+        """At the first training frame's own camera (as nerfstudio opens at a training camera): the page opens on that
+        frame rendered by the model, compared with it, its frustum hidden while the camera sits in it."""
         scene = self.renderer.frames.scene(scene_name)
-        c2w = scene.c2w[scene.train_frames[0]].double().numpy()
-        position = c2w[:3, 3] - c2w[:3, 2] * 3 * self._frustum_scale(scene)
+        index = scene.train_frames[0]
+        c2w = scene.c2w[index].double().numpy()
         camera = self.server.initial_camera
-        camera.position = tuple(position)
+        camera.position = tuple(c2w[:3, 3])
         camera.look_at = tuple(c2w[:3, 3] + c2w[:3, 2] * (scene.near + scene.far) / 2)
         camera.up = tuple(-c2w[:3, 1])
-        camera.fov = vertical_fov(scene.intrinsics[scene.train_frames[0]], scene.height)
+        camera.fov = vertical_fov(scene.intrinsics[index], scene.height)
 
     def _connect(self, client: Any) -> None:
         options = self.options
@@ -264,8 +266,8 @@ class ViewerServer:
         state.gui["snap"].on_click(lambda _: self._snap(client, state))
 
         def cameras_shown(_: Any) -> None:
-            for handle in state.frustums:
-                handle.visible = state.gui["cameras"].value
+            for index, handle in enumerate(state.frustums):
+                handle.visible = bool(state.gui["cameras"].value) and index not in state.hidden_frustums
 
         state.gui["cameras"].on_update(cameras_shown)
 
@@ -279,7 +281,7 @@ class ViewerServer:
         client.scene.reset()
         held_out = set(scene.eval_frames)
         shown: list[Any] = []
-        state.frustums = []
+        state.frustums, state.hidden_frustums = [], set()
         for index in range(scene.num_frames):
             frame = self.renderer.frames.frame(scene, index)
             wxyz, position = viser_pose(scene.c2w[index])
@@ -301,9 +303,31 @@ class ViewerServer:
 
     @staticmethod
     def _frustum_scale(scene: Scene) -> float:
+        """Frustum depth in metres: half the median distance from a camera to its nearest neighbour, so neighbouring
+        frustums do not overlap (a ring of 36 cameras 0.26 m apart gets 0.13 m), within [0.02, 0.5] m."""
         centres = scene.c2w[:, :3, 3]
-        spread = float((centres - centres.mean(0)).norm(dim=-1).max()) if scene.num_frames > 1 else 1.0
-        return max(0.05, min(0.5, spread / 5 if spread > 0 else 0.2))
+        if scene.num_frames < 2:
+            return 0.2
+        distances = torch.cdist(centres, centres)
+        distances.fill_diagonal_(float("inf"))
+        spacing = float(distances.min(dim=1).values.median())
+        return max(0.02, min(0.5, spacing / 2 if spacing > 0 else 0.2))
+
+    def _hide_frustum_at_lens(self, client: Any, state: _ClientState) -> None:
+        """Hide the frustum the camera sits in (its thumbnail would cover the rendered view), show the others."""
+        if not state.frustums or not bool(state.gui["cameras"].value):
+            return
+        try:
+            scene = self.renderer.frames.scene(state.scene)
+        except Exception:
+            return
+        position = torch.as_tensor(np.asarray(client.camera.position), dtype=torch.float32)
+        near_lens = (scene.c2w[:, :3, 3] - position).norm(dim=-1) < self._frustum_scale(scene)
+        hidden = {int(i) for i in torch.nonzero(near_lens).flatten()}
+        for index in hidden ^ state.hidden_frustums:  # only the frustums whose visibility changes
+            if index < len(state.frustums):
+                state.frustums[index].visible = index not in hidden
+        state.hidden_frustums = hidden
 
     def _move_camera_to(self, client: Any, state: _ClientState, index: int) -> None:
         scene = self.renderer.frames.scene(state.scene)
@@ -331,6 +355,7 @@ class ViewerServer:
             )
 
     def _camera_moved(self, client: Any, state: _ClientState) -> None:
+        self._hide_frustum_at_lens(client, state)
         if self.progressive is not None:
             self.progressive.submit(client.client_id, self.request_of(client, state))
 

@@ -27,14 +27,15 @@ class GNTModelConfig(ModelConfig):
     """Registry name of this model family."""
     sampler: str = "uniform"
     """Samples of the fine pass: ``uniform`` (the coarse samples plus ``fine_samples`` drawn from the coarse weights,
-    GNT's) or ``depth`` (``fine_samples`` samples around the coarse pass's depth only, uniform along the ray where
-    that depth is uncertain: ``gpnerf_core.geometry.surface_depths``; fewer samples where the surfaces are)."""
+    GNT's) or ``depth`` (only ``fine_samples`` samples, around the coarse pass's depth, or drawn from the coarse
+    weights where that depth is uncertain: ``gpnerf_core.geometry.surface_depths``; fewer samples where the surfaces
+    are)."""
     surface_spread: float = 2.0
     """``sampler=depth``: the fine samples span the coarse depth +- this many standard deviations of its weights
     (at least one coarse bin)."""
     surface_uncertainty: float = 0.2
     """``sampler=depth``: a ray whose weights' standard deviation exceeds this fraction of its depth is uncertain and
-    gets its fine samples along the whole ray."""
+    gets its fine samples drawn from the coarse weights."""
     detach_source_semantics: bool = True
     """Rendered-feature losses do not train the extractor through the source views (released code)."""
     semantic_field: SemanticFieldConfig = field(default_factory=SemanticFieldConfig)

@@ -84,7 +84,7 @@ class FineSampling:
     """Where the fine pass's samples go (``model.sampler``, ``model.surface_spread``, ``model.surface_uncertainty``).
 
     ``uniform``: the coarse samples plus importance samples from the coarse weights (GNT, GP-NeRF). ``depth``: only
-    samples around the coarse pass's depth, uniform along the ray where it is uncertain
+    samples around the coarse pass's depth, or importance samples where that depth is uncertain
     (``gpnerf_core.geometry.surface_depths``): the fine pass, the one that renders semantics, sees a few samples where
     the surface is instead of the coarse ones too.
     """
