@@ -36,6 +36,8 @@ HELD_OUT_COLOUR = (240, 140, 30)
 """Frustums of held-out frames (never source views)."""
 SOURCE_COLOUR = (250, 220, 0)
 """Frustums of the source views of the view on screen."""
+FRUSTUM_LINES = {"thickness": 2.0, "thickness_units": "screen"}
+"""Frustum edges in pixels: in world units a neighbour's edges seen from a training camera fill the view as planks."""
 STRIDES = ("1", "2", "4", "8", "16")
 
 
@@ -288,7 +290,7 @@ class ViewerServer:
             state.frustums.append(client.scene.add_camera_frustum(
                 f"/cameras/{index:04d}", fov=vertical_fov(scene.intrinsics[index], scene.height),
                 aspect=scene.width / scene.height, scale=self._frustum_scale(scene),
-                color=HELD_OUT_COLOUR if index in held_out else TRAIN_COLOUR,
+                color=HELD_OUT_COLOUR if index in held_out else TRAIN_COLOUR, **FRUSTUM_LINES,
                 image=_thumbnail(frame.rgb, self.options.thumbnail_height), format="jpeg", wxyz=wxyz,
                 position=position, visible=bool(state.gui["cameras"].value),
             ))
@@ -303,15 +305,16 @@ class ViewerServer:
 
     @staticmethod
     def _frustum_scale(scene: Scene) -> float:
-        """Frustum depth in metres: half the median distance from a camera to its nearest neighbour, so neighbouring
-        frustums do not overlap (a ring of 36 cameras 0.26 m apart gets 0.13 m), within [0.02, 0.5] m."""
+        """Frustum depth in metres: a quarter of the median distance from a camera to its nearest neighbour, within
+        [0.02, 0.25] m (a ring of 36 cameras 0.26 m apart gets 0.065 m): neighbouring frustums do not overlap, and from
+        a training camera (where the page opens) the neighbours' thumbnails stay small beside the rendered view."""
         centres = scene.c2w[:, :3, 3]
         if scene.num_frames < 2:
-            return 0.2
+            return 0.1
         distances = torch.cdist(centres, centres)
         distances.fill_diagonal_(float("inf"))
         spacing = float(distances.min(dim=1).values.median())
-        return max(0.02, min(0.5, spacing / 2 if spacing > 0 else 0.2))
+        return max(0.02, min(0.25, spacing / 4 if spacing > 0 else 0.1))
 
     def _hide_frustum_at_lens(self, client: Any, state: _ClientState) -> None:
         """Hide the frustum the camera sits in (its thumbnail would cover the rendered view), show the others."""
@@ -403,7 +406,7 @@ class ViewerServer:
             wxyz, position = viser_pose(scene.c2w[index])
             state.highlighted.append(client.scene.add_camera_frustum(
                 f"/sources/{index:04d}", fov=vertical_fov(scene.intrinsics[index], scene.height),
-                aspect=scene.width / scene.height, scale=self._frustum_scale(scene) * 1.1, color=SOURCE_COLOUR,
+                aspect=scene.width / scene.height, scale=self._frustum_scale(scene) * 1.1, color=SOURCE_COLOUR, **FRUSTUM_LINES,
                 wxyz=wxyz, position=position,
             ))
 
