@@ -97,6 +97,20 @@ def test_render_fps_out_of_range_is_refused_before_rendering(trained, tmp_path, 
     assert not (tmp_path / "video").exists()
 
 
+def test_a_bad_render_path_or_export_min_views_is_one_line_and_writes_nothing(trained, tmp_path, capsys):
+    checkpoint = next((trained / "checkpoints").glob("*.pt"))
+    assert render_in_process(checkpoint, tmp_path / "bad", "render.path=orbit") == 2
+    assert one_error_line(capsys.readouterr().err) == "error: render.path='orbit'; expected one of: interpolate, spiral"
+    assert not (tmp_path / "bad").exists()
+    try:
+        code = cli_main(["export", f"checkpoint={checkpoint}", "export.min_views=99", f"out_dir={tmp_path / 'refused'}"])
+    except SystemExit as stop:  # a Hydra job exits through sys.exit
+        code = int(stop.code)
+    assert code == 2
+    assert one_error_line(capsys.readouterr().err).startswith("error: export.min_views=99: only ")
+    assert not (tmp_path / "refused").exists()
+
+
 def test_gif_delays_are_whole_centiseconds_that_keep_the_rate():
     delays = render.gif_delays_ms(30, 30)
     assert set(delays) == {30, 40} and sum(delays) == 1000  # 30 frames at 30 fps: one second
