@@ -13,7 +13,6 @@ from typing import Any, Sequence
 
 import numpy as np
 import torch
-from scipy.optimize import linear_sum_assignment
 from torch import Tensor
 
 AP_MATCHED_THRESHOLDS = (0.5, 0.75, 0.8, 0.85, 0.9, 0.95)
@@ -59,6 +58,8 @@ def instance_masks(ids: Tensor) -> tuple[Tensor, Tensor]:
 
 def hungarian(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Minimum-cost one-to-one assignment of rows to columns (scipy); ``min(rows, cols)`` pairs ``(rows, cols)``."""
+    from scipy.optimize import linear_sum_assignment  # here: importing it costs every command 0.5 s at start
+
     rows, cols = linear_sum_assignment(np.nan_to_num(np.asarray(cost, dtype=np.float64), nan=1e9, posinf=1e9))
     return rows, cols
 

@@ -13,7 +13,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from torch import Tensor
 
 from gpnerf_core.errors import NonFiniteError
@@ -452,6 +451,8 @@ def psnr(pred: Tensor | np.ndarray, gt: Tensor | np.ndarray, clamp: bool = True)
     pred_array, gt_array = _pair(pred, gt, clamp)
     if np.array_equal(pred_array, gt_array):
         return float("inf")
+    from skimage.metrics import peak_signal_noise_ratio  # here: skimage.metrics costs every command 0.75 s at start
+
     return float(peak_signal_noise_ratio(gt_array, pred_array, data_range=1.0))
 
 
@@ -466,6 +467,8 @@ def ssim(pred: Tensor | np.ndarray, gt: Tensor | np.ndarray) -> float:
     pred_array, gt_array = _pair(pred, gt, clamp=True)
     if min(pred_array.shape[:2]) < _SSIM_WINDOW:
         raise ValueError(f"SSIM needs images of at least {_SSIM_WINDOW}x{_SSIM_WINDOW}, got {list(pred_array.shape)}")
+    from skimage.metrics import structural_similarity
+
     value = structural_similarity(
         gt_array,
         pred_array,

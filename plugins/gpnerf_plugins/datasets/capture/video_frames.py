@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
-from scipy import ndimage
 from tqdm import tqdm
 
 from gpnerf_core import ConfigError, DataError
@@ -169,6 +168,8 @@ def read_folder(
 def sharpness(rgb: np.ndarray) -> float:
     """Variance of the Laplacian of the grey image (ITU-R 601 luma, 0-255): high for sharp edges, low when blurred."""
     grey = np.asarray(rgb, dtype=np.float64)[..., :3] @ np.array([0.299, 0.587, 0.114])
+    from scipy import ndimage  # here: scipy.ndimage costs every command 0.3 s at start
+
     return float(ndimage.laplace(grey).var())
 
 

@@ -11,8 +11,6 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
-from skimage import io as skio
-from skimage.transform import resize as sk_resize
 
 from gpnerf_core import DataError
 
@@ -64,6 +62,8 @@ def decode_image(path: Path, expected: str = "an image") -> Image.Image:
 
 def read_png(path: Path) -> np.ndarray:
     """Decode a PNG to an array with its stored dtype (uint8 or uint16) and channels."""
+    from skimage import io as skio  # here: skimage.io and .transform cost every command 0.6 s at start
+
     try:
         return np.asarray(skio.imread(path))
     except Exception as exc:
@@ -140,5 +140,7 @@ def resize_rgb(rgb: np.ndarray, height: int, width: int) -> np.ndarray:
     """Antialiased bilinear resize of float32 ``[H, W, 3]`` RGB in [0, 1]; the input if already that size."""
     if rgb.shape[:2] == (height, width):
         return rgb
+    from skimage.transform import resize as sk_resize
+
     out = sk_resize(rgb, (height, width), order=1, anti_aliasing=True, preserve_range=True)
     return np.clip(out, 0.0, 1.0).astype(np.float32)
