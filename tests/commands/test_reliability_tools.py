@@ -79,12 +79,16 @@ def test_size_refuses_eval_splits_without_the_split_it_selects_on_before_anythin
 # ---- 3, 4: render ----------------------------------------------------------------------------------------------
 
 
-def render_in_process(checkpoint: Path, out: Path, *overrides: str) -> int:
-    """``render`` through the command line in this process (so a test can replace a writer); its exit code."""
+def in_process(*argv: str) -> int:
+    """A command through the command line in this process (so a test can replace a writer); its exit code."""
     try:
-        return cli_main(["render", f"checkpoint={checkpoint}", "render.frames=4", f"out_dir={out}", *overrides])
+        return cli_main(list(argv))
     except SystemExit as stop:  # a Hydra job exits through sys.exit
         return int(stop.code)
+
+
+def render_in_process(checkpoint: Path, out: Path, *overrides: str) -> int:
+    return in_process("render", f"checkpoint={checkpoint}", "render.frames=4", f"out_dir={out}", *overrides)
 
 
 @pytest.mark.parametrize("fps", ["0", "-5", "51"])
@@ -102,13 +106,10 @@ def test_a_bad_render_path_or_export_min_views_is_one_line_and_writes_nothing(tr
     assert render_in_process(checkpoint, tmp_path / "bad", "render.path=orbit") == 2
     assert one_error_line(capsys.readouterr().err) == "error: render.path='orbit'; expected one of: interpolate, spiral"
     assert not (tmp_path / "bad").exists()
-    try:
-        code = cli_main(["export", f"checkpoint={checkpoint}", "export.min_views=99", f"out_dir={tmp_path / 'refused'}"])
-    except SystemExit as stop:  # a Hydra job exits through sys.exit
-        code = int(stop.code)
-    assert code == 2
+    refused = tmp_path / "refused"
+    assert in_process("export", f"checkpoint={checkpoint}", "export.min_views=99", f"out_dir={refused}") == 2
     assert one_error_line(capsys.readouterr().err).startswith("error: export.min_views=99: only ")
-    assert not (tmp_path / "refused").exists()
+    assert not refused.exists()
 
 
 def test_gif_delays_are_whole_centiseconds_that_keep_the_rate():

@@ -406,8 +406,8 @@ class ViewerServer:
             wxyz, position = viser_pose(scene.c2w[index])
             state.highlighted.append(client.scene.add_camera_frustum(
                 f"/sources/{index:04d}", fov=vertical_fov(scene.intrinsics[index], scene.height),
-                aspect=scene.width / scene.height, scale=self._frustum_scale(scene) * 1.1, color=SOURCE_COLOUR, **FRUSTUM_LINES,
-                wxyz=wxyz, position=position,
+                aspect=scene.width / scene.height, scale=self._frustum_scale(scene) * 1.1, color=SOURCE_COLOUR,
+                wxyz=wxyz, position=position, **FRUSTUM_LINES,
             ))
 
 
