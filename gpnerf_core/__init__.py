@@ -46,6 +46,11 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
         "EXPECTED_RIGID", "Projector", "composite", "compositing_weights", "density_opacity", "importance_depths", "pixel_grid", "points_along_rays", "rays_through_pixels",
         "rigid_transform_problem", "sampling_layout", "stratified_inverse_depths", "surface_depths",
     ),
+    "gpnerf_core.geometry.projection": ("project_points", "world_to_camera"),
+    "gpnerf_core.model.whole_view": ("render_whole_view",),
+    "gpnerf_core.geometry.plane_sweep": (
+        "PlaneSweep", "ReferenceFrustum", "plane_sweep", "points_in_views", "variance_over_views",
+    ),
     "gpnerf_core.geometry.pose_sanity": ("check_poses",),
     "gpnerf_core.data.checks": (
         "ValueProblem", "check_scene_files", "check_validation_level", "depth_problem", "far_away_cameras",
@@ -117,7 +122,16 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
         stratified_inverse_depths,
         surface_depths,
     )
+    from gpnerf_core.geometry.plane_sweep import (
+        PlaneSweep,
+        ReferenceFrustum,
+        plane_sweep,
+        points_in_views,
+        variance_over_views,
+    )
     from gpnerf_core.geometry.pose_sanity import check_poses
+    from gpnerf_core.geometry.projection import project_points, world_to_camera
+    from gpnerf_core.model.whole_view import render_whole_view
     from gpnerf_core.data.dataset import SPLITS, SceneDataset
     from gpnerf_core.interfaces import (
         FeatureExtractor,

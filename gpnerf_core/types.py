@@ -97,11 +97,15 @@ class SourceViews:
     Attributes:
         rgb: ``[V, 3, H, W]`` float32 in [0, 1].
         intrinsics: ``[V, 3, 3]``; c2w: ``[V, 4, 4]``.
+        depth: ``[V, H, W]`` float32 metres (camera z), 0 where unknown, or None where none was loaded. Read only by
+            families that take source-view depth as input (Semantic-Ray and NeuRay's depth variant); GP-NeRF never
+            does.
     """
 
     rgb: Tensor
     intrinsics: Tensor
     c2w: Tensor
+    depth: Tensor | None = None
 
     @property
     def num_views(self) -> int:

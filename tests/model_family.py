@@ -50,9 +50,9 @@ from gpnerf_core import (
     density_opacity,
     hookimpl,
     importance_depths,
-    pixel_grid,
     points_along_rays,
     rays_through_pixels,
+    render_whole_view,
     stratified_inverse_depths,
 )
 
@@ -165,22 +165,13 @@ class PooledViews(ModelFamily):
                 features: FeatureMaps | None = None) -> Prediction:
         if sources is None:
             raise ConfigError("pooled_views renders from source views; none were given")
-        stride = stride or 1
         maps = features if features is not None else self.encode(sources.rgb)
-        height, width = camera.image_size
-        pixels = pixel_grid(height, width, stride, device=camera.c2w.device)
-        rays = rays_through_pixels(pixels, camera.intrinsics, camera.c2w, camera.near, camera.far)
-        passes = [self._render(rays.chunk(i, i + chunk_rays), sources, maps, self.classes is not None, None)
-                  for i in range(0, rays.num_rays, chunk_rays)]
-        last = [fine if fine is not None else coarse for coarse, fine in passes]
-        h, w = height // stride, width // stride
-        logits = None
-        if self.classes is not None:
-            grid = torch.cat([p.logits for p in last]).T.reshape(1, -1, h, w)
-            logits = F.interpolate(grid, size=(height, width), mode="nearest") if stride > 1 else grid
-        return Prediction(rgb=torch.cat([p.rgb for p in last]).reshape(h, w, 3),
-                          depth=torch.cat([p.depth for p in last]).reshape(h, w), semantic=None, logits=logits,
-                          stride=stride)
+
+        def render(rays: RayBatch) -> RenderedRays:
+            coarse, fine = self._render(rays, sources, maps, self.classes is not None, None)
+            return fine if fine is not None else coarse
+
+        return render_whole_view(camera, render, stride=stride, chunk_rays=chunk_rays)
 
 
 def build_pooled_views(*, parts: ModelParts, coarse_samples: int = PooledViewsConfig.coarse_samples,

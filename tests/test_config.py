@@ -60,7 +60,10 @@ def test_every_registered_option_composes(registry, kind):
 def test_every_experiment_composes(registry, experiment):
     cfg = compose_with([f"+experiment={experiment}"])
     assert cfg.loss is not None
-    assert (cfg.get("head") is None) == (experiment == "baselines/gnt")
+    label_rendering_families = ("baselines/semantic_ray", "baselines/neuray", "baselines/mvsnerf")
+    assert (cfg.get("head") is None) == (experiment in ("baselines/gnt", *label_rendering_families))
+    if experiment in label_rendering_families:  # the compared methods: their own family, scored by label rendering
+        assert cfg.model.name == experiment.split("/")[1] and cfg.loss.name == "ce"
 
 
 def test_baselines_share_the_backbone_and_differ_in_the_semantic_path(registry):

@@ -1,11 +1,14 @@
 """``python -m gpnerf_core bench [size=demo|small|paper[,...]] [repeats=3] [warmup=1] [phases=train,render]
-[sweep=rays|views|samples|image] [out_dir=...] [overrides]``.
+[families=semantic_ray,neuray,mvsnerf] [sweep=rays|views|samples|image] [out_dir=...] [overrides]``.
 
 For each size, the GP-NeRF model and its GNT-only anchor (same backbone, rays and samples; no FPN, semantic field or
 head) are measured in fresh processes: a training step (median and minimum over ``repeats`` after ``warmup``, peak
 memory, matmul/convolution flops) and the rendering of a whole held-out view. The machine's matmul peak is measured in
 the same run. A table goes to stdout, everything to ``<out_dir>/bench.json``. A measurement that runs out of memory is
 reported with the peak it reached and the others still run.
+
+``families=<a,b,...>`` also measures compared methods' model families (``+experiment=baselines/<name>``) on each size's
+images, views and rays, each beside GP-NeRF in the same run (the ``<family> / GP-NeRF`` rows).
 
 ``bench sweep=rays|views|samples|image [size=demo]`` measures one size over a range of one quantity instead
 (``gpnerf_core.tools.bench.sweeps``): ``sweep_<name>.csv``, ``.png`` (log-log, the fitted slope of each cost) and ``.json``.
@@ -19,7 +22,7 @@ from typing import Any
 
 from gpnerf_core.tools.bench.machine import matmul_peak_gflops
 from gpnerf_core.tools.bench.measure import run_measurement
-from gpnerf_core.tools.bench.sizes import SIZES, VARIANTS, get_size, variant_overrides
+from gpnerf_core.tools.bench.sizes import SIZES, VARIANTS, checked_families, get_size, variant_overrides
 from gpnerf_core.tools.bench.sweeps import Sweep, get_sweep, rows_of, slopes
 from gpnerf_core.tools.bench.sweeps import draw as draw_sweep
 from gpnerf_core.config.compose import compose
@@ -29,7 +32,7 @@ from gpnerf_core.runtime.io import atomic_write_json, atomic_write_text
 from gpnerf_core.engine.setup import compose_checked
 from gpnerf_core.runtime.run_folder import RunFolder
 
-OWN_KEYS = ("size", "repeats", "warmup", "out_dir", "phases", "sweep")
+OWN_KEYS = ("size", "repeats", "warmup", "out_dir", "phases", "sweep", "families")
 PHASES = ("train", "render")
 
 
@@ -71,8 +74,9 @@ def main(argv: list[str]) -> int:
         if len(sizes) != 1:
             raise ConfigError(f"bench sweep={own['sweep']}: one size at a time, got size={own.get('size')}")
         return run_sweep(get_sweep(own["sweep"]), sizes[0], overrides, warmup, repeats, own.get("out_dir"))
+    variants = [*VARIANTS, *(checked_families(own["families"]) if "families" in own else [])]
     for size in sizes:  # refuse bad overrides before measuring anything
-        for variant in VARIANTS:
+        for variant in variants:
             compose_checked(variant_overrides(size, variant, overrides))
     device = resolve_device(compose(variant_overrides(sizes[0], "gpnerf", overrides)).device)
     out_dir = Path(own.get("out_dir") or Path("outputs") / "bench" / time.strftime("%Y-%m-%d_%H-%M-%S"))
@@ -81,10 +85,10 @@ def main(argv: list[str]) -> int:
         peak = matmul_peak_gflops(device)
         print(f"{device}: float32 matmul peak {peak:.1f} GFLOP/s", flush=True)
         report: dict[str, Any] = {"device": str(device), "matmul_peak_gflops": peak, "overrides": overrides,
-                                  "warmup": warmup, "repeats": repeats, "sizes": {}}
+                                  "warmup": warmup, "repeats": repeats, "variants": variants, "sizes": {}}
         for size in sizes:
             entry: dict[str, Any] = {"description": size.description}
-            for variant in VARIANTS:
+            for variant in variants:
                 variant_args = variant_overrides(size, variant, overrides)
                 entry[variant] = {"overrides": variant_args}
                 for phase in PHASES:
@@ -97,11 +101,12 @@ def main(argv: list[str]) -> int:
                         print(f"  warm-up ({warmup}, compilation included under model.compile): "
                               f"{result['warmup_seconds']:.1f} s", flush=True)
             entry["ratios"] = _ratios(entry)
+            entry["family_ratios"] = {family: _ratios(entry, family, "gpnerf") for family in variants[len(VARIANTS):]}
             report["sizes"][size.name] = entry
             atomic_write_json(out_dir / "bench.json", report)
         print(format_table(report))
         print(f"bench.json: {(out_dir / 'bench.json').resolve()}")
-    failed = [s for s, e in report["sizes"].items() for v in VARIANTS for p in phases if "error" in e[v][p]]
+    failed = [s for s, e in report["sizes"].items() for v in variants for p in phases if "error" in e[v][p]]
     return 1 if failed else 0
 
 
@@ -144,8 +149,9 @@ def run_sweep(sweep: Sweep, size: Any, overrides: list[str], warmup: int, repeat
     return 1 if any(row["error"] for row in rows) else 0
 
 
-def _ratios(entry: dict[str, Any]) -> dict[str, float | None]:
-    """GP-NeRF over GNT-only: training step time, memory and FLOPs; rendering rays/s per sample evaluated.
+def _ratios(entry: dict[str, Any], over: str = "gpnerf", under: str = "gnt_only") -> dict[str, float | None]:
+    """``over`` (GP-NeRF) over ``under`` (GNT-only): training step time, memory and FLOPs; rendering rays/s per sample
+    evaluated, and seconds per frame.
 
     Times use each variant's fastest repetition: on a shared machine the minimum is the figure least disturbed by
     other work (both median and minimum are in ``bench.json``). The FLOP ratio (matmuls and convolutions, forward and
@@ -163,10 +169,11 @@ def _ratios(entry: dict[str, Any]) -> dict[str, float | None]:
         return rays * samples / seconds if rays and seconds and samples else None
 
     return {
-        "train_step_time": ratio(value("gpnerf", "train", "seconds_min"), value("gnt_only", "train", "seconds_min")),
-        "train_peak_memory": ratio(value("gpnerf", "train", "peak_memory_mb"), value("gnt_only", "train", "peak_memory_mb")),
-        "train_flops": ratio(value("gpnerf", "train", "flops"), value("gnt_only", "train", "flops")),
-        "render_samples_per_second": ratio(rays_per_sample_second("gpnerf"), rays_per_sample_second("gnt_only")),
+        "train_step_time": ratio(value(over, "train", "seconds_min"), value(under, "train", "seconds_min")),
+        "train_peak_memory": ratio(value(over, "train", "peak_memory_mb"), value(under, "train", "peak_memory_mb")),
+        "train_flops": ratio(value(over, "train", "flops"), value(under, "train", "flops")),
+        "render_samples_per_second": ratio(rays_per_sample_second(over), rays_per_sample_second(under)),
+        "render_frame_time": ratio(value(over, "render", "seconds_min"), value(under, "render", "seconds_min")),
     }
 
 
@@ -175,14 +182,17 @@ def format_table(report: dict[str, Any]) -> str:
     header = ("size", "variant", "params M", "train s (med/min)", "train MiB", "GFLOP/ray", "GFLOP/s (% peak)",
               "render rays/s", "s/frame", "render MiB")
     rows = [header]
+    variants = report.get("variants", VARIANTS)
     for name, entry in report["sizes"].items():
-        for variant in VARIANTS:
+        for variant in variants:
             train, render = entry[variant]["train"], entry[variant]["render"]
             rows.append((name, variant, *_train_cells(train, peak), *_render_cells(render)))
-        ratios = entry["ratios"]
-        rows.append((name, "GP-NeRF / GNT-only (min)", "", _x(ratios["train_step_time"]),
-                     _x(ratios["train_peak_memory"]), _x(ratios["train_flops"]), "",
-                     _x(ratios["render_samples_per_second"]), "", ""))
+        named = [("GP-NeRF / GNT-only", entry["ratios"])]
+        named += [(f"{family} / GP-NeRF", ratios) for family, ratios in entry.get("family_ratios", {}).items()]
+        for label, ratios in named:
+            rows.append((name, f"{label} (min)", "", _x(ratios["train_step_time"]), _x(ratios["train_peak_memory"]),
+                         _x(ratios["train_flops"]), "", _x(ratios["render_samples_per_second"]),
+                         _x(ratios["render_frame_time"]), ""))
     widths = [max(len(str(row[i])) for row in rows) for i in range(len(header))]
     return "\n".join("  ".join(str(cell).rjust(widths[i]) for i, cell in enumerate(row)) for row in rows)
 

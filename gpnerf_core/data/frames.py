@@ -60,6 +60,7 @@ class FrameCache:
             rgb=torch.stack([f.rgb.permute(2, 0, 1) for f in frames]).to(self.device),
             intrinsics=torch.stack([f.intrinsics for f in frames]).to(self.device),
             c2w=torch.stack([f.c2w for f in frames]).to(self.device),
+            depth=torch.stack([f.depth for f in frames]).to(self.device),
         )
 
     def camera(

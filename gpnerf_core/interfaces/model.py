@@ -91,9 +91,12 @@ class ModelFamily(ImportsWeights, nn.Module, ABC):
 
     Class attributes:
         generalizable: renders from source views.
+        accepts_head: decodes a rendered feature map with the configured ``+head``; a family that only renders
+            per-pixel scores (label rendering) sets False and refuses a configured head with a ConfigError.
     """
 
     generalizable: ClassVar[bool] = True
+    accepts_head: ClassVar[bool] = True
 
     # ---- what the model is ------------------------------------------------------------------------------------------
 

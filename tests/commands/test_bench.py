@@ -23,7 +23,8 @@ def bench(*args, cwd):
 
 
 def test_bench_measures_both_variants_and_writes_bench_json(tmp_path):
-    result = bench("size=demo", "repeats=2", "warmup=0", *TINY, f"out_dir={tmp_path / 'b'}", cwd=tmp_path)
+    result = bench("size=demo", "repeats=2", "warmup=0", "families=neuray", *TINY, "model.fine_samples=2",
+                   f"out_dir={tmp_path / 'b'}", cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-2000:]
     report = json.loads((tmp_path / "b" / "bench.json").read_text())
     assert report["matmul_peak_gflops"] > 0
@@ -36,15 +37,25 @@ def test_bench_measures_both_variants_and_writes_bench_json(tmp_path):
     assert {"head", "semantic"} <= set(demo["gpnerf"]["train"]["parameters"])
     assert not {"head", "semantic"} & set(demo["gnt_only"]["train"]["parameters"])
     assert demo["gpnerf"]["train"]["flops"] > demo["gnt_only"]["train"]["flops"]
-    assert set(demo["ratios"]) == {"train_step_time", "train_peak_memory", "train_flops", "render_samples_per_second"}
+    assert set(demo["ratios"]) == {"train_step_time", "train_peak_memory", "train_flops", "render_samples_per_second",
+                                   "render_frame_time"}
     assert demo["ratios"]["train_flops"] == demo["gpnerf"]["train"]["flops"] / demo["gnt_only"]["train"]["flops"]
     assert "GP-NeRF / GNT-only (min)" in result.stdout
+    # A compared family is measured on the same images, views and rays, and set beside GP-NeRF in the same run.
+    neuray = demo["neuray"]
+    assert "+experiment=baselines/neuray" in neuray["overrides"] and neuray["train"]["rays"] == 16
+    assert neuray["render"]["rays"] == 16 * 24 and {"depth_init", "coarse"} <= set(neuray["train"]["parameters"])
+    assert demo["family_ratios"]["neuray"]["train_flops"] == neuray["train"]["flops"] / demo["gpnerf"]["train"]["flops"]
+    assert "neuray / GP-NeRF (min)" in result.stdout
 
 
 def test_bench_bad_input_is_one_line(tmp_path):
     unknown = bench("size=huge", cwd=tmp_path)
     assert unknown.returncode == 2
     assert unknown.stderr.strip() == "error: bench size='huge' is unknown; known sizes: demo, small, paper"
+    family = bench("families=nerf", cwd=tmp_path)
+    assert family.returncode == 2 and family.stderr.strip().startswith("error: bench families='nerf': expected some of ")
+    assert "semantic_ray" in family.stderr and "gnt" not in family.stderr.split("of ", 1)[1]
     bad = bench("repeats=0", cwd=tmp_path)
     assert bad.returncode == 2 and bad.stderr.strip() == "error: bench repeats=0: expected an integer >= 1"
     cuda = bench("device=cuda", cwd=tmp_path)

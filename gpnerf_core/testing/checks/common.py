@@ -63,6 +63,17 @@ class Subject:
         predicts = getattr(self.entry.spec.factory, "predicts", Predicts.CLASSES)
         return self.kind == "head" and Predicts(predicts) is Predicts.INSTANCES
 
+    @property
+    def takes_head(self) -> bool:
+        """A model family that decodes with a head (``ModelFamily.accepts_head``, read from the family built without
+        one); other kinds: True."""
+        if self.kind != "model":
+            return True
+        from gpnerf_core.testing.inputs import kit_parts
+
+        model = self.build(parts=kit_parts(self.registry, self.name, head=False))
+        return bool(getattr(model, "accepts_head", True))
+
     def build(self, node: Mapping[str, Any] | None = None, **runtime: Any) -> Any:
         """Build through the registry with ``runtime`` replacing the kit's runtime arguments.
 
@@ -73,7 +84,7 @@ class Subject:
         if self.kind == "model" and "parts" not in arguments:
             from gpnerf_core.testing.inputs import kit_parts
 
-            arguments["parts"] = kit_parts(self.registry, self.name, head=True)
+            arguments["parts"] = kit_parts(self.registry, self.name, head=self.takes_head)
         where = "building" + (" from the round-tripped config" if node is not None else "")
         where += f" with {describe(arguments)}" if arguments and node is None else ""
         node = self.node() if node is None else node

@@ -51,10 +51,25 @@ def semantic_output(model: ModelFamily) -> SemanticOutput | None:
     return output
 
 
+def heads(subject: Subject) -> tuple[bool, ...]:
+    """Whether to build with a head: both ways, or only without one for a family that refuses heads."""
+    return (False, True) if subject.takes_head else (False,)
+
+
 def check_build(subject: Subject) -> None:
-    """Builds with and without a head; parameters start finite; ``semantic_output`` is a ``SemanticOutput`` or None,
-    with the kit's class count for a class output."""
-    for head in (False, True):
+    """Builds with and without a head (a family with ``accepts_head = False`` refuses one with a ConfigError);
+    parameters start finite; ``semantic_output`` is a ``SemanticOutput`` or None, with the kit's class count for a
+    class output."""
+    if not subject.takes_head:
+        try:
+            build(subject, head=True)
+        except CheckFailed as failed:
+            expect("ConfigError" in str(failed) or "ConfigError" in type(failed.__cause__).__name__,
+                   f"accepts_head is False but a configured head made the build fail otherwise: {failed}")
+        else:
+            raise CheckFailed("accepts_head is False but the family built with a configured head (it would be "
+                              "silently ignored): raise a ConfigError naming +head")
+    for head in heads(subject):
         model = build(subject, head=head)
         expect_finite({f"parameter {k}": p for k, p in model.named_parameters()}, "after construction")
         output = semantic_output(model)
@@ -67,7 +82,7 @@ def check_parameter_groups(subject: Subject) -> None:
     """Every trainable parameter is in exactly one learning-rate group, named by a ``train.lr`` key."""
     from gpnerf_core.config.schema import LearningRates
 
-    model = build(subject, head=True)
+    model = build(subject, head=subject.takes_head)
     groups = call("parameter_groups()", model.parameter_groups)
     expect(isinstance(groups, dict), f"parameter_groups() returned {type(groups).__name__}, expected a dict")
     known = set(LearningRates.__dataclass_fields__)
@@ -124,7 +139,7 @@ def check_forward(subject: Subject) -> None:
     """Training: one ``ViewOutput`` per target view, every pass's colour ``[R, 3]``, weights ``[R, S]``, depth ``[R]``,
     the semantic scores its ``semantic_output`` promises, finite gradients, and (with a head configured) a gradient to
     every parameter of the family's own (its parts are checked as components of their kinds)."""
-    for head in (False, True):
+    for head in heads(subject):
         model, part_parameters = built(subject, head=head)
         model.train()
         output = semantic_output(model)
@@ -148,7 +163,7 @@ def check_forward(subject: Subject) -> None:
         # a part may be partly unused (an extractor's semantic branch under a colour-only model).
         own = [n for n, p in model.named_parameters() if p.requires_grad and id(p) not in part_parameters]
         missing = [n for n in own if dict(model.named_parameters())[n].grad is None]
-        expect(not missing or not head,
+        expect(not missing or (not head and subject.takes_head),
                f"no gradient reached the model's own {', '.join(missing[:5])}{' ...' if len(missing) > 5 else ''} "
                f"({len(missing)} of {len(own)}) after a backward of the sum of its outputs")
 
@@ -164,7 +179,7 @@ def _prediction(model: ModelFamily, stride: int) -> Prediction:
 def check_predict(subject: Subject) -> None:
     """A whole view: colour ``[h, w, 3]`` and depth ``[h, w]`` on the ``stride`` grid (h = H / stride), scores
     ``[1, K, H, W]`` at the image's size when the model has a semantic output; finite; the same twice in eval mode."""
-    for head in (False, True):
+    for head in heads(subject):
         model = build(subject, head=head).eval()
         output = semantic_output(model)
         for stride in (0, 4):

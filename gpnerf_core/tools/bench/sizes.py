@@ -7,6 +7,7 @@ Every preset trains on one generated embedded scene at the preset's image size (
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 from gpnerf_core.errors import ConfigError
 
@@ -75,7 +76,29 @@ VARIANTS = ("gpnerf", "gnt_only")
 """What ``bench`` measures at each size: GP-NeRF, and its GNT-only anchor (``GNT_ONLY``)."""
 
 
+def baseline_families() -> list[str]:
+    """The compared methods' experiments (``conf/experiment/baselines/<name>.yaml``) that select a model family other
+    than GP-NeRF's (the families ``bench families=...`` may measure)."""
+    from gpnerf_core.config.compose import config_dir
+
+    folder = Path(config_dir()) / "experiment" / "baselines"
+    return sorted(p.stem for p in folder.glob("*.yaml") if "override /model:" in p.read_text())
+
+
+def checked_families(value: str) -> list[str]:
+    """``bench families=<a,b>``: the named baseline families, refused in one line when one is unknown."""
+    names = [n.strip() for n in value.split(",") if n.strip()]
+    known = baseline_families()
+    unknown = [n for n in names if n not in known]
+    if not names or unknown:
+        raise ConfigError(f"bench families={value!r}: expected some of {', '.join(known)} (comma-separated)")
+    return names
+
+
 def variant_overrides(size: Size, variant: str, overrides: list[str]) -> list[str]:
-    """The overrides of ``variant`` at ``size``, the user's last (they win)."""
+    """The overrides of ``variant`` at ``size``, the user's last (they win): ``gpnerf``, ``gnt_only``, or a baseline
+    family (its ``+experiment=baselines/<variant>`` on the size's common overrides: the same images, views and rays)."""
+    if variant not in VARIANTS:
+        return [*size.common, f"+experiment=baselines/{variant}", *overrides]
     extra = size.semantic if variant == "gpnerf" else GNT_ONLY
     return [*size.common, *extra, *overrides]

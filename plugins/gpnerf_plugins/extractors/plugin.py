@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from gpnerf_core import ComponentSpec, hookimpl
 from gpnerf_plugins.extractors.extractor import ResUNetFPN, ResUNetFPNConfig
+from gpnerf_plugins.extractors.mvsnet import MVSNetFeatures, MVSNetFeaturesConfig
 
 
 @hookimpl
@@ -14,5 +15,11 @@ def gpnerf_register_feature_extractors() -> list[ComponentSpec]:
             factory=ResUNetFPN,
             config=ResUNetFPNConfig,
             description="GNT ResNet-34 U-Net (radiance, 1/4) + FPN (semantic, 4 levels at 1/2)",
-        )
+        ),
+        ComponentSpec(
+            name="mvsnet",
+            factory=MVSNetFeatures,
+            config=MVSNetFeaturesConfig,
+            description="MVSNeRF's FeatureNet: three conv blocks, BatchNorm + LeakyReLU, 32 channels at 1/4 (radiance)",
+        ),
     ]

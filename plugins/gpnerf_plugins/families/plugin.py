@@ -5,6 +5,10 @@ from __future__ import annotations
 from gpnerf_core import ComponentSpec, hookimpl
 from gpnerf_plugins.families.gnt.build import build_gnt
 from gpnerf_plugins.families.gnt.config import GNTModelConfig
+from gpnerf_plugins.families.mvsnerf.build import build_mvsnerf
+from gpnerf_plugins.families.mvsnerf.config import MVSNeRFConfig
+from gpnerf_plugins.families.neuray.build import build_neuray, build_semantic_ray
+from gpnerf_plugins.families.neuray.config import NeuRayConfig, SemanticRayConfig
 
 
 @hookimpl
@@ -15,5 +19,23 @@ def gpnerf_register_models() -> list[ComponentSpec]:
             build_gnt,
             GNTModelConfig,
             "GNT view + ray transformers over source views; GP-NeRF's semantic field on their attention, +head decodes",
+        ),
+        ComponentSpec(
+            "mvsnerf",
+            build_mvsnerf,
+            MVSNeRFConfig,
+            "MVSNeRF + semantic head: plane-sweep cost volume, 3D U-Net encoding volume, modulated MLP, label rendering",
+        ),
+        ComponentSpec(
+            "neuray",
+            build_neuray,
+            NeuRayConfig,
+            "NeuRay + semantic head: visibility from source depth, occlusion-aware pooling, label rendering",
+        ),
+        ComponentSpec(
+            "semantic_ray",
+            build_semantic_ray,
+            SemanticRayConfig,
+            "Semantic-Ray: NeuRay + Cross-Reprojection Attention, per-view scores blended and label-rendered",
         ),
     ]

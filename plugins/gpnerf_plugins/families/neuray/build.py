@@ -1,0 +1,31 @@
+"""Building the ``neuray`` and ``semantic_ray`` families from their options and the configured parts."""
+
+from __future__ import annotations
+
+from gpnerf_core import ConfigError, ModelParts
+from gpnerf_plugins.families.neuray.config import NeuRayConfig
+from gpnerf_plugins.families.neuray.model import VisibilityAwareRenderer
+
+
+def _build(parts: ModelParts, name: str, cross_reprojection: bool, coarse_samples: int, fine_samples: int,
+           visibility_dim: int) -> VisibilityAwareRenderer:
+    if parts.configured("head"):
+        raise ConfigError(f"+head={parts.name('head')}: model={name} renders class scores per pixel (label "
+                          "rendering) and has no rendered feature map for a head to decode; drop +head")
+    return VisibilityAwareRenderer(extractor=parts.build("feature_extractor"), num_classes=parts.num_classes,
+                                   coarse_samples=coarse_samples, fine_samples=fine_samples,
+                                   visibility_dim=visibility_dim, cross_reprojection=cross_reprojection)
+
+
+def build_neuray(*, parts: ModelParts, coarse_samples: int = NeuRayConfig.coarse_samples,
+                 fine_samples: int = NeuRayConfig.fine_samples,
+                 visibility_dim: int = NeuRayConfig.visibility_dim) -> VisibilityAwareRenderer:
+    """NeuRay + semantic head: no Cross-Reprojection Attention."""
+    return _build(parts, "neuray", False, coarse_samples, fine_samples, visibility_dim)
+
+
+def build_semantic_ray(*, parts: ModelParts, coarse_samples: int = NeuRayConfig.coarse_samples,
+                       fine_samples: int = NeuRayConfig.fine_samples,
+                       visibility_dim: int = NeuRayConfig.visibility_dim) -> VisibilityAwareRenderer:
+    """Semantic-Ray: with the Cross-Reprojection Attention."""
+    return _build(parts, "semantic_ray", True, coarse_samples, fine_samples, visibility_dim)

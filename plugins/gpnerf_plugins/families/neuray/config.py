@@ -1,0 +1,32 @@
+"""Options of the ``neuray`` and ``semantic_ray`` families (``model=neuray``, ``model=semantic_ray``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+from gpnerf_core import ModelConfig
+
+
+@dataclass
+class NeuRayConfig(ModelConfig):
+    """NeuRay's visibility-aware renderer with Semantic-Ray's semantic head, without the Cross-Reprojection Attention
+    ("NeuRay + Semantic Head" of GP-NeRF's Table 1)."""
+
+    name: str = "neuray"
+    """Registry name of this model family."""
+    fine_samples: int = 24
+    """Samples of the fine pass, drawn from the coarse pass's weights in normalised inverse depth; the fine pass
+    renders only these (NeuRay and Semantic-Ray do not merge them with the coarse samples). 0 = coarse pass only."""
+    visibility_dim: int = 32
+    """Channels of the visibility feature map G of each source view (NeuRay: 32)."""
+
+    runtime_keys: ClassVar[tuple[str, ...]] = ModelConfig.runtime_keys
+
+
+@dataclass
+class SemanticRayConfig(NeuRayConfig):
+    """Semantic-Ray: NeuRay + semantic head with the Cross-Reprojection Attention on each sample's per-view features."""
+
+    name: str = "semantic_ray"
+    """Registry name of this model family."""
