@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
 # Regenerate the numbers of docs/results.md from scratch on a 2-core CPU, at one commit:
 #   bash examples/results/regenerate.sh [WORK] [STAGES]      (WORK default /tmp/gpnerf-results)
-# STAGES (default "table4 methods stress instance finetune report"):
+# STAGES (default "table4 methods baselines stress instance finetune report"):
 #   table4    Table 4 IDs 1-5 x seeds 0-2 (ID 5 is the main job's config)
 #   methods   the chart's other methods x seeds 0-2: per-pixel head, GP-NeRF sized, GNT alone
+#   baselines the compared methods' families x seeds 0-2: Semantic-Ray, NeuRay + semantic head, MVSNeRF + semantic
+#             head (+experiment=baselines/<name>), on the main job's data and steps
 #   stress    the stress suite of IDs 1 and 5 (3 seeds each), one process per method, merged   (needs table4's runs)
 #   instance  the instance head on layout_00 x seeds 0-2, and the connected-components baseline on ID 5's runs
 #   finetune  ID 5's three runs fine-tuned on the unseen layout (300 steps)                      (needs table4's runs)
@@ -21,11 +23,11 @@
 set -euo pipefail
 PYTHON=${PYTHON:-python}
 WORK=${1:-/tmp/gpnerf-results}
-STAGES=${2:-table4 methods stress instance finetune report}
+STAGES=${2:-table4 methods baselines stress instance finetune report}
 PARALLEL=${PARALLEL:-2}
 POLL_SECONDS=${POLL_SECONDS:-10}
 RUNS="$WORK/runs"
-KNOWN="table4 methods stress instance finetune report"
+KNOWN="table4 methods baselines stress instance finetune report"
 for stage in $STAGES; do
   [[ " $KNOWN " == *" $stage "* ]] || { echo "unknown stage '$stage' (known: $KNOWN)" >&2; exit 2; }
 done
@@ -59,6 +61,10 @@ stage_jobs() {
       for s in 0 1 2; do train_job "label_rendering_s$s" $s +experiment=baselines/label_rendering; done
       for s in 0 1 2; do train_job "sized_s$s" $s "${SIZED[@]}"; done
       for s in 0 1 2; do train_job "gnt_s$s" $s +experiment=baselines/gnt; done ;;
+    baselines)
+      for s in 0 1 2; do for family in semantic_ray neuray mvsnerf; do
+        train_job "${family}_s$s" $s +experiment=baselines/$family eval.save_images=0
+      done; done ;;
     stress)
       for id in 1 5; do
         job "stress_id$id" "id${id}_s0,id${id}_s1,id${id}_s2" stress "$RUNS"/id${id}_s{0,1,2} --views-per-scene 1 \

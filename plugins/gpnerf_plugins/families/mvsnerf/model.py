@@ -56,8 +56,8 @@ Simplified for a 2-core CPU, and why:
 * **No per-scene volume**: MVSNeRF's fine-tuning makes the encoding volume a trainable parameter (``RefVolume``) of one
   scene. Here ``finetune`` continues training the whole model on the scene, the volume still computed from the source
   views, as Semantic-Ray's fine-tuning does.
-* **Semantic head**: no public code; the branch follows COMPETITORS section 3b's inference (Semantic-NeRF style, on
-  the trunk before the view-dependent branch).
+* **Semantic head**: no public code exists for "MVSNeRF + Semantic Head"; the branch is Semantic-NeRF's kind of
+  semantic branch, on the trunk before the view-dependent colour branch (our reading of the comparison).
 """
 
 from __future__ import annotations
