@@ -7,10 +7,11 @@ from gpnerf_core.errors import DataError
 from gpnerf_core.tools.reporting.runs import find_runs, format_table
 
 
-def write_run(folder, loss, joint, miou, seed=0, head="unet"):
+def write_run(folder, loss, joint, miou, seed=0, head="unet", model="gnt"):
     folder.mkdir(parents=True)
-    config = {"head": {"name": head}, "loss": loss, "model": {"semantic_field": {"joint_attention": joint}},
-              "seed": seed, "out_dir": str(folder)}
+    config = {"head": {"name": head} if head else None, "loss": loss,
+              "model": {"name": model, "semantic_field": {"joint_attention": joint}}, "seed": seed,
+              "out_dir": str(folder)}
     (folder / "config.yaml").write_text(yaml.safe_dump(config))
     metrics = {"train": {"steps": 10, "seconds": 1.5},
                "eval": {"train_heldout": {"miou/image_mean_present": miou, "psnr/clamped": 20.0},
@@ -24,9 +25,20 @@ def test_rows_are_matched_to_table4_ids(tmp_path):
     write_run(tmp_path / "2", {"name": "dgs", "sd_weight": 0.25, "dgs_weight": 0.25, "teacher_stop_grad": True}, True, 0.6)
     table = format_table(find_runs([tmp_path])).splitlines()
     assert len(table) == 5
-    assert table[2].split("|")[16].strip() == "1" and "56.45" in table[2]
-    assert table[3].split("|")[16].strip() == "3" and "| 40.00 | 20.00 | 20.00 |" in table[3]
-    assert table[4].split("|")[16].strip() == "5" and "59.92" in table[4]
+    assert table[2].split("|")[17].strip() == "1" and "56.45" in table[2]
+    assert table[3].split("|")[17].strip() == "3" and "| 40.00 | 20.00 | 20.00 |" in table[3]
+    assert table[4].split("|")[17].strip() == "5" and "59.92" in table[4]
+    assert table[4].endswith("| 48.53 / 59.92 |") and table[2].endswith("| - |")  # GP-NeRF's Table 1 row: ID 5 only
+
+
+def test_the_compared_families_sit_beside_the_papers_table1_row(tmp_path):
+    ce = {"name": "ce", "sd_weight": 0, "dgs_weight": 0}
+    write_run(tmp_path / "sr", ce, True, 0.5, head=None, model="semantic_ray")
+    write_run(tmp_path / "mvs", ce, True, 0.4, head=None, model="mvsnerf")
+    write_run(tmp_path / "colour", {"name": "rgb"}, True, 0.4, head=None, model="neuray")  # not the semantic method
+    rows = {row.split("|")[1].strip(): row for row in format_table(find_runs([tmp_path])).splitlines()[2:]}
+    assert rows["sr"].split("|")[3].strip() == "semantic_ray" and rows["sr"].endswith("| 41.59 / 57.15 |")
+    assert rows["mvs"].endswith("| 23.41 / 39.82 |") and rows["colour"].endswith("| - |")
 
 
 def test_missing_path_is_an_error(tmp_path):
@@ -42,7 +54,7 @@ def test_runs_differing_only_by_seed_form_one_row_with_mean_and_std(tmp_path):
     table = format_table(find_runs([tmp_path])).splitlines()
     assert len(table) == 4
     row = table[3]
-    assert row.startswith("| s0 (+2) | 0,1,2 |")
+    assert row.startswith("| s0 (+2) | 0,1,2 | gnt |")
     assert "| 60.00 +- 10.00 (n=3) | 30.00 +- 5.00 (n=3) | 20.00 +- 0.00 (n=3) |" in row
 
 
@@ -52,7 +64,7 @@ def test_a_third_party_loss_or_head_never_gets_the_papers_number(tmp_path):
     write_run(tmp_path / "b", {"name": "dgs", "sd_weight": 0.25, "dgs_weight": 0.25, "teacher_stop_grad": True},
               True, 0.5, head="my_head")
     for row in format_table(find_runs([tmp_path])).splitlines()[2:]:
-        assert row.endswith("| - | - | - |") and "59.92" not in row
+        assert row.endswith("| - | - | - | - |") and "59.92" not in row
 
 
 def test_runs_written_by_other_versions_group_when_only_empty_defaults_and_other_commands_differ(tmp_path):

@@ -9,8 +9,10 @@ whose configs differ only by ``seed`` (and by where or how they ran: ``out_dir``
 one row: each cell is the mean +- sample standard deviation over its runs, with n. Metric columns are keyed on the
 evaluator's protocol ids (``miou/image_mean_present``, ``psnr/clamped``). A row gets the paper's Table 4 ID and
 numbers only when it is the paper's method (the built-in ``unet`` head with a built-in loss set ``ce``, ``sd`` or
-``dgs``) with that row's switches; a third-party head or loss set never sits beside the paper's number. The paper's
-numbers are ScanNet at full size: context, not a target for CPU-sized runs.
+``dgs``) with that row's switches; a third-party head or loss set never sits beside the paper's number. A row gets the
+paper's Table 1 generalization mIoU (Replica / ScanNet) when it is one of the compared methods' built-in families
+trained with its cross-entropy (``+experiment=baselines/<name>``), or GP-NeRF with every Table 4 switch on. The
+paper's numbers are Replica and ScanNet at full size: context, not a target for CPU-sized runs.
 """
 
 from __future__ import annotations
@@ -37,6 +39,13 @@ PAPER_TABLE4 = {
     (True, True, False, False): ("3", 52.03, 29.29),
     (True, True, True, False): ("4", 59.55, 29.26),
     (True, True, True, True): ("5", 59.92, 29.37),
+}
+# Table 1 of the paper, generalization to unseen scenes: model family (or "gpnerf") -> mIoU on (Replica, ScanNet).
+PAPER_TABLE1 = {
+    "mvsnerf": (23.41, 39.82),
+    "neuray": (35.90, 51.03),
+    "semantic_ray": (41.59, 57.15),
+    "gpnerf": (48.53, 59.92),
 }
 PAPER_HEADS = ("unet",)
 PAPER_LOSS_SETS = ("ce", "sd", "dgs")
@@ -86,6 +95,18 @@ class RunRow:
         if loss.get("name") not in PAPER_LOSS_SETS or head.get("name") not in PAPER_HEADS:
             return None
         return self.switches()
+
+    @property
+    def model(self) -> str:
+        """The run's model family (``gnt`` for runs written before families were plugins)."""
+        return str((self.config.get("model") or {}).get("name") or "gnt")
+
+    def paper_table1(self) -> tuple[float, float] | None:
+        """The paper's Table 1 generalization mIoU (Replica, ScanNet) of the method this run is, or None."""
+        if self.model == "gnt":
+            return PAPER_TABLE1["gpnerf"] if self.paper_switches() == (True, True, True, True) else None
+        loss = (self.config.get("loss") or {}).get("name")
+        return PAPER_TABLE1.get(self.model) if loss == "ce" else None
 
     def method_key(self) -> str:
         """The config without the keys that do not change what the run computes (the seed among them). A key of the
@@ -322,9 +343,9 @@ def _metric(run: RunRow, split: str, key: str) -> float | None:
 
 def format_table(rows: list[RunRow]) -> str:
     header = (
-        "| run | seeds | head | loss | joint attn | S.D | grad block | D.G | steps | "
+        "| run | seeds | model | head | loss | joint attn | S.D | grad block | D.G | steps | "
         + " | ".join(title for title, *_ in METRIC_COLUMNS)
-        + " | train s | Table 4 ID | paper mIoU | paper PSNR |"
+        + " | train s | Table 4 ID | paper mIoU | paper PSNR | paper Table 1 mIoU (Replica / ScanNet) |"
     )
     width = header.count("|") - 1
     lines = [header, "|" + "|".join(["---"] * width) + "|"]
@@ -344,9 +365,11 @@ def format_table(rows: list[RunRow]) -> str:
             values = [v for run in group.runs if (v := _metric(run, split, key)) is not None]
             metric_cells.append(summarize(values, scale, digits))
         seconds = [float(s) for run in group.runs if (s := run.metrics.get("train", {}).get("seconds")) is not None]
+        table1 = first.paper_table1()
         cells = [
             group.label,
             ",".join(str(seed) for seed in group.seeds),
+            first.model,
             head,
             loss,
             *flags,
@@ -356,6 +379,7 @@ def format_table(rows: list[RunRow]) -> str:
             paper[0] if paper else "-",
             f"{paper[1]:.2f}" if paper else "-",
             f"{paper[2]:.2f}" if paper else "-",
+            f"{table1[0]:.2f} / {table1[1]:.2f}" if table1 else "-",
         ]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
@@ -379,7 +403,8 @@ def method_labels(groups: list[RowGroup]) -> list[str]:
         loss = (first.config.get("loss") or {}).get("name", "no loss")
         switches = first.paper_switches()
         paper = PAPER_TABLE4.get(switches) if switches else None
-        described.append(f"{head} + {loss}" + (f" (Table 4 ID {paper[0]})" if paper else ""))
+        what = f"{head} + {loss}" if first.model == "gnt" else f"{first.model} + {loss}"
+        described.append(what + (f" (Table 4 ID {paper[0]})" if paper else ""))
     labels = []
     for text, group in zip(described, groups):
         twins = [g for t, g in zip(described, groups) if t == text]
