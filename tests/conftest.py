@@ -14,7 +14,8 @@ SLOWEST_FILES = (
     "commands/test_unlabelled.py", "training/test_trainer.py", "commands/test_reliability_tools.py",
     "commands/test_reliability_runs.py", "commands/test_run_eval_curve.py", "commands/test_finetune.py",
     "evaluation/test_instances.py", "commands/test_view.py", "commands/test_plugins.py", "test_reliability_plugins.py",
-    "commands/test_model_family.py", "commands/test_render.py", "plugins/test_capture.py",
+    "commands/test_model_family.py", "commands/test_baseline_families.py", "commands/test_render.py",
+    "plugins/test_capture.py",
 )
 """The slowest test files, slowest first (``--durations`` on 2 cores, 2026-12-02 and -03): run before the others, so
 that the two xdist workers (``-n 2 --dist loadfile --no-loadscope-reorder`` in pyproject.toml) finish together

@@ -1,9 +1,9 @@
-"""The compared methods' families (``+experiment=baselines/<name>``) are trained, evaluated and rendered by the unchanged
-commands: a tiny run of each (two steps, a 32 x 48 layout), its metrics, and one rendered frame of its checkpoint."""
+"""The compared methods' families (``+experiment=baselines/<name>``) are trained, evaluated, rendered, fine-tuned and
+stressed by the unchanged commands: a tiny run of each (two steps, a 32 x 48 layout), its metrics, one rendered frame of
+its checkpoint, two fine-tuning steps on the unseen layout, and its stress at the fewest source views and the largest
+camera offset."""
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -18,15 +18,21 @@ FAMILIES = {
 }
 
 
+def in_process(*argv: str) -> int:
+    """A command through the command line in this process (no interpreter start-up); its exit code."""
+    try:
+        return cli_main(list(argv))
+    except SystemExit as stop:  # a Hydra job exits through sys.exit
+        return int(stop.code)
+
+
 @pytest.fixture(scope="module", params=sorted(FAMILIES))
 def trained(request, tmp_path_factory):
-    """The family trained 2 steps by ``run`` in a subprocess: (name, run folder)."""
+    """The family trained 2 steps by ``run``: (name, run folder)."""
     name, out = request.param, tmp_path_factory.mktemp(request.param) / "run"
     tiny = [o for o in TINY_CLI if not o.startswith("feature_extractor.")] if name == "mvsnerf" else TINY_CLI
-    command = [sys.executable, "-m", "gpnerf_core", "run", f"+experiment=baselines/{name}", *tiny, *FAMILIES[name],
-               "train.steps=2", f"out_dir={out}"]
-    result = subprocess.run(command, capture_output=True, text=True, timeout=600)
-    assert result.returncode == 0, result.stderr[-2000:]
+    assert in_process("run", f"+experiment=baselines/{name}", *tiny, *FAMILIES[name], "train.steps=2",
+                      f"out_dir={out}") == 0
     return name, out
 
 
@@ -42,10 +48,20 @@ def test_run_trains_and_scores_the_family_by_label_rendering(trained):
 def test_render_writes_a_frame_of_its_checkpoint(trained, tmp_path):
     name, out = trained
     checkpoint = next((out / "checkpoints").glob("*.pt"))
-    try:
-        code = cli_main(["render", f"checkpoint={checkpoint}", "render.frames=1", f"out_dir={tmp_path / 'video'}"])
-    except SystemExit as stop:
-        code = int(stop.code)
-    assert code == 0
+    assert in_process("render", f"checkpoint={checkpoint}", "render.frames=1", f"out_dir={tmp_path / 'video'}") == 0
     written = json.loads((tmp_path / "video" / "render.json").read_text())
     assert written["frames"] == 1 and Path(tmp_path / "video" / "trajectory.gif").is_file()
+
+
+def test_finetune_and_stress_take_its_checkpoint(trained, tmp_path):
+    name, out = trained
+    checkpoint = next((out / "checkpoints").glob("*.pt"))
+    assert in_process("finetune", f"checkpoint={checkpoint}", "dataset.scenes=[unseen_00]", "train.steps=2",
+                      "finetune.points=2", "threads=1", f"out_dir={tmp_path / 'tuned'}") == 0
+    tuned = json.loads((tmp_path / "tuned" / "metrics.json").read_text())
+    assert json.loads((tmp_path / "tuned" / "plugins.json").read_text())["used"]["model"]["name"] == name
+    assert [point["step"] for point in tuned["finetune"]["curve"]] == [0, 2]
+    assert in_process("stress", str(out), "--quick", "--cases", "source_views,translation_noise", "--threads", "1",
+                      "--out", str(tmp_path / "stress")) == 0
+    results = json.loads((tmp_path / "stress" / "stress.json").read_text())
+    assert "source_views" in json.dumps(results) and "translation_noise" in json.dumps(results)
