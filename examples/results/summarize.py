@@ -3,7 +3,8 @@
     python examples/results/summarize.py [WORK, default /tmp/gpnerf-results] > WORK/summary.md
 
 Sections: Table 4 (per seed, mean +- sample std, the orderings that hold beyond the seed spread), the methods of the
-speed-accuracy chart, the instance head against the connected-components baseline, fine-tuning. A missing run is
+speed-accuracy chart, the compared methods' families (Table 1's generalization rows and the paper's orderings), the
+instance head against the connected-components baseline, fine-tuning. A missing run is
 named, never skipped silently.
 """
 
@@ -114,6 +115,45 @@ def methods(runs: Path) -> list[str]:
     return lines
 
 
+# GP-NeRF's Table 1 (generalization, mIoU x100: Replica, ScanNet) beside each method's run prefix, in the paper's order.
+TABLE1 = (("GP-NeRF (Table 4 ID 5, the main job)", "id5", (48.53, 59.92)),
+          ("Semantic-Ray (`baselines/semantic_ray`)", "semantic_ray", (41.59, 57.15)),
+          ("NeuRay + semantic head (`baselines/neuray`)", "neuray", (35.90, 51.03)),
+          ("MVSNeRF + semantic head (`baselines/mvsnerf`)", "mvsnerf", (23.41, 39.82)))
+
+
+def baselines(runs: Path) -> list[str]:
+    """Table 1's generalization rows on the embedded scenes (held-out views of the training layouts, and the unseen
+    layout), and whether each of the paper's orderings holds beyond the seed spread (paired by seed, unseen mIoU)."""
+    lines = ["## The compared methods (Table 1's generalization rows, seeds 0-2)", "",
+             "| method | total acc unseen | class-mean acc unseen | mIoU held-out | mIoU unseen | PSNR held-out "
+             "| PSNR unseen | SSIM unseen | params (M) | train s | s/frame | paper mIoU (Replica / ScanNet) | missing |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    found_by = {}
+    for title, prefix, paper in TABLE1:
+        found = {s: m for s in SEEDS if (m := load(runs, f"{prefix}_s{s}")) is not None}
+        found_by[prefix] = found
+        ms = list(found.values())
+        missing = ", ".join(f"seed {s}" for s in SEEDS if s not in found)
+        lines.append(
+            f"| {title} | {mean_std(column(ms, split(UNSEEN, 'acc/total')), digits=3)} | "
+            f"{mean_std(column(ms, split(UNSEEN, 'acc/class_mean')), digits=3)} | "
+            f"{mean_std(column(ms, split(HELD, MIOU)), digits=3)} | {mean_std(column(ms, split(UNSEEN, MIOU)), digits=3)} | "
+            f"{mean_std(column(ms, split(HELD, 'psnr/clamped')))} | {mean_std(column(ms, split(UNSEEN, 'psnr/clamped')))} | "
+            f"{mean_std(column(ms, split(UNSEEN, 'ssim/gaussian11')), digits=3)} | "
+            f"{mean_std(column(ms, lambda m: m.get('parameters', {}).get('total', 0) / 1e6), digits=3)} | "
+            f"{mean_std(column(ms, lambda m: m['train']['seconds']), digits=0)} | "
+            f"{mean_std(column(ms, timing('seconds_per_frame')))} | {paper[0]:.2f} / {paper[1]:.2f} | {missing} |")
+    lines += ["", "| the paper's ordering (unseen mIoU, paired by seed) | differences x100 | holds beyond the spread |",
+              "|---|---|---|"]
+    for (title_a, a, _), (title_b, b, _) in zip(TABLE1, TABLE1[1:]):
+        seeds = [s for s in SEEDS if s in found_by[a] and s in found_by[b]]
+        diffs = [100 * (found_by[a][s]["eval"][UNSEEN][MIOU] - found_by[b][s]["eval"][UNSEEN][MIOU]) for s in seeds]
+        shown = ", ".join(f"{d:+.1f}" for d in diffs) or "not run"
+        lines.append(f"| {title_a.split(' (')[0]} > {title_b.split(' (')[0]} | {shown} | {holds(diffs)} |")
+    return lines
+
+
 INSTANCE_KEYS = ("instance/ap_matched@0.75", "instance/ap_matched@0.5", "instance/coco_mask_ap",
                  "instance/coco_mask_ap50", "instance/coco_mask_ap75")
 
@@ -189,7 +229,7 @@ def main(work: Path) -> int:
     print("# Summary of", work, "\n")
     if provenance.is_file():
         print("```\n" + provenance.read_text().strip() + "\n```\n")
-    for section in (table4, methods, instance, finetune):
+    for section in (table4, methods, baselines, instance, finetune):
         print("\n".join(section(runs)) + "\n")
     return 0
 
