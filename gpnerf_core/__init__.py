@@ -48,6 +48,9 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     ),
     "gpnerf_core.geometry.projection": ("project_points", "world_to_camera"),
     "gpnerf_core.model.whole_view": ("render_whole_view",),
+    "gpnerf_core.model.context_decoding": (
+        "cells_of_pixels", "decode_checked", "decoded_view_output", "fuse_rendered", "gather_cells",
+    ),
     "gpnerf_core.geometry.plane_sweep": (
         "PlaneSweep", "ReferenceFrustum", "plane_sweep", "points_in_views", "variance_over_views",
     ),
@@ -132,6 +135,13 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
     from gpnerf_core.geometry.pose_sanity import check_poses
     from gpnerf_core.geometry.projection import project_points, world_to_camera
     from gpnerf_core.model.whole_view import render_whole_view
+    from gpnerf_core.model.context_decoding import (
+        cells_of_pixels,
+        decode_checked,
+        decoded_view_output,
+        fuse_rendered,
+        gather_cells,
+    )
     from gpnerf_core.data.dataset import SPLITS, SceneDataset
     from gpnerf_core.interfaces import (
         FeatureExtractor,

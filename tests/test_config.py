@@ -64,6 +64,8 @@ def test_every_experiment_composes(registry, experiment):
     assert (cfg.get("head") is None) == (experiment in ("baselines/gnt", *label_rendering_families))
     if experiment in label_rendering_families:  # the compared methods: their own family, scored by label rendering
         assert cfg.model.name == experiment.split("/")[1] and cfg.loss.name == "ce"
+    if experiment.endswith("_unet") and experiment != "baselines/gpnerf_unet":  # another family, GP-NeRF's decoding
+        assert cfg.model.name == experiment.split("/")[1].removesuffix("_unet") and cfg.head.name == "unet"
 
 
 def test_baselines_share_the_backbone_and_differ_in_the_semantic_path(registry):

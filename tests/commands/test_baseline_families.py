@@ -15,6 +15,7 @@ FAMILIES = {
     "semantic_ray": ["model.fine_samples=4"],
     "neuray": ["model.fine_samples=4"],
     "mvsnerf": ["model.num_planes=8", "model.coarse_samples=8", "model.fine_samples=0"],  # its own extractor
+    "semantic_ray_unet": ["model.fine_samples=4"],  # GP-NeRF's decoding on Semantic-Ray's field
 }
 
 
@@ -39,7 +40,7 @@ def trained(request, tmp_path_factory):
 def test_run_trains_and_scores_the_family_by_label_rendering(trained):
     name, out = trained
     metrics = json.loads((out / "metrics.json").read_text())
-    assert json.loads((out / "plugins.json").read_text())["used"]["model"]["name"] == name
+    assert json.loads((out / "plugins.json").read_text())["used"]["model"]["name"] == name.removesuffix("_unet")
     for split in ("train_heldout", "unseen"):
         assert 0.0 <= metrics["eval"][split]["miou/image_mean_present"] <= 1.0
         assert metrics["eval"][split]["psnr/clamped"] > 0
@@ -59,7 +60,8 @@ def test_finetune_and_stress_take_its_checkpoint(trained, tmp_path):
     assert in_process("finetune", f"checkpoint={checkpoint}", "dataset.scenes=[unseen_00]", "train.steps=2",
                       "finetune.points=2", "threads=1", f"out_dir={tmp_path / 'tuned'}") == 0
     tuned = json.loads((tmp_path / "tuned" / "metrics.json").read_text())
-    assert json.loads((tmp_path / "tuned" / "plugins.json").read_text())["used"]["model"]["name"] == name
+    assert json.loads((tmp_path / "tuned" / "plugins.json").read_text())["used"]["model"]["name"] == \
+        name.removesuffix("_unet")
     assert [point["step"] for point in tuned["finetune"]["curve"]] == [0, 2]
     assert in_process("stress", str(out), "--quick", "--cases", "source_views,translation_noise", "--threads", "1",
                       "--out", str(tmp_path / "stress")) == 0

@@ -93,14 +93,28 @@ def test_source_intervals_bracket_each_sample_in_the_source_views_inverse_depth(
 
 
 @pytest.mark.parametrize("name", ["neuray", "semantic_ray"])
-def test_a_configured_head_is_refused_naming_it(name):
-    from gpnerf_core.testing.inputs import kit_parts
+def test_with_a_head_it_renders_features_the_head_decodes_and_without_semantic_maps_it_is_refused(name):
+    from gpnerf_core.interfaces.model import SemanticMode
     from gpnerf_core.registry.components import get_registry
+    from gpnerf_core.testing.inputs import kit_parts, model_batch, model_view
 
     registry = get_registry()
-    with pytest.raises(Exception) as refused:
-        registry.build("model", {"name": name}, parts=kit_parts(registry, name, head=True))
-    assert "+head=unet" in str(refused.value) and "label rendering" in str(refused.value)
+    node = {"name": name, "coarse_samples": 6, "fine_samples": 4}
+    model = registry.build("model", node, parts=kit_parts(registry, name, head=True))
+    assert model.semantic_output.mode is SemanticMode.DECODED and model.coarse.aggregator.semantic_out is None
+    batch = model_batch(sources=True)
+    view = model(batch, semantics=True, sample_semantics=True).views[0]
+    rays, channels = batch.views[0].pixels.shape[0], model.extractor.semantic_dim
+    assert view.fine.semantic.shape == (rays, channels) and view.fine.sample_semantic.shape == (rays, 4, channels)
+    assert view.teacher_at_rays.shape == (rays, channels) and view.logits.shape[1] == model.head.num_outputs
+    camera, sources = model_view(sources=True)
+    prediction = model.eval().predict(camera, sources, stride=0, chunk_rays=64)
+    assert prediction.stride == 2 and prediction.semantic.shape[0] == channels  # the semantic maps' grid, decoded
+    assert prediction.logits.shape[-2:] == (camera.height, camera.width)
+    parts = kit_parts(registry, name, head=True)
+    parts._cfg.feature_extractor.semantic = False
+    with pytest.raises(Exception, match=r"makes none \(feature_extractor.semantic=true\)"):
+        registry.build("model", node, parts=parts)
 
 
 def test_the_kit_fails_a_family_that_says_it_takes_no_head_but_ignores_one():

@@ -282,7 +282,7 @@ def test_an_unknown_compile_backend_is_one_line_naming_the_key(tmp_path):
 
 def _straightforward_terms(trainer, view):
     """The step computed the plain way: one extractor pass over sources and target together, nothing skipped."""
-    from gpnerf_plugins.families.gnt.fusion import cells_of_pixels, fuse_rendered, gather_cells
+    from gpnerf_core.model.context_decoding import cells_of_pixels, fuse_rendered, gather_cells
     from gpnerf_core.geometry import rays_through_pixels
     from gpnerf_core.types import FeatureMaps, ViewOutput
 

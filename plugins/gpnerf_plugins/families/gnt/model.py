@@ -31,7 +31,6 @@ from gpnerf_core import (
     ModelFamily,
     ModelParts,
     PerceptionHead,
-    PluginError,
     Prediction,
     Predicts,
     Projector,
@@ -49,6 +48,8 @@ from gpnerf_core import (
     TargetView,
     ViewOutput,
     checked_compile_backend,
+    decode_checked,
+    decoded_view_output,
     importance_depths,
     pixel_grid,
     points_along_rays,
@@ -59,7 +60,6 @@ from gpnerf_core import (
     surface_depths,
 )
 from gpnerf_plugins.families.gnt.config import SemanticFieldConfig
-from gpnerf_plugins.families.gnt.fusion import cells_of_pixels, fuse_rendered, gather_cells
 from gpnerf_plugins.families.gnt.semantic_field import AttentionSums, SemanticFieldRenderer
 from gpnerf_plugins.families.gnt.weights import read_gnt_checkpoint
 
@@ -267,20 +267,10 @@ class GeneralizableNeRF(ModelFamily):
         )
         if not semantics:
             return ViewOutput(coarse=coarse, fine=fine)
-        # 3. The fused map: rendered features replace the teacher's features in the cells the rays hit.
+        # 3. The fused map (rendered features replace the teacher's in the cells the rays hit), decoded by the
+        # context-aware perception head on the whole map.
         with stage("head"):
-            cells = cells_of_pixels(view.pixels, camera.image_size, tuple(teacher.shape[-2:]))
-            last = fine if fine is not None else coarse
-            head_input = fuse_rendered(teacher, last.semantic, cells) if self.fuse_rendered else teacher
-            # 4. The context-aware perception head on the whole map.
-            return ViewOutput(
-                coarse=coarse,
-                fine=fine,
-                teacher_map=teacher,
-                teacher_at_rays=gather_cells(teacher, cells),
-                head_input=head_input,
-                logits=self.decode(head_input, camera.image_size).logits,
-            )
+            return decoded_view_output(view, coarse, fine, teacher, self.head, fuse=self.fuse_rendered)
 
     # ---- whole views (evaluation, rendering) ---------------------------------------------------------------------
 
@@ -493,13 +483,4 @@ class GeneralizableNeRF(ModelFamily):
         """Run the perception head on a ``[N, C, h, w]`` semantic map; its output is checked against the contract."""
         if self.head is None:
             raise ConfigError("this model has no perception head: add one with +head=<name>")
-        output = self.head(semantic_map, output_size)
-        logits = getattr(output, "logits", None)
-        expected = [int(semantic_map.shape[0]), int(self.head.num_outputs), int(output_size[0]), int(output_size[1])]
-        if not isinstance(output, HeadOutput) or not isinstance(logits, Tensor) or list(logits.shape) != expected:
-            found = list(logits.shape) if isinstance(logits, Tensor) else type(output).__name__
-            raise PluginError(
-                f"head {type(self.head).__name__} returned {found}; the PerceptionHead contract is "
-                f"HeadOutput(logits=[N, num_outputs, *output_size]) = {expected}"
-            )
-        return output
+        return decode_checked(self.head, semantic_map, output_size)

@@ -88,11 +88,12 @@ class NeuRayAggregator(nn.Module):
     Args:
         feature_dim: image-feature channels per view (the colour's 3 are added).
         visibility_dim: channels of the visibility embedding q.
-        num_classes: per-view class scores (0: no semantic head).
+        semantic_outputs: per-view semantic outputs: K class scores (label rendering) or the channels of the
+            extractor's semantic maps (features a head decodes); 0: no semantic head.
         cross_reprojection: Semantic-Ray's CRA on BaseFC's output before the semantic head.
     """
 
-    def __init__(self, feature_dim: int, visibility_dim: int, num_classes: int, cross_reprojection: bool) -> None:
+    def __init__(self, feature_dim: int, visibility_dim: int, semantic_outputs: int, cross_reprojection: bool) -> None:
         super().__init__()
         per_view = 3 + feature_dim
         self.direction = nn.Sequential(nn.Linear(4, 16), nn.ELU(), nn.Linear(16, per_view), nn.ELU())
@@ -107,9 +108,9 @@ class NeuRayAggregator(nn.Module):
         self.density_hidden = nn.Sequential(nn.Linear(16, 16), nn.ELU())
         self.density_out = nn.Linear(16, 1)
         self.blend = nn.Sequential(nn.Linear(32 + 1 + 4, 16), nn.ELU(), nn.Linear(16, 8), nn.ELU(), nn.Linear(8, 1))
-        self.cross_reprojection = CrossReprojectionAttention(32) if cross_reprojection else None
-        self.semantic_geometry = nn.Linear(16, 16) if num_classes else None
-        self.semantic_out = nn.Linear(16 + 16 + 32, num_classes) if num_classes else None
+        self.cross_reprojection = CrossReprojectionAttention(32) if cross_reprojection and semantic_outputs else None
+        self.semantic_geometry = nn.Linear(16, 16) if semantic_outputs else None
+        self.semantic_out = nn.Linear(16 + 16 + 32, semantic_outputs) if semantic_outputs else None
 
     def _base_input_layer(self, pooled: Tensor, features: Tensor, q: Tensor) -> Tensor:
         """BaseFC's first layer on ``[pooled, f_i, q_i]`` without materialising the view-expanded 207-channel input:
@@ -133,11 +134,11 @@ class NeuRayAggregator(nn.Module):
                 and target cameras, and their dot product).
             visible: ``[R, S, V]`` bool, the projection lands in front of the camera, inside the image.
             q: ``[R, S, V, visibility_dim]`` the visibility embedding.
-            semantics: also return class scores.
+            semantics: also return the semantic outputs.
 
         Returns:
-            density ``[R, S]`` (0 where no view sees the sample), colour ``[R, S, 3]`` and class scores ``[R, S, K]``
-            (or None).
+            density ``[R, S]`` (0 where no view sees the sample), colour ``[R, S, 3]`` and the semantic outputs
+            ``[R, S, semantic_outputs]`` blended over the views with the colour weights (or None).
         """
         mask = visible[..., None].to(rgb_features.dtype)  # [R, S, V, 1]
         colours = rgb_features[..., :3]

@@ -9,10 +9,14 @@ from gpnerf_plugins.families.neuray.model import VisibilityAwareRenderer
 
 def _build(parts: ModelParts, name: str, cross_reprojection: bool, coarse_samples: int, fine_samples: int,
            visibility_dim: int) -> VisibilityAwareRenderer:
+    extractor, head = parts.build("feature_extractor"), None
     if parts.configured("head"):
-        raise ConfigError(f"+head={parts.name('head')}: model={name} renders class scores per pixel (label "
-                          "rendering) and has no rendered feature map for a head to decode; drop +head")
-    return VisibilityAwareRenderer(extractor=parts.build("feature_extractor"), num_classes=parts.num_classes,
+        if not extractor.semantic_dim:
+            raise ConfigError(f"+head={parts.name('head')} with model={name} decodes rendered features in the semantic "
+                              f"maps' space of the feature extractor, and feature_extractor "
+                              f"{parts.name('feature_extractor')!r} makes none (feature_extractor.semantic=true)")
+        head = parts.head(in_dim=extractor.semantic_dim, in_levels=extractor.semantic_levels)
+    return VisibilityAwareRenderer(extractor=extractor, num_classes=parts.num_classes, head=head,
                                    coarse_samples=coarse_samples, fine_samples=fine_samples,
                                    visibility_dim=visibility_dim, cross_reprojection=cross_reprojection)
 

@@ -45,6 +45,9 @@ the image alone, which is no longer NeuRay's visibility (docs/families/neuray.md
 
 from __future__ import annotations
 
+from dataclasses import replace
+from typing import Mapping
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -53,6 +56,7 @@ from gpnerf_core import (
     ConfigError,
     FeatureMaps,
     ModelFamily,
+    PerceptionHead,
     Prediction,
     Predicts,
     RayBatch,
@@ -67,6 +71,8 @@ from gpnerf_core import (
     ViewOutput,
     composite,
     compositing_weights,
+    decode_checked,
+    decoded_view_output,
     density_opacity,
     importance_depths,
     points_along_rays,
@@ -88,27 +94,33 @@ from gpnerf_plugins.families.neuray.visibility import (
 class PassNetwork(nn.Module):
     """The networks of one pass (coarse or fine): a visibility decoder and an aggregation network."""
 
-    def __init__(self, feature_dim: int, visibility_dim: int, num_classes: int, cross_reprojection: bool) -> None:
+    def __init__(self, feature_dim: int, visibility_dim: int, semantic_outputs: int, cross_reprojection: bool) -> None:
         super().__init__()
         self.decoder = VisibilityDecoder(visibility_dim)
-        self.aggregator = NeuRayAggregator(feature_dim, visibility_dim, num_classes, cross_reprojection)
+        self.aggregator = NeuRayAggregator(feature_dim, visibility_dim, semantic_outputs, cross_reprojection)
 
 
 class VisibilityAwareRenderer(ModelFamily):
     """NeuRay's renderer with Semantic-Ray's semantic head (and CRA when ``cross_reprojection``).
 
+    Without a ``head`` the semantic head's per-view outputs are K class scores, blended and volume-rendered: label
+    rendering, as the official methods. With a ``head`` they are features in the extractor's semantic-map space,
+    rendered per ray and decoded by the head with GP-NeRF's context-aware decoding (the fused map in training, the
+    rendered map on a whole view; ``gpnerf_core.decoded_view_output``): GP-NeRF's decoding on this family's field.
+    The semantic outputs are then rendered in the last pass only, as GP-NeRF's.
+
     Args:
-        extractor: the configured feature extractor (its radiance maps are the image features).
-        num_classes: K class scores per sample (0: colour and depth only).
+        extractor: the configured feature extractor (its radiance maps are the image features; with a head, its
+            semantic maps are the teacher).
+        num_classes: K class scores per sample (0: colour and depth only) without a head.
+        head: the perception head decoding rendered features, or None (label rendering).
         coarse_samples, fine_samples: samples of the two passes (the fine pass renders only its own).
         visibility_dim: channels of the visibility maps G.
         cross_reprojection: Semantic-Ray's Cross-Reprojection Attention.
     """
 
-    accepts_head = False
-
-    def __init__(self, *, extractor: nn.Module, num_classes: int, coarse_samples: int, fine_samples: int,
-                 visibility_dim: int, cross_reprojection: bool) -> None:
+    def __init__(self, *, extractor: nn.Module, num_classes: int, head: PerceptionHead | None, coarse_samples: int,
+                 fine_samples: int, visibility_dim: int, cross_reprojection: bool) -> None:
         super().__init__()
         if coarse_samples < 2 or fine_samples < 0 or visibility_dim < 2 or visibility_dim % 2:
             raise ConfigError(f"model.coarse_samples={coarse_samples}, model.fine_samples={fine_samples}, "
@@ -117,22 +129,38 @@ class VisibilityAwareRenderer(ModelFamily):
         self.depth_init = DepthInitNet(visibility_dim)
         self.visibility_encoder = VisibilityEncoder(extractor.radiance_dim + visibility_dim, visibility_dim)
         feature_dim = extractor.radiance_dim
-        self.coarse = PassNetwork(feature_dim, visibility_dim, num_classes, cross_reprojection)
-        self.fine = PassNetwork(feature_dim, visibility_dim, num_classes, cross_reprojection) if fine_samples else None
+        outputs = int(extractor.semantic_dim) if head is not None else int(num_classes)
+        coarse_outputs = 0 if head is not None and fine_samples else outputs
+        self.coarse = PassNetwork(feature_dim, visibility_dim, coarse_outputs, cross_reprojection)
+        self.fine = PassNetwork(feature_dim, visibility_dim, outputs, cross_reprojection) if fine_samples else None
+        self.head = head
         self.coarse_samples, self.fine_samples = int(coarse_samples), int(fine_samples)
-        self.num_classes = int(num_classes)
+        self.num_classes = int(num_classes) if head is None else 0
 
     # ---- what the model is ------------------------------------------------------------------------------------------
 
     @property
     def semantic_output(self) -> SemanticOutput | None:
+        if self.head is not None:
+            predicts = Predicts(self.head.predicts)
+            slots = getattr(self.head, "slots", None) if predicts is Predicts.INSTANCES else None
+            return SemanticOutput(predicts, SemanticMode.DECODED, int(self.head.num_outputs), slots)
         if not self.num_classes:
             return None
         return SemanticOutput(Predicts.CLASSES, SemanticMode.LABEL_RENDERING, self.num_classes)
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
-        rest = [p for name, p in self.named_parameters() if not name.startswith("extractor.")]
-        return {"feature_extractor": list(self.extractor.parameters()), "transformer": rest}
+        own = [p for name, p in self.named_parameters() if not name.startswith(("extractor.", "head."))]
+        groups = {"feature_extractor": list(self.extractor.parameters()), "transformer": own}
+        if self.head is not None:
+            groups["head"] = list(self.head.parameters())
+        return groups
+
+    def output_owners(self, names: Mapping[str, str]) -> dict[str, str]:
+        owners = super().output_owners(names)
+        if self.head is not None:
+            owners["logits"] = f"head {names.get('head')!r}"
+        return owners
 
     def check_image_size(self, height: int, width: int) -> None:
         self.extractor.check_image_size(height, width)
@@ -143,6 +171,13 @@ class VisibilityAwareRenderer(ModelFamily):
     def encode(self, images: Tensor) -> FeatureMaps:
         return self.extractor(images)
 
+    @torch.inference_mode()
+    def teacher_logits(self, image: Tensor) -> Tensor | None:
+        """With a head: the head on the target image's own semantic map (the 2D-only reference)."""
+        if self.head is None:
+            return None
+        return decode_checked(self.head, self.encode(image[None]).semantic, tuple(image.shape[-2:])).logits
+
     # ---- rendering ---------------------------------------------------------------------------------------------------
 
     def visibility_maps(self, sources: SourceViews, image_features: Tensor, near: float, far: float) -> Tensor:
@@ -150,7 +185,7 @@ class VisibilityAwareRenderer(ModelFamily):
         return self.visibility_encoder(image_features, self.depth_init(sources, near, far))
 
     def _pass(self, net: PassNetwork, rays: RayBatch, depths: Tensor, sources: SourceViews, maps: Tensor,
-              semantics: bool) -> RenderedRays:
+              semantics: bool, sample_semantics: bool = False) -> RenderedRays:
         """Render ``rays`` at ``depths`` ``[R, S]`` (ascending); ``maps`` ``[V, C + G, h, w]`` (image features and
         visibility maps, sampled together; the colour at its own resolution, on the same grid)."""
         samples = points_along_rays(rays, depths)
@@ -172,10 +207,16 @@ class VisibilityAwareRenderer(ModelFamily):
         vis, hit = net.decoder(g, t_low, t_high)
         q = net.aggregator.embed_probabilities(g, hit, vis)
         directions = self._directions(rays, samples.points, sources)
-        density, colour, scores = net.aggregator(rgb_features, directions, visible, q, semantics)
+        density, colour, outputs = net.aggregator(rgb_features, directions, visible, q, semantics)
         weights = compositing_weights(density_opacity(density))  # alpha = 1 - exp(-sigma), no interval
-        return RenderedRays(rgb=composite(weights, colour), weights=weights, depth=(weights * samples.depths).sum(-1),
-                            samples=samples, logits=composite(weights, scores) if scores is not None else None)
+        rendered = RenderedRays(rgb=composite(weights, colour), weights=weights,
+                                depth=(weights * samples.depths).sum(-1), samples=samples)
+        if outputs is None:
+            return rendered
+        if self.head is None:
+            return replace(rendered, logits=composite(weights, outputs))
+        return replace(rendered, semantic=composite(weights, outputs),
+                       sample_semantic=outputs if sample_semantics else None)
 
     @staticmethod
     def _source_intervals(rays: RayBatch, depths: Tensor, sources: SourceViews) -> tuple[Tensor, Tensor]:
@@ -203,10 +244,11 @@ class VisibilityAwareRenderer(ModelFamily):
         return torch.cat([to_source - to_target[:, :, None], dot], -1)
 
     def render_rays(self, rays: RayBatch, sources: SourceViews, maps: Tensor, semantics: bool,
-                    generator: torch.Generator | None) -> tuple[RenderedRays, RenderedRays | None]:
+                    generator: torch.Generator | None,
+                    sample_semantics: bool = False) -> tuple[RenderedRays, RenderedRays | None]:
         """The coarse pass and (with fine samples) the fine pass; ``generator`` None renders deterministically."""
         depths = stratified_inverse_depths(rays, self.coarse_samples, perturb=False)
-        coarse = self._pass(self.coarse, rays, depths, sources, maps, semantics)
+        coarse = self._pass(self.coarse, rays, depths, sources, maps, semantics, sample_semantics)
         if self.fine is None:
             return coarse, None
         near, far = rays.near[:, None], rays.far[:, None]
@@ -214,7 +256,7 @@ class VisibilityAwareRenderer(ModelFamily):
         t_fine = importance_depths(t, coarse.weights.detach(), self.fine_samples, deterministic=generator is None,
                                    generator=generator)
         fine_depths = torch.sort(1.0 / (1.0 / near + t_fine * (1.0 / far - 1.0 / near)), dim=-1).values
-        return coarse, self._pass(self.fine, rays, fine_depths, sources, maps, semantics)
+        return coarse, self._pass(self.fine, rays, fine_depths, sources, maps, semantics, sample_semantics)
 
     def _stacked(self, sources: SourceViews, features: FeatureMaps, camera: TargetCamera) -> Tensor:
         """The sources' image features with their visibility maps ``[V, C + G, h, w]`` (sampled together)."""
@@ -224,9 +266,9 @@ class VisibilityAwareRenderer(ModelFamily):
     # ---- the contract ----------------------------------------------------------------------------------------------
 
     def forward(self, batch: StepBatch, *, semantics: bool, sample_semantics: bool = False) -> StepOutput:
-        return StepOutput(tuple(self._forward_view(view, semantics) for view in batch.views))
+        return StepOutput(tuple(self._forward_view(view, semantics, sample_semantics) for view in batch.views))
 
-    def _forward_view(self, view: TargetView, semantics: bool) -> ViewOutput:
+    def _forward_view(self, view: TargetView, semantics: bool, sample_semantics: bool) -> ViewOutput:
         camera = view.camera
         rays = rays_through_pixels(view.pixels, camera.intrinsics, camera.c2w, camera.near, camera.far)
         generator = torch.Generator(device=view.pixels.device).manual_seed(view.render_seed) if self.training else None
@@ -234,18 +276,25 @@ class VisibilityAwareRenderer(ModelFamily):
             raise ConfigError(f"model {type(self).__name__} renders from source views; the batch has none")
         maps = self.encode(view.sources.rgb)
         coarse, fine = self.render_rays(rays, view.sources, self._stacked(view.sources, maps, camera), semantics,
-                                        generator)
-        return ViewOutput(coarse=coarse, fine=fine)
+                                        generator, sample_semantics)
+        if self.head is None or not semantics:
+            return ViewOutput(coarse=coarse, fine=fine)
+        return decoded_view_output(view, coarse, fine, self.encode(view.image[None]).semantic, self.head)
 
     @torch.inference_mode()
     def predict(self, camera: TargetCamera, sources: SourceViews | None, *, stride: int, chunk_rays: int,
                 features: FeatureMaps | None = None) -> Prediction:
         if sources is None:
             raise ConfigError(f"model {type(self).__name__} renders from source views; none were given")
-        maps = self._stacked(sources, features if features is not None else self.encode(sources.rgb), camera)
+        features = features if features is not None else self.encode(sources.rgb)
+        maps = self._stacked(sources, features, camera)
+        decode = None
+        if self.head is not None:  # the rendered map at the semantic maps' stride, decoded with its context
+            stride = stride or max(1, camera.height // int(features.semantic.shape[-2]))
+            decode = lambda semantic_map, size: decode_checked(self.head, semantic_map, size).logits  # noqa: E731
 
         def render(rays: RayBatch) -> RenderedRays:
-            coarse, fine = self.render_rays(rays, sources, maps, self.num_classes > 0, None)
+            coarse, fine = self.render_rays(rays, sources, maps, self.semantic_output is not None, None)
             return fine if fine is not None else coarse
 
-        return render_whole_view(camera, render, stride=stride, chunk_rays=chunk_rays)
+        return render_whole_view(camera, render, stride=stride, chunk_rays=chunk_rays, decode=decode)

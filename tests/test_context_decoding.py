@@ -1,6 +1,6 @@
 import torch
 
-from gpnerf_plugins.families.gnt.fusion import cells_of_pixels, fuse_rendered, gather_cells
+from gpnerf_core.model.context_decoding import cells_of_pixels, fuse_rendered, gather_cells
 
 
 def test_cells_are_exact_stride_cells_without_wraparound():
