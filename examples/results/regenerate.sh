@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
 # Regenerate the numbers of docs/results.md from scratch on a 2-core CPU, at one commit:
 #   bash examples/results/regenerate.sh [WORK] [STAGES]      (WORK default /tmp/gpnerf-results)
-# STAGES (default "table4 methods baselines stress instance finetune report"):
+# STAGES (default "table4 methods baselines grid stress instance finetune report"):
 #   table4    Table 4 IDs 1-5 x seeds 0-2 (ID 5 is the main job's config)
 #   methods   the chart's other methods x seeds 0-2: per-pixel head, GP-NeRF sized, GNT alone
 #   baselines the compared methods' families x seeds 0-2: Semantic-Ray, NeuRay + semantic head, MVSNeRF + semantic
 #             head (+experiment=baselines/<name>), on the main job's data and steps
+#   grid      the same families with GP-NeRF's context-aware decoding (baselines/<name>_unet), seed 0
 #   stress    the stress suite of IDs 1 and 5 (3 seeds each), one process per method, merged   (needs table4's runs)
 #   instance  the instance head on layout_00 x seeds 0-2, and the connected-components baseline on ID 5's runs
 #   finetune  ID 5's three runs fine-tuned on the unseen layout (300 steps)                      (needs table4's runs)
@@ -23,11 +24,11 @@
 set -euo pipefail
 PYTHON=${PYTHON:-python}
 WORK=${1:-/tmp/gpnerf-results}
-STAGES=${2:-table4 methods baselines stress instance finetune report}
+STAGES=${2:-table4 methods baselines grid stress instance finetune report}
 PARALLEL=${PARALLEL:-2}
 POLL_SECONDS=${POLL_SECONDS:-10}
 RUNS="$WORK/runs"
-KNOWN="table4 methods baselines stress instance finetune report"
+KNOWN="table4 methods baselines grid stress instance finetune report"
 for stage in $STAGES; do
   [[ " $KNOWN " == *" $stage "* ]] || { echo "unknown stage '$stage' (known: $KNOWN)" >&2; exit 2; }
 done
@@ -65,6 +66,10 @@ stage_jobs() {
       for s in 0 1 2; do for family in semantic_ray neuray mvsnerf; do
         train_job "${family}_s$s" $s +experiment=baselines/$family eval.save_images=0
       done; done ;;
+    grid)
+      for family in semantic_ray neuray mvsnerf; do
+        train_job "${family}_unet_s0" 0 +experiment=baselines/${family}_unet eval.save_images=0
+      done ;;
     stress)
       for id in 1 5; do
         job "stress_id$id" "id${id}_s0,id${id}_s1,id${id}_s2" stress "$RUNS"/id${id}_s{0,1,2} --views-per-scene 1 \

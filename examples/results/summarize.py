@@ -3,8 +3,8 @@
     python examples/results/summarize.py [WORK, default /tmp/gpnerf-results] > WORK/summary.md
 
 Sections: Table 4 (per seed, mean +- sample std, the orderings that hold beyond the seed spread), the methods of the
-speed-accuracy chart, the compared methods' families (Table 1's generalization rows and the paper's orderings), the
-instance head against the connected-components baseline, fine-tuning. A missing run is
+speed-accuracy chart, the compared methods' families (Table 1's generalization rows and the paper's orderings), each
+field per pixel and with GP-NeRF's U-Net decoding, the instance head against the connected-components baseline, fine-tuning. A missing run is
 named, never skipped silently.
 """
 
@@ -154,6 +154,29 @@ def baselines(runs: Path) -> list[str]:
     return lines
 
 
+GRID = (("GP-NeRF's field (GNT + semantic field)", "label_rendering", "id5"),
+        ("Semantic-Ray", "semantic_ray", "semantic_ray_unet"),
+        ("NeuRay + semantic head", "neuray", "neuray_unet"),
+        ("MVSNeRF + semantic head", "mvsnerf", "mvsnerf_unet"))
+
+
+def grid(runs: Path) -> list[str]:
+    """Each family's field scored per pixel and with GP-NeRF's context-aware U-Net decoding, seed 0 (GP-NeRF's own
+    per-pixel variant is the per-pixel head on its rendered features, ``baselines/label_rendering``)."""
+    lines = ["## Fields x decoding (seed 0): per pixel against GP-NeRF's context-aware U-Net head", "",
+             "| field | per pixel: mIoU held-out / unseen | U-Net head: mIoU held-out / unseen | U-Net - per pixel (unseen) |",
+             "|---|---|---|---|"]
+    for title, per_pixel, unet in GRID:
+        a, b = load(runs, f"{per_pixel}_s0"), load(runs, f"{unet}_s0")
+
+        def cell(m: dict[str, Any] | None) -> str:
+            return "not run" if m is None else f"{m['eval'][HELD][MIOU]:.3f} / {m['eval'][UNSEEN][MIOU]:.3f}"
+
+        gain = f"{b['eval'][UNSEEN][MIOU] - a['eval'][UNSEEN][MIOU]:+.3f}" if a and b else "-"
+        lines.append(f"| {title} | {cell(a)} | {cell(b)} | {gain} |")
+    return lines
+
+
 INSTANCE_KEYS = ("instance/ap_matched@0.75", "instance/ap_matched@0.5", "instance/coco_mask_ap",
                  "instance/coco_mask_ap50", "instance/coco_mask_ap75")
 
@@ -229,7 +252,7 @@ def main(work: Path) -> int:
     print("# Summary of", work, "\n")
     if provenance.is_file():
         print("```\n" + provenance.read_text().strip() + "\n```\n")
-    for section in (table4, methods, baselines, instance, finetune):
+    for section in (table4, methods, baselines, grid, instance, finetune):
         print("\n".join(section(runs)) + "\n")
     return 0
 
