@@ -5,7 +5,8 @@
 #   table4    Table 4 IDs 1-5 x seeds 0-2 (ID 5 is the main job's config)
 #   methods   the chart's other methods x seeds 0-2: per-pixel head, GP-NeRF sized, GNT alone
 #   baselines the compared methods' families x seeds 0-2: Semantic-Ray, NeuRay + semantic head, MVSNeRF + semantic
-#             head (+experiment=baselines/<name>), on the main job's data and steps
+#             head (+experiment=baselines/<name>), on the main job's data and steps; each run fine-tuned on the unseen
+#             layout as ID 5's (finetune stage), and each family's stress suite
 #   grid      the same families with GP-NeRF's context-aware decoding (baselines/<name>_unet), seed 0
 #   stress    the stress suite of IDs 1 and 5 (3 seeds each), one process per method, merged   (needs table4's runs)
 #   instance  the instance head on layout_00 x seeds 0-2, and the connected-components baseline on ID 5's runs
@@ -65,7 +66,14 @@ stage_jobs() {
     baselines)
       for s in 0 1 2; do for family in semantic_ray neuray mvsnerf; do
         train_job "${family}_s$s" $s +experiment=baselines/$family eval.save_images=0
-      done; done ;;
+      done; done
+      for family in semantic_ray neuray mvsnerf; do
+        for s in 0 1 2; do job "finetune_${family}_s$s" "${family}_s$s" finetune "checkpoint=$RUNS/${family}_s$s/$CKPT" \
+          "'dataset.scenes=[unseen_00]'" train.steps=300 finetune.points=4 eval.save_images=0 threads=1 \
+          "out_dir=$RUNS/finetune_${family}_s$s"; done
+        job "stress_$family" "${family}_s0,${family}_s1,${family}_s2" stress "$RUNS"/${family}_s{0,1,2} \
+          --views-per-scene 1 --threads 1 --overwrite --out "$WORK/stress/$family"
+      done ;;
     grid)
       for family in semantic_ray neuray mvsnerf; do
         train_job "${family}_unet_s0" 0 +experiment=baselines/${family}_unet eval.save_images=0
@@ -131,6 +139,10 @@ if [[ " $STAGES " == *" report "* ]]; then
   "$PYTHON" -m gpnerf_core report "${table4_runs[@]}" > "$WORK/report_table4.md"
   "$PYTHON" -m gpnerf_core report "${table4_runs[@]}" "${instance_runs[@]}" --chart "$WORK/chart" > "$WORK/report_chart.md"
   "$PYTHON" -m gpnerf_core report "${method_runs[@]}" --chart "$WORK/chart_methods" > "$WORK/report_methods.md"
+  mapfile -t baseline_runs < <(existing "$RUNS"/id5_s? "$RUNS"/{semantic_ray,neuray,mvsnerf}_s?)
+  if (( ${#baseline_runs[@]} )); then  # Table 1's generalization rows beside the paper's, and their chart
+    "$PYTHON" -m gpnerf_core report "${baseline_runs[@]}" --chart "$WORK/chart_baselines" > "$WORK/report_baselines.md"
+  fi
   "$PYTHON" "$(dirname "$0")/summarize.py" "$WORK" > "$WORK/summary.md"
   if [[ -d "$WORK/stress/id1" && -d "$WORK/stress/id5" ]]; then
     "$PYTHON" -m gpnerf_core stress --merge "$WORK/stress/id1" "$WORK/stress/id5" --overwrite --out "$WORK/stress/merged"
