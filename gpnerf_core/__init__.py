@@ -49,7 +49,7 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     "gpnerf_core.geometry.projection": ("project_points", "world_to_camera"),
     "gpnerf_core.model.whole_view": ("render_whole_view",),
     "gpnerf_core.model.context_decoding": (
-        "cells_of_pixels", "decode_checked", "decoded_view_output", "fuse_rendered", "gather_cells",
+        "LabelsOrHead", "cells_of_pixels", "decode_checked", "decoded_view_output", "fuse_rendered", "gather_cells",
     ),
     "gpnerf_core.geometry.plane_sweep": (
         "PlaneSweep", "ReferenceFrustum", "plane_sweep", "points_in_views", "variance_over_views",
@@ -136,6 +136,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
     from gpnerf_core.geometry.projection import project_points, world_to_camera
     from gpnerf_core.model.whole_view import render_whole_view
     from gpnerf_core.model.context_decoding import (
+        LabelsOrHead,
         cells_of_pixels,
         decode_checked,
         decoded_view_output,

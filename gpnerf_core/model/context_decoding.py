@@ -1,16 +1,20 @@
 """GP-NeRF's context-aware decoding, for any model family that renders per-ray semantic features in its extractor's
 semantic-map space (``RenderedRays.semantic``): in training the head decodes the **fused map**, the target image's own
 semantic map (the teacher) with the rendered features written into the cells the rays hit; on a whole view it decodes
-the rendered map (``render_whole_view`` with ``decode``).
+the rendered map (``render_whole_view`` with ``decode``). ``LabelsOrHead`` is the base of families that render class
+scores without a head (label rendering) and features for a head with one.
 """
 
 from __future__ import annotations
 
+from typing import Mapping
+
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from gpnerf_core.errors import PluginError
-from gpnerf_core.interfaces.head import PerceptionHead
+from gpnerf_core.interfaces.head import PerceptionHead, Predicts
+from gpnerf_core.interfaces.model import ModelFamily, SemanticMode, SemanticOutput
 from gpnerf_core.types import HeadOutput, RenderedRays, TargetView, ViewOutput
 
 
@@ -81,3 +85,47 @@ def decoded_view_output(view: TargetView, coarse: RenderedRays, fine: RenderedRa
     head_input = fuse_rendered(teacher, last.semantic, cells) if fuse else teacher
     return ViewOutput(coarse=coarse, fine=fine, teacher_map=teacher, teacher_at_rays=gather_cells(teacher, cells),
                       head_input=head_input, logits=decode_checked(head, head_input, camera.image_size).logits)
+
+
+class LabelsOrHead(ModelFamily):
+    """A family whose semantic outputs are K class scores composited per ray (label rendering) without a head, and
+    features decoded by ``head`` with GP-NeRF's context-aware decoding with one (``decoded_view_output``; on a whole
+    view ``render_whole_view`` with ``decode``). What such a family says about itself is the same for all: it sets
+    ``extractor`` (a ``FeatureExtractor``), ``head`` (or None) and ``num_classes`` (K, 0 with a head or without labels).
+    """
+
+    extractor: nn.Module
+    head: PerceptionHead | None
+    num_classes: int
+
+    @property
+    def semantic_output(self) -> SemanticOutput | None:
+        if self.head is not None:
+            predicts = Predicts(self.head.predicts)
+            slots = getattr(self.head, "slots", None) if predicts is Predicts.INSTANCES else None
+            return SemanticOutput(predicts, SemanticMode.DECODED, int(self.head.num_outputs), slots)
+        if not self.num_classes:
+            return None
+        return SemanticOutput(Predicts.CLASSES, SemanticMode.LABEL_RENDERING, self.num_classes)
+
+    def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
+        """The extractor under ``feature_extractor``, the head under ``head``, the family's own networks under
+        ``transformer``."""
+        own = [p for name, p in self.named_parameters() if not name.startswith(("extractor.", "head."))]
+        groups = {"feature_extractor": list(self.extractor.parameters()), "transformer": own}
+        if self.head is not None:
+            groups["head"] = list(self.head.parameters())
+        return groups
+
+    def output_owners(self, names: Mapping[str, str]) -> dict[str, str]:
+        owners = super().output_owners(names)
+        if self.head is not None:
+            owners["logits"] = f"head {names.get('head')!r}"
+        return owners
+
+    @torch.inference_mode()
+    def teacher_logits(self, image: Tensor) -> Tensor | None:
+        """With a head: the head on the target image's own semantic map (the 2D-only reference)."""
+        if self.head is None:
+            return None
+        return decode_checked(self.head, self.extractor(image[None]).semantic, tuple(image.shape[-2:])).logits

@@ -16,6 +16,8 @@ FAMILIES = {
     "neuray": ["model.fine_samples=4"],
     "mvsnerf": ["model.num_planes=8", "model.coarse_samples=8", "model.fine_samples=0"],  # its own extractor
     "semantic_ray_unet": ["model.fine_samples=4"],  # GP-NeRF's decoding on Semantic-Ray's field
+    # GP-NeRF's decoding on MVSNeRF's field: resunet_fpn (TINY_CLI's feature_extractor.* apply), one pass
+    "mvsnerf_unet": ["model.num_planes=8", "model.coarse_samples=8", "model.fine_samples=0"],
 }
 
 
@@ -37,7 +39,7 @@ def trained(request, tmp_path_factory):
     return name, out
 
 
-def test_run_trains_and_scores_the_family_by_label_rendering(trained):
+def test_run_trains_and_scores_the_family(trained):
     name, out = trained
     metrics = json.loads((out / "metrics.json").read_text())
     assert json.loads((out / "plugins.json").read_text())["used"]["model"]["name"] == name.removesuffix("_unet")

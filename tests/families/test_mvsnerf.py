@@ -1,6 +1,6 @@
 """``model=mvsnerf`` (MVSNeRF + semantic head) and its parts: the contract kit on the family and the ``mvsnet``
-extractor, the plane-sweep cost volume on a scene whose answer is known, alpha without the sample interval, and the
-image sizes its 3D U-Net cannot take."""
+extractor, the plane-sweep cost volume on a scene whose answer is known, alpha without the sample interval, the
+image sizes its 3D U-Net cannot take, and the family with a head (GP-NeRF's decoding; refused without semantic maps)."""
 
 import pytest
 import torch
@@ -160,3 +160,38 @@ def test_a_target_with_fewer_views_than_the_network_was_built_for_renders_with_t
     assert output.logits.shape == (3, 3) and bool(torch.isfinite(output.rgb).all())
     assert bool((output.weights.sum(-1) <= 1 + 1e-6).all())
     assert torch.equal(encoded.frustum.c2w, sources.c2w[0]) and encoded.volume.shape == (8, 8, 8, 16)
+
+
+@pytest.mark.parametrize("fine_samples", [0, 4])
+def test_with_a_head_it_renders_features_the_head_decodes_and_without_semantic_maps_it_is_refused(fine_samples,
+                                                                                                  one_thread):
+    from gpnerf_core.interfaces.model import SemanticMode
+    from gpnerf_core.registry.components import get_registry
+    from gpnerf_core.testing.inputs import kit_parts, model_batch, model_view
+
+    registry = get_registry()
+    node = {"name": "mvsnerf", "coarse_samples": 6, "fine_samples": fine_samples, "num_planes": 8, "width": 16}
+    model = registry.build("model", node, parts=kit_parts(registry, "mvsnerf", head=True))
+    channels = model.extractor.semantic_dim
+    assert model.semantic_output.mode is SemanticMode.DECODED and model.mlp.semantic[-1].out_features == channels
+    assert set(model.parameter_groups()) == {"feature_extractor", "transformer", "head"}
+    batch = model_batch(sources=True)
+    view = model(batch, semantics=True, sample_semantics=True).views[0]
+    rays, last = batch.views[0].pixels.shape[0], view.last
+    samples = 6 + fine_samples
+    assert last.semantic.shape == (rays, channels) and last.sample_semantic.shape == (rays, samples, channels)
+    assert last.logits is None and (view.fine is None or view.coarse.semantic is None)  # the last pass only
+    assert view.teacher_at_rays.shape == (rays, channels)
+    assert view.logits.shape == (1, model.head.num_outputs, 32, 48)
+    camera, sources = model_view(sources=True)
+    assert model.teacher_logits(batch.views[0].image).shape == (1, model.head.num_outputs, 32, 48)
+    prediction = model.eval().predict(camera, sources, stride=0, chunk_rays=64)
+    assert prediction.stride == 2 and prediction.semantic.shape == (channels, 16, 24)  # the semantic maps' grid
+    assert prediction.logits.shape == (1, model.head.num_outputs, camera.height, camera.width)
+    assert bool(torch.isfinite(prediction.logits).all())
+    parts = kit_parts(registry, "mvsnerf", head=True)
+    parts._cfg.feature_extractor = {"name": "mvsnet"}
+    with pytest.raises(ConfigError, match=r"\+head=unet .*'mvsnet' makes none \(feature_extractor.semantic=true, "
+                                          r"or another extractor") as refused:
+        registry.build("model", node, parts=parts)
+    assert "\n" not in str(refused.value)

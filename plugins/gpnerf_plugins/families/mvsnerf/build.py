@@ -21,16 +21,26 @@ def build_mvsnerf(
     width: int = MVSNeRFConfig.width,
     label_rendering: bool = MVSNeRFConfig.label_rendering,
 ) -> MVSNeRF:
-    """The extractor the config selects (``feature_extractor=mvsnet`` for MVSNeRF's) and the family's own networks; a
-    configured ``+head`` is refused (the family renders its class scores itself)."""
-    if parts.configured("head"):
-        raise ConfigError(f"+head={parts.name('head')}: model=mvsnerf renders class scores per pixel (label "
-                          "rendering) and has no rendered feature map for a head to decode; drop +head")
+    """The extractor the config selects (``feature_extractor=mvsnet`` for MVSNeRF's) and the family's own networks.
+
+    Without a ``+head`` the semantic branch renders class scores (label rendering). With one it renders features in the
+    extractor's semantic-map space for the head to decode (GP-NeRF's context-aware decoding), which needs an extractor
+    with semantic maps (``resunet_fpn``; its radiance maps then build the cost volume in place of FeatureNet's): a head
+    with one that has none (``mvsnet``) is refused in one line."""
     pad = [int(value) for value in pad]
     if len(pad) != 2:
         raise ConfigError(f"model.pad={pad}: expected [rows, columns], two cell counts")
+    extractor, head = parts.build("feature_extractor"), None
+    if parts.configured("head"):
+        if not extractor.semantic_dim:
+            raise ConfigError(f"+head={parts.name('head')} with model=mvsnerf decodes rendered features in the "
+                              f"semantic maps' space of the feature extractor, and feature_extractor "
+                              f"{parts.name('feature_extractor')!r} makes none (feature_extractor.semantic=true, or "
+                              "another extractor such as feature_extractor=resunet_fpn)")
+        head = parts.head(in_dim=extractor.semantic_dim, in_levels=extractor.semantic_levels)
     return MVSNeRF(
-        extractor=parts.build("feature_extractor"),
+        extractor=extractor,
+        head=head,
         num_classes=parts.num_classes if label_rendering else 0,
         coarse_samples=coarse_samples,
         fine_samples=fine_samples,

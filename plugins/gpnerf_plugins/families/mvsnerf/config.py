@@ -11,7 +11,8 @@ from gpnerf_core import ModelConfig
 @dataclass
 class MVSNeRFConfig(ModelConfig):
     """MVSNeRF + semantic head: a plane-sweep cost volume in the first source view's frustum, regularised by a 3D U-Net
-    into an encoding volume, read per sample by a modulated MLP that renders colour, density and class scores."""
+    into an encoding volume, read per sample by a modulated MLP that renders colour, density and class scores (with a
+    ``+head``: semantic features the head decodes, ``+experiment=baselines/mvsnerf_unet``)."""
 
     name: str = "mvsnerf"
     """Registry name of this model family."""
@@ -37,6 +38,7 @@ class MVSNeRFConfig(ModelConfig):
     width: int = 128
     """Width of the MLP trunk (MVSNeRF: 128, 6 layers); the colour branch has half of it, as the semantic branch."""
     label_rendering: bool = True
-    """Render class scores with the semantic branch (off: colour and depth only, MVSNeRF itself)."""
+    """Render class scores with the semantic branch (off: colour and depth only, MVSNeRF itself); with a ``+head`` the
+    branch renders the head's input features whatever this is."""
 
     runtime_keys: ClassVar[tuple[str, ...]] = ModelConfig.runtime_keys

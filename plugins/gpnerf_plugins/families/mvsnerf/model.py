@@ -23,6 +23,16 @@ Per target view:
    density is per sample, not per metre. Colour, depth and class scores are composited with the same weights (label
    rendering, ``SemanticMode.LABEL_RENDERING``).
 
+With a ``+head`` (``+experiment=baselines/mvsnerf_unet``: GP-NeRF's context-aware decoding on MVSNeRF's field) the
+semantic branch outputs ``extractor.semantic_dim`` features in the extractor's semantic-map space instead of K class
+scores (Linear 128 -> 64, ReLU, Linear 64 -> C), rendered in the last pass only (the one pass by default) and composited
+with the same weights into ``RenderedRays.semantic``; the head decodes them as ``neuray``'s do
+(``gpnerf_core.decoded_view_output``: the fused map in training; ``render_whole_view`` with ``decode`` at the semantic
+maps' stride on a whole view; ``teacher_logits``: the head on the target image's own semantic map). The teacher needs
+semantic maps, which MVSNeRF's FeatureNet (``mvsnet``) has not: that variant uses the configured extractor
+(``resunet_fpn``, whose radiance maps are 32 channels at 1/4 like FeatureNet's) for the cost volume too, in place of
+FeatureNet; a head with an extractor without semantic maps is refused by the build.
+
 Samples are stratified uniform in depth between near and far (jittered in training from a generator seeded with the
 view's ``render_seed``, bin edges in evaluation); ``model.fine_samples`` > 0 adds an importance pass through the same
 network (MVSNeRF's runs have none).
@@ -62,25 +72,23 @@ Simplified for a 2-core CPU, and why:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 import torch.nn.functional as F
-from torch import Tensor, nn
+from torch import Tensor
 
 from gpnerf_core import (
+    LabelsOrHead,
     ConfigError,
     FeatureExtractor,
     FeatureMaps,
-    ModelFamily,
+    PerceptionHead,
     Prediction,
-    Predicts,
     RayBatch,
     RaySamples,
     ReferenceFrustum,
     RenderedRays,
-    SemanticMode,
-    SemanticOutput,
     SourceViews,
     StepBatch,
     StepOutput,
@@ -89,6 +97,8 @@ from gpnerf_core import (
     ViewOutput,
     composite,
     compositing_weights,
+    decode_checked,
+    decoded_view_output,
     density_opacity,
     importance_depths,
     plane_sweep,
@@ -136,12 +146,18 @@ class EncodedView:
     sources: SourceViews
 
 
-class MVSNeRF(ModelFamily):
+class MVSNeRF(LabelsOrHead):
     """MVSNeRF + semantic head (the module docstring describes it).
 
+    Without a ``head`` the semantic branch gives K class scores per sample, composited per ray: label rendering. With a
+    ``head`` it gives features in the extractor's semantic-map space, rendered in the last pass only and decoded by the
+    head with GP-NeRF's context-aware decoding (``gpnerf_core.decoded_view_output``), as ``neuray`` with a head.
+
     Args:
-        extractor: the configured feature extractor (its radiance maps, at 1/4 of the image).
-        num_classes: K scores per sample (0: no label rendering).
+        extractor: the configured feature extractor (its radiance maps, at 1/4 of the image, build the cost volume;
+            with a head, its semantic maps are the teacher).
+        num_classes: K scores per sample (0: no label rendering) without a head.
+        head: the perception head decoding rendered features, or None (label rendering).
         coarse_samples, fine_samples: samples per ray of the pass, and of an importance pass (0: none).
         volume_views: views the network is built for.
         num_planes: D, a multiple of 8.
@@ -150,10 +166,9 @@ class MVSNeRF(ModelFamily):
         width: MLP width.
     """
 
-    accepts_head = False  # label rendering: no feature map for a +head to decode (the build refuses one)
-
     def __init__(self, *, extractor: FeatureExtractor, num_classes: int, coarse_samples: int, fine_samples: int,
-                 volume_views: int, num_planes: int, inverse_depth: bool, pad: tuple[int, int], width: int) -> None:
+                 volume_views: int, num_planes: int, inverse_depth: bool, pad: tuple[int, int], width: int,
+                 head: PerceptionHead | None = None) -> None:
         super().__init__()
         unit = 2**LEVELS
         if coarse_samples < 2 or fine_samples < 0 or volume_views < 1 or width < 2 or min(pad) < 0:
@@ -165,24 +180,16 @@ class MVSNeRF(ModelFamily):
                               f"expected a positive multiple of {unit}")
         self.extractor = extractor
         self.cost_regulariser = CostRegNet(3 * volume_views + extractor.radiance_dim)
-        self.mlp = ModulatedMLP(ENCODING_CHANNELS + 4 * volume_views, width, num_classes)
+        outputs = int(extractor.semantic_dim) if head is not None else int(num_classes)
+        self.mlp = ModulatedMLP(ENCODING_CHANNELS + 4 * volume_views, width, outputs)
+        self.head = head
+        self.num_classes = int(num_classes) if head is None else 0
         self.coarse_samples, self.fine_samples = int(coarse_samples), int(fine_samples)
         self.volume_views, self.num_planes = int(volume_views), int(num_planes)
         self.inverse_depth = bool(inverse_depth)
         self.pad = (int(pad[0]), int(pad[1]))
 
     # ---- what the model is --------------------------------------------------------------------------------------
-
-    @property
-    def semantic_output(self) -> SemanticOutput | None:
-        if self.mlp.semantic is None:
-            return None
-        return SemanticOutput(Predicts.CLASSES, SemanticMode.LABEL_RENDERING, self.mlp.semantic[-1].out_features)
-
-    def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
-        """The extractor under ``feature_extractor``; the 3D U-Net and the MLP under ``transformer``."""
-        rest = [p for name, p in self.named_parameters() if not name.startswith("extractor.")]
-        return {"feature_extractor": list(self.extractor.parameters()), "transformer": rest}
 
     def check_image_size(self, height: int, width: int) -> None:
         """The extractor's sizes, and a cost volume whose sides the 3D U-Net can take (``volume_pad``)."""
@@ -228,7 +235,11 @@ class MVSNeRF(ModelFamily):
 
     # ---- one pass -------------------------------------------------------------------------------------------------
 
-    def _pass(self, rays: RayBatch, samples: RaySamples, view: EncodedView, semantics: bool) -> RenderedRays:
+    def _pass(self, rays: RayBatch, samples: RaySamples, view: EncodedView, semantics: bool,
+              sample_semantics: bool = False) -> RenderedRays:
+        """Render ``rays`` at ``samples``; with ``semantics`` the semantic branch's outputs too: class scores composited
+        into ``logits`` (label rendering), or with a head features composited into ``semantic`` (and per sample into
+        ``sample_semantic`` with ``sample_semantics``)."""
         num_rays, num_samples = samples.depths.shape
         points = samples.points.reshape(-1, 3)
         coordinates = view.frustum.coordinates(points)  # [N, 3]
@@ -243,29 +254,37 @@ class MVSNeRF(ModelFamily):
         direction = direction[:, None].expand(-1, num_samples, -1).reshape(-1, 3)
         density, colour, trunk = self.mlp(positional_encoding(coordinates), feature, direction)
         weights = compositing_weights(density_opacity(density.reshape(num_rays, num_samples)))  # no interval
-        logits = None
-        if semantics and self.mlp.semantic is not None:
-            logits = composite(weights, self.mlp.scores(trunk).view(num_rays, num_samples, -1))
-        return RenderedRays(rgb=composite(weights, colour.view(num_rays, num_samples, 3)), weights=weights,
-                            depth=(weights * samples.depths).sum(-1), samples=samples, logits=logits)
+        rendered = RenderedRays(rgb=composite(weights, colour.view(num_rays, num_samples, 3)), weights=weights,
+                                depth=(weights * samples.depths).sum(-1), samples=samples)
+        if not semantics or self.mlp.semantic is None:
+            return rendered
+        outputs = self.mlp.scores(trunk).view(num_rays, num_samples, -1)
+        if self.head is None:
+            return replace(rendered, logits=composite(weights, outputs))
+        return replace(rendered, semantic=composite(weights, outputs),
+                       sample_semantic=outputs if sample_semantics else None)
 
-    def _render(self, rays: RayBatch, view: EncodedView, semantics: bool,
-                generator: torch.Generator | None) -> tuple[RenderedRays, RenderedRays | None]:
+    def _render(self, rays: RayBatch, view: EncodedView, semantics: bool, generator: torch.Generator | None,
+                sample_semantics: bool = False) -> tuple[RenderedRays, RenderedRays | None]:
+        """The pass and (with fine samples) the importance pass through the same network; with a head only the last
+        pass renders semantic features (GP-NeRF's), without one both render class scores."""
         depths = stratified_depths(rays, self.coarse_samples, inverse=self.inverse_depth, generator=generator)
-        coarse = self._pass(rays, points_along_rays(rays, depths), view, semantics)
+        coarse_semantics = semantics and (self.head is None or not self.fine_samples)
+        coarse = self._pass(rays, points_along_rays(rays, depths), view, coarse_semantics, sample_semantics)
         if not self.fine_samples:
             return coarse, None
         extra = importance_depths(depths, coarse.weights, self.fine_samples, deterministic=generator is None,
                                   generator=generator)
-        fine = self._pass(rays, points_along_rays(rays, torch.cat([depths, extra], -1)), view, semantics)
+        fine = self._pass(rays, points_along_rays(rays, torch.cat([depths, extra], -1)), view, semantics,
+                          sample_semantics)
         return coarse, fine
 
     # ---- the contract ---------------------------------------------------------------------------------------------
 
     def forward(self, batch: StepBatch, *, semantics: bool, sample_semantics: bool = False) -> StepOutput:
-        return StepOutput(tuple(self._forward_view(view, semantics) for view in batch.views))
+        return StepOutput(tuple(self._forward_view(view, semantics, sample_semantics) for view in batch.views))
 
-    def _forward_view(self, target: TargetView, semantics: bool) -> ViewOutput:
+    def _forward_view(self, target: TargetView, semantics: bool, sample_semantics: bool = False) -> ViewOutput:
         if target.sources is None:
             raise ConfigError("mvsnerf renders from source views; the target view has none")
         camera = target.camera
@@ -275,8 +294,10 @@ class MVSNeRF(ModelFamily):
             generator = torch.Generator(device=target.pixels.device).manual_seed(target.render_seed)
         maps = self.encode(target.sources.rgb[: self.volume_views])  # the views the network reads
         view = self._encoded(target.sources, maps, camera.near, camera.far)
-        coarse, fine = self._render(rays, view, semantics, generator)
-        return ViewOutput(coarse=coarse, fine=fine)
+        coarse, fine = self._render(rays, view, semantics, generator, sample_semantics)
+        if self.head is None or not semantics:
+            return ViewOutput(coarse=coarse, fine=fine)
+        return decoded_view_output(target, coarse, fine, self.encode(target.image[None]).semantic, self.head)
 
     @torch.inference_mode()
     def predict(self, camera: TargetCamera, sources: SourceViews | None, *, stride: int, chunk_rays: int,
@@ -286,9 +307,13 @@ class MVSNeRF(ModelFamily):
         maps = features if features is not None else self.encode(sources.rgb)
         view = self._encoded(sources, maps, camera.near, camera.far)
         semantics = self.mlp.semantic is not None
+        decode = None
+        if self.head is not None:  # the rendered map at the semantic maps' stride, decoded with its context
+            stride = stride or max(1, camera.height // int(maps.semantic.shape[-2]))
+            decode = lambda semantic_map, size: decode_checked(self.head, semantic_map, size).logits  # noqa: E731
 
         def render(rays: RayBatch) -> RenderedRays:
             coarse, fine = self._render(rays, view, semantics, None)
             return fine if fine is not None else coarse
 
-        return render_whole_view(camera, render, stride=stride, chunk_rays=chunk_rays)
+        return render_whole_view(camera, render, stride=stride, chunk_rays=chunk_rays, decode=decode)

@@ -46,23 +46,19 @@ the image alone, which is no longer NeuRay's visibility (docs/families/neuray.md
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Mapping
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from gpnerf_core import (
+    LabelsOrHead,
     ConfigError,
     FeatureMaps,
-    ModelFamily,
     PerceptionHead,
     Prediction,
-    Predicts,
     RayBatch,
     RenderedRays,
-    SemanticMode,
-    SemanticOutput,
     SourceViews,
     StepBatch,
     StepOutput,
@@ -100,7 +96,7 @@ class PassNetwork(nn.Module):
         self.aggregator = NeuRayAggregator(feature_dim, visibility_dim, semantic_outputs, cross_reprojection)
 
 
-class VisibilityAwareRenderer(ModelFamily):
+class VisibilityAwareRenderer(LabelsOrHead):
     """NeuRay's renderer with Semantic-Ray's semantic head (and CRA when ``cross_reprojection``).
 
     Without a ``head`` the semantic head's per-view outputs are K class scores, blended and volume-rendered: label
@@ -139,29 +135,6 @@ class VisibilityAwareRenderer(ModelFamily):
 
     # ---- what the model is ------------------------------------------------------------------------------------------
 
-    @property
-    def semantic_output(self) -> SemanticOutput | None:
-        if self.head is not None:
-            predicts = Predicts(self.head.predicts)
-            slots = getattr(self.head, "slots", None) if predicts is Predicts.INSTANCES else None
-            return SemanticOutput(predicts, SemanticMode.DECODED, int(self.head.num_outputs), slots)
-        if not self.num_classes:
-            return None
-        return SemanticOutput(Predicts.CLASSES, SemanticMode.LABEL_RENDERING, self.num_classes)
-
-    def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
-        own = [p for name, p in self.named_parameters() if not name.startswith(("extractor.", "head."))]
-        groups = {"feature_extractor": list(self.extractor.parameters()), "transformer": own}
-        if self.head is not None:
-            groups["head"] = list(self.head.parameters())
-        return groups
-
-    def output_owners(self, names: Mapping[str, str]) -> dict[str, str]:
-        owners = super().output_owners(names)
-        if self.head is not None:
-            owners["logits"] = f"head {names.get('head')!r}"
-        return owners
-
     def check_image_size(self, height: int, width: int) -> None:
         self.extractor.check_image_size(height, width)
         if height % 4 or width % 4:
@@ -170,13 +143,6 @@ class VisibilityAwareRenderer(ModelFamily):
 
     def encode(self, images: Tensor) -> FeatureMaps:
         return self.extractor(images)
-
-    @torch.inference_mode()
-    def teacher_logits(self, image: Tensor) -> Tensor | None:
-        """With a head: the head on the target image's own semantic map (the 2D-only reference)."""
-        if self.head is None:
-            return None
-        return decode_checked(self.head, self.encode(image[None]).semantic, tuple(image.shape[-2:])).logits
 
     # ---- rendering ---------------------------------------------------------------------------------------------------
 
