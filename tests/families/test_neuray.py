@@ -146,3 +146,22 @@ def test_without_source_depth_it_still_renders_finite_views():
     prediction = model.predict(camera, dataclasses.replace(sources, depth=None), stride=4, chunk_rays=50)
     assert torch.isfinite(prediction.rgb).all() and torch.isfinite(prediction.logits).all()
     assert not math.isnan(float(prediction.depth.mean()))
+
+
+def test_a_whole_view_skips_the_coarse_semantics_without_changing_the_last_pass():
+    from gpnerf_core import rays_through_pixels
+    from gpnerf_core.registry.components import get_registry
+    from gpnerf_core.testing.inputs import kit_parts, model_view
+
+    registry = get_registry()
+    model = registry.build("model", {"name": "semantic_ray", "coarse_samples": 6, "fine_samples": 4},
+                           parts=kit_parts(registry, "semantic_ray", head=False)).eval()
+    camera, sources = model_view(sources=True)
+    rays = rays_through_pixels(torch.tensor([[3.0, 4.0], [20.0, 11.0]]), camera.intrinsics, camera.c2w, camera.near,
+                               camera.far)
+    maps = model._stacked(sources, model.encode(sources.rgb), camera)
+    with torch.no_grad():
+        full_coarse, full = model.render_rays(rays, sources, maps, True, None)
+        lean_coarse, lean = model.render_rays(rays, sources, maps, True, None, last_pass_semantics=True)
+    assert full_coarse.logits is not None and lean_coarse.logits is None
+    assert torch.equal(full.logits, lean.logits) and torch.equal(full.rgb, lean.rgb)

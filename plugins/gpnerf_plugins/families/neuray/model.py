@@ -210,11 +210,15 @@ class VisibilityAwareRenderer(LabelsOrHead):
         return torch.cat([to_source - to_target[:, :, None], dot], -1)
 
     def render_rays(self, rays: RayBatch, sources: SourceViews, maps: Tensor, semantics: bool,
-                    generator: torch.Generator | None,
-                    sample_semantics: bool = False) -> tuple[RenderedRays, RenderedRays | None]:
-        """The coarse pass and (with fine samples) the fine pass; ``generator`` None renders deterministically."""
+                    generator: torch.Generator | None, sample_semantics: bool = False,
+                    last_pass_semantics: bool = False) -> tuple[RenderedRays, RenderedRays | None]:
+        """The coarse pass and (with fine samples) the fine pass; ``generator`` None renders deterministically.
+
+        ``last_pass_semantics``: the coarse pass renders no semantics where a fine pass follows (a whole view's
+        prediction reads the last pass only; training's cross-entropy reads both)."""
         depths = stratified_inverse_depths(rays, self.coarse_samples, perturb=False)
-        coarse = self._pass(self.coarse, rays, depths, sources, maps, semantics, sample_semantics)
+        coarse_semantics = semantics and not (last_pass_semantics and self.fine is not None)
+        coarse = self._pass(self.coarse, rays, depths, sources, maps, coarse_semantics, sample_semantics)
         if self.fine is None:
             return coarse, None
         near, far = rays.near[:, None], rays.far[:, None]
@@ -260,7 +264,8 @@ class VisibilityAwareRenderer(LabelsOrHead):
             decode = lambda semantic_map, size: decode_checked(self.head, semantic_map, size).logits  # noqa: E731
 
         def render(rays: RayBatch) -> RenderedRays:
-            coarse, fine = self.render_rays(rays, sources, maps, self.semantic_output is not None, None)
+            coarse, fine = self.render_rays(rays, sources, maps, self.semantic_output is not None, None,
+                                            last_pass_semantics=True)
             return fine if fine is not None else coarse
 
         return render_whole_view(camera, render, stride=stride, chunk_rays=chunk_rays, decode=decode)
