@@ -8,6 +8,9 @@
 #             head (+experiment=baselines/<name>), on the main job's data and steps; each run fine-tuned on the unseen
 #             layout as ID 5's (finetune stage), and each family's stress suite
 #   grid      the same families with GP-NeRF's context-aware decoding (baselines/<name>_unet), seed 0
+#   layouts   GP-NeRF (the main job's config) trained on 4, 8, 16, 32 layouts, 150 steps per layout (600 at 4, the main
+#             job's), scored on 4 unseen layouts (3 views each) and 3 held-out views per training layout, seed 0: the
+#             curve that picks the generalized protocol's layout count (not in the default stages: ~3 h)
 #   stress    the stress suite of IDs 1 and 5 (3 seeds each), one process per method, merged   (needs table4's runs)
 #   instance  the instance head on layout_00 x seeds 0-2, and the connected-components baseline on ID 5's runs
 #   finetune  ID 5's three runs fine-tuned on the unseen layout (300 steps)                      (needs table4's runs)
@@ -29,7 +32,7 @@ STAGES=${2:-table4 methods baselines grid stress instance finetune report}
 PARALLEL=${PARALLEL:-2}
 POLL_SECONDS=${POLL_SECONDS:-10}
 RUNS="$WORK/runs"
-KNOWN="table4 methods baselines grid stress instance finetune report"
+KNOWN="table4 methods baselines grid layouts stress instance finetune report"
 for stage in $STAGES; do
   [[ " $KNOWN " == *" $stage "* ]] || { echo "unknown stage '$stage' (known: $KNOWN)" >&2; exit 2; }
 done
@@ -77,6 +80,11 @@ stage_jobs() {
     grid)
       for family in semantic_ray neuray mvsnerf; do
         train_job "${family}_unet_s0" 0 +experiment=baselines/${family}_unet eval.save_images=0
+      done ;;
+    layouts)
+      for n in 4 8 16 32; do
+        train_job "layouts_n${n}_s0" 0 +head=unet +loss=dgs dataset.num_train_scenes=$n dataset.num_unseen_scenes=4 \
+          train.steps=$((150 * n)) eval.max_views_per_scene=3 eval.save_images=0
       done ;;
     stress)
       for id in 1 5; do

@@ -177,6 +177,22 @@ def grid(runs: Path) -> list[str]:
     return lines
 
 
+def layouts(runs: Path) -> list[str]:
+    """GP-NeRF against the number of training layouts (steps growing with them), scored on 4 unseen layouts."""
+    lines = ["## Training layouts (GP-NeRF, 150 steps per layout, seed 0): the generalized protocol's curve", "",
+             "| layouts | steps | mIoU held-out | mIoU unseen (4 layouts) | PSNR unseen | SSIM unseen | train s |",
+             "|---|---|---|---|---|---|---|"]
+    for count in (4, 8, 16, 32):
+        m = load(runs, f"layouts_n{count}_s0")
+        if m is None:
+            lines.append(f"| {count} | {150 * count} | not run | | | | |")
+            continue
+        held, unseen = m["eval"].get(HELD, {}), m["eval"][UNSEEN]
+        lines.append(f"| {count} | {m['train']['steps']} | {held.get(MIOU, float('nan')):.3f} | {unseen[MIOU]:.3f} | "
+                     f"{unseen['psnr/clamped']:.2f} | {unseen['ssim/gaussian11']:.3f} | {m['train']['seconds']:.0f} |")
+    return lines
+
+
 INSTANCE_KEYS = ("instance/ap_matched@0.75", "instance/ap_matched@0.5", "instance/coco_mask_ap",
                  "instance/coco_mask_ap50", "instance/coco_mask_ap75")
 
@@ -264,7 +280,7 @@ def main(work: Path) -> int:
     print("# Summary of", work, "\n")
     if provenance.is_file():
         print("```\n" + provenance.read_text().strip() + "\n```\n")
-    for section in (table4, methods, baselines, grid, instance, finetune):
+    for section in (table4, methods, baselines, grid, layouts, instance, finetune):
         print("\n".join(section(runs)) + "\n")
     return 0
 
