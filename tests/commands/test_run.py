@@ -205,7 +205,7 @@ def test_multirun_sweep_runs_every_job_and_report_tabulates_them(workspace):
     report = gpnerf("report", str(sweep), cwd=workspace, cache=workspace / "cache")
     assert report.returncode == 0, report.stderr
     rows = [line for line in report.stdout.splitlines() if line.startswith("| ") and "run" not in line]
-    assert [row.split("|")[16].strip() for row in rows] == ["2", "4"]
+    assert [row.split("|")[17].strip() for row in rows] == ["2", "4"]
 
 
 def test_a_failing_sweep_job_leaves_its_error_and_the_others_finish(workspace):
@@ -223,4 +223,4 @@ def test_a_failing_sweep_job_leaves_its_error_and_the_others_finish(workspace):
     report = gpnerf("report", str(sweep), cwd=workspace, cache=workspace / "cache")
     assert report.returncode == 0, report.stderr
     rows = [line for line in report.stdout.splitlines() if line.startswith(("| 0 ", "| 1 "))]
-    assert rows[0].startswith("| 0 | 0 | unet | dgs |") and rows[1].startswith("| 1 | failed: model.num_source_views=40")
+    assert rows[0].startswith("| 0 | 0 | gnt | unet | dgs |") and rows[1].startswith("| 1 | failed: model.num_source_views=40")
