@@ -25,6 +25,7 @@ from gpnerf_core.commands import render
 from gpnerf_core.tools.sizing.options import check_eval_splits, parse_size_options
 from gpnerf_core.tools.stress.runner import models_from_paths
 from pipeline_check import TINY_CLI, child_pids
+from sfm_stage_hook import hold_stage, stage_started
 
 SIZE = ["+head=unet", "+loss=dgs", *TINY_CLI, "size.steps=1"]
 
@@ -263,30 +264,6 @@ def test_report_lists_runs_without_metrics_with_what_their_files_show(tmp_path, 
 
 # ---- 7: structure from motion interrupted ----------------------------------------------------------------------
 
-STAGE_MARKER = '''
-"""Test harness: append the name of each pycolmap stage to $SFM_STAGE_MARKER as it starts."""
-import builtins, os
-
-_real_import = builtins.__import__
-
-
-def _import(name, *args, **kwargs):
-    module = _real_import(name, *args, **kwargs)
-    if name == "pycolmap" and not getattr(module, "_stage_marked", False):
-        module._stage_marked = True
-        for function in ("extract_features", "match_sequential", "match_exhaustive", "incremental_mapping"):
-            def marked(*a, _real=getattr(module, function), _name=function, **k):
-                with open(os.environ["SFM_STAGE_MARKER"], "a") as stream:
-                    stream.write(_name + "\\n")
-                return _real(*a, **k)
-            setattr(module, function, marked)
-    return module
-
-
-builtins.__import__ = _import
-'''
-
-
 @pytest.fixture(scope="module")
 def photos(tmp_path_factory) -> Path:
     """10 views 9 degrees apart of the embedded orbit (as tests/plugins/test_capture_prepare.py makes them)."""
@@ -309,21 +286,15 @@ def photos(tmp_path_factory) -> Path:
 def test_a_signal_during_structure_from_motion_is_one_line_and_leaves_nothing(photos, tmp_path, signum, stage,
                                                                                whole_group):
     hook = tmp_path / "hook"
-    hook.mkdir()
-    (hook / "sitecustomize.py").write_text(STAGE_MARKER)
-    marker = tmp_path / "stages.txt"
     out = tmp_path / "out"
     out.mkdir()
-    env = dict(os.environ, GPNERF_DISABLE_PLUGIN_AUTOLOAD="1", SFM_STAGE_MARKER=str(marker),
-               PYTHONPATH=os.pathsep.join([str(hook), *filter(None, [os.environ.get("PYTHONPATH")])]))
+    env = dict(os.environ, GPNERF_DISABLE_PLUGIN_AUTOLOAD="1", **hold_stage(hook, stage))
     process = subprocess.Popen([sys.executable, "-m", "gpnerf_core", "data", "prepare-capture", str(photos), "--out",
                                 str(out / "scene"), "--threads", "1"], env=env, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True, start_new_session=True)
     deadline = time.monotonic() + 300
-    while process.poll() is None and time.monotonic() < deadline and (
-            not marker.exists() or stage not in marker.read_text()):
+    while process.poll() is None and time.monotonic() < deadline and not stage_started(hook, stage):
         time.sleep(0.01)
-    time.sleep(0.1)  # inside the native call
     assert process.poll() is None, f"prepare-capture ended before {stage}: {process.stderr.read()[-2000:]}"
     children = child_pids(process.pid)
     if whole_group:

@@ -25,6 +25,7 @@ from gpnerf_plugins.datasets.capture.pose_accuracy import score_poses, write_vid
 from gpnerf_plugins.datasets.capture.prepare import _sfm_options, build_parser, prepare_capture
 from gpnerf_plugins.datasets.embedded import SEQUENCE, SceneSetParams, generate
 from gpnerf_plugins.datasets.embedded.writer import parse_pose
+from sfm_stage_hook import hold_stage, stage_started
 
 OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 ORBIT = dict(num_train_scenes=1, num_unseen_scenes=0, frames_per_scene=40, height=240, width=320, seed=0)
@@ -186,19 +187,21 @@ def test_bad_input_is_one_line_and_leaves_nothing(orbit, tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "broken.mp4", "few", "mixed", "noise"]
 
 
-def test_ctrl_c_during_structure_from_motion_leaves_nothing(orbit, tmp_path):
+def test_ctrl_c_during_structure_from_motion_leaves_nothing(orbit, tmp_path, monkeypatch):
     import multiprocessing
     import time
 
     photos = copy_frames(orbit, tmp_path / "photos", range(12))
+    hook = tmp_path.parent / f"{tmp_path.name}_hook"  # outside tmp_path: the test checks that nothing is left there
+    for key, value in hold_stage(hook, "match_sequential").items():
+        monkeypatch.setenv(key, value)  # the spawned SfM process reads them; it holds matching open
     children = []
 
     def interrupt_once_sfm_runs():
         deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not list(tmp_path.glob(".scene.partial-*/scratch/colmap/database.db")):
+        while time.monotonic() < deadline and not stage_started(hook, "match_sequential"):
             time.sleep(0.05)  # the SfM process is extracting features
         children.extend(c for c in multiprocessing.active_children() if c.name == "pycolmap-sfm")
-        time.sleep(0.3)
         _thread.interrupt_main()  # what Ctrl-C does
 
     threading.Thread(target=interrupt_once_sfm_runs, daemon=True).start()
