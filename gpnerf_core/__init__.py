@@ -54,6 +54,7 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     "gpnerf_core.geometry.plane_sweep": (
         "PlaneSweep", "ReferenceFrustum", "plane_sweep", "points_in_views", "variance_over_views",
     ),
+    "gpnerf_core.geometry.ray_depth": ("DepthBelief", "feature_cost_belief", "source_depth_belief"),
     "gpnerf_core.geometry.pose_sanity": ("check_poses",),
     "gpnerf_core.data.checks": (
         "ValueProblem", "check_scene_files", "check_validation_level", "depth_problem", "far_away_cameras",
@@ -133,6 +134,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
         variance_over_views,
     )
     from gpnerf_core.geometry.pose_sanity import check_poses
+    from gpnerf_core.geometry.ray_depth import DepthBelief, feature_cost_belief, source_depth_belief
     from gpnerf_core.geometry.projection import project_points, world_to_camera
     from gpnerf_core.model.whole_view import render_whole_view
     from gpnerf_core.model.context_decoding import (

@@ -98,8 +98,8 @@ class SourceViews:
         rgb: ``[V, 3, H, W]`` float32 in [0, 1].
         intrinsics: ``[V, 3, 3]``; c2w: ``[V, 4, 4]``.
         depth: ``[V, H, W]`` float32 metres (camera z), 0 where unknown, or None where none was loaded. Read only by
-            families that take source-view depth as input (Semantic-Ray and NeuRay's depth variant); GP-NeRF never
-            does.
+            families that take source-view depth as input (Semantic-Ray and NeuRay's depth variant), and by GP-NeRF's
+            ``model.depth_source=source_depth`` sampler.
     """
 
     rgb: Tensor

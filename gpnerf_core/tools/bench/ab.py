@@ -2,7 +2,7 @@
 the same machine state (load, caches, frequency), which two processes one after the other do not.
 
     python -m gpnerf_core.tools.bench.ab [size=small] [rounds=4] [options=channels_last,compile,sampler] [threads=2]
-        [phase=train|render] [depth_samples=C+F] [overrides...]
+        [phase=train|render] [depth_samples=C+F] [depth_sources=first_pass,cost_volume,source_depth] [overrides...]
 
 Prints per variant the minimum and median seconds of a training step (or of rendering one view, ``phase=render``) and the ratio of medians to the first variant; ``compile``
 reports its compile time (the first steps of each new shape) apart from the steps timed. The options:
@@ -10,8 +10,9 @@ reports its compile time (the first steps of each new shape) apart from the step
 - ``channels_last``: ``model.channels_last_maps`` false against true (the same float32 values; the model attribute
   is switched between steps).
 - ``compile``: the eager block pairs against ``torch.compile`` d ones (inductor).
-- ``sampler``: ``model.sampler`` uniform against depth (``gpnerf_core.geometry.surface_depths``), the depth variant
-  with ``depth_samples=C+F`` samples per ray (default: the configured counts).
+- ``sampler``: ``model.sampler`` uniform against depth (``gpnerf_core.geometry.surface_depths``) with each of
+  ``depth_sources`` (``model.depth_source``; default ``first_pass``), the depth variants with ``depth_samples=C+F``
+  samples per ray (default: the configured counts).
 
 The transformers' dropout (a plugin's internals) has its own script on top of ``alternate``: examples/ab_dropout.py.
 """
@@ -55,12 +56,17 @@ def compile_variants(backend: str = "inductor") -> dict[str, Variant]:
     return {"eager": use(False), f"compiled ({backend})": use(True)}
 
 
-def sampler_variants(depth_samples: str) -> dict[str, Variant]:
-    """``model.sampler`` uniform (the configured sample counts) against depth, with the counts ``depth_samples``
-    (``C+F``: coarse + fine; "" = the configured ones). The model is the same: only where it samples changes."""
+def sampler_variants(depth_samples: str, depth_sources: str = "first_pass") -> dict[str, Variant]:
+    """``model.sampler`` uniform (the configured sample counts) against depth from each of ``depth_sources``
+    (comma-separated ``model.depth_source`` values), with the counts ``depth_samples`` (``C+F``: coarse + fine; "" =
+    the configured ones; the coarse count is unused by the one-pass sources). The model is the same: only where it
+    samples changes."""
+    sources = [source for source in depth_sources.split(",") if source]  # each checked by the family when used
+    if not sources:
+        raise ConfigError(f"depth_sources={depth_sources!r}: expected a comma-separated list of model.depth_source values")
     configured: dict[str, int] = {}
 
-    def use(sampler: str) -> Variant:
+    def use(sampler: str, source: str = "first_pass") -> Variant:
         def switch(trainer: Trainer) -> None:
             model = trainer.model
             configured.setdefault("coarse", model.coarse_samples)
@@ -69,11 +75,11 @@ def sampler_variants(depth_samples: str) -> dict[str, Variant]:
             if sampler == "depth" and depth_samples:
                 coarse, fine = _sample_counts(depth_samples)
             model.coarse_samples, model.fine_samples = coarse, fine
-            model.sampling = dataclasses.replace(model.sampling, sampler=sampler)
+            model.sampling = dataclasses.replace(model.sampling, sampler=sampler, source=source)
         return switch
 
-    label = f" ({depth_samples} samples)" if depth_samples else ""
-    return {"uniform": use("uniform"), f"depth{label}": use("depth")}
+    label = f"{depth_samples} samples, " if depth_samples else ""
+    return {"uniform": use("uniform"), **{f"depth ({label}{source})": use("depth", source) for source in sources}}
 
 
 def _sample_counts(text: str) -> tuple[int, int]:
@@ -86,7 +92,7 @@ def _sample_counts(text: str) -> tuple[int, int]:
 OPTIONS: dict[str, Callable[[dict[str, str]], dict[str, Variant]]] = {
     "channels_last": lambda settings: channels_last_variants(),
     "compile": lambda settings: compile_variants(),
-    "sampler": lambda settings: sampler_variants(settings["depth_samples"]),
+    "sampler": lambda settings: sampler_variants(settings["depth_samples"], settings["depth_sources"]),
 }
 
 
@@ -154,7 +160,7 @@ def timing_lines(times: dict[str, list[float]], warm_up: dict[str, float]) -> li
 
 def main(argv: list[str]) -> int:
     settings = {"size": "small", "rounds": "4", "options": "channels_last,compile", "threads": "2", "phase": "train",
-                "depth_samples": ""}
+                "depth_samples": "", "depth_sources": "first_pass"}
     overrides = []
     for argument in argv:
         key, _, value = argument.partition("=")

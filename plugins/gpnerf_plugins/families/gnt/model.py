@@ -50,11 +50,13 @@ from gpnerf_core import (
     checked_compile_backend,
     decode_checked,
     decoded_view_output,
+    feature_cost_belief,
     importance_depths,
     pixel_grid,
     points_along_rays,
     rays_through_pixels,
     sampling_layout,
+    source_depth_belief,
     stage,
     stratified_inverse_depths,
     surface_depths,
@@ -77,30 +79,49 @@ def compiled_block_pair(backend: str, num_blocks: int):
 
 
 SAMPLERS = ("uniform", "depth")
+DEPTH_SOURCES = ("first_pass", "cost_volume", "source_depth")
 
 
 @dataclass(frozen=True)
 class FineSampling:
-    """Where the fine pass's samples go (``model.sampler``, ``model.surface_spread``, ``model.surface_uncertainty``).
+    """Where the samples go (``model.sampler``, ``model.depth_source``, ``model.depth_planes``, ``model.surface_spread``,
+    ``model.surface_uncertainty``).
 
     ``uniform``: the coarse samples plus importance samples from the coarse weights (GNT, GP-NeRF). ``depth``: only
-    samples around the coarse pass's depth, or importance samples where that depth is uncertain
-    (``gpnerf_core.geometry.surface_depths``): the fine pass, the one that renders semantics, sees a few samples where
-    the surface is instead of the coarse ones too.
+    ``fine_samples`` samples around a cheap depth of each ray, or spread by its belief where that depth is uncertain
+    (``gpnerf_core.geometry.surface_depths``). The cheap depth (``source``) comes from the coarse pass's weights
+    (``first_pass``: two passes, the second on the few samples), or, with no coarse pass at all, from a plane sweep
+    along the ray over ``planes`` candidate depths of the source views' radiance features (``cost_volume``:
+    ``gpnerf_core.geometry.ray_depth.feature_cost_belief``) or of their recorded depth (``source_depth``:
+    ``source_depth_belief``; a dataset without depth gives flat beliefs, so samples spread along every ray).
     """
 
     sampler: str = "uniform"
     spread: float = 2.0
     uncertainty: float = 0.2
+    source: str = "first_pass"
+    planes: int = 64
 
     def __post_init__(self) -> None:
         if self.sampler not in SAMPLERS:
             raise ConfigError(f"model.sampler={self.sampler!r}; expected one of: {', '.join(SAMPLERS)}")
+        if self.source not in DEPTH_SOURCES:
+            raise ConfigError(f"model.depth_source={self.source!r}; expected one of: {', '.join(DEPTH_SOURCES)}")
         if not (math.isfinite(self.spread) and self.spread > 0):
             raise ConfigError(f"model.surface_spread={self.spread!r}: expected a finite number of standard deviations > 0")
         if not (math.isfinite(self.uncertainty) and self.uncertainty > 0):
             raise ConfigError(f"model.surface_uncertainty={self.uncertainty!r}: expected a finite fraction of the "
                               "depth > 0")
+        if self.source != "first_pass" and self.sampler != "depth":
+            raise ConfigError(f"model.depth_source={self.source} places the samples of model.sampler=depth; expected "
+                              f"model.sampler=depth with it (model.sampler is {self.sampler!r})")
+        if isinstance(self.planes, bool) or not isinstance(self.planes, int) or self.planes < 2:
+            raise ConfigError(f"model.depth_planes={self.planes!r}: expected an integer >= 2 (candidate depths per ray)")
+
+    @property
+    def one_pass(self) -> bool:
+        """The depth comes from the source views: a single pass on ``fine_samples`` samples, no coarse pass."""
+        return self.sampler == "depth" and self.source != "first_pass"
 
 
 class GeneralizableNeRF(ModelFamily):
@@ -370,6 +391,14 @@ class GeneralizableNeRF(ModelFamily):
 
         Semantics are rendered in the last pass only. ``randomized`` jitters the samples (training).
         """
+        if self.sampling.one_pass:
+            around, _ = surface_depths(
+                rays, *self._depth_belief(rays, sources, features), self.fine_samples, spread=self.sampling.spread,
+                uncertainty=self.sampling.uncertainty, perturb=randomized, generator=generator,
+            )
+            only = self.render_pass(rays, points_along_rays(rays, around), sources, features,
+                                    with_semantic=with_semantic, with_sample_semantic=with_sample_semantic)
+            return only, None
         depths = stratified_inverse_depths(rays, self.coarse_samples, perturb=randomized, generator=generator)
         coarse_samples = points_along_rays(rays, depths)
         one_pass = self.fine_samples == 0
@@ -404,6 +433,15 @@ class GeneralizableNeRF(ModelFamily):
             with_sample_semantic=with_sample_semantic,
         )
         return coarse, fine
+
+    def _depth_belief(self, rays: RayBatch, sources: SourceViews, features: FeatureMaps) -> tuple[Tensor, Tensor]:
+        """Candidate depths ``[R, D]`` and their probabilities from the source views (``model.depth_source``)."""
+        with stage("depth sweep"):
+            if self.sampling.source == "cost_volume":
+                belief = feature_cost_belief(rays, sources, features.radiance, planes=self.sampling.planes)
+            else:
+                belief = source_depth_belief(rays, sources, planes=self.sampling.planes)
+        return belief.depths, belief.probabilities
 
     def render_pass(
         self,
@@ -469,7 +507,7 @@ class GeneralizableNeRF(ModelFamily):
         samples per ray) than the maps hold pixels: below that the copy costs more than it saves (measured:
         ``docs/benchmarks.md``, channels-last)."""
         per_ray = self.fine_samples + (0 if self.sampling.sampler == "depth" else self.coarse_samples)
-        samples = rays * max(self.coarse_samples, per_ray)
+        samples = rays * (per_ray if self.sampling.one_pass else max(self.coarse_samples, per_ray))
         if self.channels_last_maps and samples >= maps.shape[-2] * maps.shape[-1]:
             return sampling_layout(maps)
         return maps
