@@ -25,7 +25,7 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
         "MAX_FAR", "DatasetBase", "DatasetConfig", "check_depth_range", "check_image_size", "from_launch_dir",
     ),
     "gpnerf_core.interfaces": (
-        "FeatureExtractor", "FieldAggregator", "ImportedWeights", "ImportsWeights", "LossSet",
+        "DepthSource", "FeatureExtractor", "FieldAggregator", "ImportedWeights", "ImportsWeights", "LossSet",
         "PerceptionHead", "RayAggregator", "StressCase", "ViewSelector",
     ),
     "gpnerf_core.interfaces.stress": ("ChooseSources",),
@@ -147,6 +147,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
     )
     from gpnerf_core.data.dataset import SPLITS, SceneDataset
     from gpnerf_core.interfaces import (
+        DepthSource,
         FeatureExtractor,
         FieldAggregator,
         ImportedWeights,

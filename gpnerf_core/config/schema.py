@@ -197,6 +197,9 @@ class RootConfig:
     """Add-on group: ``+head=<name>``."""
     loss: Any = None
     """Add-on group: ``+loss=<name>``."""
+    depth_source: Any = None
+    """Add-on group: ``+depth_source=<name>``: where ``model.sampler=depth`` takes each ray's cheap depth from (none:
+    the family's own first pass)."""
     seed: int = 0
     device: str = "auto"
     """``auto`` (CUDA when available), ``cpu`` or ``cuda[:N]``."""

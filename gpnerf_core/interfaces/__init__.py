@@ -1,6 +1,7 @@
 """Abstract interfaces of every pluggable component kind (the dataset interface is ``gpnerf_core.data.dataset``, beside
 the dataset base)."""
 
+from gpnerf_core.interfaces.depth_source import DepthSource
 from gpnerf_core.interfaces.feature_extractor import FeatureExtractor
 from gpnerf_core.interfaces.field_aggregator import FieldAggregator
 from gpnerf_core.interfaces.head import PerceptionHead
@@ -12,6 +13,7 @@ from gpnerf_core.interfaces.view_selector import ViewSelector
 from gpnerf_core.interfaces.weights import ImportedWeights, ImportsWeights
 
 __all__ = [
+    "DepthSource",
     "FeatureExtractor",
     "FieldAggregator",
     "ImportedWeights",

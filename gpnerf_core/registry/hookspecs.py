@@ -114,6 +114,16 @@ def gpnerf_register_view_selectors() -> list[ComponentSpec]:
 
 
 @hookspec
+def gpnerf_register_depth_sources() -> list[ComponentSpec]:
+    """Depth sources for ``model.sampler=depth``, implementing ``DepthSource``: a cheap depth per ray from the source
+    views before any rendering pass.
+
+    Returns:
+        Specs for the Hydra group ``depth_source`` (an add-on group: select with ``+depth_source=<name>``).
+    """
+
+
+@hookspec
 def gpnerf_register_data_tools() -> list[DataTool]:
     """Subcommands of ``python -m gpnerf_core data`` (checkers, converters, generators).
 

@@ -55,6 +55,8 @@ KINDS: dict[str, ComponentKind] = {
         ComponentKind("loss", "gpnerf_register_losses", I.LossSet, add_on=True, defines_model=True),
         ComponentKind("dataset", "gpnerf_register_datasets", SceneDataset),
         ComponentKind("view_selector", "gpnerf_register_view_selectors", I.ViewSelector),
+        ComponentKind("depth_source", "gpnerf_register_depth_sources", I.DepthSource, add_on=True,
+                      defines_model=True),
     )
 }
 """Every component kind by name, in the order ``plugins`` lists them."""

@@ -85,8 +85,8 @@ def test_rays_the_sources_tell_nothing_about_get_samples_along_the_whole_ray():
 @pytest.mark.parametrize("source", ["cost_volume", "source_depth"])
 def test_the_gnt_family_renders_one_pass_on_samples_around_the_swept_depth(tmp_path, source):
     common = ["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES, f"dataset.root={tmp_path / 'scenes'}"]
-    model = build_components(compose([*common, "model.sampler=depth", f"model.depth_source={source}",
-                                      "model.depth_planes=32", "model.fine_samples=4"])).model
+    model = build_components(compose([*common, "model.sampler=depth", f"+depth_source={source}",
+                                      "depth_source.planes=32", "model.fine_samples=4"])).model
     rays, sources = _target_rays(), _wall_views()
     with torch.no_grad():
         only, none = model.render_rays(rays, sources, model.encode(sources.rgb), randomized=False, with_semantic=True)
@@ -95,10 +95,8 @@ def test_the_gnt_family_renders_one_pass_on_samples_around_the_swept_depth(tmp_p
     if source == "source_depth":  # around the wall, within about one of the 32 candidate bins (0.24 m there)
         depths = only.samples.depths
         assert (depths[:, 0] < WALL).all() and (depths[:, -1] > WALL).all() and (depths - WALL).abs().max() < 0.5
-    with pytest.raises(ConfigError, match=r"^model.depth_source=cost_volume places the samples of model.sampler=depth"):
-        build_components(compose([*common, "model.depth_source=cost_volume"]))
-    with pytest.raises(ConfigError, match=r"^model.depth_source='sweep'; expected one of: first_pass, cost_volume"):
-        build_components(compose([*common, "model.sampler=depth", "model.depth_source=sweep"]))
-    with pytest.raises(ConfigError, match=r"^model.depth_planes=1: expected an integer >= 2"):
-        build_components(compose([*common, "model.sampler=depth", f"model.depth_source={source}",
-                                  "model.depth_planes=1"]))
+    with pytest.raises(ConfigError, match=rf"^depth_source={source} places the samples of model.sampler=depth; "
+                                          r"expected model.sampler=depth with it \(model.sampler is 'uniform'\)$"):
+        build_components(compose([*common, f"+depth_source={source}"]))
+    with pytest.raises(ConfigError, match=r"^depth_source.planes=1: expected an integer >= 2"):
+        build_components(compose([*common, "model.sampler=depth", f"+depth_source={source}", "depth_source.planes=1"]))

@@ -14,6 +14,8 @@ from torch import nn
 
 from gpnerf_core import (
     ComponentSpec,
+    DepthBelief,
+    DepthSource,
     FeatureExtractor,
     FieldAggregator,
     LossSet,
@@ -23,6 +25,7 @@ from gpnerf_core import (
     StressCase,
     ViewSelector,
     hookimpl,
+    source_depth_belief,
 )
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.registry.kinds import KINDS
@@ -387,6 +390,39 @@ class RepeatsViews(NearestFirst):
         return [0] * num_views
 
 
+class SweptRecordedDepth(DepthSource):
+    def belief(self, rays, sources, features):
+        return source_depth_belief(rays, sources, planes=8)
+
+
+class UnnormalisedBelief(SweptRecordedDepth):
+    def belief(self, rays, sources, features):
+        found = super().belief(rays, sources, features)
+        return DepthBelief(found.depths, found.probabilities * 2, found.evidence)
+
+
+class GuessesUnseenRays(SweptRecordedDepth):
+    def belief(self, rays, sources, features):
+        found = super().belief(rays, sources, features)
+        middle = torch.zeros_like(found.probabilities)
+        middle[:, found.depths.shape[1] // 2] = 1.0  # where the views tell nothing: the middle of the ray
+        return DepthBelief(found.depths, torch.where(found.evidence[:, None], found.probabilities, middle),
+                           found.evidence)
+
+
+class BeliefWithGradient(SweptRecordedDepth):
+    def belief(self, rays, sources, features):
+        found = super().belief(rays, sources, features)
+        scale = features.radiance.mean() * 0 + 1  # keeps the features' graph
+        return DepthBelief(found.depths, found.probabilities * scale, found.evidence)
+
+
+class RandomBelief(SweptRecordedDepth):
+    def belief(self, rays, sources, features):
+        found = super().belief(rays, sources, features)
+        return DepthBelief(found.depths, torch.softmax(torch.rand(found.probabilities.shape), -1), found.evidence)
+
+
 class Classes(SceneDataset):
     ignore = 255
 
@@ -419,6 +455,7 @@ GOOD = [
     ("loss", RgbLoss, WEIGHT),
     ("view_selector", NearestFirst, None),
     ("dataset", Classes, None),
+    ("depth_source", SweptRecordedDepth, None),
 ]
 
 BROKEN = [
@@ -446,6 +483,10 @@ BROKEN = [
     ("view_selector", RepeatsViews, None, "selection",
      "num_views=3, generator=None) returned [0, 0, 0], which repeats a view"),
     ("dataset", IgnoreIsAClass, None, "classes", "ignore_index 1 is a valid class id in [0, 3); it must not be one"),
+    ("depth_source", UnnormalisedBelief, None, "belief", "probabilities [5, 8] sums to 2"),
+    ("depth_source", GuessesUnseenRays, None, "unseen rays", "are not flat for rays no view sees"),
+    ("depth_source", BeliefWithGradient, None, "no gradient", "probabilities requires grad"),
+    ("depth_source", RandomBelief, None, "determinism", "differs between two calls on the same inputs"),
 ]
 
 

@@ -9,7 +9,9 @@ from __future__ import annotations
 from typing import Any, Callable
 
 from gpnerf_core.testing import inputs
-from gpnerf_core.testing.checks import aggregators, datasets, extractors, heads, losses, models, selectors
+from gpnerf_core.testing.checks import (
+    aggregators, datasets, depth_sources, extractors, heads, losses, models, selectors,
+)
 from gpnerf_core.testing.checks.common import CheckFailed, CheckSkipped, Subject
 
 CHECKS: dict[str, dict[str, Callable[[Subject], None]]] = {
@@ -21,6 +23,7 @@ CHECKS: dict[str, dict[str, Callable[[Subject], None]]] = {
     "loss": losses.CHECKS,
     "dataset": datasets.CHECKS,
     "view_selector": selectors.CHECKS,
+    "depth_source": depth_sources.CHECKS,
 }
 
 RUNTIME: dict[str, dict[str, Any]] = {
@@ -32,6 +35,7 @@ RUNTIME: dict[str, dict[str, Any]] = {
     "loss": {},
     "dataset": {},
     "view_selector": {},
+    "depth_source": {},
 }
 
 __all__ = ["CHECKS", "RUNTIME", "CheckFailed", "CheckSkipped", "Subject"]

@@ -2,7 +2,7 @@
 the same machine state (load, caches, frequency), which two processes one after the other do not.
 
     python -m gpnerf_core.tools.bench.ab [size=small] [rounds=4] [options=channels_last,compile,sampler] [threads=2]
-        [phase=train|render] [depth_samples=C+F] [depth_sources=first_pass,cost_volume,source_depth] [overrides...]
+        [phase=train|render] [depth_samples=C+F] [depth_sources=cost_volume,source_depth] [overrides...]
 
 Prints per variant the minimum and median seconds of a training step (or of rendering one view, ``phase=render``) and the ratio of medians to the first variant; ``compile``
 reports its compile time (the first steps of each new shape) apart from the steps timed. The options:
@@ -10,9 +10,9 @@ reports its compile time (the first steps of each new shape) apart from the step
 - ``channels_last``: ``model.channels_last_maps`` false against true (the same float32 values; the model attribute
   is switched between steps).
 - ``compile``: the eager block pairs against ``torch.compile`` d ones (inductor).
-- ``sampler``: ``model.sampler`` uniform against depth (``gpnerf_core.geometry.surface_depths``) with each of
-  ``depth_sources`` (``model.depth_source``; default ``first_pass``), the depth variants with ``depth_samples=C+F``
-  samples per ray (default: the configured counts).
+- ``sampler``: ``model.sampler`` uniform against depth (``gpnerf_core.geometry.surface_depths``) from the coarse pass
+  and from each of ``depth_sources`` (``+depth_source`` names: one pass, no coarse pass), the depth variants with
+  ``depth_samples=C+F`` samples per ray (default: the configured counts).
 
 The transformers' dropout (a plugin's internals) has its own script on top of ``alternate``: examples/ab_dropout.py.
 """
@@ -56,17 +56,17 @@ def compile_variants(backend: str = "inductor") -> dict[str, Variant]:
     return {"eager": use(False), f"compiled ({backend})": use(True)}
 
 
-def sampler_variants(depth_samples: str, depth_sources: str = "first_pass") -> dict[str, Variant]:
-    """``model.sampler`` uniform (the configured sample counts) against depth from each of ``depth_sources``
-    (comma-separated ``model.depth_source`` values), with the counts ``depth_samples`` (``C+F``: coarse + fine; "" =
-    the configured ones; the coarse count is unused by the one-pass sources). The model is the same: only where it
-    samples changes."""
-    sources = [source for source in depth_sources.split(",") if source]  # each checked by the family when used
-    if not sources:
-        raise ConfigError(f"depth_sources={depth_sources!r}: expected a comma-separated list of model.depth_source values")
+def sampler_variants(depth_samples: str, depth_sources: str = "") -> dict[str, Variant]:
+    """``model.sampler`` uniform (the configured sample counts) against depth from the coarse pass and from each of
+    ``depth_sources`` (comma-separated ``depth_source`` names: one pass, no coarse pass), with the counts
+    ``depth_samples`` (``C+F``: coarse + fine; "" = the configured ones). The model is the same: only where it samples
+    changes."""
+    from gpnerf_core.registry.components import get_registry
+
+    built = {name: get_registry().build("depth_source", {"name": name}) for name in depth_sources.split(",") if name}
     configured: dict[str, int] = {}
 
-    def use(sampler: str, source: str = "first_pass") -> Variant:
+    def use(sampler: str, source: str | None = None) -> Variant:
         def switch(trainer: Trainer) -> None:
             model = trainer.model
             configured.setdefault("coarse", model.coarse_samples)
@@ -75,11 +75,13 @@ def sampler_variants(depth_samples: str, depth_sources: str = "first_pass") -> d
             if sampler == "depth" and depth_samples:
                 coarse, fine = _sample_counts(depth_samples)
             model.coarse_samples, model.fine_samples = coarse, fine
-            model.sampling = dataclasses.replace(model.sampling, sampler=sampler, source=source)
+            model.sampling = dataclasses.replace(model.sampling, sampler=sampler)
+            model.depth_source = built[source] if source else None
         return switch
 
     label = f"{depth_samples} samples, " if depth_samples else ""
-    return {"uniform": use("uniform"), **{f"depth ({label}{source})": use("depth", source) for source in sources}}
+    return {"uniform": use("uniform"), f"depth ({label}first pass)": use("depth"),
+            **{f"depth ({label}{name})": use("depth", name) for name in built}}
 
 
 def _sample_counts(text: str) -> tuple[int, int]:
@@ -160,7 +162,7 @@ def timing_lines(times: dict[str, list[float]], warm_up: dict[str, float]) -> li
 
 def main(argv: list[str]) -> int:
     settings = {"size": "small", "rounds": "4", "options": "channels_last,compile", "threads": "2", "phase": "train",
-                "depth_samples": "", "depth_sources": "first_pass"}
+                "depth_samples": "", "depth_sources": ""}
     overrides = []
     for argument in argv:
         key, _, value = argument.partition("=")

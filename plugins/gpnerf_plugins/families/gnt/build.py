@@ -16,8 +16,6 @@ def build_gnt(
     coarse_samples: int = GNTModelConfig.coarse_samples,
     fine_samples: int = GNTModelConfig.fine_samples,
     sampler: str = GNTModelConfig.sampler,
-    depth_source: str = GNTModelConfig.depth_source,
-    depth_planes: int = GNTModelConfig.depth_planes,
     surface_spread: float = GNTModelConfig.surface_spread,
     surface_uncertainty: float = GNTModelConfig.surface_uncertainty,
     detach_source_semantics: bool = GNTModelConfig.detach_source_semantics,
@@ -52,6 +50,12 @@ def build_gnt(
                 joint_attention=semantics.joint_attention,
                 adaptor_relu=semantics.adaptor_relu,
             )
+    depth_source = None
+    if parts.configured("depth_source"):
+        if sampler != "depth":
+            raise ConfigError(f"depth_source={parts.name('depth_source')} places the samples of model.sampler=depth; "
+                              f"expected model.sampler=depth with it (model.sampler is {sampler!r})")
+        depth_source = parts.build("depth_source")
     return GeneralizableNeRF(
         extractor=extractor,
         field=field,
@@ -60,7 +64,8 @@ def build_gnt(
         semantic=semantic,
         coarse_samples=coarse_samples,
         fine_samples=fine_samples,
-        sampling=FineSampling(sampler, surface_spread, surface_uncertainty, depth_source, depth_planes),
+        sampling=FineSampling(sampler, surface_spread, surface_uncertainty),
+        depth_source=depth_source,
         detach_source_semantics=detach_source_semantics,
         fuse_rendered=fuse_rendered,
         checkpoint_blocks=checkpoint_blocks,

@@ -29,13 +29,7 @@ class GNTModelConfig(ModelConfig):
     """Samples of the fine pass: ``uniform`` (the coarse samples plus ``fine_samples`` drawn from the coarse weights,
     GNT's) or ``depth`` (only ``fine_samples`` samples, around the coarse pass's depth, or drawn from the coarse
     weights where that depth is uncertain: ``gpnerf_core.geometry.surface_depths``; fewer samples where the surfaces
-    are)."""
-    depth_source: str = "first_pass"
-    """``sampler=depth``: where each ray's cheap depth comes from: ``first_pass`` (the coarse pass's weights; two
-    passes), ``cost_volume`` (a plane sweep of the source views' radiance features along the ray; one pass on
-    ``fine_samples`` samples, no coarse pass) or ``source_depth`` (the source views' recorded depth; one pass)."""
-    depth_planes: int = 64
-    """``depth_source=cost_volume|source_depth``: candidate depths per ray of the sweep (uniform in 1/depth)."""
+    are). With ``+depth_source=<name>`` the depth comes from the source views instead: one pass, no coarse pass."""
     surface_spread: float = 2.0
     """``sampler=depth``: the fine samples span the coarse depth +- this many standard deviations of its weights
     (at least one coarse bin)."""

@@ -49,14 +49,13 @@ from gpnerf_core import (
     ViewOutput,
     checked_compile_backend,
     decode_checked,
+    DepthSource,
     decoded_view_output,
-    feature_cost_belief,
     importance_depths,
     pixel_grid,
     points_along_rays,
     rays_through_pixels,
     sampling_layout,
-    source_depth_belief,
     stage,
     stratified_inverse_depths,
     surface_depths,
@@ -79,49 +78,31 @@ def compiled_block_pair(backend: str, num_blocks: int):
 
 
 SAMPLERS = ("uniform", "depth")
-DEPTH_SOURCES = ("first_pass", "cost_volume", "source_depth")
 
 
 @dataclass(frozen=True)
 class FineSampling:
-    """Where the samples go (``model.sampler``, ``model.depth_source``, ``model.depth_planes``, ``model.surface_spread``,
-    ``model.surface_uncertainty``).
+    """Where the samples go (``model.sampler``, ``model.surface_spread``, ``model.surface_uncertainty``).
 
     ``uniform``: the coarse samples plus importance samples from the coarse weights (GNT, GP-NeRF). ``depth``: only
     ``fine_samples`` samples around a cheap depth of each ray, or spread by its belief where that depth is uncertain
-    (``gpnerf_core.geometry.surface_depths``). The cheap depth (``source``) comes from the coarse pass's weights
-    (``first_pass``: two passes, the second on the few samples), or, with no coarse pass at all, from a plane sweep
-    along the ray over ``planes`` candidate depths of the source views' radiance features (``cost_volume``:
-    ``gpnerf_core.geometry.ray_depth.feature_cost_belief``) or of their recorded depth (``source_depth``:
-    ``source_depth_belief``; a dataset without depth gives flat beliefs, so samples spread along every ray).
+    (``gpnerf_core.geometry.surface_depths``). The cheap depth comes from the coarse pass's weights (two passes, the
+    second on the few samples), or, with a ``+depth_source`` (``DepthSource``: a sweep of the source views' features
+    or recorded depth along the ray), from the source views alone: one pass, no coarse pass.
     """
 
     sampler: str = "uniform"
     spread: float = 2.0
     uncertainty: float = 0.2
-    source: str = "first_pass"
-    planes: int = 64
 
     def __post_init__(self) -> None:
         if self.sampler not in SAMPLERS:
             raise ConfigError(f"model.sampler={self.sampler!r}; expected one of: {', '.join(SAMPLERS)}")
-        if self.source not in DEPTH_SOURCES:
-            raise ConfigError(f"model.depth_source={self.source!r}; expected one of: {', '.join(DEPTH_SOURCES)}")
         if not (math.isfinite(self.spread) and self.spread > 0):
             raise ConfigError(f"model.surface_spread={self.spread!r}: expected a finite number of standard deviations > 0")
         if not (math.isfinite(self.uncertainty) and self.uncertainty > 0):
             raise ConfigError(f"model.surface_uncertainty={self.uncertainty!r}: expected a finite fraction of the "
                               "depth > 0")
-        if self.source != "first_pass" and self.sampler != "depth":
-            raise ConfigError(f"model.depth_source={self.source} places the samples of model.sampler=depth; expected "
-                              f"model.sampler=depth with it (model.sampler is {self.sampler!r})")
-        if isinstance(self.planes, bool) or not isinstance(self.planes, int) or self.planes < 2:
-            raise ConfigError(f"model.depth_planes={self.planes!r}: expected an integer >= 2 (candidate depths per ray)")
-
-    @property
-    def one_pass(self) -> bool:
-        """The depth comes from the source views: a single pass on ``fine_samples`` samples, no coarse pass."""
-        return self.sampler == "depth" and self.source != "first_pass"
 
 
 class GeneralizableNeRF(ModelFamily):
@@ -134,6 +115,8 @@ class GeneralizableNeRF(ModelFamily):
         coarse_samples: stratified samples per ray; fine_samples: samples of the fine pass beside (``uniform``) or
             instead of (``depth``) the coarse ones (0 = one pass).
         sampling: where the fine samples go (``FineSampling``).
+        depth_source: with ``sampling.sampler == "depth"``, each ray's cheap depth from the source views (one pass on
+            ``fine_samples`` samples, no coarse pass); None: from the coarse pass.
         detach_source_semantics: stop rendered-feature losses from training the extractor through the
             source views (the released code does, REFERENCE §3 (ii)).
         fuse_rendered: the head decodes the fused map in training (paper); False decodes the teacher map
@@ -159,6 +142,7 @@ class GeneralizableNeRF(ModelFamily):
         fine_samples: int,
         detach_source_semantics: bool,
         sampling: FineSampling = FineSampling(),
+        depth_source: DepthSource | None = None,
         fuse_rendered: bool,
         checkpoint_blocks: bool,
         channels_last_maps: bool = True,
@@ -183,7 +167,11 @@ class GeneralizableNeRF(ModelFamily):
         self.semantic = semantic
         self.coarse_samples = coarse_samples
         self.fine_samples = fine_samples
+        if depth_source is not None and sampling.sampler != "depth":
+            raise ConfigError(f"depth_source {type(depth_source).__name__} places the samples of model.sampler=depth; "
+                              f"expected model.sampler=depth with it (model.sampler is {sampling.sampler!r})")
         self.sampling = sampling
+        self.depth_source = depth_source
         self.detach_source_semantics = detach_source_semantics
         self.fuse_rendered = fuse_rendered
         self.checkpoint_blocks = checkpoint_blocks
@@ -391,7 +379,7 @@ class GeneralizableNeRF(ModelFamily):
 
         Semantics are rendered in the last pass only. ``randomized`` jitters the samples (training).
         """
-        if self.sampling.one_pass:
+        if self.samples_from_sweep:
             around, _ = surface_depths(
                 rays, *self._depth_belief(rays, sources, features), self.fine_samples, spread=self.sampling.spread,
                 uncertainty=self.sampling.uncertainty, perturb=randomized, generator=generator,
@@ -434,13 +422,15 @@ class GeneralizableNeRF(ModelFamily):
         )
         return coarse, fine
 
+    @property
+    def samples_from_sweep(self) -> bool:
+        """``model.sampler=depth`` with a ``depth_source``: one pass on ``fine_samples`` samples, no coarse pass."""
+        return self.sampling.sampler == "depth" and self.depth_source is not None
+
     def _depth_belief(self, rays: RayBatch, sources: SourceViews, features: FeatureMaps) -> tuple[Tensor, Tensor]:
-        """Candidate depths ``[R, D]`` and their probabilities from the source views (``model.depth_source``)."""
+        """Candidate depths ``[R, D]`` and their probabilities from the source views (the ``depth_source``)."""
         with stage("depth sweep"):
-            if self.sampling.source == "cost_volume":
-                belief = feature_cost_belief(rays, sources, features.radiance, planes=self.sampling.planes)
-            else:
-                belief = source_depth_belief(rays, sources, planes=self.sampling.planes)
+            belief = self.depth_source.belief(rays, sources, features)
         return belief.depths, belief.probabilities
 
     def render_pass(
@@ -507,7 +497,7 @@ class GeneralizableNeRF(ModelFamily):
         samples per ray) than the maps hold pixels: below that the copy costs more than it saves (measured:
         ``docs/benchmarks.md``, channels-last)."""
         per_ray = self.fine_samples + (0 if self.sampling.sampler == "depth" else self.coarse_samples)
-        samples = rays * (per_ray if self.sampling.one_pass else max(self.coarse_samples, per_ray))
+        samples = rays * (per_ray if self.samples_from_sweep else max(self.coarse_samples, per_ray))
         if self.channels_last_maps and samples >= maps.shape[-2] * maps.shape[-1]:
             return sampling_layout(maps)
         return maps

@@ -1,0 +1,1 @@
+"""Built-in depth sources (``+depth_source=cost_volume|source_depth``) for ``model.sampler=depth``."""
