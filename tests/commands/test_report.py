@@ -244,3 +244,23 @@ def test_the_headline_panel_leads_the_chart_and_is_drawn_alone_too(tmp_path):
     alone = Image.open(tmp_path / "headline.png")
     chart = Image.open(tmp_path / "speed_accuracy.png")
     assert alone.size[0] >= 700 and chart.size[1] > alone.size[1]  # the grid (1 x 2 panels) below the headline
+
+
+def test_chart_labels_name_where_a_run_sampled(tmp_path):
+    from gpnerf_core.tools.reporting.runs import find_runs, group_runs, method_labels
+
+    dgs = {"name": "dgs", "sd_weight": 0.25, "dgs_weight": 0.25, "teacher_stop_grad": True}
+    for name, sampler, source in (("uniform", None, None), ("first_pass", "depth", None),
+                                  ("swept", "depth", {"name": "cost_volume", "planes": 64})):
+        write_run(tmp_path / name, dgs, True, 0.6)
+        config = yaml.safe_load((tmp_path / name / "config.yaml").read_text())
+        if sampler:
+            config["model"]["sampler"] = sampler
+        if source:
+            config["depth_source"] = source
+        (tmp_path / name / "config.yaml").write_text(yaml.safe_dump(config))
+    groups = group_runs(find_runs([tmp_path]))
+    labels = dict(zip((g.runs[0].folder.name for g in groups), method_labels(groups)))
+    assert labels == {"uniform": "unet + dgs (Table 4 ID 5)",
+                      "first_pass": "unet + dgs (Table 4 ID 5) (depth samples: first pass)",
+                      "swept": "unet + dgs (Table 4 ID 5) (depth samples: cost_volume)"}

@@ -404,7 +404,7 @@ def method_labels(groups: list[RowGroup]) -> list[str]:
         switches = first.paper_switches()
         paper = PAPER_TABLE4.get(switches) if switches else None
         what = f"{head} + {loss}" if first.model == "gnt" else f"{first.model} + {loss}"
-        described.append(what + (f" (Table 4 ID {paper[0]})" if paper else ""))
+        described.append(what + (f" (Table 4 ID {paper[0]})" if paper else "") + sampling_label(first.config))
     labels = []
     for text, group in zip(described, groups):
         twins = [g for t, g in zip(described, groups) if t == text]
@@ -414,6 +414,15 @@ def method_labels(groups: list[RowGroup]) -> list[str]:
         differences = distinguishing_values(group, twins)
         labels.append(f"{text} [{differences or group.runs[0].folder.name}]")
     return labels
+
+
+def sampling_label(config: dict[str, Any]) -> str:
+    """`` (depth samples: <source>)`` for a run with ``model.sampler=depth`` (the source: its ``+depth_source`` or the
+    first pass), "" for the default sampling."""
+    if (config.get("model") or {}).get("sampler") != "depth":
+        return ""
+    source = (config.get("depth_source") or {}).get("name", "first pass")
+    return f" (depth samples: {source})"
 
 
 def distinguishing_values(group: RowGroup, twins: list[RowGroup], most: int = 4) -> str:
