@@ -4,7 +4,8 @@
 
 Sections: Table 4 (per seed, mean +- sample std, the orderings that hold beyond the seed spread), the methods of the
 speed-accuracy chart, the compared methods' families (Table 1's generalization rows and the paper's orderings), each
-field per pixel and with GP-NeRF's U-Net decoding, the instance head against the connected-components baseline, fine-tuning. A missing run is
+field per pixel and with GP-NeRF's U-Net decoding, the layout-count curve, where the samples go (the samplers), the
+instance head against the connected-components baseline, fine-tuning. A missing run is
 named, never skipped silently.
 """
 
@@ -193,6 +194,31 @@ def layouts(runs: Path) -> list[str]:
     return lines
 
 
+SAMPLERS = (("uniform: 24 coarse + 8 fine (ID 5, the main job)", "id5"),
+            ("depth from the coarse pass (model.sampler=depth)", "sampler_first_pass"),
+            ("depth from a feature sweep (+depth_source=cost_volume): one pass, 8 samples", "sampler_cost_volume"),
+            ("depth from the recorded depth (+depth_source=source_depth): one pass, 8 samples", "sampler_source_depth"))
+
+
+def samplers(runs: Path) -> list[str]:
+    """The main job's config trained and evaluated with each sampling, seeds 0-2: accuracy and render time."""
+    lines = ["## Where the samples go (the main job's config, seeds 0-2)", "",
+             "| sampling | mIoU held-out | mIoU unseen | PSNR held-out | PSNR unseen | depth AbsRel unseen "
+             "| eval s/frame | train s | missing |", "|---|---|---|---|---|---|---|---|---|"]
+    for title, prefix in SAMPLERS:
+        found = {s: m for s in SEEDS if (m := load(runs, f"{prefix}_s{s}")) is not None}
+        ms = list(found.values())
+        missing = ", ".join(f"{prefix}_s{s}" for s in SEEDS if s not in found) or "-"
+        lines.append(f"| {title} | {mean_std(column(ms, split(HELD, MIOU)), digits=3)} | "
+                     f"{mean_std(column(ms, split(UNSEEN, MIOU)), digits=3)} | "
+                     f"{mean_std(column(ms, split(HELD, 'psnr/clamped')))} | "
+                     f"{mean_std(column(ms, split(UNSEEN, 'psnr/clamped')))} | "
+                     f"{mean_std(column(ms, split(UNSEEN, 'depth/abs_rel')), digits=3)} | "
+                     f"{mean_std(column(ms, timing('seconds_per_frame')))} | "
+                     f"{mean_std(column(ms, lambda m: m['train']['seconds']), digits=0)} | {missing} |")
+    return lines
+
+
 INSTANCE_KEYS = ("instance/ap_matched@0.75", "instance/ap_matched@0.5", "instance/coco_mask_ap",
                  "instance/coco_mask_ap50", "instance/coco_mask_ap75")
 
@@ -280,7 +306,7 @@ def main(work: Path) -> int:
     print("# Summary of", work, "\n")
     if provenance.is_file():
         print("```\n" + provenance.read_text().strip() + "\n```\n")
-    for section in (table4, methods, baselines, grid, layouts, instance, finetune):
+    for section in (table4, methods, baselines, grid, layouts, samplers, instance, finetune):
         print("\n".join(section(runs)) + "\n")
     return 0
 

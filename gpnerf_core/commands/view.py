@@ -62,12 +62,13 @@ def _serve(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.data.dataset import chosen_scene, shown_scenes
     from gpnerf_core.data.frames import FrameCache
     from gpnerf_core.tools.viewer.server import ViewerOptions, ViewerServer, check_port_free, serve_until_stopped
-    from gpnerf_core.tools.viewer.renderer import SceneRenderer
+    from gpnerf_core.tools.viewer.renderer import SceneRenderer, preview_of
 
     try:
         _remove_empty_job_folder(cfg)
         host, port = str(cfg.view.host), int(cfg.view.port)
         check_port_free(host, port)  # before loading the model: a port in use is refused at once
+        preview = preview_of(cfg.view)
         loaded = model_from_checkpoint(cfg, dist, "view", check_scenes=False)
         components = loaded.components
         for note in loaded.notes:
@@ -80,7 +81,7 @@ def _serve(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             model, FrameCache(components.dataset, dist.device), components.view_selector,
             num_classes=components.classes.num_classes, chunk_rays=int(cfg.eval.chunk_rays),
             default_source_views=int(cfg.model.num_source_views),
-            feature_cache=SourceFeatureCache(budget) if budget > 0 else None,
+            feature_cache=SourceFeatureCache(budget) if budget > 0 else None, preview=preview,
         )
         output = model.semantic_output
         semantic = output is not None and output.predicts is Predicts.CLASSES

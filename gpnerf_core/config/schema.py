@@ -178,6 +178,12 @@ class ViewConfig:
     """``view``: pixels per rendered cell of the full frame, rendered once the camera rests."""
     preview_stride: int = 8
     """``view``: pixels per rendered cell of the coarse preview shown first while the camera moves."""
+    preview_samples: int = 8
+    """``view``: samples per ray of the preview, placed around each ray's depth from ``preview_depth_source`` in one
+    pass (a family that cannot, renders the preview as the full frame); 0 = the preview samples as the full frame."""
+    preview_depth_source: str = "cost_volume"
+    """``view``: the depth source (``+depth_source`` names) that places the preview's samples, unless the model was
+    trained with one of its own."""
     source_views: int = 0
     """``view``: source views per rendered view (0 = ``model.num_source_views``); the viewer's slider changes it."""
     feature_cache_mb: float = 256.0

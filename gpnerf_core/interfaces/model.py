@@ -9,14 +9,17 @@ another.
 
 from __future__ import annotations
 
+import contextlib
 import enum
 from abc import ABC, abstractmethod
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any, ClassVar, Mapping
 
 from torch import Tensor, nn
 
 from gpnerf_core.errors import ConfigError
+from gpnerf_core.interfaces.depth_source import DepthSource
 from gpnerf_core.interfaces.head import PerceptionHead, Predicts
 from gpnerf_core.interfaces.weights import ImportedWeights, ImportsWeights
 from gpnerf_core.types import FeatureMaps, Prediction, SourceViews, StepBatch, StepOutput, TargetCamera
@@ -182,6 +185,13 @@ class ModelFamily(ImportsWeights, nn.Module, ABC):
         compiled path: asking for one is a ConfigError."""
         if backend is not None:
             raise ConfigError(f"model {type(self).__name__} has no compiled path (model.compile=true)")
+
+    @contextlib.contextmanager
+    def preview_sampling(self, depth_source: DepthSource, samples: int) -> Iterator[bool]:
+        """While entered, ``predict`` renders with ``samples`` samples per ray placed by ``depth_source`` (one pass,
+        no coarse pass; a family trained with a depth source of its own keeps it): the viewer's preview, cheap and
+        approximate. Yields whether the family honours it; by default it does not (and renders as configured)."""
+        yield False
 
     def read_foreign(self, checkpoint: Mapping[str, Any]) -> ImportedWeights | None:
         """The model's share of another code base's checkpoint (``model.init=<file>``, e.g. an official GNT one): the

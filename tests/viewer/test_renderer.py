@@ -2,6 +2,7 @@
 rendering; cameras no source sees render something finite."""
 
 import dataclasses
+import re
 import threading
 import time
 
@@ -203,3 +204,37 @@ def test_highlighting_a_class_dims_every_other_pixel():
     labels = np.array([[0, 1, 2], [1, 1, 0]])
     out = highlight_class(picture, labels, 1)
     assert (out[labels == 1] == 200).all() and (out[labels != 1] == 50).all() and (picture == 200).all()
+
+
+def test_the_preview_samples_around_the_swept_depth_and_the_full_frame_as_configured(tiny, at_frame):
+    from gpnerf_core.errors import ConfigError
+    from gpnerf_core.tools.viewer.renderer import preview_of
+    from omegaconf import OmegaConf
+
+    components, renderer = tiny
+    model = components.model
+    preview = preview_of(OmegaConf.create({"preview_samples": 3, "preview_depth_source": "cost_volume"}))
+    fast = SceneRenderer(model, renderer.frames, components.view_selector, num_classes=9, chunk_rays=256,
+                         default_source_views=2, preview=preview)
+    request = at_frame(renderer, "layout_00", 0)
+    camera = fast.camera(request, 8)
+    configured = (model.sampling, model.depth_source, model.fine_samples)
+    swept = fast.render("layout_00", camera, 2, 8, "preview").prediction
+    as_full = renderer.render("layout_00", camera, 2, 8, "preview").prediction
+    assert (model.sampling, model.depth_source, model.fine_samples) == configured  # restored after the preview
+    assert swept.rgb.shape == as_full.rgb.shape and not torch.equal(swept.rgb, as_full.rgb)
+    full = fast.render("layout_00", camera, 2, 4, "full").prediction
+    assert torch.equal(full.rgb, renderer.render("layout_00", camera, 2, 4, "full").prediction.rgb)
+    try:  # a failure inside the preview leaves the configured sampling in place
+        with model.preview_sampling(*preview):
+            raise RuntimeError("render failed")
+    except RuntimeError:
+        pass
+    assert (model.sampling, model.depth_source, model.fine_samples) == configured
+    assert preview_of(OmegaConf.create({"preview_samples": 0, "preview_depth_source": "cost_volume"})) is None
+    for values, message in (({"preview_samples": -1, "preview_depth_source": "cost_volume"},
+                              "view.preview_samples=-1: expected an integer >= 0"),
+                             ({"preview_samples": 4, "preview_depth_source": "sweep"},
+                              "view.preview_depth_source='sweep'; expected one of: cost_volume, source_depth")):
+        with pytest.raises(ConfigError, match=f"^{re.escape(message)}"):
+            preview_of(OmegaConf.create(values))

@@ -4,23 +4,25 @@ once the camera rests), dropping work a newer camera made stale."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import sys
 import threading
 import time
 from dataclasses import dataclass
-from typing import Callable, Hashable
+from typing import Any, Callable, Hashable
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+from gpnerf_core.errors import ConfigError
 from gpnerf_core.evaluation import visualize as vis
 from gpnerf_core.evaluation.pictures import prediction_layers
 from gpnerf_core.model.feature_cache import SourceFeatureCache
 from gpnerf_core.model.view_inputs import view_inputs
 from gpnerf_core.data.frames import FrameCache
-from gpnerf_core.interfaces import ViewSelector
+from gpnerf_core.interfaces import DepthSource, ViewSelector
 from gpnerf_core.interfaces.head import Predicts
 from gpnerf_core.interfaces.model import ModelFamily
 from gpnerf_core.types import Prediction, Scene, TargetCamera
@@ -55,6 +57,27 @@ def highlight_class(picture: np.ndarray, labels: np.ndarray, k: int) -> np.ndarr
     other = labels != k
     out[other] = out[other] // 4
     return out
+
+
+def preview_of(view_cfg: Any) -> tuple[DepthSource, int] | None:
+    """The preview's ``(depth source, samples per ray)`` from ``view.preview_samples`` and
+    ``view.preview_depth_source`` (None: ``preview_samples=0``).
+
+    Raises:
+        ConfigError: a negative or non-integer sample count, or a depth source no plugin registers (the known listed).
+    """
+    from gpnerf_core.registry.components import get_registry
+
+    samples = view_cfg.preview_samples
+    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 0:
+        raise ConfigError(f"view.preview_samples={samples!r}: expected an integer >= 0 (0 = the preview samples as "
+                          "the full frame)")
+    if samples == 0:
+        return None
+    name, known = str(view_cfg.preview_depth_source), get_registry().names("depth_source")
+    if name not in known:
+        raise ConfigError(f"view.preview_depth_source={name!r}; expected one of: {', '.join(known)}")
+    return get_registry().build("depth_source", {"name": name}), samples
 
 
 @dataclass(frozen=True)
@@ -113,6 +136,8 @@ class SceneRenderer:
         num_classes, class_names: the head's classes (for the semantic layer).
         chunk_rays: rays rendered at once; default_source_views: source views when a request asks for 0.
         feature_cache: keeps the encoded source maps of the scenes shown (None: every render encodes its sources).
+        preview: ``(depth source, samples per ray)`` of the preview stage (``ModelFamily.preview_sampling``); None:
+            the preview samples as the full frame.
     """
 
     def __init__(
@@ -124,8 +149,10 @@ class SceneRenderer:
         chunk_rays: int,
         default_source_views: int,
         feature_cache: SourceFeatureCache | None = None,
+        preview: tuple[DepthSource, int] | None = None,
     ) -> None:
         self.model = model
+        self.preview = preview
         self.frames = frames
         self.selector = selector
         self.num_classes = num_classes
@@ -153,8 +180,11 @@ class SceneRenderer:
                 index = frame = None
             given = view_inputs(self.model, self.frames, self.selector, scene, camera.c2w,
                                 source_views or self.default_source_views, exclude=index, cache=self.feature_cache)
-            prediction = self.model.predict(camera, given.sources, stride=stride, chunk_rays=self.chunk_rays,
-                                            features=given.features)
+            sampling = (self.model.preview_sampling(*self.preview) if stage == "preview" and self.preview is not None
+                        else contextlib.nullcontext())
+            with sampling:
+                prediction = self.model.predict(camera, given.sources, stride=stride, chunk_rays=self.chunk_rays,
+                                                features=given.features)
         layers = self.layers(prediction, scene.near, scene.far)
         psnr = None
         if frame is not None:

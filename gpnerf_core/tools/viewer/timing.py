@@ -2,7 +2,8 @@
 
 Builds the model of the given config (its weights do not change the time; ``checkpoint=<pt>`` is not read), then, for
 a camera at a training frame of the first scene, times what the viewer does when a camera stops: the preview at
-``view.preview_stride`` and the full frame at ``view.stride``, each for a camera whose sources are not encoded yet
+``view.preview_stride`` (``view.preview_samples`` per ray around ``view.preview_depth_source``'s depth; 0 = as the full
+frame) and the full frame at ``view.stride``, each for a camera whose sources are not encoded yet
 (cold) and again with the feature cache holding them (warm, as while the camera moves among the same sources).
 Prints one JSON object (seconds, the image size, threads and device)."""
 
@@ -24,7 +25,7 @@ def measure(overrides: list[str], repeats: int = 3) -> dict[str, object]:
     from gpnerf_core.model.feature_cache import SourceFeatureCache
     from gpnerf_core.data.frames import FrameCache
     from gpnerf_core.tools.viewer.camera import vertical_fov, viser_pose
-    from gpnerf_core.tools.viewer.renderer import SceneRenderer, ViewRequest
+    from gpnerf_core.tools.viewer.renderer import SceneRenderer, ViewRequest, preview_of
 
     cfg = compose(overrides)
     setup_process(cfg)
@@ -34,7 +35,8 @@ def measure(overrides: list[str], repeats: int = 3) -> dict[str, object]:
     renderer = SceneRenderer(model, FrameCache(components.dataset, torch.device("cpu")), components.view_selector,
                              num_classes=components.classes.num_classes, chunk_rays=int(cfg.eval.chunk_rays),
                              default_source_views=int(cfg.model.num_source_views),
-                             feature_cache=SourceFeatureCache(float(cfg.view.feature_cache_mb)))
+                             feature_cache=SourceFeatureCache(float(cfg.view.feature_cache_mb)),
+                             preview=preview_of(cfg.view))
     scene = renderer.frames.scene(scenes[0])
     index = scene.train_frames[0]
     wxyz, position = viser_pose(scene.c2w[index])
@@ -45,6 +47,8 @@ def measure(overrides: list[str], repeats: int = 3) -> dict[str, object]:
     camera = renderer.camera(request, math.lcm(request.stride, request.preview_stride))
     result: dict[str, object] = {"scene": scene.name, "image": [camera.height, camera.width],
                                  "stride": request.stride, "preview_stride": request.preview_stride,
+                                 "preview_samples": int(cfg.view.preview_samples),
+                                 "preview_depth_source": str(cfg.view.preview_depth_source),
                                  "threads": torch.get_num_threads(), "device": "cpu",
                                  "parameters": model.parameter_counts()["total"]}
     for stage, stride in (("preview", request.preview_stride), ("full", request.stride)):

@@ -11,8 +11,11 @@ alone.
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import functools
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any, Mapping
 
@@ -426,6 +429,21 @@ class GeneralizableNeRF(ModelFamily):
     def samples_from_sweep(self) -> bool:
         """``model.sampler=depth`` with a ``depth_source``: one pass on ``fine_samples`` samples, no coarse pass."""
         return self.sampling.sampler == "depth" and self.depth_source is not None
+
+    @contextlib.contextmanager
+    def preview_sampling(self, depth_source: DepthSource, samples: int) -> Iterator[bool]:
+        """One pass on ``samples`` samples around the depth of ``depth_source`` (or of the model's own depth source)
+        while entered; the configured sampling is restored on exit, whatever happens."""
+        if samples < 1:
+            raise ConfigError(f"a preview needs at least 1 sample per ray, got {samples}")
+        saved = self.sampling, self.depth_source, self.fine_samples
+        self.sampling = dataclasses.replace(self.sampling, sampler="depth")
+        self.depth_source = self.depth_source or depth_source
+        self.fine_samples = samples
+        try:
+            yield True
+        finally:
+            self.sampling, self.depth_source, self.fine_samples = saved
 
     def _depth_belief(self, rays: RayBatch, sources: SourceViews, features: FeatureMaps) -> tuple[Tensor, Tensor]:
         """Candidate depths ``[R, D]`` and their probabilities from the source views (the ``depth_source``)."""
