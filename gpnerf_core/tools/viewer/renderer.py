@@ -23,7 +23,6 @@ from gpnerf_core.model.feature_cache import SourceFeatureCache
 from gpnerf_core.model.view_inputs import view_inputs
 from gpnerf_core.data.frames import FrameCache
 from gpnerf_core.interfaces import DepthSource, ViewSelector
-from gpnerf_core.interfaces.head import Predicts
 from gpnerf_core.interfaces.model import ModelFamily
 from gpnerf_core.types import Prediction, Scene, TargetCamera
 from gpnerf_core.tools.viewer.camera import view_from_viser

@@ -32,7 +32,6 @@ from gpnerf_core import (
     HeadOutput,
     ImportedWeights,
     ModelFamily,
-    ModelParts,
     PerceptionHead,
     Prediction,
     Predicts,
@@ -50,7 +49,6 @@ from gpnerf_core import (
     TargetCamera,
     TargetView,
     ViewOutput,
-    checked_compile_backend,
     decode_checked,
     DepthSource,
     decoded_view_output,
@@ -63,7 +61,6 @@ from gpnerf_core import (
     stratified_inverse_depths,
     surface_depths,
 )
-from gpnerf_plugins.families.gnt.config import SemanticFieldConfig
 from gpnerf_plugins.families.gnt.semantic_field import AttentionSums, SemanticFieldRenderer
 from gpnerf_plugins.families.gnt.weights import read_gnt_checkpoint
 
