@@ -44,7 +44,7 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     # geometry and checks a dataset or data tool uses
     "gpnerf_core.geometry": (
         "EXPECTED_RIGID", "Projector", "composite", "compositing_weights", "density_opacity", "importance_depths", "pixel_grid", "points_along_rays", "rays_through_pixels",
-        "rigid_transform_problem", "sampling_layout", "stratified_inverse_depths", "surface_depths",
+        "rigid_transform_problem", "sampling_layout", "stratified_depths", "stratified_inverse_depths", "surface_depths",
     ),
     "gpnerf_core.geometry.projection": ("project_points", "world_to_camera"),
     "gpnerf_core.model.whole_view": ("render_whole_view",),
@@ -123,6 +123,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
         rays_through_pixels,
         rigid_transform_problem,
         sampling_layout,
+        stratified_depths,
         stratified_inverse_depths,
         surface_depths,
     )

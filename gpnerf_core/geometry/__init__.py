@@ -5,7 +5,7 @@ from gpnerf_core.geometry.poses import EXPECTED_RIGID, rigid_transform_problem
 from gpnerf_core.geometry.projection import Projector, project_points, sampling_layout
 from gpnerf_core.geometry.rays import pixel_grid, rays_through_pixels
 from gpnerf_core.geometry.sampling import (
-    importance_depths, points_along_rays, stratified_inverse_depths, surface_depths,
+    importance_depths, points_along_rays, stratified_depths, stratified_inverse_depths, surface_depths,
 )
 
 __all__ = [
@@ -21,6 +21,7 @@ __all__ = [
     "rays_through_pixels",
     "rigid_transform_problem",
     "sampling_layout",
+    "stratified_depths",
     "stratified_inverse_depths",
     "surface_depths",
 ]

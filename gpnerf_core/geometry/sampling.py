@@ -1,4 +1,5 @@
-"""Depths along rays: stratified in inverse depth (coarse) and importance-sampled from weights (fine)."""
+"""Depths along rays: stratified in inverse depth (GNT's coarse samples) or in depth or 1/depth with NeRF's bin jitter
+(``stratified_depths``), importance-sampled from weights (fine), and around a depth where the surfaces are."""
 
 from __future__ import annotations
 
@@ -27,6 +28,20 @@ def stratified_inverse_depths(
         steps = (steps + jitter / max(num_samples - 1, 1)).clamp(max=1.0)
     inverse = inv_near * (1.0 - steps) + inv_far * steps
     return torch.sort(1.0 / inverse, dim=-1).values
+
+
+def stratified_depths(rays: RayBatch, num_samples: int, *, inverse: bool, generator: torch.Generator | None) -> Tensor:
+    """``[R, S]`` ascending depths from near to far, uniform in depth (or 1/depth); with a ``generator`` each is drawn
+    uniformly in its bin between the midpoints of its neighbours (NeRF's and MVSNeRF's ``perturb``)."""
+    steps = torch.linspace(0.0, 1.0, num_samples, device=rays.near.device, dtype=rays.near.dtype)
+    near, far = rays.near[:, None], rays.far[:, None]
+    depths = 1.0 / (1.0 / near * (1.0 - steps) + 1.0 / far * steps) if inverse else near * (1.0 - steps) + far * steps
+    if generator is None:
+        return depths
+    mids = 0.5 * (depths[:, 1:] + depths[:, :-1])
+    upper, lower = torch.cat([mids, depths[:, -1:]], -1), torch.cat([depths[:, :1], mids], -1)
+    return lower + (upper - lower) * torch.rand(depths.shape, generator=generator, device=depths.device,
+                                                 dtype=depths.dtype)
 
 
 def importance_depths(

@@ -106,6 +106,7 @@ from gpnerf_core import (
     points_in_views,
     rays_through_pixels,
     render_whole_view,
+    stratified_depths,
     variance_over_views,
 )
 from gpnerf_plugins.extractors.mvsnet import imagenet_normalised
@@ -115,20 +116,6 @@ from gpnerf_plugins.families.mvsnerf.networks import (
 
 MAP_STRIDE = 4
 """Stride of the extractor's radiance map (``mvsnet`` and ``resunet_fpn``: 1/4), whose cells are the volume's."""
-
-
-def stratified_depths(rays: RayBatch, num_samples: int, *, inverse: bool, generator: torch.Generator | None) -> Tensor:
-    """``[R, S]`` ascending depths from near to far, uniform in depth (or 1/depth); with a ``generator`` each is drawn
-    uniformly in its bin between the midpoints of its neighbours (NeRF's and MVSNeRF's ``perturb``)."""
-    steps = torch.linspace(0.0, 1.0, num_samples, device=rays.near.device, dtype=rays.near.dtype)
-    near, far = rays.near[:, None], rays.far[:, None]
-    depths = 1.0 / (1.0 / near * (1.0 - steps) + 1.0 / far * steps) if inverse else near * (1.0 - steps) + far * steps
-    if generator is None:
-        return depths
-    mids = 0.5 * (depths[:, 1:] + depths[:, :-1])
-    upper, lower = torch.cat([mids, depths[:, -1:]], -1), torch.cat([depths[:, :1], mids], -1)
-    return lower + (upper - lower) * torch.rand(depths.shape, generator=generator, device=depths.device,
-                                                 dtype=depths.dtype)
 
 
 @dataclass(frozen=True)
