@@ -47,7 +47,8 @@ def test_paper_scale_restores_paper_sizes(registry):
 @pytest.mark.parametrize("kind", list(KINDS))
 def test_every_registered_option_composes(registry, kind):
     for name in registry.names(kind):
-        prefix = "+" if kind in ("head", "loss") else ""
+        add_on = KINDS[kind].add_on
+        prefix = "+" if add_on else ""
         extra = [] if kind in ("head", "loss") else ["+head=unet", "+loss=dgs"]
         # CPU scale sets keys of the default components; other options compose with scale=paper
         scale = [] if name in ("resunet_fpn", "gnt_view", "gnt_ray") or kind not in (
@@ -60,7 +61,8 @@ def test_every_registered_option_composes(registry, kind):
 def test_every_experiment_composes(registry, experiment):
     cfg = compose_with([f"+experiment={experiment}"])
     assert cfg.loss is not None
-    label_rendering_families = ("baselines/semantic_ray", "baselines/neuray", "baselines/mvsnerf")
+    label_rendering_families = ("baselines/semantic_ray", "baselines/neuray", "baselines/mvsnerf",
+                                "baselines/semantic_nerf")
     assert (cfg.get("head") is None) == (experiment in ("baselines/gnt", *label_rendering_families))
     if experiment in label_rendering_families:  # the compared methods: their own family, scored by label rendering
         assert cfg.model.name == experiment.split("/")[1] and cfg.loss.name == "ce"

@@ -80,7 +80,7 @@ RULES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("train.keep_checkpoints", _count(0), f"{COUNT0} (0 = keep every checkpoint)"),
     ("model.coarse_samples", _count(2), "an integer >= 2"),
     ("model.fine_samples", _count(0), f"{COUNT0} (0 = one pass)"),
-    ("model.num_source_views", _count(1), COUNT),
+    ("model.num_source_views", _count(0), f"{COUNT0} (0 only for a per-scene family: it reads no source views)"),
     ("eval.render_stride", _count(0), f"{COUNT0} (0 = the semantic map's stride)"),
     ("eval.chunk_rays", _count(1), COUNT),
     ("eval.max_views_per_scene", _count(0), f"{COUNT0} (0 = all)"),
@@ -164,6 +164,7 @@ def check_data(cfg: DictConfig, components: Components, *, training: bool = True
     configured = (OmegaConf.select(cfg, "dataset.height"), OmegaConf.select(cfg, "dataset.width"))
     if all(isinstance(side, int) and side > 0 for side in configured):  # before any scene is loaded (or rendered)
         check_image_size(cfg, components, *configured, f"dataset.height x dataset.width = {configured[0]}x{configured[1]}")
+    _require_one_scene(cfg, components, training)
     splits = ["train"] if training else []
     splits += [s for s in cfg.eval.splits if s not in splits]
     scenes = list(dict.fromkeys(name for split in splits for name in dataset.scenes(split)))
@@ -180,6 +181,9 @@ def check_data(cfg: DictConfig, components: Components, *, training: bool = True
     _require_trained_head(cfg, components, training)
     _require_instances(cfg, components, scenes, training)
     views = int(cfg.model.num_source_views)
+    if components.model.generalizable and views < 1:
+        raise ConfigError(f"model.num_source_views={views}: expected an integer >= 1 (model={cfg.model.name} renders "
+                          "from source views)")
     training_scenes = set(dataset.scenes("train")) if training else set()
     for name in scenes:
         scene = dataset.load_scene(name)
@@ -195,6 +199,25 @@ def check_data(cfg: DictConfig, components: Components, *, training: bool = True
                 f"model.num_source_views={views} but scene {name!r} offers {offered} source views per target "
                 f"({len(train)} training frames, never the target itself); expected model.num_source_views <= {offered}"
             )
+
+
+def _require_one_scene(cfg: DictConfig, components: Components, training: bool) -> None:
+    """A per-scene family (``ModelFamily.generalizable`` False) is fitted on one scene's frames and scores only that
+    scene's held-out frames: training on several scenes would fit one field to all of them, and another scene is not
+    its to render."""
+    if components.model.generalizable:
+        return
+    name = cfg.model.name
+    if training:
+        scenes = components.dataset.scenes("train")
+        if len(scenes) != 1:
+            listed = ", ".join(scenes[:4]) + (" ..." if len(scenes) > 4 else "")
+            raise ConfigError(f"model={name} is fitted per scene: expected one training scene "
+                              f"('dataset.scenes=[<name>]'); the dataset gives {len(scenes)}: {listed or 'none'}")
+    if "unseen" in cfg.eval.splits:
+        raise ConfigError(f"model={name} is fitted per scene and renders only that scene: eval.splits="
+                          f"[{', '.join(cfg.eval.splits)}] asks for unseen scenes; expected eval.splits=[train] (its "
+                          "held-out frames)")
 
 
 def check_image_size(cfg: DictConfig, components: Components, height: int, width: int, where: str) -> None:

@@ -9,6 +9,8 @@ from gpnerf_plugins.families.mvsnerf.build import build_mvsnerf
 from gpnerf_plugins.families.mvsnerf.config import MVSNeRFConfig
 from gpnerf_plugins.families.neuray.build import build_neuray, build_semantic_ray
 from gpnerf_plugins.families.neuray.config import NeuRayConfig, SemanticRayConfig
+from gpnerf_plugins.families.semantic_nerf.build import build_semantic_nerf
+from gpnerf_plugins.families.semantic_nerf.config import SemanticNeRFConfig
 
 
 @hookimpl
@@ -37,5 +39,11 @@ def gpnerf_register_models() -> list[ComponentSpec]:
             build_semantic_ray,
             SemanticRayConfig,
             "Semantic-Ray: NeuRay + Cross-Reprojection Attention, per-view scores blended and label-rendered",
+        ),
+        ComponentSpec(
+            "semantic_nerf",
+            build_semantic_nerf,
+            SemanticNeRFConfig,
+            "Semantic-NeRF, per scene: positional-encoding MLP with a semantic branch, coarse + fine, label rendering",
         ),
     ]

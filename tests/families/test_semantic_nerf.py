@@ -1,0 +1,119 @@
+"""Semantic-NeRF (``model=semantic_nerf``, per scene): NeRF's encodings and skip, the density with the ray's length
+and the far interval, label rendering of both passes, jitter and density noise only in training, the per-scene
+refusals, and a tiny run (train, score the held-out frames, render one frame) through the unchanged commands."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from gpnerf_core.cli import main as cli_main
+from gpnerf_core.config.compose import compose
+from gpnerf_core.errors import ConfigError
+from gpnerf_core.geometry import compositing_weights, rays_through_pixels
+from gpnerf_core.model.build import build_components
+from gpnerf_plugins.families.semantic_nerf.model import SemanticField, SemanticNeRF, positional_encoding
+from pipeline_check import TINY_CLI, TINY_SCENES
+
+SMALL = dict(num_classes=5, coarse_samples=8, fine_samples=4, width=16, depth=4, skip=1, position_scale=0.1,
+             position_frequencies=3, direction_frequencies=2, density_noise=1.0, inverse_depth=False)
+TINY = ["model.width=16", "model.depth=3", "model.skip=1", "model.coarse_samples=4", "model.fine_samples=4",
+        "train.rays=16", "eval.chunk_rays=512"]
+
+
+def _rays(count: int = 6):
+    pixels = torch.rand(count, 2, generator=torch.Generator().manual_seed(0)) * torch.tensor([47.0, 31.0])
+    intrinsics = torch.tensor([[40.0, 0.0, 23.5], [0.0, 40.0, 15.5], [0.0, 0.0, 1.0]])
+    return rays_through_pixels(pixels, intrinsics, torch.eye(4), 0.2, 6.0)
+
+
+def test_the_encodings_are_nerfs():
+    x = torch.tensor([[0.1, -0.2, 0.3]])
+    expected = torch.cat([x, torch.sin(x), torch.cos(x), torch.sin(2 * x), torch.cos(2 * x)], -1)
+    assert torch.allclose(positional_encoding(x, 2), expected)
+    assert positional_encoding(x, 10).shape[-1] == 63 and positional_encoding(x, 4).shape[-1] == 27
+    field = SemanticField(width=16, depth=5, skip=2, position_dim=63, direction_dim=27, num_classes=3)
+    assert [layer.in_features for layer in field.trunk] == [63, 16, 16, 16 + 63, 16]  # joins after layer 2
+
+
+def test_the_density_counts_the_ray_length_and_the_last_interval_absorbs_the_rest():
+    model = SemanticNeRF(**SMALL).eval()
+    for field in (model.coarse, model.fine):
+        field.density.bias.data.fill_(1.0)  # densities above 0 (untrained, most are clipped to 0 by the ReLU)
+    rays = _rays()
+    with torch.no_grad():
+        coarse, fine = model.render_rays(rays, True, None)
+    assert coarse.samples.depths.shape == (6, 8) and fine.samples.depths.shape == (6, 12)
+    for rendered in (coarse, fine):  # the far interval (1e10) takes what is left: every ray's weights sum to 1
+        assert torch.allclose(rendered.weights.sum(-1), torch.ones(6), atol=1e-5)
+        assert torch.allclose(rendered.depth, (rendered.weights * rendered.samples.depths).sum(-1))
+        assert rendered.logits.shape == (6, 5)
+    # the same pass by hand: ReLU(raw density) x interval x |d|, on the same encoded inputs
+    samples, norms = coarse.samples, rays.directions.norm(dim=-1)
+    position = positional_encoding(samples.points.reshape(-1, 3) * 0.1, 3)
+    direction = positional_encoding(rays.directions / norms[:, None], 2).repeat_interleave(8, 0)
+    with torch.no_grad():
+        raw, colour, scores = model.coarse(position, direction, True)
+    intervals = torch.cat([samples.depths[:, 1:] - samples.depths[:, :-1], torch.full((6, 1), 1e10)], -1)
+    weights = compositing_weights(1 - torch.exp(-torch.relu(raw.view(6, 8)) * intervals * norms[:, None]))
+    assert torch.allclose(coarse.weights, weights, atol=1e-6)
+    assert torch.allclose(coarse.logits, torch.einsum("rs,rsk->rk", weights, scores.view(6, 8, 5)), atol=1e-5)
+
+
+def test_samples_and_density_jitter_only_in_training_with_the_views_generator():
+    model = SemanticNeRF(**SMALL)
+    rays = _rays()
+    with torch.no_grad():
+        exact = model.render_rays(rays, True, None)[0]
+        draws = [model.render_rays(rays, True, torch.Generator().manual_seed(4))[0] for _ in range(2)]
+    assert torch.equal(draws[0].rgb, draws[1].rgb) and not torch.equal(draws[0].rgb, exact.rgb)
+    assert not torch.equal(draws[0].samples.depths, exact.samples.depths)
+    assert torch.allclose(exact.samples.depths[0], torch.linspace(0.2, 6.0, 8))  # uniform in depth, bin edges
+
+
+def test_per_scene_refusals(tmp_path):
+    common = ["+experiment=baselines/semantic_nerf", *TINY_SCENES, f"dataset.root={tmp_path / 'scenes'}"]
+    with pytest.raises(ConfigError, match=r"drop \+head=unet"):
+        build_components(compose([*common, "+head=unet"]))
+    with pytest.raises(ConfigError, match=r"^model.skip=3: expected in \[0, model.depth - 1\) = \[0, 3\)$"):
+        build_components(compose([*common, "model.depth=4", "model.skip=3"]))
+    assert build_components(compose(common)).model.generalizable is False
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    out = tmp_path_factory.mktemp("semantic_nerf") / "run"
+    argv = ["run", "+experiment=baselines/semantic_nerf", *TINY_CLI, *TINY, "dataset.scenes=[layout_00]",
+            "train.steps=2", f"out_dir={out}"]
+    assert cli_main(argv) == 0
+    return out
+
+
+def in_process(*argv: str) -> int:
+    try:
+        return cli_main(list(argv))
+    except SystemExit as stop:  # a Hydra job exits through sys.exit
+        return int(stop.code)
+
+
+def test_run_fits_one_scene_and_scores_its_held_out_frames(fitted, capsys):
+    metrics = json.loads((fitted / "metrics.json").read_text())
+    assert set(metrics["eval"]) == {"train_heldout"}
+    assert 0.0 <= metrics["eval"]["train_heldout"]["miou/image_mean_present"] <= 1.0
+    assert json.loads((fitted / "plugins.json").read_text())["used"]["model"]["name"] == "semantic_nerf"
+    several = in_process(*["run", "+experiment=baselines/semantic_nerf", *TINY_CLI, *TINY, "dataset.num_train_scenes=2",
+                        "train.steps=1", f"out_dir={fitted.parent / 'two'}"])
+    unseen = in_process(*["run", "+experiment=baselines/semantic_nerf", *TINY_CLI, *TINY, "dataset.scenes=[layout_00]",
+                       "eval.splits=[train,unseen]", "train.steps=1", f"out_dir={fitted.parent / 'unseen'}"])
+    err = capsys.readouterr().err
+    assert several == 2 and "model=semantic_nerf is fitted per scene: expected one training scene" in err
+    assert unseen == 2 and "asks for unseen scenes; expected eval.splits=[train]" in err
+    assert not (fitted.parent / "two").exists() and not (fitted.parent / "unseen").exists()
+
+
+def test_render_draws_a_frame_of_the_scene_from_its_own_field(fitted, tmp_path):
+    checkpoint = next((fitted / "checkpoints").glob("*.pt"))
+    assert cli_main(["render", f"checkpoint={checkpoint}", "render.frames=1", f"out_dir={tmp_path / 'video'}"]) == 0
+    assert json.loads((tmp_path / "video" / "render.json").read_text())["frames"] == 1
