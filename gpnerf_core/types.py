@@ -470,6 +470,8 @@ class LossInputs:
         instances: ``[1, H, W]`` int64 target instance ids, or None unless the loss set ``needs_instances``.
         labels_at_rays: ``[R]`` the target labels at the rays' pixels (for per-ray scores, ``RenderedRays.logits``),
             or None without labels.
+        instances_at_rays: ``[R]`` the target instance ids at the rays' pixels (for per-ray instance scores), or None
+            unless the loss set ``needs_instances`` and the model renders per-ray scores.
     """
 
     coarse: RenderedRays
@@ -482,6 +484,7 @@ class LossInputs:
     ignore_index: int
     instances: Tensor | None = None
     labels_at_rays: Tensor | None = None
+    instances_at_rays: Tensor | None = None
 
     @property
     def last(self) -> RenderedRays:

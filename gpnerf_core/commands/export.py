@@ -143,7 +143,7 @@ def rendered_points(prediction: Any, camera: Any, output: Any) -> tuple[Any, Any
         cells = torch.nn.functional.avg_pool2d(scores, stride)[0] if stride > 1 else scores[0]  # a cell's mean score
         cells = cells[:, : depth.shape[0], : depth.shape[1]]
         if output.predicts is Predicts.INSTANCES:
-            label = slot_predictions(cells)[0].reshape(-1).long()
+            label = slot_predictions(cells, output.slot_activation)[0].reshape(-1).long()
         else:
             label = cells.argmax(dim=0).reshape(-1)
     return view, PointCloud(backproject(view), rgb, label)

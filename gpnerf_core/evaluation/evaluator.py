@@ -277,7 +277,8 @@ def _evaluate_view(
     if instance_head and labelled:
         if target.instance is None:
             raise DataError(f"scene {scene.name!r} frame {index}: no instance ids to evaluate the instance head on")
-        slots, confidence = I.slot_predictions(prediction.logits[0].cpu())
+        activation = model.semantic_output.slot_activation
+        slots, confidence = I.slot_predictions(prediction.logits[0].cpu(), activation)
         instances, pairing = I.instance_record(slots, confidence, target.instance)
         instance_picture = (slots, pairing)
         teacher = model.teacher_logits(target.rgb.permute(2, 0, 1).to(frames.device)) if references else None
@@ -290,7 +291,7 @@ def _evaluate_view(
         if instance_picture is not None:
             pictures["instances"] = _instance_picture(*instance_picture, target.instance)
         elif instance_head:  # a scene without labels: the predicted instances alone
-            slots, _ = I.slot_predictions(prediction.logits[0].cpu())
+            slots, _ = I.slot_predictions(prediction.logits[0].cpu(), model.semantic_output.slot_activation)
             pictures["instances"] = vis.side_by_side([vis.colorize_instances(slots)],
                                                      ["predicted instances (no labels)"])
     return ViewRecord(

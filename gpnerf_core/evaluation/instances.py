@@ -64,18 +64,31 @@ def hungarian(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rows, cols
 
 
-def slot_predictions(logits: Tensor) -> tuple[Tensor, Tensor]:
-    """Hard instance slots of an instance head's output.
+SLOT_ACTIVATIONS = ("softmax", "sigmoid")
+
+
+def slot_probabilities(logits: Tensor, activation: str = "softmax") -> Tensor:
+    """``[K + 1, ...]`` instance scores -> ``[K, ...]`` slot probabilities: a softmax over the channels (an instance
+    head's) or each channel's sigmoid (DM-NeRF's), the last ("no instance") channel dropped either way."""
+    if activation not in SLOT_ACTIVATIONS:
+        raise ValueError(f"slot activation {activation!r}; expected one of: {', '.join(SLOT_ACTIVATIONS)}")
+    scores = logits.float()
+    return (torch.softmax(scores, dim=0) if activation == "softmax" else torch.sigmoid(scores))[:-1]
+
+
+def slot_predictions(logits: Tensor, activation: str = "softmax") -> tuple[Tensor, Tensor]:
+    """Hard instance slots of an instance model's output.
 
     Args:
-        logits: ``[K + 1, H, W]``; softmax over the channels, the last is "no instance" and is dropped (as the
-            reference does), so every pixel goes to its most probable of the K slots.
+        logits: ``[K + 1, H, W]``; slot probabilities by ``activation`` (``slot_probabilities``), the last channel,
+            "no instance", dropped (as the reference and DM-NeRF do), so every pixel goes to its most probable of the
+            K slots.
 
     Returns:
         ``(slots [H, W] int64 in [0, K), confidence [K])``: a slot's confidence is the median of its pixels' top slot
         probability, 0 for a slot no pixel chose.
     """
-    probabilities = torch.softmax(logits.float(), dim=0)[:-1]
+    probabilities = slot_probabilities(logits, activation)
     top, slots = probabilities.max(dim=0)
     confidence = torch.zeros(probabilities.shape[0])
     for k in torch.unique(slots).tolist():

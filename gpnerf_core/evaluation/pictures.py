@@ -38,7 +38,7 @@ def predicted_classes(logits: Tensor) -> Tensor:
 def score_layer(logits: Tensor, output: SemanticOutput, num_classes: int) -> tuple[str, np.ndarray]:
     """``("semantic", classes coloured)`` or ``("instances", slots coloured)`` of ``[1, K, H, W]`` scores."""
     if output.predicts is Predicts.INSTANCES:
-        slots, _ = slot_predictions(torch.nan_to_num(logits[0].detach().float().cpu()))
+        slots, _ = slot_predictions(torch.nan_to_num(logits[0].detach().float().cpu()), output.slot_activation)
         return "instances", vis.colorize_instances(slots)
     return "semantic", vis.colorize_labels(predicted_classes(logits), num_classes)
 

@@ -45,12 +45,16 @@ class SemanticOutput:
         num_outputs: channels of ``Prediction.logits``: the classes, or ``slots + 1`` for instances (the last channel
             is "no instance").
         slots: the instance slots (``predicts`` INSTANCES), else None.
+        slot_activation: how instance scores become slot probabilities: ``softmax`` over the ``slots + 1`` channels (an
+            instance head, the reference's) or ``sigmoid``, each channel on its own (DM-NeRF's); the last channel is
+            dropped either way.
     """
 
     predicts: Predicts
     mode: SemanticMode
     num_outputs: int
     slots: int | None = None
+    slot_activation: str = "softmax"
 
 
 class ModelParts(ABC):

@@ -87,6 +87,8 @@ def loss_inputs(view: TargetView, output: ViewOutput, ignore_index: int) -> Loss
         ignore_index=ignore_index,
         instances=view.instances[None] if output.logits is not None and view.instances is not None else None,
         labels_at_rays=view.labels[rows, cols] if output.last.logits is not None else None,
+        instances_at_rays=(view.instances[rows, cols]
+                           if output.last.logits is not None and view.instances is not None else None),
     )
 
 

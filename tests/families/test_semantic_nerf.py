@@ -14,7 +14,8 @@ from gpnerf_core.config.compose import compose
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.geometry import compositing_weights, rays_through_pixels
 from gpnerf_core.model.build import build_components
-from gpnerf_plugins.families.semantic_nerf.model import SemanticField, SemanticNeRF, positional_encoding
+from gpnerf_plugins.families.nerf_field import NeRFField, positional_encoding
+from gpnerf_plugins.families.semantic_nerf.model import SemanticNeRF
 from pipeline_check import TINY_CLI, TINY_SCENES
 
 SMALL = dict(num_classes=5, coarse_samples=8, fine_samples=4, width=16, depth=4, skip=1, position_scale=0.1,
@@ -34,7 +35,7 @@ def test_the_encodings_are_nerfs():
     expected = torch.cat([x, torch.sin(x), torch.cos(x), torch.sin(2 * x), torch.cos(2 * x)], -1)
     assert torch.allclose(positional_encoding(x, 2), expected)
     assert positional_encoding(x, 10).shape[-1] == 63 and positional_encoding(x, 4).shape[-1] == 27
-    field = SemanticField(width=16, depth=5, skip=2, position_dim=63, direction_dim=27, num_classes=3)
+    field = NeRFField(width=16, depth=5, skip=2, position_dim=63, direction_dim=27)
     assert [layer.in_features for layer in field.trunk] == [63, 16, 16, 16 + 63, 16]  # joins after layer 2
 
 

@@ -40,7 +40,7 @@ def hungarian_instance_loss(logits: Tensor, instance_ids: Tensor) -> dict[str, T
     """The three parts of the instance loss of one image.
 
     Args:
-        logits: ``[K + 1, H, W]`` head output (K slots + "no instance").
+        logits: ``[K + 1, H, W]`` head output (K slots + "no instance"), softmax over the channels.
         instance_ids: ``[H, W]`` integer GT ids; each id present is one instance.
 
     Returns:
@@ -49,21 +49,39 @@ def hungarian_instance_loss(logits: Tensor, instance_ids: Tensor) -> dict[str, T
     Raises:
         ConfigError: more GT instances than slots.
     """
-    slots = logits.shape[0] - 1
     if logits.dim() != 3 or instance_ids.shape != logits.shape[1:]:
         raise ConfigError(
             f"instance loss got logits {tuple(logits.shape)} and instance ids {tuple(instance_ids.shape)}; "
             "expected [K + 1, H, W] and [H, W]"
         )
+    # log p from log_softmax, never from a clamped p: a clamp has no gradient, and a head whose slots saturate (one
+    # slot near 1 everywhere, the others near 0) would then never recover.
+    log_p = torch.log_softmax(logits.float(), dim=0)[:-1]
+    return matched_instance_loss(log_p.reshape(log_p.shape[0], -1), instance_ids.reshape(-1), "head", "head.slots")
+
+
+def matched_instance_loss(log_p: Tensor, instance_ids: Tensor, owner: str, slots_key: str) -> dict[str, Tensor]:
+    """The Hungarian-matched instance loss on ``N`` pixels or rays (the reference's and DM-NeRF's ``ins_criterion``).
+
+    Args:
+        log_p: ``[K, N]`` log-probability of each of K slots at each pixel (the empty slot already dropped: a softmax's
+            or, for DM-NeRF, each slot's own sigmoid).
+        instance_ids: ``[N]`` integer GT ids; each id present is one instance.
+        owner, slots_key: what has the slots and the option that sets K, named when there are more instances than
+            slots.
+
+    Returns:
+        ``{"bce", "unmatched", "iou"}``: the matched pairs' mean BCE, the unmatched slots' mean probability (0 when every
+        slot is matched) and the matched pairs' mean (1 - soft IoU); GT masks and slots are paired by Hungarian matching
+        on mean BCE + (1 - soft IoU).
+    """
+    slots = log_p.shape[0]
     _, gt = instance_masks(instance_ids)
     if gt.shape[0] > slots:
         raise ConfigError(
-            f"a target frame has {gt.shape[0]} instance ids (background included) but the head has {slots} slots; "
-            f"set head.slots >= {gt.shape[0]}"
+            f"a target frame has {gt.shape[0]} instance ids (background included) but the {owner} has {slots} slots; "
+            f"set {slots_key} >= {gt.shape[0]}"
         )
-    # log p from log_softmax, never from a clamped p: a clamp has no gradient, and a head whose slots saturate (one
-    # slot near 1 everywhere, the others near 0) would then never recover.
-    log_p = torch.log_softmax(logits.float(), dim=0)[:-1].reshape(slots, -1)
     log_not_p = torch.log(-torch.expm1(log_p.clamp(max=-LOG_ONE_MINUS_FLOOR)))
     probabilities = log_p.exp()
     target = gt.to(probabilities.dtype)
@@ -74,9 +92,9 @@ def hungarian_instance_loss(logits: Tensor, instance_ids: Tensor) -> dict[str, T
     union = target.sum(1, keepdim=True) + probabilities.sum(1)[None] - inter
     soft_iou = inter / union.clamp(min=LOG_ONE_MINUS_FLOOR)
     rows, cols = hungarian((bce + 1.0 - soft_iou).detach().cpu().numpy())
-    rows_t = torch.as_tensor(rows, device=logits.device)
-    cols_t = torch.as_tensor(cols, device=logits.device)
-    unmatched = torch.ones(slots, dtype=torch.bool, device=logits.device)
+    rows_t = torch.as_tensor(rows, device=log_p.device)
+    cols_t = torch.as_tensor(cols, device=log_p.device)
+    unmatched = torch.ones(slots, dtype=torch.bool, device=log_p.device)
     unmatched[cols_t] = False
     zero = probabilities.sum() * 0.0
     return {

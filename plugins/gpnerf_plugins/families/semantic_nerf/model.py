@@ -23,7 +23,6 @@ simply never predicted there; the metrics score present classes, as for every fa
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from gpnerf_core import (
@@ -44,59 +43,13 @@ from gpnerf_core import (
     TargetView,
     ViewOutput,
     composite,
-    compositing_weights,
-    density_opacity,
     importance_depths,
     points_along_rays,
     rays_through_pixels,
     render_whole_view,
     stratified_depths,
 )
-
-
-def positional_encoding(x: Tensor, octaves: int) -> Tensor:
-    """NeRF's encoding ``[x, sin(2^0 x), cos(2^0 x), ..., sin(2^(L-1) x), cos(2^(L-1) x)]``: ``[..., 3]`` ->
-    ``[..., 3 (1 + 2L)]``."""
-    parts = [x]
-    for octave in range(octaves):
-        parts += [torch.sin(x * 2.0**octave), torch.cos(x * 2.0**octave)]
-    return torch.cat(parts, -1)
-
-
-class SemanticField(nn.Module):
-    """The MLP of one pass: encoded position -> density, class scores (view-independent) and, with the encoded view
-    direction, colour.
-
-    Args:
-        width, depth, skip: the trunk (``skip``: the encoded position joins after that layer).
-        position_dim, direction_dim: the encodings' channels.
-        num_classes: K class scores per sample (0: none).
-    """
-
-    def __init__(self, *, width: int, depth: int, skip: int, position_dim: int, direction_dim: int,
-                 num_classes: int) -> None:
-        super().__init__()
-        self.skip = skip
-        self.trunk = nn.ModuleList(
-            [nn.Linear(position_dim, width)]
-            + [nn.Linear(width + (position_dim if i == skip + 1 else 0), width) for i in range(1, depth)])
-        self.density = nn.Linear(width, 1)
-        self.semantic = nn.Sequential(nn.Linear(width, width // 2), nn.ReLU(), nn.Linear(width // 2, num_classes)
-                                      ) if num_classes else None
-        self.feature = nn.Linear(width, width)
-        self.colour = nn.Sequential(nn.Linear(width + direction_dim, width // 2), nn.ReLU(), nn.Linear(width // 2, 3))
-
-    def forward(self, position: Tensor, direction: Tensor, semantics: bool) -> tuple[Tensor, Tensor, Tensor | None]:
-        """``[N, P]`` encoded positions and ``[N, D]`` encoded directions -> raw density ``[N]``, colour ``[N, 3]`` in
-        [0, 1] and class scores ``[N, K]`` (None unless ``semantics``)."""
-        h = position
-        for index, layer in enumerate(self.trunk):
-            h = F.relu(layer(h))
-            if index == self.skip:
-                h = torch.cat([position, h], -1)
-        colour = torch.sigmoid(self.colour(torch.cat([self.feature(h), direction], -1)))
-        scores = self.semantic(h) if semantics and self.semantic is not None else None
-        return self.density(h)[..., 0], colour, scores
+from gpnerf_plugins.families.nerf_field import NeRFField, check_field_options, density_weights, encoded_inputs
 
 
 class SemanticNeRF(ModelFamily):
@@ -117,28 +70,22 @@ class SemanticNeRF(ModelFamily):
                  position_scale: float, position_frequencies: int, direction_frequencies: int, density_noise: float,
                  inverse_depth: bool) -> None:
         super().__init__()
-        problems = [f"model.{key}={value}: expected {rule}" for key, value, ok, rule in (
-            ("coarse_samples", coarse_samples, coarse_samples >= 2, ">= 2"),
-            ("fine_samples", fine_samples, fine_samples >= 0, ">= 0"),
-            ("width", width, width >= 2 and width % 2 == 0, "an even number >= 2"),
-            ("depth", depth, depth >= 2, ">= 2"),
-            ("skip", skip, 0 <= skip < depth - 1, f"in [0, model.depth - 1) = [0, {depth - 1})"),
-            ("position_scale", position_scale, position_scale > 0, "> 0"),
-            ("position_frequencies", position_frequencies, position_frequencies >= 0, ">= 0"),
-            ("direction_frequencies", direction_frequencies, direction_frequencies >= 0, ">= 0"),
-            ("density_noise", density_noise, density_noise >= 0, ">= 0"),
-        ) if not ok]
-        if problems:
-            raise ConfigError("; ".join(problems))
+        check_field_options(coarse_samples=coarse_samples, fine_samples=fine_samples, width=width, depth=depth,
+                            skip=skip, position_scale=position_scale, position_frequencies=position_frequencies,
+                            direction_frequencies=direction_frequencies, density_noise=density_noise)
         self.num_classes = int(num_classes)
         self.coarse_samples, self.fine_samples = int(coarse_samples), int(fine_samples)
         self.position_scale, self.density_noise = float(position_scale), float(density_noise)
         self.position_frequencies, self.direction_frequencies = int(position_frequencies), int(direction_frequencies)
         self.inverse_depth = bool(inverse_depth)
-        dims = dict(width=width, depth=depth, skip=skip, position_dim=3 * (1 + 2 * position_frequencies),
-                    direction_dim=3 * (1 + 2 * direction_frequencies), num_classes=self.num_classes)
-        self.coarse = SemanticField(**dims)
-        self.fine = SemanticField(**dims) if fine_samples else None
+        def field() -> NeRFField:
+            semantic = nn.Sequential(nn.Linear(width, width // 2), nn.ReLU(), nn.Linear(width // 2, self.num_classes))
+            return NeRFField(width=width, depth=depth, skip=skip, position_dim=3 * (1 + 2 * position_frequencies),
+                             direction_dim=3 * (1 + 2 * direction_frequencies),
+                             branch=semantic if self.num_classes else None)
+
+        self.coarse = field()
+        self.fine = field() if fine_samples else None
 
     # ---- what the model is ------------------------------------------------------------------------------------------
 
@@ -161,19 +108,13 @@ class SemanticNeRF(ModelFamily):
 
     # ---- rendering ---------------------------------------------------------------------------------------------------
 
-    def _pass(self, field: SemanticField, rays: RayBatch, samples: RaySamples, semantics: bool,
+    def _pass(self, field: NeRFField, rays: RayBatch, samples: RaySamples, semantics: bool,
               generator: torch.Generator | None) -> RenderedRays:
         count = samples.depths.shape[1]
-        norms = rays.directions.norm(dim=-1)  # depth is camera z: a unit of depth is |d| metres along the ray
-        position = positional_encoding(samples.points.reshape(-1, 3) * self.position_scale, self.position_frequencies)
-        direction = positional_encoding(rays.directions / norms[:, None], self.direction_frequencies)
-        direction = direction[:, None].expand(-1, count, -1).reshape(-1, direction.shape[-1])
+        position, direction, norms = encoded_inputs(samples.points, rays.directions, count, self.position_scale,
+                                                    self.position_frequencies, self.direction_frequencies)
         raw, colour, scores = field(position, direction, semantics)
-        raw = raw.view(-1, count)
-        if generator is not None and self.density_noise > 0:
-            raw = raw + self.density_noise * torch.randn(raw.shape, generator=generator, device=raw.device,
-                                                         dtype=raw.dtype)
-        weights = compositing_weights(density_opacity(F.relu(raw) * norms[:, None], samples.depths))
+        weights = density_weights(raw.view(-1, count), samples.depths, norms, self.density_noise, generator)
         logits = composite(weights, scores.view(-1, count, self.num_classes)) if scores is not None else None
         return RenderedRays(rgb=composite(weights, colour.view(-1, count, 3)), weights=weights,
                             depth=(weights * samples.depths).sum(-1), samples=samples, logits=logits)
