@@ -63,9 +63,11 @@ def test_every_experiment_composes(registry, experiment):
     assert cfg.loss is not None
     label_rendering_families = ("baselines/semantic_ray", "baselines/neuray", "baselines/mvsnerf",
                                 "baselines/semantic_nerf")
-    assert (cfg.get("head") is None) == (experiment in ("baselines/gnt", *label_rendering_families))
+    assert (cfg.get("head") is None) == (experiment in ("baselines/gnt", "baselines/dm_nerf", *label_rendering_families))
     if experiment in label_rendering_families:  # the compared methods: their own family, scored by label rendering
         assert cfg.model.name == experiment.split("/")[1] and cfg.loss.name == "ce"
+    if experiment == "baselines/dm_nerf":  # per-scene instances: its own object field and loss set
+        assert cfg.model.name == cfg.loss.name == "dm_nerf"
     if experiment.endswith("_unet") and experiment != "baselines/gpnerf_unet":  # another family, GP-NeRF's decoding
         assert cfg.model.name == experiment.split("/")[1].removesuffix("_unet") and cfg.head.name == "unet"
 

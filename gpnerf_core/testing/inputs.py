@@ -106,8 +106,10 @@ def tokens(rays: int, samples: int, *, dim: int = RAY_IN_DIM, seed: int = 0) -> 
 
 
 def rendered(*, rays: int = LOSS_RAYS, samples: int = LOSS_SAMPLES, channels: int = LOSS_CHANNELS,
-             semantic: bool = True, sample_semantic: bool = True, zeros: bool = False, seed: int = 0) -> RenderedRays:
-    """One rendering pass whose float tensors require gradients (the semantic ones only when asked for)."""
+             semantic: bool = True, sample_semantic: bool = True, zeros: bool = False, seed: int = 0,
+             scores: int = 0) -> RenderedRays:
+    """One rendering pass whose float tensors require gradients (the semantic ones only when asked for; ``scores``
+    per-ray scores ``[R, scores]`` as a label-rendering family composites them, 0: none)."""
     g = generator(seed)
 
     def leaf(*shape: int) -> Tensor:
@@ -124,6 +126,7 @@ def rendered(*, rays: int = LOSS_RAYS, samples: int = LOSS_SAMPLES, channels: in
         samples=samples_,
         semantic=leaf(rays, channels) if semantic else None,
         sample_semantic=leaf(rays, samples, channels) if sample_semantic else None,
+        logits=leaf(rays, scores) if scores else None,
     )
 
 
@@ -144,10 +147,12 @@ def loss_inputs(
     Without ``semantics`` the logits, labels and teacher are None and the passes carry no semantic features, as
     in the pipeline. ``zeros`` zeroes every feature and the target depth (unknown); ``ignore_all`` labels every
     pixel with the ignore index. ``instances`` adds target instance ids (``instance_ids`` of them; ``zeros``: one), for
-    a loss set that ``needs_instances``; its logits then have ``classes`` = slots + 1 channels.
+    a loss set that ``needs_instances``; its logits then have ``classes`` = slots + 1 channels. With ``semantics`` each
+    pass also carries per-ray scores of ``classes`` channels, and the labels (and instance ids) at the rays, for the
+    loss sets of label-rendering families.
     """
     g = generator(seed + 1)
-    passes = dict(semantic=semantics, sample_semantic=sample_semantics, zeros=zeros)
+    passes = dict(semantic=semantics, sample_semantic=sample_semantics, zeros=zeros, scores=classes if semantics else 0)
     height, width = 6, 7
     labels = torch.randint(0, classes, (1, height, width), generator=g)
     if ignore_all:
@@ -165,6 +170,9 @@ def loss_inputs(
         ignore_index=255,
         instances=(torch.zeros if zeros else lambda *s: torch.randint(0, instance_ids, s, generator=g))(
             1, height, width).long() if instances and semantics else None,
+        labels_at_rays=labels.reshape(-1)[:LOSS_RAYS] if semantics else None,
+        instances_at_rays=(torch.zeros(LOSS_RAYS, dtype=torch.long) if zeros else torch.randint(
+            0, instance_ids, (LOSS_RAYS,), generator=g)) if instances and semantics else None,
     )
 
 
@@ -173,7 +181,7 @@ def loss_leaves(inputs: LossInputs) -> dict[str, Tensor]:
     leaves = {"logits": inputs.logits, "teacher_at_rays": inputs.teacher_at_rays}
     for name, rays in (("coarse", inputs.coarse), ("fine", inputs.fine)):
         if rays is not None:
-            for field in ("rgb", "weights", "semantic", "sample_semantic"):
+            for field in ("rgb", "weights", "semantic", "sample_semantic", "logits"):
                 leaves[f"{name}.{field}"] = getattr(rays, field)
     return {name: t for name, t in leaves.items() if t is not None and t.requires_grad}
 

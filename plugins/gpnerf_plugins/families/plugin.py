@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 from gpnerf_core import ComponentSpec, hookimpl
+from gpnerf_plugins.families.dm_nerf.build import build_dm_nerf
+from gpnerf_plugins.families.dm_nerf.config import DMNeRFConfig
 from gpnerf_plugins.families.gnt.build import build_gnt
 from gpnerf_plugins.families.gnt.config import GNTModelConfig
 from gpnerf_plugins.families.mvsnerf.build import build_mvsnerf
@@ -45,5 +47,11 @@ def gpnerf_register_models() -> list[ComponentSpec]:
             build_semantic_nerf,
             SemanticNeRFConfig,
             "Semantic-NeRF, per scene: positional-encoding MLP with a semantic branch, coarse + fine, label rendering",
+        ),
+        ComponentSpec(
+            "dm_nerf",
+            build_dm_nerf,
+            DMNeRFConfig,
+            "DM-NeRF, per scene: NeRF field + object field on detached features, sigmoid slots, instance AP",
         ),
     ]

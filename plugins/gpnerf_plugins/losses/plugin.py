@@ -1,8 +1,9 @@
-"""Registers the built-in loss sets (GP-NeRF's Table 4 rows, the instance set, and the label-free set)."""
+"""Registers the built-in loss sets (GP-NeRF's Table 4 rows, the instance set, the label-free set and DM-NeRF's)."""
 
 from __future__ import annotations
 
 from gpnerf_core import ComponentSpec, hookimpl
+from gpnerf_plugins.losses.dm_nerf import DMNeRFLossConfig, DMNeRFLossSet
 from gpnerf_plugins.losses.instance import InstanceLossConfig, InstanceLossSet
 from gpnerf_plugins.losses.sets import (
     CeLossConfig,
@@ -26,4 +27,6 @@ def gpnerf_register_losses() -> list[ComponentSpec]:
         ComponentSpec(
             "label_free", LabelFreeLossSet, LabelFreeLossConfig, "colour + 2D and depth-guided distill., no labels"
         ),
+        ComponentSpec("dm_nerf", DMNeRFLossSet, DMNeRFLossConfig,
+                      "DM-NeRF: colour + Hungarian object loss (sigmoid slots) + 3D emptiness penalty, per pass"),
     ]
