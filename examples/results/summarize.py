@@ -5,7 +5,8 @@
 Sections: Table 4 (per seed, mean +- sample std, the orderings that hold beyond the seed spread), the methods of the
 speed-accuracy chart, the compared methods' families (Table 1's generalization rows and the paper's orderings), each
 field per pixel and with GP-NeRF's U-Net decoding, the layout-count curve, where the samples go (the samplers), the
-instance head against the connected-components baseline, fine-tuning. A missing run is
+instance head and DM-NeRF against the connected-components baseline, fine-tuning, and when a scene needs its own model
+(Semantic-NeRF from scratch against GP-NeRF zero-shot and fine-tuned). A missing run is
 named, never skipped silently.
 """
 
@@ -219,6 +220,55 @@ def samplers(runs: Path) -> list[str]:
     return lines
 
 
+def curve_points(metrics: dict[str, Any]) -> list[dict[str, Any]]:
+    """A run's accuracy curve by step: ``finetune.curve`` (fine-tuning) or ``eval_curve`` (``eval.every_steps``)."""
+    points = (metrics.get("finetune") or {}).get("curve") or metrics.get("eval_curve") or []
+    return sorted(points, key=lambda point: point["step"])
+
+
+def at(point: dict[str, Any], key: str) -> float:
+    """A curve point's value of ``key``: flat in ``finetune.curve``, under the split in ``eval_curve`` (the scene's
+    held-out frames here)."""
+    return float(point[key] if key in point else point[HELD][key])
+
+
+def per_scene(runs: Path) -> list[str]:
+    """When a scene needs its own model (unseen_00): GP-NeRF zero-shot (its fine-tuning's step 0) and fine-tuned
+    (ID 5's runs, ``finetune`` stage) against Semantic-NeRF fitted from scratch on the same frames, by steps and
+    training seconds; the crossover is the first Semantic-NeRF point at or above fine-tuned GP-NeRF's final mIoU."""
+    lines = ["## When a scene needs its own model (unseen_00, seeds 0-2): accuracy against steps and seconds", "",
+             "| method | seed | step | train s | mIoU (per image) | PSNR |", "|---|---|---|---|---|---|"]
+    finals = []
+    for seed in SEEDS:
+        tuned = load(runs, f"finetune_id5_s{seed}")
+        if tuned is None:
+            lines.append(f"| GP-NeRF (ID 5) fine-tuned | {seed} | not run ||||")
+            continue
+        for point in curve_points(tuned):
+            name = "GP-NeRF (ID 5), zero-shot" if point["step"] == 0 else "GP-NeRF (ID 5) fine-tuned"
+            lines.append(f"| {name} | {seed} | {point['step']} | {point['train_seconds']:.0f} | "
+                         f"{at(point, MIOU):.3f} | {at(point, 'psnr/clamped'):.2f} |")
+        finals.append(at(curve_points(tuned)[-1], MIOU))
+    crossings = []
+    for seed in SEEDS:
+        fitted = load(runs, f"semantic_nerf_unseen_s{seed}")
+        if fitted is None:
+            lines.append(f"| Semantic-NeRF from scratch | {seed} | not run ||||")
+            continue
+        for point in curve_points(fitted):
+            lines.append(f"| Semantic-NeRF from scratch | {seed} | {point['step']} | {point['train_seconds']:.0f} | "
+                         f"{at(point, MIOU):.3f} | {at(point, 'psnr/clamped'):.2f} |")
+        if finals:
+            target = statistics.fmean(finals)
+            crossed = next((p for p in curve_points(fitted) if at(p, MIOU) >= target), None)
+            crossings.append(f"seed {seed}: " + (f"step {crossed['step']}, {crossed['train_seconds']:.0f} s" if crossed
+                                                 else "never within its steps"))
+    if crossings:
+        lines += ["", f"Semantic-NeRF reaches fine-tuned GP-NeRF's mean final mIoU ({statistics.fmean(finals):.3f}): "
+                  + "; ".join(crossings) + "."]
+    return lines
+
+
 INSTANCE_KEYS = ("instance/ap_matched@0.75", "instance/ap_matched@0.5", "instance/coco_mask_ap",
                  "instance/coco_mask_ap50", "instance/coco_mask_ap75")
 
@@ -232,11 +282,12 @@ def instance_value(found: dict[str, Any], key: str) -> float | None:
 
 
 def instance(runs: Path) -> list[str]:
-    lines = ["## Instance head on layout_00 (seeds 0-2) and the connected-components baseline", "",
+    lines = ["## Instance head and DM-NeRF on layout_00 (seeds 0-2), and the connected-components baseline", "",
              "| model | seed | AP@0.75 (matched) | AP@0.5 (matched) | COCO AP | COCO AP50 | COCO AP75 "
              "| 2D reference AP@0.75 / COCO AP | train s |",
              "|---|---|---|---|---|---|---|---|---|"]
     for label, prefix, read in (("instance head", "instance_l0", lambda e: e),
+                                ("DM-NeRF (per scene)", "dm_nerf_l0", lambda e: e),
                                 ("connected components on ID 5's classes", "cc_l0_id5",
                                  lambda e: e.get("baseline_connected_components", {}))):
         values: dict[str, list[float]] = {key: [] for key in INSTANCE_KEYS}
@@ -306,7 +357,7 @@ def main(work: Path) -> int:
     print("# Summary of", work, "\n")
     if provenance.is_file():
         print("```\n" + provenance.read_text().strip() + "\n```\n")
-    for section in (table4, methods, baselines, grid, layouts, samplers, instance, finetune):
+    for section in (table4, methods, baselines, grid, layouts, samplers, instance, finetune, per_scene):
         print("\n".join(section(runs)) + "\n")
     return 0
 
