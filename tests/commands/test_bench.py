@@ -6,6 +6,7 @@ import subprocess
 import sys
 
 import pytest
+from omegaconf import OmegaConf
 import torch
 
 TINY = [
@@ -139,3 +140,18 @@ def test_an_unknown_sweep_lists_the_known_ones(tmp_path):
     result = bench("sweep=pixels", cwd=tmp_path)
     assert result.returncode == 2
     assert result.stderr.strip() == "error: bench sweep='pixels' is unknown; known sweeps: rays, views, samples, image"
+
+
+def test_every_family_composes_at_every_size_with_its_images_and_rays():
+    """A family whose experiment drops the ``scale`` preset (mvsnerf: another extractor) composes at each size, on the
+    size's images, views and rays (was: ``bench size=demo families=mvsnerf`` refused by scale=cpu's keys)."""
+    from gpnerf_core.config.compose import compose
+    from gpnerf_core.tools.bench.sizes import SIZES, baseline_families, variant_overrides
+
+    for size in SIZES.values():
+        reference = compose(variant_overrides(size, "gpnerf", []))
+        for family in baseline_families():
+            cfg = compose(variant_overrides(size, family, []))
+            same = [(key, OmegaConf.select(cfg, key), OmegaConf.select(reference, key))
+                    for key in ("train.rays", "dataset.height", "dataset.width")]
+            assert all(a == b for _, a, b in same), (size.name, family, same)

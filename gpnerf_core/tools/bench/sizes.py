@@ -47,7 +47,7 @@ SIZES: dict[str, Size] = {
         Size(
             "demo",
             "the main job's model (scale=cpu): 96x128 images, 4 views, 24+8 samples, 256 rays, 4 blocks of width 32",
-            ("scale=cpu", "dataset.height=96", "dataset.width=128", *DATA),
+            ("scale=cpu", "dataset.height=96", "dataset.width=128", "train.rays=256", *DATA),
             ("+head=unet", "+loss=dgs"),
         ),
         Size(
@@ -95,10 +95,21 @@ def checked_families(value: str) -> list[str]:
     return names
 
 
+def _sets_own_scale(family: str) -> bool:
+    """The experiment ``baselines/<family>`` drops the ``scale`` preset (``override /scale: null``)."""
+    from gpnerf_core.config.compose import config_dir
+
+    text = (Path(config_dir()) / "experiment" / "baselines" / f"{family}.yaml").read_text()
+    return "override /scale:" in text
+
+
 def variant_overrides(size: Size, variant: str, overrides: list[str]) -> list[str]:
     """The overrides of ``variant`` at ``size``, the user's last (they win): ``gpnerf``, ``gnt_only``, or a baseline
     family (its ``+experiment=baselines/<variant>`` on the size's common overrides: the same images, views and rays)."""
     if variant not in VARIANTS:
-        return [*size.common, f"+experiment=baselines/{variant}", *overrides]
+        common = list(size.common)
+        if _sets_own_scale(variant):  # e.g. mvsnerf: scale's keys are another extractor's; its sizes are its own
+            common = [o for o in common if not o.startswith("scale=")]
+        return [*common, f"+experiment=baselines/{variant}", *overrides]
     extra = size.semantic if variant == "gpnerf" else GNT_ONLY
     return [*size.common, *extra, *overrides]
