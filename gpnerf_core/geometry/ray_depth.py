@@ -24,8 +24,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from gpnerf_core.geometry.plane_sweep import points_in_views, variance_over_views
-from gpnerf_core.geometry.projection import project_points
+from gpnerf_core.geometry.plane_sweep import points_in_views
+from gpnerf_core.geometry.projection import project_points, sampling_layout
 from gpnerf_core.geometry.sampling import stratified_inverse_depths
 from gpnerf_core.types import RayBatch, SourceViews
 
@@ -96,10 +96,20 @@ def feature_cost_belief(
     with torch.no_grad():
         depths = candidate_depths(rays, planes)
         _, grid, inside = _in_views(rays, depths, sources)
-        sampled = F.grid_sample(maps.detach(), grid[:, :, None, :], mode="bilinear", padding_mode="zeros",
-                                align_corners=False)[..., 0]  # [V, C, R * D]
-        sampled = F.normalize(sampled, dim=1)
-        cost = variance_over_views(sampled, inside).sum(dim=0).reshape(depths.shape)  # [R, D]
+        # Streamed view by view (one [C, R * D] slice at a time): sum_c var_c = mean_v |f_v|^2 - |mean_v f_v|^2 over
+        # the views that see a candidate, the variance of variance_over_views without its [V, C, R * D] temporaries.
+        maps = sampling_layout(maps.detach())  # channels-last: grid_sample reads each point's channels at once
+        total = torch.zeros(maps.shape[1], grid.shape[1], dtype=maps.dtype, device=maps.device)
+        squares = torch.zeros(grid.shape[1], dtype=maps.dtype, device=maps.device)
+        for view in range(maps.shape[0]):
+            sampled = F.grid_sample(maps[view : view + 1], grid[view : view + 1, :, None, :], mode="bilinear",
+                                    padding_mode="zeros", align_corners=False)[0, :, :, 0]  # [C, R * D]
+            length2 = sampled.square().sum(dim=0)
+            scale = length2.clamp_min(1e-24).rsqrt() * inside[view]  # unit length (F.normalize's eps), seen views only
+            total.addcmul_(sampled, scale)
+            squares.add_(length2 * scale.square())
+        count = inside.sum(dim=0).clamp_min(1).to(total.dtype)
+        cost = (squares / count - (total / count).square().sum(dim=0)).clamp_min(0).reshape(depths.shape)  # [R, D]
         scored = (inside.sum(dim=0) >= min_views).reshape(depths.shape)
         masked = cost.masked_fill(~scored, float("inf"))
         low = masked.min(dim=-1, keepdim=True).values
