@@ -1,16 +1,21 @@
 #!/usr/bin/env bash
 # Regenerate the numbers of docs/results.md from scratch on a 2-core CPU, at one commit:
 #   bash examples/results/regenerate.sh [WORK] [STAGES]      (WORK default /tmp/gpnerf-results)
-# STAGES (default "table4 methods baselines grid stress instance finetune report"):
+# STAGES (default "table4 methods baselines grid samplers per_scene stress instance finetune report"):
 #   table4    Table 4 IDs 1-5 x seeds 0-2 (ID 5 is the main job's config)
 #   methods   the chart's other methods x seeds 0-2: per-pixel head, GP-NeRF sized, GNT alone
 #   baselines the compared methods' families x seeds 0-2: Semantic-Ray, NeuRay + semantic head, MVSNeRF + semantic
 #             head (+experiment=baselines/<name>), on the main job's data and steps; each run fine-tuned on the unseen
 #             layout as ID 5's (finetune stage), and each family's stress suite
 #   grid      the same families with GP-NeRF's context-aware decoding (baselines/<name>_unet), seed 0
+#   samplers  the main job's config with model.sampler=depth, its depth from the coarse pass and from the two depth
+#             sources (+depth_source=cost_volume, source_depth: one pass on 8 samples) x seeds 0-2 (uniform: ID 5)
 #   layouts   GP-NeRF (the main job's config) trained on 4, 8, 16, 32 layouts, 150 steps per layout (600 at 4, the main
 #             job's), scored on 4 unseen layouts (3 views each) and 3 held-out views per training layout, seed 0: the
 #             curve that picks the generalized protocol's layout count (not in the default stages: ~3 h)
+#   per_scene the per-scene families x seeds 0-2: Semantic-NeRF fitted from scratch on the unseen layout's training
+#             frames (evaluated every 500 of its 2000 steps: against ID 5 zero-shot and fine-tuned, the finetune stage),
+#             DM-NeRF on layout_00 (against the instance stage's head)
 #   stress    the stress suite of IDs 1 and 5 (3 seeds each), one process per method, merged   (needs table4's runs)
 #   instance  the instance head on layout_00 x seeds 0-2, and the connected-components baseline on ID 5's runs
 #   finetune  ID 5's three runs fine-tuned on the unseen layout (300 steps)                      (needs table4's runs)
@@ -23,16 +28,16 @@
 # again (create the marker to skip a job, delete it to redo one); an interrupted training run starts again
 # (train.resume=auto: a run keeps only its final checkpoint, and a folder without one is replaced).
 # Timings of runs that share the cores are comparable with each other, not with a run alone. WORK must not contain
-# spaces. Figures: docs/results.md; machine and commit: WORK/provenance.txt. About 4 h on the 2-core CI machine type
+# spaces. Figures: docs/results.md; machine and commit: WORK/provenance.txt. About 5 h on the 2-core CI machine type
 # (2026-12-02: a Table 4 run's training took 560-820 s, two at a time).
 set -euo pipefail
 PYTHON=${PYTHON:-python}
 WORK=${1:-/tmp/gpnerf-results}
-STAGES=${2:-table4 methods baselines grid stress instance finetune report}
+STAGES=${2:-table4 methods baselines grid samplers per_scene stress instance finetune report}
 PARALLEL=${PARALLEL:-2}
 POLL_SECONDS=${POLL_SECONDS:-10}
 RUNS="$WORK/runs"
-KNOWN="table4 methods baselines grid layouts stress instance finetune report"
+KNOWN="table4 methods baselines grid samplers per_scene layouts stress instance finetune report"
 for stage in $STAGES; do
   [[ " $KNOWN " == *" $stage "* ]] || { echo "unknown stage '$stage' (known: $KNOWN)" >&2; exit 2; }
 done
@@ -80,6 +85,20 @@ stage_jobs() {
     grid)
       for family in semantic_ray neuray mvsnerf; do
         train_job "${family}_unet_s0" 0 +experiment=baselines/${family}_unet eval.save_images=0
+      done ;;
+    samplers)
+      for s in 0 1 2; do
+        train_job "sampler_first_pass_s$s" $s +head=unet +loss=dgs model.sampler=depth eval.save_images=0
+        for source in cost_volume source_depth; do
+          train_job "sampler_${source}_s$s" $s +head=unet +loss=dgs model.sampler=depth +depth_source=$source \
+            eval.save_images=0
+        done
+      done ;;
+    per_scene)
+      for s in 0 1 2; do
+        train_job "semantic_nerf_unseen_s$s" $s +experiment=baselines/semantic_nerf "'dataset.scenes=[unseen_00]'" \
+          eval.every_steps=500 eval.save_images=0
+        train_job "dm_nerf_l0_s$s" $s +experiment=baselines/dm_nerf "'dataset.scenes=[layout_00]'" eval.save_images=0
       done ;;
     layouts)
       for n in 4 8 16 32; do
@@ -150,6 +169,10 @@ if [[ " $STAGES " == *" report "* ]]; then
   mapfile -t baseline_runs < <(existing "$RUNS"/id5_s? "$RUNS"/{semantic_ray,neuray,mvsnerf}_s?)
   if (( ${#baseline_runs[@]} )); then  # Table 1's generalization rows beside the paper's, and their chart
     "$PYTHON" -m gpnerf_core report "${baseline_runs[@]}" --chart "$WORK/chart_baselines" > "$WORK/report_baselines.md"
+  fi
+  mapfile -t sampler_runs < <(existing "$RUNS"/id5_s? "$RUNS"/sampler_*_s?)
+  if (( ${#sampler_runs[@]} )); then  # where the samples go: accuracy against render time
+    "$PYTHON" -m gpnerf_core report "${sampler_runs[@]}" --chart "$WORK/chart_samplers" > "$WORK/report_samplers.md"
   fi
   "$PYTHON" "$(dirname "$0")/summarize.py" "$WORK" > "$WORK/summary.md"
   if [[ -d "$WORK/stress/id1" && -d "$WORK/stress/id5" ]]; then
