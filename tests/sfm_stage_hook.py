@@ -10,6 +10,7 @@ held stage cannot end before the test's signal, and the child ignores SIGINT, so
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
 
 HOLD_SECONDS = 60.0
@@ -54,3 +55,11 @@ def stage_started(folder: Path, stage: str) -> bool:
     """Whether the SfM child has entered ``stage`` (held there from now on)."""
     marker = folder / "stages.txt"
     return marker.exists() and stage in marker.read_text().split()
+
+
+def default_sigint() -> None:
+    """Give a child process SIGINT's default disposition (``Popen(preexec_fn=...)``). A test run started in the
+    background by a script (``nohup``, ``&``) inherits SIGINT ignored, and Python then keeps ignoring it, so a
+    Ctrl-C test would see the command run to its end; from a terminal SIGINT is never ignored."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+

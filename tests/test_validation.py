@@ -36,7 +36,7 @@ BAD_VALUES = [
     ("train.checkpoint_every=-10", "train.checkpoint_every=-10: expected an integer >= 0"),
     ("model.coarse_samples=1", "model.coarse_samples=1: expected an integer >= 2"),
     ("model.fine_samples=-1", "model.fine_samples=-1: expected an integer >= 0"),
-    ("model.num_source_views=0", "model.num_source_views=0: expected an integer >= 1"),
+    ("model.num_source_views=-1", "model.num_source_views=-1: expected an integer >= 0 (0 only for a per-scene family"),
     ("eval.chunk_rays=0", "eval.chunk_rays=0: expected an integer >= 1"),
     ("eval.render_stride=-2", "eval.render_stride=-2: expected an integer >= 0"),
     ("eval.max_views_per_scene=-1", "eval.max_views_per_scene=-1: expected an integer >= 0"),
@@ -184,3 +184,19 @@ def test_validation_off_skips_the_file_check(tmp_path):
     off = compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES, f"dataset.root={tmp_path / 'set'}",
                    "dataset.validate=off", "eval.splits=[train]"])
     check_data(off, _fresh(off))
+
+
+def test_a_generalizable_family_needs_a_source_view_a_per_scene_one_none(tmp_path):
+    """``model.num_source_views=0`` passes the value check (a per-scene family reads none) and is refused for a family
+    that renders from source views when its data is checked, before training."""
+    from gpnerf_core.engine.validation import check_data
+    from gpnerf_core.model.build import build_components
+    from pipeline_check import TINY_MODEL, TINY_SCENES
+
+    cfg = compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES, f"dataset.root={tmp_path / 'scenes'}",
+                   "model.num_source_views=0"])
+    validate_config(cfg)
+    with pytest.raises(ConfigError, match=r"^model.num_source_views=0: expected an integer >= 1 \(model=gnt renders "
+                                          r"from source views\)$"):
+        check_data(cfg, build_components(cfg))
+

@@ -25,7 +25,7 @@ from gpnerf_core.commands import render
 from gpnerf_core.tools.sizing.options import check_eval_splits, parse_size_options
 from gpnerf_core.tools.stress.runner import models_from_paths
 from pipeline_check import TINY_CLI, child_pids
-from sfm_stage_hook import hold_stage, stage_started
+from sfm_stage_hook import default_sigint, hold_stage, stage_started
 
 SIZE = ["+head=unet", "+loss=dgs", *TINY_CLI, "size.steps=1"]
 
@@ -291,7 +291,8 @@ def test_a_signal_during_structure_from_motion_is_one_line_and_leaves_nothing(ph
     env = dict(os.environ, GPNERF_DISABLE_PLUGIN_AUTOLOAD="1", **hold_stage(hook, stage))
     process = subprocess.Popen([sys.executable, "-m", "gpnerf_core", "data", "prepare-capture", str(photos), "--out",
                                 str(out / "scene"), "--threads", "1"], env=env, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True, start_new_session=True)
+                               stderr=subprocess.PIPE, text=True, start_new_session=True,
+                               preexec_fn=default_sigint)  # as from a terminal, whatever pytest inherited
     deadline = time.monotonic() + 300
     while process.poll() is None and time.monotonic() < deadline and not stage_started(hook, stage):
         time.sleep(0.01)

@@ -204,9 +204,17 @@ def test_ctrl_c_during_structure_from_motion_leaves_nothing(orbit, tmp_path, mon
         children.extend(c for c in multiprocessing.active_children() if c.name == "pycolmap-sfm")
         _thread.interrupt_main()  # what Ctrl-C does
 
+    # interrupt_main acts only where SIGINT has a Python handler: a test run started in the background by a script
+    # inherits SIGINT ignored (from a terminal it is never ignored)
+    import signal
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     threading.Thread(target=interrupt_once_sfm_runs, daemon=True).start()
-    with pytest.raises(KeyboardInterrupt):
-        prepare_capture(build_parser().parse_args([str(photos), "--out", str(tmp_path / "scene"), "--threads", "1"]))
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            prepare_capture(build_parser().parse_args([str(photos), "--out", str(tmp_path / "scene"), "--threads", "1"]))
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert children and not children[0].is_alive(), "the SfM process ended before the cleanup, not after it"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]
 

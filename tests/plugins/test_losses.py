@@ -189,7 +189,7 @@ def test_gt_depth_centre_picks_the_nearest_sample_and_falls_back_when_unknown():
 )
 def test_registered_sets_return_their_terms_and_flags(config, keys, semantics, sample_semantics, labels):
     registry = collect(make_plugin_manager(builtins=("gpnerf_plugins.losses.plugin",), autoload=False))
-    assert registry.names("loss") == ["ce", "dgs", "instance", "label_free", "rgb", "sd"]
+    assert registry.names("loss") == ["ce", "dgs", "dm_nerf", "instance", "label_free", "rgb", "sd"]
     loss_set = registry.build("loss", OmegaConf.structured(config))
     assert (loss_set.needs_semantics, loss_set.needs_sample_semantics) == (semantics, sample_semantics)
     assert loss_set.needs_labels is labels
