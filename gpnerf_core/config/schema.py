@@ -211,6 +211,10 @@ class RootConfig:
     """``auto`` (CUDA when available), ``cpu`` or ``cuda[:N]``."""
     threads: int = 0
     """CPU threads for torch (0 = torch's default)."""
+    keep_freed_memory: bool = True
+    """Large CPU tensors reuse memory the process already holds instead of page-faulting fresh pages in (glibc malloc
+    tuned by ``gpnerf_core.runtime.host_memory``: a paper-size frame's system time 74 s -> 5 s); resident memory then
+    stays at its peak. False: glibc's defaults."""
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     finetune: FinetuneConfig = field(default_factory=FinetuneConfig)

@@ -19,6 +19,7 @@ from gpnerf_core.errors import ConfigError, GpnerfError
 from gpnerf_core.registry.components import get_registry
 from gpnerf_core.registry.kinds import KINDS
 from gpnerf_core.runtime.device import resolve_device
+from gpnerf_core.runtime.host_memory import keep_freed_memory
 
 
 def compose_checked(overrides: list[str]) -> DictConfig:
@@ -118,9 +119,12 @@ def hydra_message(exc: BaseException) -> str:
 
 
 def setup_process(cfg: DictConfig) -> torch.device:
-    """Validate ``cfg`` (``validate_config``), give torch ``cfg.threads`` threads (0: its default) and seed it with
-    ``cfg.seed`` (which fixes every model's initialisation); returns the device ``cfg.device`` resolves to."""
+    """Validate ``cfg`` (``validate_config``), give torch ``cfg.threads`` threads (0: its default), keep freed host
+    memory in the process when ``cfg.keep_freed_memory`` (``runtime.host_memory``) and seed torch with ``cfg.seed``
+    (which fixes every model's initialisation); returns the device ``cfg.device`` resolves to."""
     check_config(cfg)
+    if cfg.keep_freed_memory:
+        keep_freed_memory()
     if cfg.threads:
         torch.set_num_threads(int(cfg.threads))
     torch.manual_seed(int(cfg.seed))
