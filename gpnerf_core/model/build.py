@@ -63,6 +63,8 @@ class ConfiguredParts(ModelParts):
         self._registry = registry
         self.built: list[Any] = []
         """The components built through it, in order."""
+        self.built_kinds: set[str] = set()
+        """The kinds of those components."""
 
     @property
     def num_classes(self) -> int:
@@ -88,6 +90,7 @@ class ConfiguredParts(ModelParts):
         component = self._registry.build(kind, self._cfg[kind], **runtime)
         guard_outputs(kind, component, self._registry.get(kind, self.name(kind)).where)
         self.built.append(component)
+        self.built_kinds.add(kind)
         return component
 
     def head(self, *, in_dim: int, in_levels: int) -> PerceptionHead | None:
@@ -97,10 +100,26 @@ class ConfiguredParts(ModelParts):
         return self.build("head", in_dim=in_dim, in_levels=in_levels, num_outputs=outputs)
 
 
+MODEL_ADD_ONS = ("head", "depth_source")
+"""Add-on kinds a model family builds through its parts: one the config selects and the family never builds would
+be silently ignored, so it is refused."""
+
+
 def build_model(cfg: Any, num_classes: int, registry: Registry | None = None) -> ModelFamily:
-    """The model family ``cfg.model`` names, built with its options and the config's parts."""
+    """The model family ``cfg.model`` names, built with its options and the config's parts.
+
+    Raises:
+        ConfigError: the config selects a head or depth source the family does not use.
+    """
     registry = registry or get_registry()
-    return registry.build("model", cfg.model, parts=ConfiguredParts(cfg, num_classes, registry))
+    parts = ConfiguredParts(cfg, num_classes, registry)
+    model = registry.build("model", cfg.model, parts=parts)
+    for kind in MODEL_ADD_ONS:
+        if parts.configured(kind) and kind not in parts.built_kinds:
+            raise ConfigError(f"+{kind}={parts.name(kind)}: model {cfg.model.name!r} as configured uses no {kind} "
+                              f"(it would be ignored); drop +{kind}=..., or choose a model that reads one "
+                              f"(docs/configuration.md)")
+    return model
 
 
 def model_classes(

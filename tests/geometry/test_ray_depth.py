@@ -100,3 +100,11 @@ def test_the_gnt_family_renders_one_pass_on_samples_around_the_swept_depth(tmp_p
         build_components(compose([*common, f"+depth_source={source}"]))
     with pytest.raises(ConfigError, match=r"^depth_source.planes=1: expected an integer >= 2"):
         build_components(compose([*common, "model.sampler=depth", f"+depth_source={source}", "depth_source.planes=1"]))
+
+
+def test_a_depth_source_or_head_the_model_does_not_use_is_refused_not_ignored():
+    from gpnerf_core.model.build import build_model
+
+    with pytest.raises(ConfigError, match=r"^\+depth_source=cost_volume: model 'neuray' as configured uses no "
+                                          r"depth_source \(it would be ignored\)"):
+        build_model(compose(["+experiment=baselines/neuray", "+depth_source=cost_volume"]), num_classes=4)
