@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import threading
+from collections.abc import Iterator
 from types import FrameType
 from typing import Any
 
@@ -29,6 +31,15 @@ class TrainingInterrupted(Exception):
         return 128 + self.signum
 
 
+class StopNow(BaseException):
+    """A stop signal arrived inside ``StopRequest.raising``: what was running unwinds (a ``BaseException``, so
+    ``except Exception`` does not swallow it)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
 class StopRequest:
     """While entered, SIGINT/SIGTERM set ``signum`` instead of interrupting; the loop polls it after each step.
 
@@ -40,6 +51,7 @@ class StopRequest:
     def __init__(self) -> None:
         self.signum: int | None = None
         self._previous: dict[int, Any] = {}
+        self._raising = False
 
     def __enter__(self) -> "StopRequest":
         if threading.current_thread() is threading.main_thread():
@@ -55,3 +67,18 @@ class StopRequest:
     def _handle(self, signum: int, frame: FrameType | None) -> None:
         if self.signum is None:
             self.signum = signum
+        if self._raising:
+            self._raising = False
+            raise StopNow(signum)
+
+    @contextlib.contextmanager
+    def raising(self) -> Iterator[None]:
+        """While entered, a signal (or one already received) raises ``StopNow`` at once instead of waiting for the
+        end of the step: for work between steps that may take minutes (an ``eval.every_steps`` evaluation)."""
+        if self.signum is not None:
+            raise StopNow(self.signum)
+        self._raising = True
+        try:
+            yield
+        finally:
+            self._raising = False

@@ -11,7 +11,7 @@ import hashlib
 import math
 import sys
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator, Protocol, Sequence
@@ -29,7 +29,7 @@ from gpnerf_core.runtime.profiling import stage
 from gpnerf_core.model.checkpoint import RunRecord, check_resume_config, save_checkpoint
 from gpnerf_core.model.trained import load_trained, release_trained
 from gpnerf_core.model.weights import load_weights
-from gpnerf_core.training.interrupt import StopRequest, TrainingInterrupted
+from gpnerf_core.training.interrupt import StopNow, StopRequest, TrainingInterrupted
 from gpnerf_core.training.loggers import ScalarLogger
 from gpnerf_core.training.resume import checkpoint_path, prune_checkpoints
 from gpnerf_core.training.sampler import StepSampler
@@ -370,7 +370,7 @@ class Trainer:
                     if cfg.checkpoint_every and self.step % int(cfg.checkpoint_every) == 0 and self.step < total_steps:
                         self._checkpoint(self.training_seconds)
                     if callbacks:
-                        self._run_callbacks(callbacks)
+                        self._run_callbacks(callbacks, stop)
         finally:
             if bar is not None:
                 bar.close()
@@ -402,10 +402,17 @@ class Trainer:
     def _run_seconds(self) -> float:
         return self._clock.seconds()
 
-    def _run_callbacks(self, callbacks: Sequence[Callback]) -> None:
+    def _run_callbacks(self, callbacks: Sequence[Callback], stop: StopRequest) -> None:
+        """Run ``callbacks`` off the training clock. In a single process a stop signal ends them at once (an
+        evaluation can take minutes) and the checkpoint holds the step they followed; with several processes they run
+        to their end (each process would stop at a different collective), and the stop comes after the next step."""
         with self._clock.paused():
-            for callback in callbacks:
-                callback.after_step(self)
+            try:
+                with stop.raising() if self.dist.world_size == 1 else nullcontext():
+                    for callback in callbacks:
+                        callback.after_step(self)
+            except StopNow as now:
+                raise TrainingInterrupted(now.signum, self.step, self._checkpoint(self.training_seconds)) from None
         self.model.train()
 
     def _progress_bar(self, total_steps: int) -> Any:

@@ -92,3 +92,31 @@ def resume_and_finish(line, checkpoint, out, cache):
     assert metrics["train"]["steps"] == step + 2
     history = json.loads((out / "training_curves.json").read_text())
     assert [int(h["step"]) for h in history] == list(range(1, step + 3))
+
+
+def test_a_signal_during_an_evaluation_between_steps_stops_at_once_with_the_step_it_followed(tmp_path):
+    """An ``eval.every_steps`` evaluation can take minutes: SIGTERM inside it unwinds it, not after it and a step."""
+    from gpnerf_core.config.compose import compose
+    from gpnerf_core.training.interrupt import TrainingInterrupted
+    from pipeline_check import TINY_MODEL, TINY_SCENES, make_trainer
+
+    class SlowEvaluation:
+        def __init__(self):
+            self.finished = []
+
+        def after_step(self, trainer):
+            if trainer.step == 2:
+                os.kill(os.getpid(), signal.SIGTERM)  # arrives while "evaluating"
+                time.sleep(5)
+            self.finished.append(trainer.step)
+
+    cfg = compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES, f"dataset.root={tmp_path / 'scenes'}",
+                   "train.steps=5"])
+    trainer, evaluation = make_trainer(cfg, tmp_path / "run"), SlowEvaluation()
+    handler = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(TrainingInterrupted) as stopped:
+        trainer.fit(progress=False, callbacks=[evaluation])
+    assert evaluation.finished == [1]  # step 2's evaluation was cut short, and no step ran after it
+    assert stopped.value.signum == signal.SIGTERM and stopped.value.step == 2 and trainer.step == 2
+    assert stopped.value.checkpoint.name == "step_0000002.pt" and stopped.value.checkpoint.exists()
+    assert signal.getsignal(signal.SIGTERM) is handler
