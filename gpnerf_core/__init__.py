@@ -43,7 +43,7 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     "gpnerf_core.errors": ("ConfigError", "DataError", "GpnerfError", "NonFiniteError", "PluginError"),
     # geometry and checks a dataset or data tool uses
     "gpnerf_core.geometry": (
-        "EXPECTED_RIGID", "Projector", "composite", "compositing_weights", "density_opacity", "importance_depths", "pixel_grid", "points_along_rays", "rays_through_pixels",
+        "EXPECTED_RIGID", "Projector", "SurfaceSampling", "composite", "compositing_weights", "density_opacity", "importance_depths", "pixel_grid", "points_along_rays", "rays_through_pixels",
         "rigid_transform_problem", "sampling_layout", "stratified_depths", "stratified_inverse_depths", "surface_depths",
     ),
     "gpnerf_core.geometry.projection": ("project_points", "world_to_camera"),
@@ -114,6 +114,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
     from gpnerf_core.geometry import (
         EXPECTED_RIGID,
         Projector,
+        SurfaceSampling,
         composite,
         compositing_weights,
         density_opacity,

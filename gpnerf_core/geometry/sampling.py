@@ -3,10 +3,44 @@
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import torch
 from torch import Tensor
 
+from gpnerf_core.errors import ConfigError
 from gpnerf_core.types import RayBatch, RaySamples
+
+SAMPLERS = ("uniform", "depth")
+"""``model.sampler`` values of the families that offer it."""
+
+
+@dataclass(frozen=True)
+class SurfaceSampling:
+    """Where a family's last pass puts its samples (``model.sampler``, ``model.surface_spread``,
+    ``model.surface_uncertainty``), checked when built.
+
+    ``uniform``: the family's own sampling (GNT's coarse samples plus importance samples from the coarse weights).
+    ``depth``: only a few samples per ray around a cheap depth, or spread by its belief where that depth is uncertain
+    (``surface_depths``): from the family's own coarse pass, or, with a ``+depth_source`` (``DepthSource``: a sweep of
+    the source views' features or recorded depth along the ray), from the source views alone: one pass.
+    """
+
+    sampler: str = "uniform"
+    spread: float = 2.0
+    """The samples span the depth +- this many standard deviations of the belief (at least one of its bins)."""
+    uncertainty: float = 0.2
+    """A ray whose belief's standard deviation exceeds this fraction of its depth gets samples drawn from the belief."""
+
+    def __post_init__(self) -> None:
+        if self.sampler not in SAMPLERS:
+            raise ConfigError(f"model.sampler={self.sampler!r}; expected one of: {', '.join(SAMPLERS)}")
+        if not (math.isfinite(self.spread) and self.spread > 0):
+            raise ConfigError(f"model.surface_spread={self.spread!r}: expected a finite number of standard deviations > 0")
+        if not (math.isfinite(self.uncertainty) and self.uncertainty > 0):
+            raise ConfigError(f"model.surface_uncertainty={self.uncertainty!r}: expected a finite fraction of the "
+                              "depth > 0")
 
 
 def stratified_inverse_depths(

@@ -4,7 +4,12 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 
+import torch
+from torch import Tensor
+
 from gpnerf_core.geometry.ray_depth import DepthBelief
+from gpnerf_core.geometry.sampling import surface_depths
+from gpnerf_core.runtime.profiling import stage
 from gpnerf_core.types import FeatureMaps, RayBatch, SourceViews
 
 
@@ -28,3 +33,15 @@ class DepthSource(ABC):
             ``[R, D]`` non-negative and summing to 1 per ray, ``evidence`` ``[R]`` bool; deterministic, finite, and
             without gradient.
         """
+
+    def sample_depths(self, rays: RayBatch, sources: SourceViews, features: FeatureMaps, num_samples: int, *,
+                      spread: float, uncertainty: float, perturb: bool,
+                      generator: torch.Generator | None = None) -> Tensor:
+        """``num_samples`` depths ``[R, N]`` per ray from this source's belief, for a family's one pass: evenly around
+        the belief's depth where it is concentrated, drawn from it where it is flat (``surface_depths``, with its
+        ``spread``, ``uncertainty``, ``perturb`` and ``generator``)."""
+        with stage("depth sweep"):
+            belief = self.belief(rays, sources, features)
+        depths, _ = surface_depths(rays, belief.depths, belief.probabilities, num_samples, spread=spread,
+                                   uncertainty=uncertainty, perturb=perturb, generator=generator)
+        return depths

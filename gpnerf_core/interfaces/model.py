@@ -84,6 +84,31 @@ class ModelParts(ABC):
         """The configured perception head decoding ``in_dim`` channels in ``in_levels`` equal blocks, with its outputs
         (``num_classes``, or ``slots + 1`` for an instance head); None when the config has no head."""
 
+    def name(self, kind: str) -> str | None:
+        """The configured component name of ``kind`` (None when the config selects none)."""
+        return None
+
+    def depth_source(self, sampler: str) -> DepthSource | None:
+        """The configured ``+depth_source`` built, or None without one. It places the samples of
+        ``model.sampler=depth``, so a family's ``sampler`` must be ``depth`` with it (else a ConfigError naming both)."""
+        if not self.configured("depth_source"):
+            return None
+        if sampler != "depth":
+            raise ConfigError(f"depth_source={self.name('depth_source')} places the samples of model.sampler=depth; "
+                              f"expected model.sampler=depth with it (model.sampler is {sampler!r})")
+        return self.build("depth_source")
+
+    def one_pass_depth_source(self, family: str, sampler: str, samples: int) -> DepthSource | None:
+        """``depth_source`` for a family whose ``model.sampler=depth`` is one pass on ``samples`` samples
+        (``model.fine_samples``) around a depth source's depth: None with ``uniform``; with ``depth``, a ConfigError
+        when the config selects no source or ``samples`` < 1."""
+        source = self.depth_source(sampler)
+        if sampler == "depth" and (source is None or samples < 1):
+            raise ConfigError(f"model={family} model.sampler=depth renders one pass on model.fine_samples samples "
+                              f"around a +depth_source's depth; expected +depth_source=<name> and model.fine_samples "
+                              f">= 1 (model.fine_samples={samples})")
+        return source
+
 
 class ModelFamily(ImportsWeights, nn.Module, ABC):
     """Renders colour, depth and semantics of a target view's rays; trained, evaluated, rendered and viewed unchanged.

@@ -105,6 +105,29 @@ def test_the_gnt_family_renders_one_pass_on_samples_around_the_swept_depth(tmp_p
 def test_a_depth_source_or_head_the_model_does_not_use_is_refused_not_ignored():
     from gpnerf_core.model.build import build_model
 
-    with pytest.raises(ConfigError, match=r"^\+depth_source=cost_volume: model 'neuray' as configured uses no "
+    with pytest.raises(ConfigError, match=r"^\+depth_source=cost_volume: model 'semantic_nerf' as configured uses no "
                                           r"depth_source \(it would be ignored\)"):
-        build_model(compose(["+experiment=baselines/neuray", "+depth_source=cost_volume"]), num_classes=4)
+        build_model(compose(["+experiment=baselines/semantic_nerf", "+depth_source=cost_volume"]), num_classes=4)
+
+
+@pytest.mark.parametrize("family", ["neuray", "semantic_ray", "mvsnerf"])
+def test_the_compared_families_render_one_pass_around_a_depth_source(family):
+    """``model.sampler=depth +depth_source=<name>`` is a sampler any family can take: the compared families render one
+    pass on ``fine_samples`` samples around the source's depth, in training (jittered) and in a whole view."""
+    from gpnerf_core.registry.components import get_registry
+    from gpnerf_core.testing.inputs import kit_parts, model_batch, model_view
+
+    registry = get_registry()
+    parts = kit_parts(registry, family, head=False)
+    parts._cfg.depth_source = {"name": "cost_volume", "planes": 16}
+    node = {"name": family, "coarse_samples": 6, "fine_samples": 3, "sampler": "depth"}
+    model = registry.build("model", node, parts=parts)
+    view = model(model_batch(sources=True), semantics=True).views[0]
+    assert view.fine is None and view.coarse.samples.depths.shape[-1] == 3
+    assert torch.isfinite(view.coarse.rgb).all() and torch.isfinite(view.coarse.logits).all()
+    camera, sources = model_view(sources=True)
+    prediction = model.eval().predict(camera, sources, stride=4, chunk_rays=50)
+    assert torch.isfinite(prediction.rgb).all() and torch.isfinite(prediction.logits).all()
+    with pytest.raises(ConfigError, match=rf"^model={family} model.sampler=depth renders one pass on "
+                                          r"model.fine_samples samples around a \+depth_source's depth"):
+        registry.build("model", node, parts=kit_parts(registry, family, head=False))

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from gpnerf_core import ConfigError, ModelParts, checked_compile_backend
+from gpnerf_core import ConfigError, ModelParts, SurfaceSampling, checked_compile_backend
 from gpnerf_plugins.families.gnt.config import GNTModelConfig, SemanticFieldConfig
-from gpnerf_plugins.families.gnt.model import FineSampling, GeneralizableNeRF
+from gpnerf_plugins.families.gnt.model import GeneralizableNeRF
 from gpnerf_plugins.families.gnt.semantic_field import SemanticFieldRenderer
 
 
@@ -50,12 +50,7 @@ def build_gnt(
                 joint_attention=semantics.joint_attention,
                 adaptor_relu=semantics.adaptor_relu,
             )
-    depth_source = None
-    if parts.configured("depth_source"):
-        if sampler != "depth":
-            raise ConfigError(f"depth_source={parts.name('depth_source')} places the samples of model.sampler=depth; "
-                              f"expected model.sampler=depth with it (model.sampler is {sampler!r})")
-        depth_source = parts.build("depth_source")
+    depth_source = parts.depth_source(sampler)
     return GeneralizableNeRF(
         extractor=extractor,
         field=field,
@@ -64,7 +59,7 @@ def build_gnt(
         semantic=semantic,
         coarse_samples=coarse_samples,
         fine_samples=fine_samples,
-        sampling=FineSampling(sampler, surface_spread, surface_uncertainty),
+        sampling=SurfaceSampling(sampler, surface_spread, surface_uncertainty),
         depth_source=depth_source,
         detach_source_semantics=detach_source_semantics,
         fuse_rendered=fuse_rendered,

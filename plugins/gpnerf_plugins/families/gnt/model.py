@@ -14,9 +14,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
-import math
 from collections.abc import Iterator
-from dataclasses import dataclass
 from typing import Any, Mapping
 
 import torch
@@ -60,6 +58,7 @@ from gpnerf_core import (
     stage,
     stratified_inverse_depths,
     surface_depths,
+    SurfaceSampling,
 )
 from gpnerf_plugins.families.gnt.semantic_field import AttentionSums, SemanticFieldRenderer
 from gpnerf_plugins.families.gnt.weights import read_gnt_checkpoint
@@ -77,34 +76,6 @@ def compiled_block_pair(backend: str, num_blocks: int):
     return torch.compile(GeneralizableNeRF._block_pair, backend=backend)
 
 
-SAMPLERS = ("uniform", "depth")
-
-
-@dataclass(frozen=True)
-class FineSampling:
-    """Where the samples go (``model.sampler``, ``model.surface_spread``, ``model.surface_uncertainty``).
-
-    ``uniform``: the coarse samples plus importance samples from the coarse weights (GNT, GP-NeRF). ``depth``: only
-    ``fine_samples`` samples around a cheap depth of each ray, or spread by its belief where that depth is uncertain
-    (``gpnerf_core.geometry.surface_depths``). The cheap depth comes from the coarse pass's weights (two passes, the
-    second on the few samples), or, with a ``+depth_source`` (``DepthSource``: a sweep of the source views' features
-    or recorded depth along the ray), from the source views alone: one pass, no coarse pass.
-    """
-
-    sampler: str = "uniform"
-    spread: float = 2.0
-    uncertainty: float = 0.2
-
-    def __post_init__(self) -> None:
-        if self.sampler not in SAMPLERS:
-            raise ConfigError(f"model.sampler={self.sampler!r}; expected one of: {', '.join(SAMPLERS)}")
-        if not (math.isfinite(self.spread) and self.spread > 0):
-            raise ConfigError(f"model.surface_spread={self.spread!r}: expected a finite number of standard deviations > 0")
-        if not (math.isfinite(self.uncertainty) and self.uncertainty > 0):
-            raise ConfigError(f"model.surface_uncertainty={self.uncertainty!r}: expected a finite fraction of the "
-                              "depth > 0")
-
-
 class GeneralizableNeRF(ModelFamily):
     """Extractor -> projector -> field aggregator <-> ray aggregator -> semantic field -> fused map -> head.
 
@@ -114,7 +85,7 @@ class GeneralizableNeRF(ModelFamily):
         semantic: the semantic field renderer, or None (GNT alone).
         coarse_samples: stratified samples per ray; fine_samples: samples of the fine pass beside (``uniform``) or
             instead of (``depth``) the coarse ones (0 = one pass).
-        sampling: where the fine samples go (``FineSampling``).
+        sampling: where the fine samples go (``SurfaceSampling``).
         depth_source: with ``sampling.sampler == "depth"``, each ray's cheap depth from the source views (one pass on
             ``fine_samples`` samples, no coarse pass); None: from the coarse pass.
         detach_source_semantics: stop rendered-feature losses from training the extractor through the
@@ -141,7 +112,7 @@ class GeneralizableNeRF(ModelFamily):
         coarse_samples: int,
         fine_samples: int,
         detach_source_semantics: bool,
-        sampling: FineSampling = FineSampling(),
+        sampling: SurfaceSampling = SurfaceSampling(),
         depth_source: DepthSource | None = None,
         fuse_rendered: bool,
         checkpoint_blocks: bool,
@@ -380,8 +351,8 @@ class GeneralizableNeRF(ModelFamily):
         Semantics are rendered in the last pass only. ``randomized`` jitters the samples (training).
         """
         if self.samples_from_sweep:
-            around, _ = surface_depths(
-                rays, *self._depth_belief(rays, sources, features), self.fine_samples, spread=self.sampling.spread,
+            around = self.depth_source.sample_depths(
+                rays, sources, features, self.fine_samples, spread=self.sampling.spread,
                 uncertainty=self.sampling.uncertainty, perturb=randomized, generator=generator,
             )
             only = self.render_pass(rays, points_along_rays(rays, around), sources, features,
@@ -441,12 +412,6 @@ class GeneralizableNeRF(ModelFamily):
             yield True
         finally:
             self.sampling, self.depth_source, self.fine_samples = saved
-
-    def _depth_belief(self, rays: RayBatch, sources: SourceViews, features: FeatureMaps) -> tuple[Tensor, Tensor]:
-        """Candidate depths ``[R, D]`` and their probabilities from the source views (the ``depth_source``)."""
-        with stage("depth sweep"):
-            belief = self.depth_source.belief(rays, sources, features)
-        return belief.depths, belief.probabilities
 
     def render_pass(
         self,

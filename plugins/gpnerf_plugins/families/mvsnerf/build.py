@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Sequence
 
-from gpnerf_core import ConfigError, ModelParts
+from gpnerf_core import ConfigError, ModelParts, SurfaceSampling
 from gpnerf_plugins.families.mvsnerf.config import MVSNeRFConfig
 from gpnerf_plugins.families.mvsnerf.model import MVSNeRF
 
@@ -20,6 +20,9 @@ def build_mvsnerf(
     pad: Sequence[int] = (0, 0),
     width: int = MVSNeRFConfig.width,
     label_rendering: bool = MVSNeRFConfig.label_rendering,
+    sampler: str = MVSNeRFConfig.sampler,
+    surface_spread: float = MVSNeRFConfig.surface_spread,
+    surface_uncertainty: float = MVSNeRFConfig.surface_uncertainty,
 ) -> MVSNeRF:
     """The extractor the config selects (``feature_extractor=mvsnet`` for MVSNeRF's) and the family's own networks.
 
@@ -30,6 +33,8 @@ def build_mvsnerf(
     pad = [int(value) for value in pad]
     if len(pad) != 2:
         raise ConfigError(f"model.pad={pad}: expected [rows, columns], two cell counts")
+    sampling = SurfaceSampling(sampler, surface_spread, surface_uncertainty)
+    depth_source = parts.one_pass_depth_source("mvsnerf", sampler, fine_samples)
     extractor, head = parts.build("feature_extractor"), None
     if parts.configured("head"):
         if not extractor.semantic_dim:
@@ -49,4 +54,6 @@ def build_mvsnerf(
         inverse_depth=inverse_depth,
         pad=(pad[0], pad[1]),
         width=width,
+        sampling=sampling,
+        depth_source=depth_source,
     )

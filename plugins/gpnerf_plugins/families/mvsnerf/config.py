@@ -35,6 +35,16 @@ class MVSNeRFConfig(ModelConfig):
     (24 by default there, for DTU's 128 x 160 map) widens the volume past the reference image. The 3D U-Net needs
     sides that are multiples of 8, so each is raised to the fewest cells that make it one (with [0, 0]: none at
     96 x 128, 2 columns at 32 x 48, 2 rows at 240 x 320); image sides must be multiples of 8 pixels."""
+    sampler: str = "uniform"
+    """``uniform``: MVSNeRF's samples (and an importance pass with ``fine_samples``). ``depth`` (with
+    ``+depth_source=<name>``, which it needs here): one pass on ``fine_samples`` samples around the source views' depth
+    of each ray, or spread by its belief where that depth is uncertain (``gpnerf_core.SurfaceSampling``;
+    docs/rendering.md)."""
+    surface_spread: float = 2.0
+    """``sampler=depth``: the samples span the depth +- this many standard deviations of the belief."""
+    surface_uncertainty: float = 0.2
+    """``sampler=depth``: a ray whose belief's standard deviation exceeds this fraction of its depth gets its samples
+    drawn from the belief."""
     width: int = 128
     """Width of the MLP trunk (MVSNeRF: 128, 6 layers); the colour branch has half of it, as the semantic branch."""
     label_rendering: bool = True

@@ -81,6 +81,7 @@ from torch import Tensor
 from gpnerf_core import (
     LabelsOrHead,
     ConfigError,
+    DepthSource,
     FeatureExtractor,
     FeatureMaps,
     PerceptionHead,
@@ -107,6 +108,7 @@ from gpnerf_core import (
     rays_through_pixels,
     render_whole_view,
     stratified_depths,
+    SurfaceSampling,
     variance_over_views,
 )
 from gpnerf_plugins.extractors.mvsnet import imagenet_normalised
@@ -131,6 +133,8 @@ class EncodedView:
     frustum: ReferenceFrustum
     volume: Tensor
     sources: SourceViews
+    maps: FeatureMaps
+    """The used views' encoded maps (a depth source sweeps their radiance features)."""
 
 
 class MVSNeRF(LabelsOrHead):
@@ -151,11 +155,14 @@ class MVSNeRF(LabelsOrHead):
         inverse_depth: planes and samples uniform in 1/depth.
         pad: cells added on each side of the reference frustum, (rows, columns), at least (``volume_pad``).
         width: MLP width.
+        sampling, depth_source: with a depth source (``model.sampler=depth``), one pass on ``fine_samples`` samples
+            around its depth of each ray instead of the stratified ones.
     """
 
     def __init__(self, *, extractor: FeatureExtractor, num_classes: int, coarse_samples: int, fine_samples: int,
                  volume_views: int, num_planes: int, inverse_depth: bool, pad: tuple[int, int], width: int,
-                 head: PerceptionHead | None = None) -> None:
+                 head: PerceptionHead | None = None, sampling: SurfaceSampling = SurfaceSampling(),
+                 depth_source: DepthSource | None = None) -> None:
         super().__init__()
         unit = 2**LEVELS
         if coarse_samples < 2 or fine_samples < 0 or volume_views < 1 or width < 2 or min(pad) < 0:
@@ -175,6 +182,7 @@ class MVSNeRF(LabelsOrHead):
         self.volume_views, self.num_planes = int(volume_views), int(num_planes)
         self.inverse_depth = bool(inverse_depth)
         self.pad = (int(pad[0]), int(pad[1]))
+        self.sampling, self.depth_source = sampling, depth_source
 
     # ---- what the model is --------------------------------------------------------------------------------------
 
@@ -218,7 +226,7 @@ class MVSNeRF(LabelsOrHead):
         colours = sweep.warp(colours).flatten(0, 1)  # [3 V, D, h', w']
         missing = colours.new_zeros(3 * (self.volume_views - count), *colours.shape[1:])
         cost = torch.cat([colours, missing, variance_over_views(sweep.warp(features), sweep.inside)], dim=0)
-        return EncodedView(frustum, self.cost_regulariser(cost[None])[0], used)
+        return EncodedView(frustum, self.cost_regulariser(cost[None])[0], used, FeatureMaps(features, None))
 
     # ---- one pass -------------------------------------------------------------------------------------------------
 
@@ -254,7 +262,13 @@ class MVSNeRF(LabelsOrHead):
     def _render(self, rays: RayBatch, view: EncodedView, semantics: bool, generator: torch.Generator | None,
                 sample_semantics: bool = False) -> tuple[RenderedRays, RenderedRays | None]:
         """The pass and (with fine samples) the importance pass through the same network; with a head only the last
-        pass renders semantic features (GP-NeRF's), without one both render class scores."""
+        pass renders semantic features (GP-NeRF's), without one both render class scores. With a depth source, one
+        pass on ``fine_samples`` samples around its depth."""
+        if self.depth_source is not None:
+            depths = self.depth_source.sample_depths(
+                rays, view.sources, view.maps, self.fine_samples, spread=self.sampling.spread,
+                uncertainty=self.sampling.uncertainty, perturb=generator is not None, generator=generator)
+            return self._pass(rays, points_along_rays(rays, depths), view, semantics, sample_semantics), None
         depths = stratified_depths(rays, self.coarse_samples, inverse=self.inverse_depth, generator=generator)
         coarse_semantics = semantics and (self.head is None or not self.fine_samples)
         coarse = self._pass(rays, points_along_rays(rays, depths), view, coarse_semantics, sample_semantics)

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-from gpnerf_core import ConfigError, ModelParts
+from gpnerf_core import ConfigError, ModelParts, SurfaceSampling
 from gpnerf_plugins.families.neuray.config import NeuRayConfig
 from gpnerf_plugins.families.neuray.model import VisibilityAwareRenderer
 
 
 def _build(parts: ModelParts, name: str, cross_reprojection: bool, coarse_samples: int, fine_samples: int,
-           visibility_dim: int) -> VisibilityAwareRenderer:
+           visibility_dim: int, sampling: SurfaceSampling) -> VisibilityAwareRenderer:
+    depth_source = parts.one_pass_depth_source(name, sampling.sampler, fine_samples)
     extractor, head = parts.build("feature_extractor"), None
     if parts.configured("head"):
         if not extractor.semantic_dim:
@@ -18,18 +19,25 @@ def _build(parts: ModelParts, name: str, cross_reprojection: bool, coarse_sample
         head = parts.head(in_dim=extractor.semantic_dim, in_levels=extractor.semantic_levels)
     return VisibilityAwareRenderer(extractor=extractor, num_classes=parts.num_classes, head=head,
                                    coarse_samples=coarse_samples, fine_samples=fine_samples,
-                                   visibility_dim=visibility_dim, cross_reprojection=cross_reprojection)
+                                   visibility_dim=visibility_dim, cross_reprojection=cross_reprojection,
+                                   sampling=sampling, depth_source=depth_source)
 
 
 def build_neuray(*, parts: ModelParts, coarse_samples: int = NeuRayConfig.coarse_samples,
                  fine_samples: int = NeuRayConfig.fine_samples,
-                 visibility_dim: int = NeuRayConfig.visibility_dim) -> VisibilityAwareRenderer:
+                 visibility_dim: int = NeuRayConfig.visibility_dim, sampler: str = NeuRayConfig.sampler,
+                 surface_spread: float = NeuRayConfig.surface_spread,
+                 surface_uncertainty: float = NeuRayConfig.surface_uncertainty) -> VisibilityAwareRenderer:
     """NeuRay + semantic head: no Cross-Reprojection Attention."""
-    return _build(parts, "neuray", False, coarse_samples, fine_samples, visibility_dim)
+    return _build(parts, "neuray", False, coarse_samples, fine_samples, visibility_dim,
+                  SurfaceSampling(sampler, surface_spread, surface_uncertainty))
 
 
 def build_semantic_ray(*, parts: ModelParts, coarse_samples: int = NeuRayConfig.coarse_samples,
                        fine_samples: int = NeuRayConfig.fine_samples,
-                       visibility_dim: int = NeuRayConfig.visibility_dim) -> VisibilityAwareRenderer:
+                       visibility_dim: int = NeuRayConfig.visibility_dim, sampler: str = NeuRayConfig.sampler,
+                       surface_spread: float = NeuRayConfig.surface_spread,
+                       surface_uncertainty: float = NeuRayConfig.surface_uncertainty) -> VisibilityAwareRenderer:
     """Semantic-Ray: with the Cross-Reprojection Attention."""
-    return _build(parts, "semantic_ray", True, coarse_samples, fine_samples, visibility_dim)
+    return _build(parts, "semantic_ray", True, coarse_samples, fine_samples, visibility_dim,
+                  SurfaceSampling(sampler, surface_spread, surface_uncertainty))

@@ -20,6 +20,15 @@ class NeuRayConfig(ModelConfig):
     renders only these (NeuRay and Semantic-Ray do not merge them with the coarse samples). 0 = coarse pass only."""
     visibility_dim: int = 32
     """Channels of the visibility feature map G of each source view (NeuRay: 32)."""
+    sampler: str = "uniform"
+    """``uniform``: NeuRay's two passes. ``depth`` (with ``+depth_source=<name>``, which it needs here): one pass through
+    one network on ``fine_samples`` samples around the source views' depth of each ray, or spread by its belief where
+    that depth is uncertain (``gpnerf_core.SurfaceSampling``; docs/rendering.md)."""
+    surface_spread: float = 2.0
+    """``sampler=depth``: the samples span the depth +- this many standard deviations of the belief."""
+    surface_uncertainty: float = 0.2
+    """``sampler=depth``: a ray whose belief's standard deviation exceeds this fraction of its depth gets its samples
+    drawn from the belief."""
 
     runtime_keys: ClassVar[tuple[str, ...]] = ModelConfig.runtime_keys
 

@@ -54,6 +54,7 @@ from torch import Tensor, nn
 from gpnerf_core import (
     LabelsOrHead,
     ConfigError,
+    DepthSource,
     FeatureMaps,
     PerceptionHead,
     Prediction,
@@ -76,6 +77,7 @@ from gpnerf_core import (
     rays_through_pixels,
     render_whole_view,
     stratified_inverse_depths,
+    SurfaceSampling,
     world_to_camera,
 )
 from gpnerf_plugins.families.neuray.aggregator import NeuRayAggregator
@@ -116,7 +118,8 @@ class VisibilityAwareRenderer(LabelsOrHead):
     """
 
     def __init__(self, *, extractor: nn.Module, num_classes: int, head: PerceptionHead | None, coarse_samples: int,
-                 fine_samples: int, visibility_dim: int, cross_reprojection: bool) -> None:
+                 fine_samples: int, visibility_dim: int, cross_reprojection: bool,
+                 sampling: SurfaceSampling = SurfaceSampling(), depth_source: DepthSource | None = None) -> None:
         super().__init__()
         if coarse_samples < 2 or fine_samples < 0 or visibility_dim < 2 or visibility_dim % 2:
             raise ConfigError(f"model.coarse_samples={coarse_samples}, model.fine_samples={fine_samples}, "
@@ -126,9 +129,12 @@ class VisibilityAwareRenderer(LabelsOrHead):
         self.visibility_encoder = VisibilityEncoder(extractor.radiance_dim + visibility_dim, visibility_dim)
         feature_dim = extractor.radiance_dim
         outputs = int(extractor.semantic_dim) if head is not None else int(num_classes)
-        coarse_outputs = 0 if head is not None and fine_samples else outputs
+        # With a depth source the coarse network renders the one pass (on fine_samples samples around the depth).
+        two_passes = bool(fine_samples) and depth_source is None
+        coarse_outputs = 0 if head is not None and two_passes else outputs
         self.coarse = PassNetwork(feature_dim, visibility_dim, coarse_outputs, cross_reprojection)
-        self.fine = PassNetwork(feature_dim, visibility_dim, outputs, cross_reprojection) if fine_samples else None
+        self.fine = PassNetwork(feature_dim, visibility_dim, outputs, cross_reprojection) if two_passes else None
+        self.sampling, self.depth_source = sampling, depth_source
         self.head = head
         self.coarse_samples, self.fine_samples = int(coarse_samples), int(fine_samples)
         self.num_classes = int(num_classes) if head is None else 0
@@ -211,11 +217,19 @@ class VisibilityAwareRenderer(LabelsOrHead):
 
     def render_rays(self, rays: RayBatch, sources: SourceViews, maps: Tensor, semantics: bool,
                     generator: torch.Generator | None, sample_semantics: bool = False,
-                    last_pass_semantics: bool = False) -> tuple[RenderedRays, RenderedRays | None]:
+                    last_pass_semantics: bool = False,
+                    features: FeatureMaps | None = None) -> tuple[RenderedRays, RenderedRays | None]:
         """The coarse pass and (with fine samples) the fine pass; ``generator`` None renders deterministically.
 
         ``last_pass_semantics``: the coarse pass renders no semantics where a fine pass follows (a whole view's
-        prediction reads the last pass only; training's cross-entropy reads both)."""
+        prediction reads the last pass only; training's cross-entropy reads both). With a depth source
+        (``model.sampler=depth``) one pass on ``fine_samples`` samples around its depth from the sources' encoded
+        ``features``."""
+        if self.depth_source is not None:
+            depths = self.depth_source.sample_depths(
+                rays, sources, features, self.fine_samples, spread=self.sampling.spread,
+                uncertainty=self.sampling.uncertainty, perturb=generator is not None, generator=generator)
+            return self._pass(self.coarse, rays, depths, sources, maps, semantics, sample_semantics), None
         depths = stratified_inverse_depths(rays, self.coarse_samples, perturb=False)
         coarse_semantics = semantics and not (last_pass_semantics and self.fine is not None)
         coarse = self._pass(self.coarse, rays, depths, sources, maps, coarse_semantics, sample_semantics)
@@ -246,7 +260,7 @@ class VisibilityAwareRenderer(LabelsOrHead):
             raise ConfigError(f"model {type(self).__name__} renders from source views; the batch has none")
         maps = self.encode(view.sources.rgb)
         coarse, fine = self.render_rays(rays, view.sources, self._stacked(view.sources, maps, camera), semantics,
-                                        generator, sample_semantics)
+                                        generator, sample_semantics, features=maps)
         if self.head is None or not semantics:
             return ViewOutput(coarse=coarse, fine=fine)
         return decoded_view_output(view, coarse, fine, self.encode(view.image[None]).semantic, self.head)
@@ -265,7 +279,7 @@ class VisibilityAwareRenderer(LabelsOrHead):
 
         def render(rays: RayBatch) -> RenderedRays:
             coarse, fine = self.render_rays(rays, sources, maps, self.semantic_output is not None, None,
-                                            last_pass_semantics=True)
+                                            last_pass_semantics=True, features=features)
             return fine if fine is not None else coarse
 
         return render_whole_view(camera, render, stride=stride, chunk_rays=chunk_rays, decode=decode)
