@@ -84,9 +84,9 @@ class ModelParts(ABC):
         """The configured perception head decoding ``in_dim`` channels in ``in_levels`` equal blocks, with its outputs
         (``num_classes``, or ``slots + 1`` for an instance head); None when the config has no head."""
 
+    @abstractmethod
     def name(self, kind: str) -> str | None:
         """The configured component name of ``kind`` (None when the config selects none)."""
-        return None
 
     def depth_source(self, sampler: str) -> DepthSource | None:
         """The configured ``+depth_source`` built, or None without one. It places the samples of
