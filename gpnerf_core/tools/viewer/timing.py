@@ -1,4 +1,4 @@
-"""How long the viewer takes for one camera: ``python -m gpnerf_core.tools.viewer.timing [config overrides]``.
+"""How long the viewer takes for one camera: ``python -m gpnerf_core.tools.viewer.timing [--repeats=3] [overrides]``.
 
 Builds the model of the given config (its weights do not change the time; ``checkpoint=<pt>`` is not read), then, for
 a camera at a training frame of the first scene, times what the viewer does when a camera stops: the preview at
@@ -74,4 +74,12 @@ def measure(overrides: list[str], repeats: int = 3) -> dict[str, object]:
 
 
 if __name__ == "__main__":
-    print(json.dumps(measure(sys.argv[1:]), indent=1))
+    arguments = sys.argv[1:]
+    repeats = 3
+    if arguments and arguments[0].startswith("--repeats="):
+        value = arguments.pop(0).split("=", 1)[1]
+        if not value.isdigit() or int(value) < 1:
+            print(f"error: --repeats={value}: expected an integer >= 1 (renders timed per stage)", file=sys.stderr)
+            sys.exit(2)
+        repeats = int(value)
+    print(json.dumps(measure(arguments, repeats=repeats), indent=1))
