@@ -30,7 +30,7 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     ),
     "gpnerf_core.interfaces.stress": ("ChooseSources",),
     "gpnerf_core.interfaces.head": ("Predicts",),
-    "gpnerf_core.interfaces.model": ("ModelFamily", "ModelParts", "SemanticMode", "SemanticOutput"),
+    "gpnerf_core.interfaces.model": ("ModelFamily", "ModelParts", "SemanticMode", "SemanticOutput", "one_pass_preview"),
     "gpnerf_core.config.schema": ("ModelConfig",),
     # the records passed between stages
     "gpnerf_core.types": (
@@ -161,7 +161,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
         ViewSelector,
     )
     from gpnerf_core.interfaces.head import Predicts
-    from gpnerf_core.interfaces.model import ModelFamily, ModelParts, SemanticMode, SemanticOutput
+    from gpnerf_core.interfaces.model import ModelFamily, ModelParts, SemanticMode, SemanticOutput, one_pass_preview
     from gpnerf_core.interfaces.stress import ChooseSources
     from gpnerf_core.model.build import build_components
     from gpnerf_core.registry.components import get_registry

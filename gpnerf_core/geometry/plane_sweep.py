@@ -46,8 +46,13 @@ def points_in_views(
         grid samples a map of any resolution that tiles the image); ``inside`` ``[V, N]`` bool: the point is in front
         of the camera and its projection within the image (edges included).
     """
+    return projections_in_views(*project_points(points, intrinsics, c2w), image_size)
+
+
+def projections_in_views(pixels: Tensor, depth: Tensor, image_size: tuple[int, int]) -> tuple[Tensor, Tensor]:
+    """``points_in_views`` of points already projected: ``pixels`` ``[V, N, 2]`` and camera ``depth`` ``[V, N]`` from
+    ``project_points``, for a caller that also needs the depth."""
     height, width = image_size
-    pixels, depth = project_points(points, intrinsics, c2w)  # [V, N, 2], [V, N]
     inside = (
         (depth > MIN_DEPTH)
         & (pixels[..., 0] >= -0.5) & (pixels[..., 0] <= width - 0.5)

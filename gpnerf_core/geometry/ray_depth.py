@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from gpnerf_core.geometry.plane_sweep import points_in_views
+from gpnerf_core.geometry.plane_sweep import projections_in_views
 from gpnerf_core.geometry.projection import project_points, sampling_layout
 from gpnerf_core.geometry.sampling import stratified_inverse_depths
 from gpnerf_core.types import RayBatch, SourceViews
@@ -58,11 +58,12 @@ def candidate_depths(rays: RayBatch, planes: int) -> Tensor:
 
 
 def _in_views(rays: RayBatch, depths: Tensor, sources: SourceViews) -> tuple[Tensor, Tensor, Tensor]:
-    """The candidates as world points ``[R * D, 3]``, their ``grid_sample`` coordinates ``[V, R * D, 2]`` and
-    ``inside`` ``[V, R * D]`` in the source views."""
+    """The candidates' ``grid_sample`` coordinates ``[V, R * D, 2]`` in the source views, ``inside`` ``[V, R * D]``
+    and their camera depths there ``[V, R * D]``."""
     points = (rays.origins[:, None, :] + depths[..., None] * rays.directions[:, None, :]).reshape(-1, 3)
-    grid, inside = points_in_views(points, sources.intrinsics, sources.c2w, sources.image_size)
-    return points, grid, inside
+    pixels, z = project_points(points, sources.intrinsics, sources.c2w)
+    grid, inside = projections_in_views(pixels, z, sources.image_size)
+    return grid, inside, z
 
 
 def _belief(depths: Tensor, logits: Tensor, scored: Tensor) -> DepthBelief:
@@ -95,7 +96,7 @@ def feature_cost_belief(
         raise ValueError(f"temperature must be > 0, got {temperature}")
     with torch.no_grad():
         depths = candidate_depths(rays, planes)
-        _, grid, inside = _in_views(rays, depths, sources)
+        grid, inside, _ = _in_views(rays, depths, sources)
         # Streamed view by view (one [C, R * D] slice at a time): sum_c var_c = mean_v |f_v|^2 - |mean_v f_v|^2 over
         # the views that see a candidate, the variance of variance_over_views without its [V, C, R * D] temporaries.
         maps = sampling_layout(maps.detach())  # channels-last: grid_sample reads each point's channels at once
@@ -142,10 +143,9 @@ def source_depth_belief(
         raise ValueError("source_depth_belief needs the source views' depth (SourceViews.depth); none was loaded")
     with torch.no_grad():
         depths = candidate_depths(rays, planes)
-        points, grid, inside = _in_views(rays, depths, sources)
+        grid, inside, z = _in_views(rays, depths, sources)
         recorded = F.grid_sample(sources.depth[:, None], grid[:, :, None, :], mode="nearest", padding_mode="zeros",
                                  align_corners=False)[:, 0, :, 0]  # [V, R * D]
-        z = project_points(points, sources.intrinsics, sources.c2w)[1]  # [V, R * D] camera depth
         valid = inside & (recorded > 0)
         # half a candidate bin at depth z (bins uniform in 1/depth): z^2 (1/near - 1/far) / (planes - 1) / 2
         span = (1.0 / rays.near - 1.0 / rays.far)[:, None].expand_as(depths).reshape(1, -1)

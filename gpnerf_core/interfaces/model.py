@@ -10,6 +10,7 @@ another.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import enum
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
@@ -108,6 +109,24 @@ class ModelParts(ABC):
                               f"around a +depth_source's depth; expected +depth_source=<name> and model.fine_samples "
                               f">= 1 (model.fine_samples={samples})")
         return source
+
+
+@contextlib.contextmanager
+def one_pass_preview(family: nn.Module, depth_source: DepthSource, samples: int) -> Iterator[bool]:
+    """``ModelFamily.preview_sampling`` of a family whose ``model.sampler=depth`` is one pass on ``fine_samples``
+    samples around ``depth_source``'s depth (GNT, NeuRay, Semantic-Ray, MVSNeRF): while entered, ``family.sampling``
+    says ``depth``, ``family.depth_source`` is its own (a family trained with one keeps it) or ``depth_source``, and
+    ``family.fine_samples`` is ``samples``; the three are restored on exit, whatever happens. Yields True."""
+    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
+        raise ConfigError(f"a preview needs at least 1 sample per ray, got {samples!r}")
+    saved = family.sampling, family.depth_source, family.fine_samples
+    family.sampling = dataclasses.replace(family.sampling, sampler="depth")
+    family.depth_source = family.depth_source or depth_source
+    family.fine_samples = samples
+    try:
+        yield True
+    finally:
+        family.sampling, family.depth_source, family.fine_samples = saved
 
 
 class ModelFamily(ImportsWeights, nn.Module, ABC):

@@ -131,3 +131,36 @@ def test_the_compared_families_render_one_pass_around_a_depth_source(family):
     with pytest.raises(ConfigError, match=rf"^model={family} model.sampler=depth renders one pass on "
                                           r"model.fine_samples samples around a \+depth_source's depth"):
         registry.build("model", node, parts=kit_parts(registry, family, head=False))
+
+
+@pytest.mark.parametrize("family", ["neuray", "semantic_ray", "mvsnerf"])
+def test_the_compared_families_preview_a_few_samples_around_a_depth_source_and_restore_their_sampling(family):
+    """The viewer's preview (``ModelFamily.preview_sampling``) of a family trained with its own two passes: one pass
+    of its last network on the preview's samples around the depth source's depth, with the decoded semantics; the
+    configured sampling is back afterwards, also after a failure."""
+    from gpnerf_core.registry.components import get_registry
+    from gpnerf_core.testing.inputs import kit_parts, model_view
+    from gpnerf_plugins.depth_sources.sweeps import CostVolumeDepth
+
+    registry = get_registry()
+    model = registry.build("model", {"name": family, "coarse_samples": 6, "fine_samples": 4},
+                           parts=kit_parts(registry, family, head=True)).eval()
+    camera, sources = model_view(sources=True)
+    configured = (model.sampling, model.depth_source, model.fine_samples)
+    full = model.predict(camera, sources, stride=4, chunk_rays=50)
+    sweep = CostVolumeDepth(planes=16)
+    asked = []
+    sample_depths = sweep.sample_depths
+    sweep.sample_depths = lambda *args, **kwargs: asked.append(args[3]) or sample_depths(*args, **kwargs)
+    with model.preview_sampling(sweep, 2) as honoured:
+        preview = model.predict(camera, sources, stride=4, chunk_rays=50)
+    assert honoured and asked and set(asked) == {2}
+    assert (model.sampling, model.depth_source, model.fine_samples) == configured
+    assert preview.logits.shape == full.logits.shape and torch.isfinite(preview.logits).all()
+    assert torch.isfinite(preview.rgb).all() and not torch.equal(preview.rgb, full.rgb)
+    with pytest.raises(RuntimeError, match="render failed"), model.preview_sampling(sweep, 2):
+        raise RuntimeError("render failed")
+    assert (model.sampling, model.depth_source, model.fine_samples) == configured
+    with pytest.raises(ConfigError, match=r"^a preview needs at least 1 sample per ray, got 0"):
+        with model.preview_sampling(sweep, 0):
+            pass

@@ -12,9 +12,7 @@ alone.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import functools
-from collections.abc import Iterator
 from typing import Any, Mapping
 
 import torch
@@ -51,6 +49,7 @@ from gpnerf_core import (
     DepthSource,
     decoded_view_output,
     importance_depths,
+    one_pass_preview,
     pixel_grid,
     points_along_rays,
     rays_through_pixels,
@@ -398,20 +397,10 @@ class GeneralizableNeRF(ModelFamily):
         """``model.sampler=depth`` with a ``depth_source``: one pass on ``fine_samples`` samples, no coarse pass."""
         return self.sampling.sampler == "depth" and self.depth_source is not None
 
-    @contextlib.contextmanager
-    def preview_sampling(self, depth_source: DepthSource, samples: int) -> Iterator[bool]:
+    def preview_sampling(self, depth_source: DepthSource, samples: int) -> contextlib.AbstractContextManager[bool]:
         """One pass on ``samples`` samples around the depth of ``depth_source`` (or of the model's own depth source)
         while entered; the configured sampling is restored on exit, whatever happens."""
-        if samples < 1:
-            raise ConfigError(f"a preview needs at least 1 sample per ray, got {samples}")
-        saved = self.sampling, self.depth_source, self.fine_samples
-        self.sampling = dataclasses.replace(self.sampling, sampler="depth")
-        self.depth_source = self.depth_source or depth_source
-        self.fine_samples = samples
-        try:
-            yield True
-        finally:
-            self.sampling, self.depth_source, self.fine_samples = saved
+        return one_pass_preview(self, depth_source, samples)
 
     def render_pass(
         self,

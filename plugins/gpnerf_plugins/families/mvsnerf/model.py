@@ -72,6 +72,7 @@ Simplified for a 2-core CPU, and why:
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, replace
 
 import torch
@@ -102,6 +103,7 @@ from gpnerf_core import (
     decoded_view_output,
     density_opacity,
     importance_depths,
+    one_pass_preview,
     plane_sweep,
     points_along_rays,
     points_in_views,
@@ -258,6 +260,11 @@ class MVSNeRF(LabelsOrHead):
             return replace(rendered, logits=composite(weights, outputs))
         return replace(rendered, semantic=composite(weights, outputs),
                        sample_semantic=outputs if sample_semantics else None)
+
+    def preview_sampling(self, depth_source: DepthSource, samples: int) -> contextlib.AbstractContextManager[bool]:
+        """One pass of the network on ``samples`` samples around ``depth_source``'s depth (the model's own, when built
+        with one) while entered; the configured sampling is restored on exit."""
+        return one_pass_preview(self, depth_source, samples)
 
     def _render(self, rays: RayBatch, view: EncodedView, semantics: bool, generator: torch.Generator | None,
                 sample_semantics: bool = False) -> tuple[RenderedRays, RenderedRays | None]:

@@ -45,6 +45,7 @@ the image alone, which is no longer NeuRay's visibility (docs/families/neuray.md
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import replace
 
 import torch
@@ -72,6 +73,7 @@ from gpnerf_core import (
     decoded_view_output,
     density_opacity,
     importance_depths,
+    one_pass_preview,
     points_along_rays,
     project_points,
     rays_through_pixels,
@@ -229,7 +231,7 @@ class VisibilityAwareRenderer(LabelsOrHead):
             depths = self.depth_source.sample_depths(
                 rays, sources, features, self.fine_samples, spread=self.sampling.spread,
                 uncertainty=self.sampling.uncertainty, perturb=generator is not None, generator=generator)
-            return self._pass(self.coarse, rays, depths, sources, maps, semantics, sample_semantics), None
+            return self._pass(self.last_pass, rays, depths, sources, maps, semantics, sample_semantics), None
         depths = stratified_inverse_depths(rays, self.coarse_samples, perturb=False)
         coarse_semantics = semantics and not (last_pass_semantics and self.fine is not None)
         coarse = self._pass(self.coarse, rays, depths, sources, maps, coarse_semantics, sample_semantics)
@@ -241,6 +243,17 @@ class VisibilityAwareRenderer(LabelsOrHead):
                                    generator=generator)
         fine_depths = torch.sort(1.0 / (1.0 / near + t_fine * (1.0 / far - 1.0 / near)), dim=-1).values
         return coarse, self._pass(self.fine, rays, fine_depths, sources, maps, semantics, sample_semantics)
+
+    @property
+    def last_pass(self) -> nn.Module:
+        """The network of the last pass: the one pass around a depth source's depth (the coarse network of a model
+        built with one; the fine network, trained on samples near the surface, in a two-pass model's preview)."""
+        return self.fine if self.fine is not None else self.coarse
+
+    def preview_sampling(self, depth_source: DepthSource, samples: int) -> contextlib.AbstractContextManager[bool]:
+        """One pass of the last pass's network on ``samples`` samples around ``depth_source``'s depth (the model's own,
+        when built with one) while entered; the configured sampling is restored on exit."""
+        return one_pass_preview(self, depth_source, samples)
 
     def _stacked(self, sources: SourceViews, features: FeatureMaps, camera: TargetCamera) -> Tensor:
         """The sources' image features with their visibility maps ``[V, C + G, h, w]`` (sampled together)."""
