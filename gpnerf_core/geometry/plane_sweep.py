@@ -50,8 +50,8 @@ def points_in_views(
 
 
 def projections_in_views(pixels: Tensor, depth: Tensor, image_size: tuple[int, int]) -> tuple[Tensor, Tensor]:
-    """``points_in_views`` of points already projected: ``pixels`` ``[V, N, 2]`` and camera ``depth`` ``[V, N]`` from
-    ``project_points``, for a caller that also needs the depth."""
+    """``points_in_views`` of points already projected: ``pixels`` ``[V, N, 2]`` and camera ``depth`` ``[V, N]`` as
+    ``project_points`` gives them, for a caller that projects its own way or also needs the depth."""
     height, width = image_size
     inside = (
         (depth > MIN_DEPTH)
