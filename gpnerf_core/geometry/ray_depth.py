@@ -161,7 +161,7 @@ def source_depth_belief(
                                  align_corners=False)[:, 0, :, 0]  # [V, R * D]
         valid = inside & (recorded > 0)
         # half a candidate bin at depth z (bins uniform in 1/depth): z^2 (1/near - 1/far) / (planes - 1) / 2
-        # half a bin per ray, [R * D]: broadcast over the views instead of expanded to every candidate first
+        # half a candidate bin over z^2, one per candidate [1, R * D], broadcast over the views
         half_bin_per_z2 = ((1.0 / rays.near - 1.0 / rays.far) / (2 * (planes - 1)))[:, None].expand_as(depths)
         width = torch.maximum(recorded * tolerance, z.square() * half_bin_per_z2.reshape(1, -1)).clamp_min_(1e-6)
         agreement = (z - recorded).div_(width).square_().mul_(-0.5).exp_().mul_(valid)
