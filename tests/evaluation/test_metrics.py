@@ -175,6 +175,17 @@ def test_psnr_clamps_prediction_to_unit_range():
     assert m.psnr(pred, gt, clamp=False) == pytest.approx(-10 * math.log10(0.16))
 
 
+def test_psnr_is_skimages_to_the_bit():
+    from skimage.metrics import peak_signal_noise_ratio
+
+    generator = torch.Generator().manual_seed(3)
+    for shape in ((5, 7, 3), (32, 48, 3), (96, 128, 3)):
+        gt, pred = torch.rand(*shape, generator=generator), torch.rand(*shape, generator=generator) * 1.2 - 0.1
+        for clamp in (True, False):
+            a, b = (np.clip(x.double().numpy(), 0, 1) if clamp else x.double().numpy() for x in (pred, gt))
+            assert m.psnr(pred, gt, clamp=clamp) == float(peak_signal_noise_ratio(b, a, data_range=1.0))
+
+
 def test_ssim_identity_clamp_and_reference():
     generator = torch.Generator().manual_seed(0)
     gt = torch.rand(24, 28, 3, generator=generator)
