@@ -21,6 +21,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from gpnerf_core.errors import NonFiniteError
+from gpnerf_core.runtime.finite import all_finite
 
 
 @dataclass(frozen=True)
@@ -443,7 +444,7 @@ class Prediction:
         """
         parts = (("colour", self.rgb), ("depth", self.depth), ("semantic map", self.semantic), ("logits", self.logits))
         for output, value in parts:
-            if value is not None and not bool(torch.isfinite(value).all()):
+            if value is not None and not all_finite(value):
                 owner = owners.get(output, "model")
                 raise NonFiniteError(f"{where}: the {owner} gave NaN or Inf ({output}); nothing was scored")
 

@@ -25,6 +25,7 @@ from gpnerf_core.errors import ConfigError, GpnerfError
 from gpnerf_core.geometry.poses import EXPECTED_RIGID, rigid_transform_problem
 from gpnerf_core.geometry.pose_sanity import PoseFinding, check_poses
 from gpnerf_core.types import Scene
+from gpnerf_core.runtime.finite import all_finite
 
 
 class CheckedDataset(Protocol):
@@ -179,7 +180,7 @@ def depth_problem(depth: Tensor | np.ndarray, far: float) -> ValueProblem | None
     """What is wrong with a ``[H, W]`` depth map in metres (0 = unknown): a negative or non-finite value, or every
     known depth beyond ``far`` (depth in other units than the poses and near/far); None when nothing is."""
     depth = torch.as_tensor(depth)
-    if not torch.isfinite(depth).all() or bool((depth < 0).any()):
+    if not all_finite(depth) or bool((depth < 0).any()):
         return ValueProblem("depth negative or not finite", "metres >= 0 (0 = unknown)")
     known = depth[depth > 0]
     if known.numel() and float(known.min()) > float(far):
@@ -196,7 +197,7 @@ def _frame_problems(dataset: CheckedDataset, scene: Scene, index: int) -> list[s
         return [str(exc)]
     problems = []
     rgb = frame.rgb
-    if not torch.isfinite(rgb).all() or rgb.min() < 0 or rgb.max() > 1:
+    if not all_finite(rgb) or rgb.min() < 0 or rgb.max() > 1:
         problems.append(f"{where}: colours outside [0, 1] or not finite; expected RGB in [0, 1]")
     depth = depth_problem(frame.depth, scene.far)
     if depth is not None:

@@ -12,6 +12,7 @@ from gpnerf_core.errors import DataError
 from gpnerf_core.data.dataset import SceneDataset
 from gpnerf_core.interfaces import ViewSelector
 from gpnerf_core.types import Frame, Scene, SourceViews, TargetCamera
+from gpnerf_core.runtime.finite import all_finite
 
 
 class FrameCache:
@@ -34,7 +35,7 @@ class FrameCache:
         """The scene ``name``, loaded and checked on first use (finite poses, at least one training frame)."""
         if name not in self._scenes:
             scene = self.dataset.load_scene(name)
-            if not torch.isfinite(scene.c2w).all():
+            if not all_finite(scene.c2w):
                 raise DataError(f"scene {name!r}: camera poses contain NaN or Inf")
             if not scene.train_frames:
                 raise DataError(f"scene {name!r} has no training frames to use as source views")

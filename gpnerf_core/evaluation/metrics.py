@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from gpnerf_core.errors import NonFiniteError
+from gpnerf_core.runtime.finite import all_finite
 
 MIOU_IMAGE_MEAN_PRESENT = "miou/image_mean_present"
 """The paper's mIoU. Per image: drop GT-ignore pixels, IoU_k = TP/(TP+FP+FN) for every class k present in that
@@ -551,7 +552,7 @@ def depth_errors(pred: Tensor, gt: Tensor) -> dict[str, float] | None:
         raise ValueError(
             f"ground-truth depth {list(gt.shape)} is not a whole multiple of the rendered {list(pred.shape)}"
         )
-    if not bool(torch.isfinite(pred).all()):
+    if not all_finite(pred):
         raise NonFiniteError("rendered depth contains NaN or Inf values")
     known = torch.isfinite(gt) & (gt > 0)
     cells = torch.nn.functional.avg_pool2d(torch.where(known, gt, 0.0)[None, None], stride)[0, 0]

@@ -21,6 +21,7 @@ from PIL import Image, ImageDraw, ImageFont
 from torch import Tensor
 
 from gpnerf_core.runtime.io import atomic_save_png, atomic_write_bytes
+from gpnerf_core.runtime.finite import all_finite
 
 CORRECT_COLOUR = (40, 170, 70)
 """Error-map colour of a correctly labelled pixel (green)."""
@@ -226,7 +227,7 @@ def pca_rgb(features: Tensor | np.ndarray) -> np.ndarray:
         raise ValueError(f"features must be a float [C, h, w] map, got {tensor.dtype} of shape {list(tensor.shape)}")
     channels, height, width = tensor.shape
     x = tensor.to(torch.float64).reshape(channels, -1).T
-    if not bool(torch.isfinite(x).all()):
+    if not all_finite(x):
         raise ValueError("features contain NaN or Inf values")
     x = x - x.mean(dim=0, keepdim=True)
     _, vectors = torch.linalg.eigh(x.T @ x)

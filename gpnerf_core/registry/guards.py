@@ -16,6 +16,7 @@ from torch import Tensor
 
 from gpnerf_core.errors import NonFiniteError, PluginError
 from gpnerf_core.types import FeatureMaps, HeadOutput
+from gpnerf_core.runtime.finite import all_finite
 
 GUARDED_KINDS = ("head", "feature_extractor")
 """The kinds whose outputs are checked (each a module called once per view, through ``forward``)."""
@@ -49,7 +50,7 @@ def _head_hook(where: str) -> Any:
                     f"HeadOutput(logits=[N, num_outputs, *output_size]) = {expected} for features "
                     f"{list(features.shape)} and output_size {tuple(size)}"
                 )
-        if isinstance(logits, Tensor) and not bool(torch.isfinite(logits).all()):
+        if isinstance(logits, Tensor) and not all_finite(logits):
             raise NonFiniteError(f"{where} returned logits that are not finite ({_count(logits)}) "
                                  f"{_inputs_note(features, 'features')}")
 
@@ -62,7 +63,7 @@ def _extractor_hook(where: str) -> Any:
             return
         for name in ("radiance", "semantic"):
             maps = getattr(output, name)
-            if isinstance(maps, Tensor) and not bool(torch.isfinite(maps).all()):
+            if isinstance(maps, Tensor) and not all_finite(maps):
                 images = _argument(args, kwargs, 0, "images")
                 raise NonFiniteError(f"{where} returned {name} feature maps that are not finite ({_count(maps)}) "
                                      f"{_inputs_note(images, 'images')}")
@@ -79,6 +80,6 @@ def _count(values: Tensor) -> str:
 
 def _inputs_note(inputs: Any, name: str) -> str:
     """Whose fault: the component's (its input was finite) or what fed it."""
-    if isinstance(inputs, Tensor) and not bool(torch.isfinite(inputs).all()):
+    if isinstance(inputs, Tensor) and not all_finite(inputs):
         return f"from input {name} that were not finite already ({_count(inputs)}): the fault is upstream of it"
     return f"from finite input {name}"

@@ -36,6 +36,7 @@ from gpnerf_core.training.sampler import StepSampler
 from gpnerf_core.training.schedule import lr_factor
 from gpnerf_core.training.weight_average import WeightAverage
 from gpnerf_core.types import LossInputs, StepBatch, StepOutput, TargetView, ViewOutput
+from gpnerf_core.runtime.finite import all_finite
 
 
 @dataclass
@@ -280,7 +281,7 @@ class Trainer:
         self, terms: dict[str, Tensor], batch: StepBatch, stop: StopRequest | None, output: StepOutput
     ) -> int | None:
         """Stop every process on a non-finite term anywhere, and agree on a stop signal, before backward."""
-        bad = next((name for name, value in terms.items() if not torch.isfinite(value).all()), None)
+        bad = next((name for name, value in terms.items() if not all_finite(value)), None)
         flags = torch.tensor(
             [float(bad is not None), float(stop.signum or 0) if stop is not None else 0.0], device=self.device
         )
@@ -318,7 +319,7 @@ class Trainer:
                     named |= {f"{rays_name}.{f}": getattr(rays, f, None)
                               for f in ("rgb", "depth", "semantic", "sample_semantic", "logits")}
             fields += [name for name, value in named.items() if isinstance(value, Tensor) and value.is_floating_point()
-                       and not bool(torch.isfinite(value.detach()).all()) and name not in fields]
+                       and not all_finite(value.detach()) and name not in fields]
         if not fields:
             return "its inputs were finite: the loss set made it"
         return (f"its inputs {', '.join(fields)} from model {self.cfg.model.name!r} were not finite already: "

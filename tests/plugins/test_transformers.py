@@ -372,3 +372,19 @@ def test_registered_and_built_from_config():
     assert (field.width, field.num_blocks, ray.num_heads, ray.num_blocks) == (16, 2, 2, 2)
     with pytest.raises(ConfigError, match="num_heads"):
         registry.build("field_aggregator", {"name": "gnt_view", "num_heads": 4}, in_dim=IN_DIM)
+
+
+@pytest.mark.parametrize("samples", [3, 8, 15, 16, 48])
+def test_softmax_over_a_rays_samples_is_torchs_without_autograd_to_an_ulp_and_exactly_with_it(samples):
+    scores = torch.randn(64, 4, samples, samples, generator=torch.Generator().manual_seed(samples)) * 4
+    expected = torch.softmax(scores, dim=-1)
+    with torch.no_grad():
+        fast = common.softmax_last(scores)
+    assert (fast - expected).abs().max().item() <= 3e-7 and torch.allclose(fast.sum(-1), torch.ones(64, 4, samples))
+    if samples >= common.SHORT_SOFTMAX:
+        assert torch.equal(fast, expected)  # long rows: torch's kernel is the faster one and is used
+    trained = scores.clone().requires_grad_(True)
+    assert torch.equal(common.softmax_last(trained), expected)  # a training step keeps torch's numerics
+    with torch.no_grad():  # rows of one very large score: no overflow, no NaN
+        peaked = common.softmax_last(torch.full((2, samples), -1e9).index_fill_(1, torch.tensor([0]), 1e9))
+    assert torch.equal(peaked[:, 0], torch.ones(2))

@@ -15,6 +15,7 @@ from gpnerf_core.registry.components import stress_case_problem
 from gpnerf_core.testing.checks.common import call, expect
 from gpnerf_core.testing.inputs import cameras, generator
 from gpnerf_core.types import Scene, SourceViews
+from gpnerf_core.runtime.finite import all_finite
 
 FRAMES, HELD_OUT_EVERY, VIEWS, HEIGHT, WIDTH = 24, 4, 4, 20, 24
 
@@ -106,7 +107,7 @@ def check_perturbation(case: StressCase) -> None:
             expect(isinstance(b, torch.Tensor) and b.shape == a.shape and b.dtype == a.dtype,
                    f"{what}: {name} is {getattr(b, 'shape', b)!r} {getattr(b, 'dtype', '')}, expected "
                    f"{list(a.shape)} {a.dtype}")
-            expect(bool(torch.isfinite(b).all()), f"{what}: {name} holds NaN or Inf")
+            expect(all_finite(b), f"{what}: {name} holds NaN or Inf")
         expect(float(out.rgb.min()) >= 0.0 and float(out.rgb.max()) <= 1.0,
                f"{what}: rgb in [{float(out.rgb.min()):.3g}, {float(out.rgb.max()):.3g}], expected [0, 1]")
         rotation = out.c2w[:, :3, :3].double()

@@ -16,7 +16,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from gpnerf_core import ConfigError, DataError, ImportedWeights, RayAggregator, RayBlockOutput, RayReadout
-from gpnerf_plugins.transformers.common import FeedForward, check_dropout, check_positive, maybe_dropout
+from gpnerf_plugins.transformers.common import (
+    FeedForward, check_dropout, check_positive, maybe_dropout, softmax_last,
+)
 from gpnerf_plugins.transformers.gnt_weights import import_gnt_transformer
 
 OWNER = "ray_aggregator gnt_ray"
@@ -59,7 +61,7 @@ class RayAttention(nn.Module):
         scale = (D // H) ** -0.5
         weight = torch.cat((self.q_fc.weight * scale, self.k_fc.weight, self.v_fc.weight))
         q, k, v = F.linear(x, weight).view(R, S, 3, H, D // H).permute(2, 0, 3, 1, 4)  # each [R, H, S, D/H]
-        attention = maybe_dropout(torch.softmax(q @ k.transpose(-1, -2), dim=-1), self.dropout, self.training)
+        attention = maybe_dropout(softmax_last(q @ k.transpose(-1, -2)), self.dropout, self.training)
         out = (attention @ v).transpose(1, 2).reshape(R, S, D)
         return maybe_dropout(self.out_fc(out), self.dropout, self.training), attention
 
