@@ -57,17 +57,9 @@ def labelled_copy(capture: Path, sequence: Path, out: Path) -> None:
     (out / "classes.json").write_text(json.dumps({"classes": classes["class_names"], "ignore_index": classes["ignore_index"]}))
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--checkpoint", type=Path, required=True)
-    parser.add_argument("--work", type=Path, required=True)
-    parser.add_argument("--steps", type=int, default=200)
-    args = parser.parse_args()
-    work = args.work.resolve()
-    work.mkdir(parents=True, exist_ok=True)
-    checkpoint = str(args.checkpoint.resolve())
-    seconds: dict[str, float] = {}
-
+def make_capture(work: Path, seconds: dict[str, float]) -> tuple[Path, Path]:
+    """Steps 1-3 in ``work``: the "phone video" of the unseen layout, its capture (``data prepare-capture``) and the
+    capture's labelled copy; returns both folders, the commands' seconds in ``seconds``."""
     scenes = work / "embedded"
     seconds["render"] = command(work, "make", "data", "make", "--root", str(scenes), "--num-train-scenes", "1",
                                 "--num-unseen-scenes", "1", "--frames-per-scene", "40", "--height", "240",
@@ -86,6 +78,21 @@ def main() -> int:
     if labelled.exists():
         shutil.rmtree(labelled)
     labelled_copy(capture, sequence, labelled)
+    return capture, labelled
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--checkpoint", type=Path, required=True)
+    parser.add_argument("--work", type=Path, required=True)
+    parser.add_argument("--steps", type=int, default=200)
+    args = parser.parse_args()
+    work = args.work.resolve()
+    work.mkdir(parents=True, exist_ok=True)
+    checkpoint = str(args.checkpoint.resolve())
+    seconds: dict[str, float] = {}
+
+    capture, labelled = make_capture(work, seconds)
 
     seconds["eval_unlabelled"] = command(work, "eval", "eval", f"checkpoint={checkpoint}", "dataset=capture",
                                          f"dataset.root={capture}", *SIZE, f"out_dir={work / 'eval'}", "overwrite=true")

@@ -1,0 +1,86 @@
+"""When a capture needs its own model: GP-NeRF zero-shot and fine-tuned against Semantic-NeRF from scratch on one
+capture (docs/results.md, "When a scene needs its own model").
+
+    python examples/capture_crossover.py --checkpoint <main job>/checkpoints/step_0000600.pt --work <folder>
+        [--seed 0] [--finetune-steps 300] [--scratch-steps 8000] [--threads 2]
+
+1. The capture of ``capture_adaptation.py`` (the unseen layout filmed as a 40-frame video, ``data prepare-capture``)
+   and its labelled copy, which every model here trains and is scored on: the labels are the rendered ones.
+2. ``eval`` of the checkpoint on it (zero-shot), ``finetune`` of the checkpoint on its training frames with its own
+   loss set (``--finetune-steps``, scored at four points) and ``run +experiment=baselines/semantic_nerf`` on the same
+   frames from scratch (``--scratch-steps``, scored every 500 steps and at its last), all at the main job's 96 x 128, each scored on
+   the capture's held-out frames.
+Prints one JSON object (steps, training seconds, per-image mIoU, PSNR and seconds per rendered frame of each row) and
+writes it to ``<work>/crossover.json``. Each step is a real command line; its log is in ``<work>``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from capture_adaptation import SIZE, command, make_capture
+
+SCORES = ("miou/image_mean_present", "psnr/clamped")
+
+
+def row(values: dict, step: int, seconds: float) -> dict:
+    return {"step": step, "train_seconds": round(seconds, 1), **{key: values.get(key) for key in SCORES}}
+
+
+def scratch_rows(metrics: dict) -> list[dict]:
+    """The from-scratch run's scores at every evaluated step, its final evaluation last."""
+    rows = [row(point["train_heldout"], point["step"], point["train_seconds"]) for point in metrics.get("eval_curve", [])]
+    train = metrics["train"]
+    if not rows or rows[-1]["step"] != train["steps"]:
+        rows.append(row(metrics["eval"]["train_heldout"], train["steps"], train["seconds"]))
+    return rows
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--checkpoint", type=Path, required=True)
+    parser.add_argument("--work", type=Path, required=True)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--finetune-steps", type=int, default=300)
+    parser.add_argument("--scratch-steps", type=int, default=8000)
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    work = args.work.resolve()
+    work.mkdir(parents=True, exist_ok=True)
+    checkpoint = str(args.checkpoint.resolve())
+    seconds: dict[str, float] = {}
+    _, labelled = make_capture(work, seconds)
+    common = ["dataset=capture", f"dataset.root={labelled}", *SIZE, f"threads={args.threads}", "overwrite=true"]
+    scene = "dataset.scenes=[capture_labelled]"
+
+    seconds["zero_shot"] = command(work, "zero_shot", "eval", f"checkpoint={checkpoint}", *common,
+                                   f"out_dir={work / 'zero_shot'}")
+    seconds["finetune"] = command(work, "finetune", "finetune", f"checkpoint={checkpoint}", *common, scene,
+                                  f"train.steps={args.finetune_steps}", "finetune.points=4", f"seed={args.seed}",
+                                  f"out_dir={work / 'finetune'}")
+    seconds["semantic_nerf"] = command(work, "semantic_nerf", "run", "+experiment=baselines/semantic_nerf", *common,
+                                       scene, f"train.steps={args.scratch_steps}", "eval.every_steps=500",
+                                       "eval.save_images=0", f"seed={args.seed}", f"out_dir={work / 'semantic_nerf'}")
+
+    def metrics(name: str) -> dict:
+        return json.loads((work / name / "metrics.json").read_text())
+
+    zero_shot = metrics("zero_shot")["eval"]["train_heldout"]
+    finetune, scratch = metrics("finetune"), metrics("semantic_nerf")
+    result = {
+        "held_out_images": zero_shot.get("count/images"),
+        "gpnerf_zero_shot": row(zero_shot, 0, 0.0),
+        "gpnerf_finetuned": [row(point, point["step"], point["train_seconds"]) for point in finetune["finetune"]["curve"]],
+        "semantic_nerf": scratch_rows(scratch),
+        "command_seconds": {key: round(value, 1) for key, value in seconds.items()},
+    }
+    (work / "crossover.json").write_text(json.dumps(result, indent=1))
+    print(json.dumps(result, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
