@@ -62,10 +62,12 @@ def test_every_experiment_composes(registry, experiment):
     cfg = compose_with([f"+experiment={experiment}"])
     assert cfg.loss is not None
     label_rendering_families = ("baselines/semantic_ray", "baselines/neuray", "baselines/mvsnerf",
-                                "baselines/semantic_nerf")
+                                "baselines/semantic_nerf", "baselines/semantic_nerf_grid")
     assert (cfg.get("head") is None) == (experiment in ("baselines/gnt", "baselines/dm_nerf", *label_rendering_families))
     if experiment in label_rendering_families:  # the compared methods: their own family, scored by label rendering
-        assert cfg.model.name == experiment.split("/")[1] and cfg.loss.name == "ce"
+        family = experiment.split("/")[1].removesuffix("_grid")  # semantic_nerf_grid: the family's grid option
+        assert cfg.model.name == family and cfg.loss.name == "ce"
+        assert cfg.model.get("field", "mlp") == ("grid" if experiment.endswith("_grid") else "mlp")
     if experiment == "baselines/dm_nerf":  # per-scene instances: its own object field and loss set
         assert cfg.model.name == cfg.loss.name == "dm_nerf"
     if experiment.endswith("_unet") and experiment != "baselines/gpnerf_unet":  # another family, GP-NeRF's decoding

@@ -48,7 +48,9 @@ class LearningRates:
     head: float = 5e-5
     """Perception head (paper: 5e-5)."""
     field: float = 5e-4
-    """A per-scene model family's own field (a NeRF MLP, a grid; Semantic-NeRF: 5e-4)."""
+    """A per-scene model family's own field (a NeRF MLP, a grid's small networks; Semantic-NeRF: 5e-4)."""
+    grid: float = 1e-2
+    """A per-scene field's hash tables (``model.field=grid``; Instant-NGP: 1e-2)."""
 
 
 @dataclass

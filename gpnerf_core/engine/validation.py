@@ -70,6 +70,7 @@ RULES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("train.lr.transformer", _positive, "a finite learning rate > 0"),
     ("train.lr.head", _positive, "a finite learning rate > 0"),
     ("train.lr.field", _positive, "a finite learning rate > 0"),
+    ("train.lr.grid", _positive, "a finite learning rate > 0"),
     ("train.lr_decay_rate", _fraction, "a factor in (0, 1]"),
     ("train.lr_decay_steps", _count(1), COUNT),
     ("train.warmup_steps", _count(0), f"{COUNT0} (0 = no warm-up)"),

@@ -35,7 +35,7 @@ def test_the_encodings_are_nerfs():
     expected = torch.cat([x, torch.sin(x), torch.cos(x), torch.sin(2 * x), torch.cos(2 * x)], -1)
     assert torch.allclose(positional_encoding(x, 2), expected)
     assert positional_encoding(x, 10).shape[-1] == 63 and positional_encoding(x, 4).shape[-1] == 27
-    field = NeRFField(width=16, depth=5, skip=2, position_dim=63, direction_dim=27)
+    field = NeRFField(width=16, depth=5, skip=2, position_frequencies=10, direction_dim=27)
     assert [layer.in_features for layer in field.trunk] == [63, 16, 16, 16 + 63, 16]  # joins after layer 2
 
 
@@ -53,7 +53,7 @@ def test_the_density_counts_the_ray_length_and_the_last_interval_absorbs_the_res
         assert rendered.logits.shape == (6, 5)
     # the same pass by hand: ReLU(raw density) x interval x |d|, on the same encoded inputs
     samples, norms = coarse.samples, rays.directions.norm(dim=-1)
-    position = positional_encoding(samples.points.reshape(-1, 3) * 0.1, 3)
+    position = samples.points.reshape(-1, 3) * 0.1  # the field encodes it (3 octaves)
     direction = positional_encoding(rays.directions / norms[:, None], 2).repeat_interleave(8, 0)
     with torch.no_grad():
         raw, colour, scores = model.coarse(position, direction, True)
@@ -116,5 +116,103 @@ def test_run_fits_one_scene_and_scores_its_held_out_frames(fitted, capsys):
 
 def test_render_draws_a_frame_of_the_scene_from_its_own_field(fitted, tmp_path):
     checkpoint = next((fitted / "checkpoints").glob("*.pt"))
+    assert cli_main(["render", f"checkpoint={checkpoint}", "render.frames=1", f"out_dir={tmp_path / 'video'}"]) == 0
+    assert json.loads((tmp_path / "video" / "render.json").read_text())["frames"] == 1
+
+
+# ---- the grid option (model.field=grid) ------------------------------------------------------------------------------
+
+GRID = dict(SMALL, field="grid", grid_levels=3, grid_features=2, grid_table_log2=6, grid_base_resolution=2.0,
+            grid_finest_resolution=8.0, grid_width=16)
+
+
+def _instant_ngp_encoding(encoding, positions):
+    """Instant-NGP's encoding written out corner by corner: per level, the 8 cell corners hashed
+    (x * 1 ^ y * 2654435761 ^ z * 805459861 mod T) and weighted trilinearly."""
+    import itertools
+
+    levels = []
+    for level, resolution in enumerate(encoding.resolutions.tolist()):
+        scaled = positions * resolution
+        lower = torch.floor(scaled)
+        fraction = scaled - lower
+        total = 0
+        for corner in itertools.product((0, 1), repeat=3):
+            c = lower.long() + torch.tensor(corner)
+            hashed = (c[:, 0] * 1) ^ (c[:, 1] * 2654435761) ^ (c[:, 2] * 805459861)
+            rows = hashed % encoding.table_size + level * encoding.table_size
+            weight = torch.ones(len(positions))
+            for axis in range(3):
+                weight = weight * (fraction[:, axis] if corner[axis] else 1 - fraction[:, axis])
+            total = total + weight[:, None] * encoding.tables[rows]
+        levels.append(total)
+    return torch.cat(levels, -1)
+
+
+def test_the_hash_encoding_is_instant_ngps_values_and_gradients():
+    from gpnerf_plugins.families.hash_grid import HashGridEncoding
+
+    torch.manual_seed(0)
+    encoding = HashGridEncoding(levels=16, features=2, table_log2=6, base_resolution=16, finest_resolution=1024)
+    assert encoding.resolutions[0] == 16 and encoding.resolutions[-1] == 1024  # floor(N_min b^l), both ends
+    assert torch.all(encoding.resolutions[1:] > encoding.resolutions[:-1])
+    with torch.no_grad():
+        encoding.tables.normal_()  # Instant-NGP's +-1e-4 start would hide a wrong corner
+    positions = torch.rand(50, 3) * 4 - 2  # negative coordinates too: the field has no bounds
+    upstream = torch.randn(50, 32)
+    (encoding(positions) * upstream).sum().backward()
+    ours, our_grad = encoding(positions), encoding.tables.grad.clone()
+    encoding.tables.grad = None
+    reference = _instant_ngp_encoding(encoding, positions)
+    (reference * upstream).sum().backward()
+    assert torch.allclose(ours, reference, atol=1e-5)
+    assert torch.allclose(our_grad, encoding.tables.grad, atol=1e-5)
+
+
+def test_the_grid_field_keeps_the_families_outputs_and_trains_its_tables_at_their_own_rate():
+    model = SemanticNeRF(**GRID).eval()
+    for field in (model.coarse, model.fine):
+        field.density.bias.data[0] = 1.0  # densities above 0, as in the MLP's test
+    rays = _rays()
+    with torch.no_grad():
+        coarse, fine = model.render_rays(rays, True, None)
+    for rendered in (coarse, fine):
+        assert torch.allclose(rendered.weights.sum(-1), torch.ones(6), atol=1e-5)
+        assert rendered.logits.shape == (6, 5) and rendered.rgb.shape == (6, 3)
+    groups = model.parameter_groups()
+    assert [t.shape for t in groups["grid"]] == [(3 * 64, 2)] * 2  # coarse and fine tables
+    assert {id(p) for p in model.parameters()} == {id(p) for group in groups.values() for p in group}
+    assert not {id(p) for p in groups["grid"]} & {id(p) for p in groups["field"]}
+
+
+def test_the_grid_variant_passes_the_contract_kit():
+    from gpnerf_core.registry.plugins import BUILTIN_PLUGINS
+    from gpnerf_core.testing import plugin_checks
+
+    small = {key: value for key, value in GRID.items() if key != "num_classes"}
+    checks = [check for check in plugin_checks(BUILTIN_PLUGINS, configs={"model/semantic_nerf": small})
+              if check.component == "model/semantic_nerf"]
+    assert checks
+    for check in checks:
+        check.run()
+
+
+def test_grid_options_out_of_range_are_named(tmp_path):
+    common = ["+experiment=baselines/semantic_nerf_grid", *TINY_SCENES, f"dataset.root={tmp_path / 'scenes'}"]
+    with pytest.raises(ConfigError, match=r"^model.field=voxels: expected one of mlp, grid$"):
+        build_components(compose([*common, "model.field=voxels"]))
+    with pytest.raises(ConfigError, match=r"model.grid_table_log2=30: expected in \[4, 24\].*"
+                                          r"model.grid_finest_resolution=8.0: expected >= model.grid_base_resolution"):
+        build_components(compose([*common, "model.grid_table_log2=30", "model.grid_finest_resolution=8"]))
+
+
+def test_the_grid_variant_fits_one_scene_and_renders_it(tmp_path):
+    out = tmp_path / "grid"
+    argv = ["run", "+experiment=baselines/semantic_nerf_grid", *TINY_CLI, *TINY, "model.grid_table_log2=10",
+            "model.grid_levels=4", "dataset.scenes=[layout_00]", "train.steps=2", f"out_dir={out}"]
+    assert cli_main(argv) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert 0.0 <= metrics["eval"]["train_heldout"]["miou/image_mean_present"] <= 1.0
+    checkpoint = next((out / "checkpoints").glob("*.pt"))
     assert cli_main(["render", f"checkpoint={checkpoint}", "render.frames=1", f"out_dir={tmp_path / 'video'}"]) == 0
     assert json.loads((tmp_path / "video" / "render.json").read_text())["frames"] == 1

@@ -1,6 +1,7 @@
 """NeRF's per-scene field, shared by the per-scene families (Semantic-NeRF, DM-NeRF): the positional encoding, the
 MLP (trunk with a skip, raw density, view-dependent colour, a family's own branch on the trunk features), the weights
-of its densities along a ray, and ``PerSceneNeRF``, the family body both subclass."""
+of its densities along a ray, and ``PerSceneNeRF``, the family body both subclass, with its field either that MLP
+(``field="mlp"``) or a hash grid (``field="grid"``: ``families/hash_grid.py``)."""
 
 from __future__ import annotations
 
@@ -33,6 +34,10 @@ from gpnerf_core import (
     render_whole_view,
     stratified_depths,
 )
+from gpnerf_plugins.families.hash_grid import HashGridField
+
+FIELDS = ("mlp", "grid")
+"""``model.field``: NeRF's positional-encoding MLP (the method's) or a multiresolution hash grid (``HashGridField``)."""
 
 
 def positional_encoding(x: Tensor, octaves: int) -> Tensor:
@@ -45,22 +50,24 @@ def positional_encoding(x: Tensor, octaves: int) -> Tensor:
 
 
 class NeRFField(nn.Module):
-    """The MLP of one pass: encoded position -> raw density, a branch's outputs (on the trunk features, detached with
-    ``detach_branch`` so the branch's loss never shapes the geometry: DM-NeRF's object field) and, with the encoded
-    view direction, colour.
+    """The MLP of one pass: position -> positional encoding -> raw density, a branch's outputs (on the trunk features,
+    detached with ``detach_branch`` so the branch's loss never shapes the geometry: DM-NeRF's object field) and, with
+    the encoded view direction, colour.
 
     Args:
         width, depth, skip: the trunk: ``depth`` ReLU layers of ``width``, the encoded position concatenated after
             layer ``skip`` (0-based; NeRF's 4).
-        position_dim, direction_dim: the encodings' channels.
+        position_frequencies: octaves of the position's encoding (``3 (1 + 2 L)`` channels).
+        direction_dim: the encoded direction's channels.
         branch: a module from ``[N, width]`` trunk features, or None.
         detach_branch: the branch reads the trunk features detached.
     """
 
-    def __init__(self, *, width: int, depth: int, skip: int, position_dim: int, direction_dim: int,
+    def __init__(self, *, width: int, depth: int, skip: int, position_frequencies: int, direction_dim: int,
                  branch: nn.Module | None = None, detach_branch: bool = False) -> None:
         super().__init__()
-        self.skip, self.detach_branch = skip, detach_branch
+        self.skip, self.detach_branch, self.position_frequencies = skip, detach_branch, position_frequencies
+        position_dim = 3 * (1 + 2 * position_frequencies)
         self.trunk = nn.ModuleList(
             [nn.Linear(position_dim, width)]
             + [nn.Linear(width + (position_dim if i == skip + 1 else 0), width) for i in range(1, depth)])
@@ -70,8 +77,9 @@ class NeRFField(nn.Module):
         self.colour = nn.Sequential(nn.Linear(width + direction_dim, width // 2), nn.ReLU(), nn.Linear(width // 2, 3))
 
     def forward(self, position: Tensor, direction: Tensor, with_branch: bool) -> tuple[Tensor, Tensor, Tensor | None]:
-        """``[N, P]`` encoded positions and ``[N, D]`` encoded directions -> raw density ``[N]``, colour ``[N, 3]`` in
+        """``[N, 3]`` positions (scaled) and ``[N, D]`` encoded directions -> raw density ``[N]``, colour ``[N, 3]`` in
         [0, 1] and the branch's output (None unless ``with_branch``)."""
+        position = positional_encoding(position, self.position_frequencies)
         h = position
         for index, layer in enumerate(self.trunk):
             h = F.relu(layer(h))
@@ -97,6 +105,14 @@ def check_field_options(**options: float) -> None:
         "position_frequencies": (lambda v: v >= 0, ">= 0"),
         "direction_frequencies": (lambda v: v >= 0, ">= 0"),
         "density_noise": (lambda v: v >= 0, ">= 0"),
+        "field": (lambda v: v in FIELDS, f"one of {', '.join(FIELDS)}"),
+        "grid_levels": (lambda v: v >= 1, ">= 1"),
+        "grid_features": (lambda v: v >= 1, ">= 1"),
+        "grid_table_log2": (lambda v: 4 <= v <= 24, "in [4, 24] (2^table_log2 entries per level)"),
+        "grid_base_resolution": (lambda v: v > 0, "> 0 cells per scaled unit"),
+        "grid_finest_resolution": (lambda v: v >= options.get("grid_base_resolution", 0),
+                                   ">= model.grid_base_resolution"),
+        "grid_width": (lambda v: v >= 2 and v % 2 == 0, "an even number >= 2"),
     }
     problems = [f"model.{key}={value}: expected {rules[key][1]}" for key, value in options.items()
                 if key in rules and not rules[key][0](value)]
@@ -104,15 +120,15 @@ def check_field_options(**options: float) -> None:
         raise ConfigError("; ".join(problems))
 
 
-def encoded_inputs(samples_points: Tensor, directions: Tensor, count: int, position_scale: float,
-                   position_frequencies: int, direction_frequencies: int) -> tuple[Tensor, Tensor, Tensor]:
-    """The encoded positions ``[R * S, P]`` (scaled by ``position_scale``), each sample's encoded unit direction
-    ``[R * S, D]`` and the rays' lengths per unit of depth ``[R]`` (``|d|``: depth here is camera z)."""
+def field_inputs(samples_points: Tensor, directions: Tensor, count: int, position_scale: float,
+                 direction_frequencies: int) -> tuple[Tensor, Tensor, Tensor]:
+    """The positions ``[R * S, 3]`` scaled by ``position_scale`` (each field encodes them its own way), each sample's
+    encoded unit direction ``[R * S, D]`` and the rays' lengths per unit of depth ``[R]`` (``|d|``: depth here is
+    camera z)."""
     norms = directions.norm(dim=-1)
-    position = positional_encoding(samples_points.reshape(-1, 3) * position_scale, position_frequencies)
     direction = positional_encoding(directions / norms[:, None], direction_frequencies)
     direction = direction[:, None].expand(-1, count, -1).reshape(-1, direction.shape[-1])
-    return position, direction, norms
+    return samples_points.reshape(-1, 3) * position_scale, direction, norms
 
 
 def density_weights(raw: Tensor, depths: Tensor, norms: Tensor, noise: float,
@@ -135,6 +151,10 @@ class PerSceneNeRF(ModelFamily):
             pass).
         width, depth, skip, position_scale, position_frequencies, direction_frequencies, density_noise, inverse_depth:
             the field and its sampling (``check_field_options``).
+        field: ``mlp`` (NeRF's MLP above: ``width``, ``depth``, ``skip``, ``position_frequencies``) or ``grid``
+            (``HashGridField``: the ``grid_*`` options; ``position_scale`` scales its positions too).
+        grid_levels, grid_features, grid_table_log2, grid_base_resolution, grid_finest_resolution, grid_width: the
+            hash grid's (``HashGridField``), read with ``field="grid"`` only.
         detach_branch: the branch reads the trunk features detached (its loss never shapes the geometry).
     """
 
@@ -143,23 +163,33 @@ class PerSceneNeRF(ModelFamily):
 
     def __init__(self, *, coarse_samples: int, fine_samples: int, width: int, depth: int, skip: int,
                  position_scale: float, position_frequencies: int, direction_frequencies: int, density_noise: float,
-                 inverse_depth: bool, detach_branch: bool = False) -> None:
+                 inverse_depth: bool, field: str = "mlp", grid_levels: int = 16, grid_features: int = 2,
+                 grid_table_log2: int = 16, grid_base_resolution: float = 16.0,
+                 grid_finest_resolution: float = 1024.0, grid_width: int = 64, detach_branch: bool = False) -> None:
         super().__init__()
+        grid = dict(levels=grid_levels, features=grid_features, table_log2=grid_table_log2,
+                    base_resolution=grid_base_resolution, finest_resolution=grid_finest_resolution, width=grid_width)
         check_field_options(coarse_samples=coarse_samples, fine_samples=fine_samples, width=width, depth=depth,
                             skip=skip, position_scale=position_scale, position_frequencies=position_frequencies,
-                            direction_frequencies=direction_frequencies, density_noise=density_noise)
+                            direction_frequencies=direction_frequencies, density_noise=density_noise, field=field,
+                            **({f"grid_{key}": value for key, value in grid.items()} if field == "grid" else {}))
+        self.field_kind = field
         self.coarse_samples, self.fine_samples = int(coarse_samples), int(fine_samples)
         self.position_scale, self.density_noise = float(position_scale), float(density_noise)
         self.position_frequencies, self.direction_frequencies = int(position_frequencies), int(direction_frequencies)
         self.inverse_depth = bool(inverse_depth)
 
-        def field() -> NeRFField:
-            return NeRFField(width=width, depth=depth, skip=skip, position_dim=3 * (1 + 2 * position_frequencies),
-                             direction_dim=3 * (1 + 2 * direction_frequencies), branch=self.make_branch(width),
-                             detach_branch=detach_branch)
+        direction_dim = 3 * (1 + 2 * direction_frequencies)
 
-        self.coarse = field()
-        self.fine = field() if fine_samples else None
+        def make_field() -> NeRFField | HashGridField:
+            if field == "grid":
+                return HashGridField(**grid, direction_dim=direction_dim, branch=self.make_branch(grid_width),
+                                     detach_branch=detach_branch)
+            return NeRFField(width=width, depth=depth, skip=skip, position_frequencies=position_frequencies,
+                             direction_dim=direction_dim, branch=self.make_branch(width), detach_branch=detach_branch)
+
+        self.coarse = make_field()
+        self.fine = make_field() if fine_samples else None
 
     # ---- what a subclass says ---------------------------------------------------------------------------------------
 
@@ -174,8 +204,11 @@ class PerSceneNeRF(ModelFamily):
     # ---- what the model is ------------------------------------------------------------------------------------------
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
-        """Everything is the scene's own field (``train.lr.field``)."""
-        return {"field": list(self.parameters())}
+        """The scene's own field (``train.lr.field``); a hash grid's tables at ``train.lr.grid``."""
+        if self.field_kind != "grid":
+            return {"field": list(self.parameters())}
+        tables = [table for field in (self.coarse, self.fine) if field is not None for table in field.grid_parameters()]
+        return {"field": [p for p in self.parameters() if all(p is not table for table in tables)], "grid": tables}
 
     def output_owners(self, names: Mapping[str, str]) -> dict[str, str]:
         field = f"model {names.get('model', type(self).__name__)!r} (its coarse and fine fields)"
@@ -186,11 +219,11 @@ class PerSceneNeRF(ModelFamily):
 
     # ---- rendering ---------------------------------------------------------------------------------------------------
 
-    def _pass(self, field: NeRFField, rays: RayBatch, samples: RaySamples, branch: bool, per_sample: bool,
+    def _pass(self, field: NeRFField | HashGridField, rays: RayBatch, samples: RaySamples, branch: bool, per_sample: bool,
               generator: torch.Generator | None) -> RenderedRays:
         count = samples.depths.shape[1]
-        position, direction, norms = encoded_inputs(samples.points, rays.directions, count, self.position_scale,
-                                                    self.position_frequencies, self.direction_frequencies)
+        position, direction, norms = field_inputs(samples.points, rays.directions, count, self.position_scale,
+                                                  self.direction_frequencies)
         raw, colour, outputs = field(position, direction, branch)
         weights = density_weights(raw.view(-1, count), samples.depths, norms, self.density_noise, generator)
         logits = per_sample_outputs = None

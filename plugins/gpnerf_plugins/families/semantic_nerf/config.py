@@ -39,3 +39,21 @@ class SemanticNeRFConfig(ModelConfig):
     """Standard deviation of the noise added to the raw density in training (Semantic-NeRF's ``raw_noise_std``)."""
     inverse_depth: bool = False
     """Samples uniform in 1/depth instead of depth (Semantic-NeRF: in depth, between near and far)."""
+    field: str = "mlp"
+    """``mlp``: Semantic-NeRF's positional-encoding MLP (``width``, ``depth``, ``skip``, ``position_frequencies``);
+    ``grid``: a multiresolution hash grid with small networks (Instant-NGP's; the ``grid_*`` options), the same
+    outputs, sampling and losses (``+experiment=baselines/semantic_nerf_grid``; docs/families/semantic_nerf.md)."""
+    grid_levels: int = 16
+    """``field=grid``: resolution levels (Instant-NGP: 16)."""
+    grid_features: int = 2
+    """``field=grid``: values per table entry (Instant-NGP: 2)."""
+    grid_table_log2: int = 16
+    """``field=grid``: each level's hash table holds 2^this entries (Instant-NGP: 2^19, for scenes far larger than
+    these)."""
+    grid_base_resolution: float = 16.0
+    """``field=grid``: cells per scaled unit of the coarsest level (scaled by ``position_scale``: 16 cells per 10 m)."""
+    grid_finest_resolution: float = 1024.0
+    """``field=grid``: cells per scaled unit of the finest level (1024 per 10 m: cells of 1 cm, about a pixel's
+    footprint at 96 x 128 and 1-2 m)."""
+    grid_width: int = 64
+    """``field=grid``: hidden width of its density and colour networks (Instant-NGP: 64)."""
