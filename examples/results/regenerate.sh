@@ -15,7 +15,8 @@
 #             curve that picks the generalized protocol's layout count (not in the default stages: ~3 h)
 #   per_scene the per-scene families x seeds 0-2: Semantic-NeRF fitted from scratch on the unseen layout's training
 #             frames (evaluated every 500 of its 2000 steps: against ID 5 zero-shot and fine-tuned, the finetune stage;
-#             and one 8000-step run, seed 0, evaluated every 1000), DM-NeRF on layout_00 (against the instance stage's head)
+#             and one 8000-step run, seed 0, evaluated every 1000), its grid option (baselines/semantic_nerf_grid,
+#             evaluated every 250 of 2000 steps), DM-NeRF on layout_00 (against the instance stage's head)
 #   stress    the stress suite of IDs 1 and 5 (3 seeds each), one process per method, merged   (needs table4's runs)
 #   instance  the instance head on layout_00 x seeds 0-2, and the connected-components baseline on ID 5's runs
 #   finetune  ID 5's three runs fine-tuned on the unseen layout (300 steps)                      (needs table4's runs)
@@ -99,6 +100,8 @@ stage_jobs() {
         train_job "semantic_nerf_unseen_s$s" $s +experiment=baselines/semantic_nerf "'dataset.scenes=[unseen_00]'" \
           eval.every_steps=500 eval.save_images=0
         train_job "dm_nerf_l0_s$s" $s +experiment=baselines/dm_nerf "'dataset.scenes=[layout_00]'" eval.save_images=0
+        train_job "semantic_nerf_grid_unseen_s$s" $s +experiment=baselines/semantic_nerf_grid \
+          "'dataset.scenes=[unseen_00]'" eval.every_steps=250 eval.save_images=0
       done
       train_job semantic_nerf_unseen_8k_s0 0 +experiment=baselines/semantic_nerf "'dataset.scenes=[unseen_00]'" \
         train.steps=8000 eval.every_steps=1000 eval.save_images=0 ;;

@@ -74,7 +74,7 @@ class HashGridEncoding(nn.Module):
         # floor(N_min b^l) (Instant-NGP's eq. 2); the epsilon keeps b^(L-1) x N_min = N_max from rounding down
         resolutions = [math.floor(base_resolution * growth**level + 1e-6) for level in range(levels)]
         self.register_buffer("resolutions", torch.tensor(resolutions, dtype=torch.float32), persistent=False)
-        self.register_buffer("offsets", torch.arange(levels, dtype=torch.int64) * self.table_size, persistent=False)
+        self.register_buffer("offsets", torch.arange(levels, dtype=torch.int32) * self.table_size, persistent=False)
         self.register_buffer("primes", torch.tensor(HASH_PRIMES, dtype=torch.int64), persistent=False)
         # Instant-NGP's initialisation: uniform in +-1e-4, so the untrained field starts near a constant
         self.tables = nn.Parameter(torch.empty(levels * self.table_size, features).uniform_(-1e-4, 1e-4))
@@ -89,12 +89,13 @@ class HashGridEncoding(nn.Module):
         scaled = positions.to(self.resolutions.dtype)[None] * self.resolutions[:, None, None]  # [L, N, 3]
         lower = torch.floor(scaled)
         fraction = scaled - lower
-        # per axis, the lower and upper corner's hash term and weight: [L, N, 3, 2]
+        # per axis, the lower and upper corner's hash term and weight: [L, N, 3, 2]. The table index keeps the low
+        # table_log2 bits of the xor, which are the xor of each term's low bits: masked first, they fit int32
         corner = lower.to(torch.int64)[..., None] + torch.tensor([0, 1], device=positions.device)
-        term = corner * self.primes[:, None]
+        term = ((corner * self.primes[:, None]) & (self.table_size - 1)).to(torch.int32)
         weight = torch.stack([1 - fraction, fraction], -1)
         x, y, z = (term[:, :, axis] for axis in range(3))
-        index = (x[..., :, None, None] ^ y[..., None, :, None] ^ z[..., None, None, :]) & (self.table_size - 1)
+        index = x[..., :, None, None] ^ y[..., None, :, None] ^ z[..., None, None, :]
         wx, wy, wz = (weight[:, :, axis] for axis in range(3))
         weights = wx[..., :, None, None] * wy[..., None, :, None] * wz[..., None, None, :]  # [L, N, 2, 2, 2]
         index = (index + self.offsets[:, None, None, None, None]).reshape(-1, 8)
