@@ -2,14 +2,17 @@
 capture (docs/results.md, "When a scene needs its own model").
 
     python examples/capture_crossover.py --checkpoint <main job>/checkpoints/step_0000600.pt --work <folder>
-        [--seed 0] [--finetune-steps 300] [--scratch-steps 8000] [--threads 2]
+        [--seed 0] [--finetune-steps 300] [--scratch-steps 8000] [--grid-steps 2000] [--threads 2]
+        [--labelled <work of an earlier run>/capture_labelled]
 
 1. The capture of ``capture_adaptation.py`` (the unseen layout filmed as a 40-frame video, ``data prepare-capture``)
    and its labelled copy, which every model here trains and is scored on: the labels are the rendered ones.
 2. ``eval`` of the checkpoint on it (zero-shot), ``finetune`` of the checkpoint on its training frames with its own
-   loss set (``--finetune-steps``, scored at four points) and ``run +experiment=baselines/semantic_nerf`` on the same
-   frames from scratch (``--scratch-steps``, scored every 500 steps and at its last), all at the main job's 96 x 128, each scored on
-   the capture's held-out frames.
+   loss set (``--finetune-steps``, scored at four points), ``run +experiment=baselines/semantic_nerf`` on the same
+   frames from scratch (``--scratch-steps``, scored every 500 steps and at its last) and its grid option
+   ``baselines/semantic_nerf_grid`` (``--grid-steps``, scored every 250), all at the main job's 96 x 128, each scored
+   on the capture's held-out frames. 0 steps leaves a from-scratch row out; ``--labelled`` reuses an earlier run's
+   labelled capture (the same frames and poses for every seed) instead of making it again.
 Prints one JSON object (steps, training seconds, per-image mIoU, PSNR and seconds per rendered frame of each row) and
 writes it to ``<work>/crossover.json``. Each step is a real command line; its log is in ``<work>``.
 """
@@ -46,13 +49,20 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--finetune-steps", type=int, default=300)
     parser.add_argument("--scratch-steps", type=int, default=8000)
+    parser.add_argument("--grid-steps", type=int, default=2000)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--labelled", type=Path, help="an earlier run's capture_labelled folder, reused as it is")
     args = parser.parse_args()
     work = args.work.resolve()
     work.mkdir(parents=True, exist_ok=True)
     checkpoint = str(args.checkpoint.resolve())
     seconds: dict[str, float] = {}
-    _, labelled = make_capture(work, seconds)
+    if args.labelled is not None:
+        labelled = args.labelled.resolve()
+        if not (labelled / "transforms.json").is_file():
+            sys.exit(f"--labelled {labelled}: expected a labelled capture (its transforms.json), found none")
+    else:
+        _, labelled = make_capture(work, seconds)
     common = ["dataset=capture", f"dataset.root={labelled}", *SIZE, f"threads={args.threads}", "overwrite=true"]
     scene = "dataset.scenes=[capture_labelled]"
 
@@ -61,20 +71,23 @@ def main() -> int:
     seconds["finetune"] = command(work, "finetune", "finetune", f"checkpoint={checkpoint}", *common, scene,
                                   f"train.steps={args.finetune_steps}", "finetune.points=4", f"seed={args.seed}",
                                   f"out_dir={work / 'finetune'}")
-    seconds["semantic_nerf"] = command(work, "semantic_nerf", "run", "+experiment=baselines/semantic_nerf", *common,
-                                       scene, f"train.steps={args.scratch_steps}", "eval.every_steps=500",
-                                       "eval.save_images=0", f"seed={args.seed}", f"out_dir={work / 'semantic_nerf'}")
+    scratch_runs = {"semantic_nerf": (args.scratch_steps, 500), "semantic_nerf_grid": (args.grid_steps, 250)}
+    for name, (steps, every) in scratch_runs.items():
+        if steps > 0:
+            seconds[name] = command(work, name, "run", f"+experiment=baselines/{name}", *common, scene,
+                                    f"train.steps={steps}", f"eval.every_steps={every}", "eval.save_images=0",
+                                    f"seed={args.seed}", f"out_dir={work / name}")
 
     def metrics(name: str) -> dict:
         return json.loads((work / name / "metrics.json").read_text())
 
     zero_shot = metrics("zero_shot")["eval"]["train_heldout"]
-    finetune, scratch = metrics("finetune"), metrics("semantic_nerf")
+    finetune = metrics("finetune")
     result = {
         "held_out_images": zero_shot.get("count/images"),
         "gpnerf_zero_shot": row(zero_shot, 0, 0.0),
         "gpnerf_finetuned": [row(point, point["step"], point["train_seconds"]) for point in finetune["finetune"]["curve"]],
-        "semantic_nerf": scratch_rows(scratch),
+        **{name: scratch_rows(metrics(name)) for name in seconds if name in scratch_runs},
         "command_seconds": {key: round(value, 1) for key, value in seconds.items()},
     }
     (work / "crossover.json").write_text(json.dumps(result, indent=1))

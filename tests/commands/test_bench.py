@@ -148,6 +148,7 @@ def test_every_family_composes_at_every_size_with_its_images_and_rays():
     from gpnerf_core.config.compose import compose
     from gpnerf_core.tools.bench.sizes import SIZES, baseline_families, variant_overrides
 
+    assert "semantic_nerf_grid" in baseline_families()  # its family through the experiment it includes
     for size in SIZES.values():
         reference = compose(variant_overrides(size, "gpnerf", []))
         for family in baseline_families():

@@ -76,13 +76,26 @@ VARIANTS = ("gpnerf", "gnt_only")
 """What ``bench`` measures at each size: GP-NeRF, and its GNT-only anchor (``GNT_ONLY``)."""
 
 
+def _experiment_text(family: str) -> str:
+    """The text of ``conf/experiment/baselines/<family>.yaml`` and of the baseline experiments its defaults include
+    (``- /experiment/baselines/<other>``: e.g. ``semantic_nerf_grid`` is ``semantic_nerf`` with its grid option)."""
+    import re
+
+    from gpnerf_core.config.compose import config_dir
+
+    text = (Path(config_dir()) / "experiment" / "baselines" / f"{family}.yaml").read_text()
+    included = re.findall(r"^\s*-\s*/experiment/baselines/(\w+)\s*$", text, flags=re.MULTILINE)
+    return "\n".join([text, *(_experiment_text(other) for other in included)])
+
+
 def baseline_families() -> list[str]:
     """The compared methods' experiments (``conf/experiment/baselines/<name>.yaml``) that select a model family other
-    than GP-NeRF's (the families ``bench families=...`` may measure)."""
+    than GP-NeRF's, themselves or through a baseline experiment they include (the families ``bench families=...`` may
+    measure)."""
     from gpnerf_core.config.compose import config_dir
 
     folder = Path(config_dir()) / "experiment" / "baselines"
-    return sorted(p.stem for p in folder.glob("*.yaml") if "override /model:" in p.read_text())
+    return sorted(p.stem for p in folder.glob("*.yaml") if "override /model:" in _experiment_text(p.stem))
 
 
 def checked_families(value: str) -> list[str]:
@@ -97,10 +110,7 @@ def checked_families(value: str) -> list[str]:
 
 def _sets_own_scale(family: str) -> bool:
     """The experiment ``baselines/<family>`` drops the ``scale`` preset (``override /scale: null``)."""
-    from gpnerf_core.config.compose import config_dir
-
-    text = (Path(config_dir()) / "experiment" / "baselines" / f"{family}.yaml").read_text()
-    return "override /scale:" in text
+    return "override /scale:" in _experiment_text(family)
 
 
 def variant_overrides(size: Size, variant: str, overrides: list[str]) -> list[str]:
