@@ -206,13 +206,18 @@ def test_grid_options_out_of_range_are_named(tmp_path):
         build_components(compose([*common, "model.grid_table_log2=30", "model.grid_finest_resolution=8"]))
 
 
-def test_the_grid_variant_fits_one_scene_and_renders_it(tmp_path):
-    out = tmp_path / "grid"
-    argv = ["run", "+experiment=baselines/semantic_nerf_grid", *TINY_CLI, *TINY, "model.grid_table_log2=10",
-            "model.grid_levels=4", "dataset.scenes=[layout_00]", "train.steps=2", f"out_dir={out}"]
-    assert cli_main(argv) == 0
-    metrics = json.loads((out / "metrics.json").read_text())
+def test_the_grid_variant_fits_one_scene_renders_it_and_repeats_itself(tmp_path):
+    def fit(out):
+        argv = ["run", "+experiment=baselines/semantic_nerf_grid", *TINY_CLI, *TINY, "model.grid_table_log2=10",
+                "model.grid_levels=4", "dataset.scenes=[layout_00]", "train.steps=2", f"out_dir={out}"]
+        assert cli_main(argv) == 0
+        return json.loads((out / "metrics.json").read_text())
+
+    metrics, again = fit(tmp_path / "grid"), fit(tmp_path / "again")
     assert 0.0 <= metrics["eval"]["train_heldout"]["miou/image_mean_present"] <= 1.0
-    checkpoint = next((out / "checkpoints").glob("*.pt"))
+    assert metrics["train"]["final_loss"] == again["train"]["final_loss"]  # the same seed, the same numbers
+    scores = [{k: v for k, v in m["eval"]["train_heldout"].items() if k != "timing"} for m in (metrics, again)]
+    assert scores[0] == scores[1]
+    checkpoint = next((tmp_path / "grid" / "checkpoints").glob("*.pt"))
     assert cli_main(["render", f"checkpoint={checkpoint}", "render.frames=1", f"out_dir={tmp_path / 'video'}"]) == 0
     assert json.loads((tmp_path / "video" / "render.json").read_text())["frames"] == 1
