@@ -20,7 +20,8 @@
 #   stress    the stress suite of IDs 1 and 5 (3 seeds each), one process per method, merged   (needs table4's runs)
 #   instance  the instance head on layout_00 x seeds 0-2, and the connected-components baseline on ID 5's runs
 #   finetune  ID 5's three runs fine-tuned on the unseen layout (300 steps)                      (needs table4's runs)
-#   report    the tables (report_*.md, summary.md: examples/results/summarize.py) and the charts (chart/, chart_methods/)
+#   report    the tables (report_*.md, summary.md: examples/results/summarize.py) and the charts (chart/, chart_methods/,
+#             chart_baselines/, chart_samplers/, chart_per_scene/)
 # The jobs of every stage asked for form one queue, PARALLEL (2) at a time, so no core idles between stages: jobs
 # that need no other job first, then those that do, each waiting for the runs it needs (WORK/done markers). After a
 # failure the queue goes on (a job needing the failed one fails at once) and the script exits 1 before the report.
@@ -178,6 +179,10 @@ if [[ " $STAGES " == *" report "* ]]; then
   mapfile -t sampler_runs < <(existing "$RUNS"/id5_s? "$RUNS"/sampler_*_s?)
   if (( ${#sampler_runs[@]} )); then  # where the samples go: accuracy against render time
     "$PYTHON" -m gpnerf_core report "${sampler_runs[@]}" --chart "$WORK/chart_samplers" > "$WORK/report_samplers.md"
+  fi
+  mapfile -t per_scene_runs < <(existing "$RUNS"/finetune_id5_s? "$RUNS"/semantic_nerf{,_grid}_unseen_s?)
+  if (( ${#per_scene_runs[@]} )); then  # Table 1's per-scene row beside the paper's, GP-NeRF fine-tuned beside it
+    "$PYTHON" -m gpnerf_core report "${per_scene_runs[@]}" --chart "$WORK/chart_per_scene" > "$WORK/report_per_scene.md"
   fi
   "$PYTHON" "$(dirname "$0")/summarize.py" "$WORK" > "$WORK/summary.md"
   if [[ -d "$WORK/stress/id1" && -d "$WORK/stress/id5" ]]; then

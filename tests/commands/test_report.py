@@ -36,9 +36,15 @@ def test_the_compared_families_sit_beside_the_papers_table1_row(tmp_path):
     write_run(tmp_path / "sr", ce, True, 0.5, head=None, model="semantic_ray")
     write_run(tmp_path / "mvs", ce, True, 0.4, head=None, model="mvsnerf")
     write_run(tmp_path / "colour", {"name": "rgb"}, True, 0.4, head=None, model="neuray")  # not the semantic method
+    write_run(tmp_path / "snerf", ce, True, 0.6, head=None, model="semantic_nerf")  # per scene: Table 1's own row
+    write_run(tmp_path / "grid", ce, True, 0.7, head=None, model="semantic_nerf")
+    config = yaml.safe_load((tmp_path / "grid" / "config.yaml").read_text())
+    config["model"]["field"] = "grid"  # its grid option is not the paper's method
+    (tmp_path / "grid" / "config.yaml").write_text(yaml.safe_dump(config))
     rows = {row.split("|")[1].strip(): row for row in format_table(find_runs([tmp_path])).splitlines()[2:]}
     assert rows["sr"].split("|")[3].strip() == "semantic_ray" and rows["sr"].endswith("| 41.59 / 57.15 |")
     assert rows["mvs"].endswith("| 23.41 / 39.82 |") and rows["colour"].endswith("| - |")
+    assert rows["snerf"].endswith("| 75.06 / 91.24 |") and rows["grid"].endswith("| - |")
 
 
 def test_missing_path_is_an_error(tmp_path):
