@@ -47,6 +47,21 @@ def test_the_compared_families_sit_beside_the_papers_table1_row(tmp_path):
     assert rows["snerf"].endswith("| 75.06 / 91.24 |") and rows["grid"].endswith("| - |")
 
 
+def test_fine_tuned_runs_sit_beside_table1s_fine_tuning_rows(tmp_path):
+    dgs = {"name": "dgs", "sd_weight": 0.25, "dgs_weight": 0.25, "teacher_stop_grad": True}
+    ce = {"name": "ce", "sd_weight": 0, "dgs_weight": 0}
+    write_run(tmp_path / "gpnerf_ft", dgs, True, 0.8)
+    write_run(tmp_path / "sr_ft", ce, True, 0.7, head=None, model="semantic_ray")
+    for name in ("gpnerf_ft", "sr_ft"):  # what finetune writes beside the evaluation: its curve
+        metrics = json.loads((tmp_path / name / "metrics.json").read_text())
+        metrics["finetune"] = {"curve": [{"step": 0}, {"step": 10}]}
+        (tmp_path / name / "metrics.json").write_text(json.dumps(metrics))
+    write_run(tmp_path / "gpnerf", dgs, True, 0.6)  # generalization: its own row
+    rows = {row.split("|")[1].strip(): row for row in format_table(find_runs([tmp_path])).splitlines()[2:]}
+    assert rows["gpnerf_ft"].endswith("| 87.72 / 93.84 |") and rows["sr_ft"].endswith("| 75.96 / 91.06 |")
+    assert rows["gpnerf"].endswith("| 48.53 / 59.92 |")
+
+
 def test_missing_path_is_an_error(tmp_path):
     with pytest.raises(DataError, match="found nothing"):
         find_runs([tmp_path / "nope"])

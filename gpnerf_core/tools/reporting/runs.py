@@ -47,9 +47,14 @@ PAPER_TABLE1 = {
     "semantic_ray": (41.59, 57.15),
     "gpnerf": (48.53, 59.92),
 }
-# Table 1's per-scene row (Semantic-NeRF has only the fine-tuning setting: one model fitted per scene), the same
-# columns: model family -> mIoU on (Replica, ScanNet). Its runs here are fitted on one scene and scored on its held-out
-# frames, as the paper's fine-tuning rows are.
+# Table 1's fine-tuning rows, the same columns: a run of ``finetune`` (its metrics carry a ``finetune`` curve), and a
+# per-scene family's run (Semantic-NeRF has only this setting: fitted on one scene, scored on its held-out frames).
+PAPER_TABLE1_FINETUNED = {
+    "mvsnerf": (53.77, 55.26),
+    "neuray": (63.73, 77.48),
+    "semantic_ray": (75.96, 91.06),
+    "gpnerf": (87.72, 93.84),
+}
 PAPER_TABLE1_PER_SCENE = {
     "semantic_nerf": (75.06, 91.24),
 }
@@ -108,27 +113,36 @@ class RunRow:
         """The run's model family (``gnt`` for runs written before families were plugins)."""
         return str((self.config.get("model") or {}).get("name") or "gnt")
 
+    @property
+    def fine_tuned(self) -> bool:
+        """A run of ``finetune`` (a generalizable model fitted further on one scene)."""
+        return "finetune" in self.metrics
+
     def paper_table1(self) -> tuple[float, float] | None:
-        """The paper's Table 1 mIoU (Replica, ScanNet) of the method this run is, or None: the generalization row, or
-        for a per-scene family its per-scene row (Semantic-NeRF's own MLP only: its grid option is not the paper's)."""
+        """The paper's Table 1 mIoU (Replica, ScanNet) of the method this run is, or None: the generalization row, the
+        fine-tuning row for a ``finetune`` run, or for a per-scene family its per-scene row (Semantic-NeRF's own MLP
+        only: its grid option is not the paper's)."""
+        table = PAPER_TABLE1_FINETUNED if self.fine_tuned else PAPER_TABLE1
         if self.model == "gnt":
-            return PAPER_TABLE1["gpnerf"] if self.paper_switches() == (True, True, True, True) else None
+            return table["gpnerf"] if self.paper_switches() == (True, True, True, True) else None
         loss = (self.config.get("loss") or {}).get("name")
         if loss != "ce":
             return None
         if self.model in PAPER_TABLE1_PER_SCENE:
             field = (self.config.get("model") or {}).get("field", "mlp")
             return PAPER_TABLE1_PER_SCENE[self.model] if field == "mlp" else None
-        return PAPER_TABLE1.get(self.model)
+        return table.get(self.model)
 
     def method_key(self) -> str:
-        """The config without the keys that do not change what the run computes (the seed among them). A key of the
-        schema's sections (``model``, ``train``, ...) that a run's config lacks takes today's default, and empty values
-        (``[]``, ``""``, None) count as absent, so runs written before an option existed group with runs written after
-        that leave it at its default."""
+        """The config without the keys that do not change what the run computes (the seed among them), and whether it
+        is a ``finetune`` run. A key of the schema's sections (``model``, ``train``, ...) that a run's config lacks
+        takes today's default, and empty values (``[]``, ``""``, None) count as absent, so runs written before an
+        option existed group with runs written after that leave it at its default."""
         config = {k: v for k, v in with_schema_defaults(self.config).items() if k not in NOT_METHOD_KEYS}
         if isinstance(config.get("train"), dict):
             config["train"] = {k: v for k, v in config["train"].items() if k not in NOT_METHOD_TRAIN_KEYS}
+        if self.fine_tuned:  # a fine-tuned model is another row than the model it started from
+            config["fine_tuned"] = True
         return json.dumps(_without_empty(config), sort_keys=True, default=str)
 
 
