@@ -177,7 +177,7 @@ class PerSceneNeRF(ModelFamily):
         self.field_kind = field
         self.coarse_samples, self.fine_samples = int(coarse_samples), int(fine_samples)
         self.position_scale, self.density_noise = float(position_scale), float(density_noise)
-        self.position_frequencies, self.direction_frequencies = int(position_frequencies), int(direction_frequencies)
+        self.direction_frequencies = int(direction_frequencies)  # the position is encoded by each field
         self.inverse_depth = bool(inverse_depth)
 
         direction_dim = 3 * (1 + 2 * direction_frequencies)
