@@ -19,13 +19,13 @@ exit 0
 """
 
 
-def regenerate(tmp_path, stages, fail=""):
+def regenerate(tmp_path, stages, fail="", **extra_env):
     tmp_path.mkdir(exist_ok=True)
     python = tmp_path / "python"
     python.write_text(STAND_IN)
     python.chmod(0o755)
     journal = tmp_path / "journal.txt"
-    env = {"PATH": "/usr/bin:/bin", "PYTHON": str(python), "JOURNAL": str(journal), "FAIL": fail, "POLL_SECONDS": "0.1"}
+    env = {"PATH": "/usr/bin:/bin", "PYTHON": str(python), "JOURNAL": str(journal), "FAIL": fail, "POLL_SECONDS": "0.1", **extra_env}
     result = subprocess.run(["bash", str(SCRIPT), str(tmp_path / "work"), stages], env=env, capture_output=True,
                             text=True, timeout=120)
     lines = journal.read_text().splitlines() if journal.exists() else []
@@ -63,4 +63,20 @@ def test_a_failed_run_fails_what_needs_it_and_stops_before_the_report(tmp_path):
 def test_an_unknown_stage_is_one_line_listing_the_known(tmp_path):
     result, journal = regenerate(tmp_path, "table4 tabel5")
     assert result.returncode == 2 and journal == []
-    assert result.stderr == "unknown stage 'tabel5' (known: table4 methods baselines grid samplers per_scene layouts stress instance finetune report)\n"
+    assert result.stderr == "unknown stage 'tabel5' (known: table4 methods baselines grid samplers per_scene layouts protocol stress instance finetune report)\n"
+
+
+def test_the_protocol_shares_its_gp_nerf_seed_0_with_the_layouts_curve(tmp_path):
+    result, journal = regenerate(tmp_path, "layouts protocol", PROTOCOL_LAYOUTS="8")
+    assert result.returncode == 0, result.stderr
+    assert journal.count("start layouts_n8_s0") == 1  # one job, asked for by both stages
+    assert [line for line in journal if line.startswith("start layouts_n") and line.endswith("_s0")][:2] == [
+        "start layouts_n32_s0", "start layouts_n16_s0"]  # the longest runs first
+    done = {p.name for p in (tmp_path / "work" / "done").iterdir()}
+    families = ("", "_semantic_ray", "_neuray", "_mvsnerf")
+    assert {f"layouts_n8{f}_s{s}" for f in families for s in range(3)} <= done
+    for family in families:
+        for seed in range(3):
+            run = f"layouts_n8{family}_s{seed}"
+            assert journal.index(f"end {run}") < journal.index(f"start finetune_{run}")
+    assert len(done) == 3 + 12 + 12  # the other three counts, the protocol's runs, their fine-tuning

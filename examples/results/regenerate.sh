@@ -12,7 +12,10 @@
 #             sources (+depth_source=cost_volume, source_depth: one pass on 8 samples) x seeds 0-2 (uniform: ID 5)
 #   layouts   GP-NeRF (the main job's config) trained on 4, 8, 16, 32 layouts, 150 steps per layout (600 at 4, the main
 #             job's), scored on 4 unseen layouts (3 views each) and 3 held-out views per training layout, seed 0: the
-#             curve that picks the generalized protocol's layout count (not in the default stages: ~3 h)
+#             curve that picks the generalized protocol's layout count (not in the default stages: ~1 h at 1.5 steps/s)
+#   protocol  Table 1 on the generalized protocol: GP-NeRF and the three compared families x seeds 0-2 trained on
+#             PROTOCOL_LAYOUTS layouts (default 16, 150 steps per layout, 4 unseen layouts, 3 views a scene; GP-NeRF's
+#             seed 0 is the layouts run), each fine-tuned 300 steps on unseen_00 (not in the default stages: ~6 h)
 #   per_scene the per-scene families x seeds 0-2: Semantic-NeRF fitted from scratch on the unseen layout's training
 #             frames (evaluated every 500 of its 2000 steps: against ID 5 zero-shot and fine-tuned, the finetune stage;
 #             and one 8000-step run, seed 0, evaluated every 1000), its grid option (baselines/semantic_nerf_grid,
@@ -21,7 +24,7 @@
 #   instance  the instance head on layout_00 x seeds 0-2, and the connected-components baseline on ID 5's runs
 #   finetune  ID 5's three runs fine-tuned on the unseen layout (300 steps)                      (needs table4's runs)
 #   report    the tables (report_*.md, summary.md: examples/results/summarize.py) and the charts (chart/, chart_methods/,
-#             chart_baselines/, chart_samplers/, chart_per_scene/)
+#             chart_baselines/, chart_protocol/, chart_samplers/, chart_per_scene/)
 # The jobs of every stage asked for form one queue, PARALLEL (2) at a time, so no core idles between stages: jobs
 # that need no other job first, then those that do, each waiting for the runs it needs (WORK/done markers). After a
 # failure the queue goes on (a job needing the failed one fails at once) and the script exits 1 before the report.
@@ -37,9 +40,10 @@ PYTHON=${PYTHON:-python}
 WORK=${1:-/tmp/gpnerf-results}
 STAGES=${2:-table4 methods baselines grid samplers per_scene stress instance finetune report}
 PARALLEL=${PARALLEL:-2}
+PROTOCOL_LAYOUTS=${PROTOCOL_LAYOUTS:-16}  # the protocol stage's training layouts (the layouts curve's choice)
 POLL_SECONDS=${POLL_SECONDS:-10}
 RUNS="$WORK/runs"
-KNOWN="table4 methods baselines grid samplers per_scene layouts stress instance finetune report"
+KNOWN="table4 methods baselines grid samplers per_scene layouts protocol stress instance finetune report"
 for stage in $STAGES; do
   [[ " $KNOWN " == *" $stage "* ]] || { echo "unknown stage '$stage' (known: $KNOWN)" >&2; exit 2; }
 done
@@ -107,10 +111,25 @@ stage_jobs() {
       train_job semantic_nerf_unseen_8k_s0 0 +experiment=baselines/semantic_nerf "'dataset.scenes=[unseen_00]'" \
         train.steps=8000 eval.every_steps=1000 eval.save_images=0 ;;
     layouts)
-      for n in 4 8 16 32; do
+      for n in 32 16 8 4; do  # longest first: the 32-layout run takes as long as the other three together
         train_job "layouts_n${n}_s0" 0 +head=unet +loss=dgs dataset.num_train_scenes=$n dataset.num_unseen_scenes=4 \
           train.steps=$((150 * n)) eval.max_views_per_scene=3 eval.save_images=0
       done ;;
+    protocol)  # GP-NeRF's seed 0 is the layouts stage's run of the same count (one job, one name)
+      local n=$PROTOCOL_LAYOUTS steps=$((150 * PROTOCOL_LAYOUTS)) family s
+      local data=(dataset.num_train_scenes=$n dataset.num_unseen_scenes=4 train.steps=$steps eval.max_views_per_scene=3
+                  eval.save_images=0) ckpt=checkpoints/step_$(printf %07d $steps).pt
+      for s in 0 1 2; do
+        train_job "layouts_n${n}_s$s" $s +head=unet +loss=dgs "${data[@]}"
+        for family in semantic_ray neuray mvsnerf; do
+          train_job "layouts_n${n}_${family}_s$s" $s +experiment=baselines/$family "${data[@]}"
+        done
+      done
+      for family in "" _semantic_ray _neuray _mvsnerf; do for s in 0 1 2; do
+        job "finetune_layouts_n${n}${family}_s$s" "layouts_n${n}${family}_s$s" finetune \
+          "checkpoint=$RUNS/layouts_n${n}${family}_s$s/$ckpt" "'dataset.scenes=[unseen_00]'" train.steps=300 \
+          finetune.points=4 eval.save_images=0 threads=1 "out_dir=$RUNS/finetune_layouts_n${n}${family}_s$s"
+      done; done ;;
     stress)
       for id in 1 5; do
         job "stress_id$id" "id${id}_s0,id${id}_s1,id${id}_s2" stress "$RUNS"/id${id}_s{0,1,2} --views-per-scene 1 \
@@ -152,7 +171,9 @@ export -f run_one; export PYTHON WORK POLL_SECONDS
 
 queue=$(for stage in $STAGES; do stage_jobs "$stage"; done)
 if [[ -n $queue ]]; then
-  # Jobs that need nothing first (stable order), then those that wait for other jobs' runs.
+  # Jobs that need nothing first (stable order), then those that wait for other jobs' runs; a job two stages share
+  # (the protocol's GP-NeRF seed 0 is a layouts run) once.
+  queue=$(awk -F'\t' '!seen[$1]++' <<< "$queue")
   queue=$(awk -F'\t' '$2 == "-"' <<< "$queue"; awk -F'\t' '$2 != "-"' <<< "$queue")
   cut -f1 <<< "$queue" > "$WORK/queued"
   echo "== $(wc -l < "$WORK/queued") jobs, $PARALLEL at a time $(date -u +%T)"
@@ -175,6 +196,11 @@ if [[ " $STAGES " == *" report "* ]]; then
   mapfile -t baseline_runs < <(existing "$RUNS"/id5_s? "$RUNS"/{semantic_ray,neuray,mvsnerf}_s?)
   if (( ${#baseline_runs[@]} )); then  # Table 1's generalization rows beside the paper's, and their chart
     "$PYTHON" -m gpnerf_core report "${baseline_runs[@]}" --chart "$WORK/chart_baselines" > "$WORK/report_baselines.md"
+  fi
+  n=$PROTOCOL_LAYOUTS
+  mapfile -t protocol_runs < <(existing "$RUNS"/{,finetune_}layouts_n$n{,_semantic_ray,_neuray,_mvsnerf}_s?)
+  if (( ${#protocol_runs[@]} )); then  # Table 1's rows (both settings) on the generalized protocol, and their chart
+    "$PYTHON" -m gpnerf_core report "${protocol_runs[@]}" --chart "$WORK/chart_protocol" > "$WORK/report_protocol.md"
   fi
   mapfile -t sampler_runs < <(existing "$RUNS"/id5_s? "$RUNS"/sampler_*_s?)
   if (( ${#sampler_runs[@]} )); then  # where the samples go: accuracy against render time

@@ -4,7 +4,8 @@
 
 Sections: Table 4 (per seed, mean +- sample std, the orderings that hold beyond the seed spread), the methods of the
 speed-accuracy chart, the compared methods' families (Table 1's generalization rows and the paper's orderings), each
-field per pixel and with GP-NeRF's U-Net decoding, the layout-count curve, where the samples go (the samplers), the
+field per pixel and with GP-NeRF's U-Net decoding, the layout-count curve, Table 1's rows (generalized and fine-tuned)
+on each generalized protocol the ``protocol`` stage ran, where the samples go (the samplers), the
 instance head and DM-NeRF against the connected-components baseline, fine-tuning, and when a scene needs its own model
 (Semantic-NeRF from scratch against GP-NeRF zero-shot and fine-tuned). A missing run is
 named, never skipped silently.
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import statistics
 import sys
 from pathlib import Path
@@ -124,16 +126,22 @@ TABLE1 = (("GP-NeRF (Table 4 ID 5, the main job)", "id5", (48.53, 59.92)),
           ("MVSNeRF + semantic head (`baselines/mvsnerf`)", "mvsnerf", (23.41, 39.82)))
 
 
-def baselines(runs: Path) -> list[str]:
+def same_prefix(prefix: str) -> str:
+    return prefix
+
+
+def baselines(runs: Path, run_prefix: Callable[[str], str] = same_prefix,
+              heading: str = "The compared methods (Table 1's generalization rows, seeds 0-2)") -> list[str]:
     """Table 1's generalization rows on the embedded scenes (held-out views of the training layouts, and the unseen
-    layout), and whether each of the paper's orderings holds beyond the seed spread (paired by seed, unseen mIoU)."""
-    lines = ["## The compared methods (Table 1's generalization rows, seeds 0-2)", "",
+    layouts), and whether each of the paper's orderings holds beyond the seed spread (paired by seed, unseen mIoU).
+    ``run_prefix`` maps a method's prefix in ``TABLE1`` to its runs' (the protocol's runs have their own names)."""
+    lines = [f"## {heading}", "",
              "| method | total acc unseen | class-mean acc unseen | mIoU held-out | mIoU unseen | PSNR held-out "
              "| PSNR unseen | SSIM unseen | params (M) | train s | s/frame | paper mIoU (Replica / ScanNet) | missing |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     found_by = {}
     for title, prefix, paper in TABLE1:
-        found = {s: m for s in SEEDS if (m := load(runs, f"{prefix}_s{s}")) is not None}
+        found = {s: m for s in SEEDS if (m := load(runs, f"{run_prefix(prefix)}_s{s}")) is not None}
         found_by[prefix] = found
         ms = list(found.values())
         missing = ", ".join(f"seed {s}" for s in SEEDS if s not in found)
@@ -339,15 +347,16 @@ FEW_STEP_TARGET = 0.70
 """The per-image mIoU on the unseen layout's held-out frames the few-step table counts steps and seconds to."""
 
 
-def finetune(runs: Path) -> list[str]:
+def finetune(runs: Path, run_prefix: Callable[[str], str] = same_prefix,
+             heading: str = "Fine-tuning on the unseen layout (300 steps; Table 1's fine-tuning rows)") -> list[str]:
     """Each method's runs fine-tuned on the unseen layout (300 steps, Table 1's fine-tuning rows), and the few-step
     table: the first curve point at or above ``FEW_STEP_TARGET`` (steps, and seconds at the run's mean step time)."""
-    lines = ["## Fine-tuning on the unseen layout (300 steps; Table 1's fine-tuning rows)", "",
+    lines = [f"## {heading}", "",
              "| method | seed | per-image mIoU at steps ... (its 6 held-out frames) | PSNR at the last step | train s "
              f"| steps (s) to mIoU {FEW_STEP_TARGET:.2f} |", "|---|---|---|---|---|---|"]
     for title, prefix in FINETUNED:
         for seed in SEEDS:
-            metrics = load(runs, f"finetune_{prefix}_s{seed}")
+            metrics = load(runs, f"finetune_{run_prefix(prefix)}_s{seed}")
             if metrics is None:
                 lines.append(f"| {title} | {seed} | not run | | | |")
                 continue
@@ -361,6 +370,26 @@ def finetune(runs: Path) -> list[str]:
     return lines
 
 
+def protocol_counts(runs: Path) -> list[int]:
+    """The layout counts the ``protocol`` stage ran at: those with a compared family's run (``layouts_n<N>_<family>_s<seed>``)."""
+    families = "|".join(prefix for _, prefix, _ in TABLE1[1:])
+    pattern = re.compile(rf"layouts_n(\d+)_(?:{families})_s\d+")
+    return sorted({int(m.group(1)) for path in runs.iterdir() if (m := pattern.fullmatch(path.name))})
+
+
+def protocol(runs: Path) -> list[str]:
+    """Table 1's generalization and fine-tuning rows on each generalized protocol the ``protocol`` stage ran (N training
+    layouts, 150 steps each, scored over 4 unseen layouts; fine-tuned on unseen_00): the same tables, other runs."""
+    lines: list[str] = []
+    for count in protocol_counts(runs):
+        def run_prefix(prefix: str, count: int = count) -> str:
+            return f"layouts_n{count}" if prefix == "id5" else f"layouts_n{count}_{prefix}"
+        where = f"{count} training layouts, {150 * count} steps, 4 unseen layouts"
+        lines += baselines(runs, run_prefix, f"The generalized protocol ({where}): Table 1's generalization rows") + [""]
+        lines += finetune(runs, run_prefix, f"The generalized protocol ({where}): fine-tuned on unseen_00") + [""]
+    return lines
+
+
 def main(work: Path) -> int:
     runs = work / "runs"
     if not runs.is_dir():
@@ -370,8 +399,9 @@ def main(work: Path) -> int:
     print("# Summary of", work, "\n")
     if provenance.is_file():
         print("```\n" + provenance.read_text().strip() + "\n```\n")
-    for section in (table4, methods, baselines, grid, layouts, samplers, instance, finetune, per_scene):
-        print("\n".join(section(runs)) + "\n")
+    for section in (table4, methods, baselines, grid, layouts, protocol, samplers, instance, finetune, per_scene):
+        if lines := section(runs):
+            print("\n".join(lines) + "\n")
     return 0
 
 

@@ -1,0 +1,50 @@
+"""examples/results/summarize.py's protocol section, on run folders written here in the layout ``run`` and
+``finetune`` leave (``metrics.json``)."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+SCRIPT = Path(__file__).resolve().parents[1] / "examples" / "results" / "summarize.py"
+MIOU = "miou/image_mean_present"
+
+
+def write_run(runs: Path, name: str, unseen_miou: float, finetuned: list[float] | None = None) -> None:
+    split = {MIOU: unseen_miou, "psnr/clamped": 20.0, "ssim/gaussian11": 0.7, "acc/total": 0.9, "acc/class_mean": 0.8}
+    metrics = {"eval": {"train_heldout": dict(split), "unseen": split}, "train": {"seconds": 100.0, "steps": 1200},
+               "parameters": {"total": 1_000_000}}
+    if finetuned is not None:
+        metrics["finetune"] = {"curve": [{"step": 100 * k, MIOU: v, "psnr/clamped": 21.0}
+                                         for k, v in enumerate(finetuned)]}
+    (runs / name).mkdir(parents=True)
+    (runs / name / "metrics.json").write_text(json.dumps(metrics))
+
+
+def summary(work: Path) -> str:
+    result = subprocess.run([sys.executable, str(SCRIPT), str(work)], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    return result.stdout
+
+
+def test_each_protocol_count_gets_table_1_with_its_orderings_and_its_fine_tuning(tmp_path):
+    runs = tmp_path / "runs"
+    for seed in range(3):
+        for prefix, miou in (("layouts_n8", 0.70), ("layouts_n8_semantic_ray", 0.50), ("layouts_n8_neuray", 0.55)):
+            write_run(runs, f"{prefix}_s{seed}", miou + 0.01 * seed)
+    write_run(runs, "finetune_layouts_n8_s0", 0.70, finetuned=[0.70, 0.75, 0.80, 0.79])
+    text = summary(tmp_path)
+    heading = "## The generalized protocol (8 training layouts, 1200 steps, 4 unseen layouts): Table 1's generalization rows"
+    section = text[text.index(heading):]
+    assert "| GP-NeRF > Semantic-Ray | +20.0, +20.0, +20.0 | yes |" in section
+    assert "| Semantic-Ray > NeuRay + semantic head | -5.0, -5.0, -5.0 | yes |" in section  # a reversal holds too
+    assert "| MVSNeRF + semantic head (`baselines/mvsnerf`) |" in section and "seed 0, seed 1, seed 2 |" in section
+    fine = section[section.index("fine-tuned on unseen_00"):]
+    assert "| GP-NeRF (ID 5) | 0 | 0: 0.700, 100: 0.750, 200: 0.800, 300: 0.790 | 21.00 | 100 | 0 (0) |" in fine
+    assert "| Semantic-Ray | 0 | not run |" in fine
+
+
+def test_without_protocol_runs_there_is_no_protocol_section(tmp_path):
+    runs = tmp_path / "runs"
+    write_run(runs, "layouts_n8_s0", 0.7)  # the layouts curve alone
+    assert "generalized protocol (" not in summary(tmp_path)
