@@ -120,7 +120,7 @@ def methods(runs: Path) -> list[str]:
 
 
 # GP-NeRF's Table 1 (generalization, mIoU x100: Replica, ScanNet) beside each method's run prefix, in the paper's order.
-TABLE1 = (("GP-NeRF (Table 4 ID 5, the main job)", "id5", (48.53, 59.92)),
+TABLE1 = (("GP-NeRF (`+head=unet +loss=dgs`: Table 4 ID 5's config)", "id5", (48.53, 59.92)),
           ("Semantic-Ray (`baselines/semantic_ray`)", "semantic_ray", (41.59, 57.15)),
           ("NeuRay + semantic head (`baselines/neuray`)", "neuray", (35.90, 51.03)),
           ("MVSNeRF + semantic head (`baselines/mvsnerf`)", "mvsnerf", (23.41, 39.82)))
