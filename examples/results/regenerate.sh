@@ -15,7 +15,8 @@
 #             curve that picks the generalized protocol's layout count (not in the default stages: ~1 h at 1.5 steps/s)
 #   protocol  Table 1 on the generalized protocol: GP-NeRF and the three compared families x seeds 0-2 trained on
 #             PROTOCOL_LAYOUTS layouts (default 16, 150 steps per layout, 4 unseen layouts, 3 views a scene; GP-NeRF's
-#             seed 0 is the layouts run), each fine-tuned 300 steps on unseen_00 (not in the default stages: ~6 h)
+#             seed 0 is the layouts run), each fine-tuned 300 steps on unseen_00 (not in the default stages: 2 h 35
+#             min on 2026-12-04 with the layouts run done)
 #   per_scene the per-scene families x seeds 0-2: Semantic-NeRF fitted from scratch on the unseen layout's training
 #             frames (evaluated every 500 of its 2000 steps: against ID 5 zero-shot and fine-tuned, the finetune stage;
 #             and one 8000-step run, seed 0, evaluated every 1000), its grid option (baselines/semantic_nerf_grid,
