@@ -48,3 +48,16 @@ def test_without_protocol_runs_there_is_no_protocol_section(tmp_path):
     runs = tmp_path / "runs"
     write_run(runs, "layouts_n8_s0", 0.7)  # the layouts curve alone
     assert "generalized protocol (" not in summary(tmp_path)
+
+
+def test_the_layout_curve_is_per_seed_with_each_step_up_in_width_paired_by_seed(tmp_path):
+    runs = tmp_path / "runs"
+    for seed in range(3):
+        for count, miou in ((4, 0.60), (8, 0.62), (16, 0.70)):
+            write_run(runs, f"layouts_n{count}_s{seed}", miou + 0.01 * seed)
+    write_run(runs, "layouts_n32_s0", 0.65)
+    section = summary(tmp_path).split("## Training layouts")[1].split("\n## ")[0]
+    assert "| 16 | 2400 | 0.710 +- 0.010 | 0.700, 0.710, 0.720 | 0.710 +- 0.010 | 20.00 +- 0.00 |" in section
+    assert section.count("seed 1, seed 2 |") == 1  # the 32-layout row names its missing seeds
+    assert "| 8 -> 16 layouts | +8.0, +8.0, +8.0; **+8.0** | yes | +0.0, +0.0, +0.0; **+0.0** | no (signs differ) |" in section
+    assert "| 16 -> 32 layouts | -5.0; **-5.0** | n/a |" in section  # one paired seed: no verdict

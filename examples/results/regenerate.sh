@@ -11,11 +11,12 @@
 #   samplers  the main job's config with model.sampler=depth, its depth from the coarse pass and from the two depth
 #             sources (+depth_source=cost_volume, source_depth: one pass on 8 samples) x seeds 0-2 (uniform: ID 5)
 #   layouts   GP-NeRF (the main job's config) trained on 4, 8, 16, 32 layouts, 150 steps per layout (600 at 4, the main
-#             job's), scored on 4 unseen layouts (3 views each) and 3 held-out views per training layout, seed 0: the
-#             curve that picks the generalized protocol's layout count (not in the default stages: ~1 h at 1.5 steps/s)
+#             job's), scored on 4 unseen layouts (3 views each) and 3 held-out views per training layout, seeds 0-2:
+#             the curve that picks the generalized protocol's layout count (not in the default stages: ~3 h here,
+#             ~1 h a seed; its 16-layout runs are the protocol stage's GP-NeRF runs)
 #   protocol  Table 1 on the generalized protocol: GP-NeRF and the three compared families x seeds 0-2 trained on
 #             PROTOCOL_LAYOUTS layouts (default 16, 150 steps per layout, 4 unseen layouts, 3 views a scene; GP-NeRF's
-#             seed 0 is the layouts run), each fine-tuned 300 steps on unseen_00 (not in the default stages: 2 h 35
+#             runs are the layouts stage's of that count), each fine-tuned 300 steps on unseen_00 (not in the default stages: 2 h 35
 #             min on 2026-12-04 with the layouts run done)
 #   per_scene the per-scene families x seeds 0-2: Semantic-NeRF fitted from scratch on the unseen layout's training
 #             frames (evaluated every 500 of its 2000 steps: against ID 5 zero-shot and fine-tuned, the finetune stage;
@@ -112,11 +113,11 @@ stage_jobs() {
       train_job semantic_nerf_unseen_8k_s0 0 +experiment=baselines/semantic_nerf "'dataset.scenes=[unseen_00]'" \
         train.steps=8000 eval.every_steps=1000 eval.save_images=0 ;;
     layouts)
-      for n in 32 16 8 4; do  # longest first: the 32-layout run takes as long as the other three together
-        train_job "layouts_n${n}_s0" 0 +head=unet +loss=dgs dataset.num_train_scenes=$n dataset.num_unseen_scenes=4 \
+      for n in 32 16 8 4; do for s in 0 1 2; do  # longest first: a 32-layout run takes as long as the other three
+        train_job "layouts_n${n}_s$s" $s +head=unet +loss=dgs dataset.num_train_scenes=$n dataset.num_unseen_scenes=4 \
           train.steps=$((150 * n)) eval.max_views_per_scene=3 eval.save_images=0
-      done ;;
-    protocol)  # GP-NeRF's seed 0 is the layouts stage's run of the same count (one job, one name)
+      done; done ;;
+    protocol)  # GP-NeRF's runs are the layouts stage's of the same count (one job, one name each)
       local n=$PROTOCOL_LAYOUTS steps=$((150 * PROTOCOL_LAYOUTS)) family s
       local data=(dataset.num_train_scenes=$n dataset.num_unseen_scenes=4 train.steps=$steps eval.max_views_per_scene=3
                   eval.save_images=0) ckpt=checkpoints/step_$(printf %07d $steps).pt
@@ -173,7 +174,7 @@ export -f run_one; export PYTHON WORK POLL_SECONDS
 queue=$(for stage in $STAGES; do stage_jobs "$stage"; done)
 if [[ -n $queue ]]; then
   # Jobs that need nothing first (stable order), then those that wait for other jobs' runs; a job two stages share
-  # (the protocol's GP-NeRF seed 0 is a layouts run) once.
+  # (the protocol's GP-NeRF runs are layouts runs) once.
   queue=$(awk -F'\t' '!seen[$1]++' <<< "$queue")
   queue=$(awk -F'\t' '$2 == "-"' <<< "$queue"; awk -F'\t' '$2 != "-"' <<< "$queue")
   cut -f1 <<< "$queue" > "$WORK/queued"

@@ -187,19 +187,37 @@ def grid(runs: Path) -> list[str]:
     return lines
 
 
+LAYOUT_COUNTS = (4, 8, 16, 32)
+
+
 def layouts(runs: Path) -> list[str]:
-    """GP-NeRF against the number of training layouts (steps growing with them), scored on 4 unseen layouts."""
-    lines = ["## Training layouts (GP-NeRF, 150 steps per layout, seed 0): the generalized protocol's curve", "",
-             "| layouts | steps | mIoU held-out | mIoU unseen (4 layouts) | PSNR unseen | SSIM unseen | train s |",
-             "|---|---|---|---|---|---|---|"]
-    for count in (4, 8, 16, 32):
-        m = load(runs, f"layouts_n{count}_s0")
-        if m is None:
-            lines.append(f"| {count} | {150 * count} | not run | | | | |")
-            continue
-        held, unseen = m["eval"].get(HELD, {}), m["eval"][UNSEEN]
-        lines.append(f"| {count} | {m['train']['steps']} | {held.get(MIOU, float('nan')):.3f} | {unseen[MIOU]:.3f} | "
-                     f"{unseen['psnr/clamped']:.2f} | {unseen['ssim/gaussian11']:.3f} | {m['train']['seconds']:.0f} |")
+    """GP-NeRF against the number of training layouts (steps growing with them, seeds 0-2), scored on 4 unseen
+    layouts, and whether each step up in width raises unseen mIoU and PSNR beyond the seed spread."""
+    lines = ["## Training layouts (GP-NeRF, 150 steps per layout, seeds 0-2): the generalized protocol's curve", "",
+             "| layouts | steps | mIoU held-out | mIoU unseen, 4 layouts (seeds 0, 1, 2) | mean +- std | PSNR unseen "
+             "| SSIM unseen | train s | missing |", "|---|---|---|---|---|---|---|---|---|"]
+    found: dict[int, dict[int, dict[str, Any]]] = {}
+    for count in LAYOUT_COUNTS:
+        found[count] = {s: m for s in SEEDS if (m := load(runs, f"layouts_n{count}_s{s}")) is not None}
+        ms = list(found[count].values())
+        missing = ", ".join(f"seed {s}" for s in SEEDS if s not in found[count])
+        unseen = column(ms, split(UNSEEN, MIOU))
+        lines.append(f"| {count} | {150 * count} | {mean_std(column(ms, split(HELD, MIOU)), digits=3)} | "
+                     f"{', '.join(f'{v:.3f}' for v in unseen)} | {mean_std(unseen, digits=3)} | "
+                     f"{mean_std(column(ms, split(UNSEEN, 'psnr/clamped')))} | "
+                     f"{mean_std(column(ms, split(UNSEEN, 'ssim/gaussian11')), digits=3)} | "
+                     f"{mean_std(column(ms, lambda m: m['train']['seconds']), digits=0)} | {missing} |")
+    lines += ["", "Wider against narrower, paired by seed (holds: one sign at every seed, mean above twice its standard "
+              "error):", "", "| step | unseen mIoU x100: per seed; mean | holds? | unseen PSNR (dB): per seed; mean "
+              "| holds? |", "|---|---|---|---|---|"]
+    for a, b in zip(LAYOUT_COUNTS, LAYOUT_COUNTS[1:]):
+        seeds = [s for s in SEEDS if s in found[a] and s in found[b]]
+        cells = []
+        for key, scale in ((MIOU, 100.0), ("psnr/clamped", 1.0)):
+            diffs = [scale * (found[b][s]["eval"][UNSEEN][key] - found[a][s]["eval"][UNSEEN][key]) for s in seeds]
+            cells += [f"{', '.join(f'{d:+.1f}' for d in diffs)}; **{statistics.fmean(diffs):+.1f}**"
+                      if diffs else "not run", holds(diffs)]
+        lines.append(f"| {a} -> {b} layouts | " + " | ".join(cells) + " |")
     return lines
 
 
