@@ -236,6 +236,22 @@ def test_a_third_party_head_shows_its_table4_switches_but_no_paper_number(tmp_pa
     assert line.rstrip().endswith("| - | - | - |")  # no Table 4 ID or paper numbers beside a third-party head
 
 
+def test_another_family_with_gp_nerf_decoding_is_not_a_table4_row(tmp_path):
+    """``baselines/semantic_ray_unet``: the U-Net head and GP-NeRF's loss set on Semantic-Ray's field. Joint
+    attention is GNT's switch (shown as -) and no Table 4 ID or GP-NeRF number sits beside it."""
+    from gpnerf_core.tools.reporting.runs import RunRow
+
+    config = {"head": {"name": "unet"}, "model": {"name": "semantic_ray"},
+              "loss": {"name": "dgs", "sd_weight": 1.0, "dgs_weight": 0.5, "teacher_stop_grad": True}, "seed": 0}
+    metrics = {"eval": {"unseen": {"miou/image_mean_present": 0.5}}, "train": {"steps": 2, "seconds": 1.0}}
+    row = RunRow(tmp_path / "semantic_ray_unet", config, metrics)
+    assert row.switches() == (None, True, True, True) and row.paper_switches() is None
+    assert row.paper_table1() is None
+    line = format_table([row]).splitlines()[2]
+    assert "| semantic_ray | unet | dgs | - | yes | yes | yes |" in line
+    assert line.rstrip().endswith("| - | - | - | - |")
+
+
 @pytest.mark.parametrize("metrics, problem", [
     ([1, 2], "it holds a list, not an object"),
     ({"eval": "x"}, "'eval' is a str"),

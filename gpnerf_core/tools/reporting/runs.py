@@ -87,24 +87,26 @@ class RunRow:
     state: str = "finished"
     """``finished`` (``metrics.json``), ``failed`` (``error.json``) or ``unfinished`` (neither)."""
 
-    def switches(self) -> tuple[bool, bool, bool, bool] | None:
+    def switches(self) -> tuple[bool | None, bool, bool, bool] | None:
         """Table 4's switches (joint attention, S.D, gradient block, D.G) of any run whose loss config carries them
-        (a built-in loss set, or a third-party one with ``sd_weight`` / ``dgs_weight``), whatever its head; else None."""
+        (a built-in loss set, or a third-party one with ``sd_weight`` / ``dgs_weight``), whatever its head; else None.
+        Joint attention is GNT's semantic field's switch: None for another model family."""
         loss = self.config.get("loss") or {}
         if loss.get("name") not in PAPER_LOSS_SETS and not {"sd_weight", "dgs_weight"} & set(loss):
             return None
         semantic_field = ((self.config.get("model") or {}).get("semantic_field") or {})
-        joint = bool(semantic_field.get("joint_attention", True))
+        joint = bool(semantic_field.get("joint_attention", True)) if self.model == "gnt" else None
         sd = float(loss.get("sd_weight", 0)) > 0
         dgs = float(loss.get("dgs_weight", 0)) > 0
         block = bool(loss.get("teacher_stop_grad", False)) and (sd or dgs)
         return joint, sd, block, dgs
 
-    def paper_switches(self) -> tuple[bool, bool, bool, bool] | None:
-        """``switches`` for the paper's method only (``PAPER_HEADS`` x ``PAPER_LOSS_SETS``): what gets a Table 4 ID."""
+    def paper_switches(self) -> tuple[bool | None, bool, bool, bool] | None:
+        """``switches`` for the paper's method only (GNT's field, ``PAPER_HEADS`` x ``PAPER_LOSS_SETS``): what gets a
+        Table 4 ID. Another family decoded by the U-Net head with GP-NeRF's losses is not a Table 4 row."""
         loss = self.config.get("loss") or {}
         head = self.config.get("head") or {}
-        if loss.get("name") not in PAPER_LOSS_SETS or head.get("name") not in PAPER_HEADS:
+        if self.model != "gnt" or loss.get("name") not in PAPER_LOSS_SETS or head.get("name") not in PAPER_HEADS:
             return None
         return self.switches()
 
@@ -383,7 +385,7 @@ def format_table(rows: list[RunRow]) -> str:
             continue
         switches = first.switches()
         paper = PAPER_TABLE4.get(first.paper_switches()) if first.paper_switches() else None
-        flags = ["yes" if s else "no" for s in switches] if switches else ["-"] * 4
+        flags = ["-" if s is None else "yes" if s else "no" for s in switches] if switches else ["-"] * 4
         head = (first.config.get("head") or {}).get("name", "-")
         loss = (first.config.get("loss") or {}).get("name", "-")
         steps = sorted({str(run.metrics.get("train", {}).get("steps", "-")) for run in group.runs})
