@@ -12,8 +12,8 @@
 #             sources (+depth_source=cost_volume, source_depth: one pass on 8 samples) x seeds 0-2 (uniform: ID 5)
 #   layouts   GP-NeRF (the main job's config) trained on 4, 8, 16, 32 layouts, 150 steps per layout (600 at 4, the main
 #             job's), scored on 4 unseen layouts (3 views each) and 3 held-out views per training layout, seeds 0-2:
-#             the curve that picks the generalized protocol's layout count (not in the default stages: ~3 h here,
-#             ~1 h a seed; its 16-layout runs are the protocol stage's GP-NeRF runs)
+#             the curve that picks the generalized protocol's layout count (not in the default stages: seeds 1-2 of
+#             4, 8 and 32 took 1 h 23 min here; its 16-layout runs are the protocol stage's GP-NeRF runs)
 #   protocol  Table 1 on the generalized protocol: GP-NeRF and the three compared families x seeds 0-2 trained on
 #             PROTOCOL_LAYOUTS layouts (default 16, 150 steps per layout, 4 unseen layouts, 3 views a scene; GP-NeRF's
 #             runs are the layouts stage's of that count), each fine-tuned 300 steps on unseen_00 (not in the default stages: 2 h 35
@@ -42,7 +42,7 @@ PYTHON=${PYTHON:-python}
 WORK=${1:-/tmp/gpnerf-results}
 STAGES=${2:-table4 methods baselines grid samplers per_scene stress instance finetune report}
 PARALLEL=${PARALLEL:-2}
-PROTOCOL_LAYOUTS=${PROTOCOL_LAYOUTS:-16}  # the protocol stage's training layouts (the layouts curve's choice)
+PROTOCOL_LAYOUTS=${PROTOCOL_LAYOUTS:-16}  # the protocol's training layouts: seed 0's choice (3 seeds favour 32)
 POLL_SECONDS=${POLL_SECONDS:-10}
 RUNS="$WORK/runs"
 KNOWN="table4 methods baselines grid samplers per_scene layouts protocol stress instance finetune report"
