@@ -61,3 +61,6 @@ def test_the_layout_curve_is_per_seed_with_each_step_up_in_width_paired_by_seed(
     assert section.count("seed 1, seed 2 |") == 1  # the 32-layout row names its missing seeds
     assert "| 8 -> 16 layouts | +8.0, +8.0, +8.0; **+8.0** | yes | +0.0, +0.0, +0.0; **+0.0** | no (signs differ) |" in section
     assert "| 16 -> 32 layouts | -5.0; **-5.0** | n/a |" in section  # one paired seed: no verdict
+    steps = [line.split(" |")[0] for line in section.splitlines() if " -> " in line]
+    assert steps == ["| 4 -> 8 layouts", "| 8 -> 16 layouts", "| 16 -> 32 layouts", "| 4 -> 16 layouts",
+                     "| 8 -> 32 layouts", "| 4 -> 32 layouts"]  # each step up, then the wider ones
