@@ -66,7 +66,7 @@ def test_an_unknown_stage_is_one_line_listing_the_known(tmp_path):
     assert result.stderr == "unknown stage 'tabel5' (known: table4 methods baselines grid samplers per_scene layouts protocol stress instance finetune report)\n"
 
 
-def test_the_protocol_shares_its_gp_nerf_seed_0_with_the_layouts_curve(tmp_path):
+def test_the_protocol_shares_its_gp_nerf_runs_with_the_layouts_curve(tmp_path):
     result, journal = regenerate(tmp_path, "layouts protocol", PROTOCOL_LAYOUTS="8")
     assert result.returncode == 0, result.stderr
     assert all(journal.count(f"start layouts_n8_s{s}") == 1 for s in range(3))  # one job each, asked for by both stages

@@ -16,8 +16,8 @@
 #             4, 8 and 32 took 1 h 23 min here; its 16-layout runs are the protocol stage's GP-NeRF runs)
 #   protocol  Table 1 on the generalized protocol: GP-NeRF and the three compared families x seeds 0-2 trained on
 #             PROTOCOL_LAYOUTS layouts (default 16, 150 steps per layout, 4 unseen layouts, 3 views a scene; GP-NeRF's
-#             runs are the layouts stage's of that count), each fine-tuned 300 steps on unseen_00 (not in the default stages: 2 h 35
-#             min on 2026-12-04 with the layouts run done)
+#             runs are the layouts stage's of that count), each fine-tuned 300 steps on unseen_00 (not in the default
+#             stages: 2 h 35 min on 2026-12-04 with the 16-layout seed 0 done)
 #   per_scene the per-scene families x seeds 0-2: Semantic-NeRF fitted from scratch on the unseen layout's training
 #             frames (evaluated every 500 of its 2000 steps: against ID 5 zero-shot and fine-tuned, the finetune stage;
 #             and one 8000-step run, seed 0, evaluated every 1000), its grid option (baselines/semantic_nerf_grid,

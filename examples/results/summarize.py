@@ -79,10 +79,16 @@ def table4(runs: Path) -> list[str]:
         for name in (HELD, UNSEEN):
             seeds = [s for s in SEEDS if s in per_id[a] and s in per_id[b]]
             diffs = [100 * (per_id[b][s]["eval"][name][MIOU] - per_id[a][s]["eval"][name][MIOU]) for s in seeds]
-            cells += [f"{', '.join(f'{d:+.1f}' for d in diffs)}; **{statistics.fmean(diffs):+.1f}**"
-                      if diffs else "not run", holds(diffs)]
+            cells += paired_cells(diffs)
         lines.append(f"| {title} | " + " | ".join(cells) + " |")
     return lines
+
+
+def paired_cells(diffs: list[float]) -> list[str]:
+    """Two table cells for differences taken seed by seed: ``per seed; **mean**`` and whether it ``holds``."""
+    if not diffs:
+        return ["not run", holds(diffs)]
+    return [f"{', '.join(f'{d:+.1f}' for d in diffs)}; **{statistics.fmean(diffs):+.1f}**", holds(diffs)]
 
 
 def holds(diffs: list[float]) -> str:
@@ -218,8 +224,7 @@ def layouts(runs: Path) -> list[str]:
         cells = []
         for key, scale in ((MIOU, 100.0), ("psnr/clamped", 1.0)):
             diffs = [scale * (found[b][s]["eval"][UNSEEN][key] - found[a][s]["eval"][UNSEEN][key]) for s in seeds]
-            cells += [f"{', '.join(f'{d:+.1f}' for d in diffs)}; **{statistics.fmean(diffs):+.1f}**"
-                      if diffs else "not run", holds(diffs)]
+            cells += paired_cells(diffs)
         lines.append(f"| {a} -> {b} layouts | " + " | ".join(cells) + " |")
     return lines
 
