@@ -6,14 +6,14 @@ from pathlib import Path
 SCRIPT = Path(__file__).resolve().parents[1] / "examples" / "results" / "regenerate.sh"
 
 # Stands in for `python`: `-c` (the provenance line) prints a line; `-m gpnerf_core <command> ... out_dir=<run>`
-# logs "start/end <run name>" to $JOURNAL and fails for the run named in $FAIL.
+# logs "start/end <run name>" to $JOURNAL, prints its arguments (the job's log) and fails for the run named in $FAIL.
 STAND_IN = r"""#!/usr/bin/env bash
 [[ $1 == -c ]] && { echo "stand-in 0.0"; exit 0; }
 name=unknown
 for argument in "$@"; do
   case $argument in out_dir=*) name=${argument##*/} ;; --out) next=out ;; *) [[ ${next:-} == out ]] && name=stress_${argument##*/}; next= ;; esac
 done
-echo "start $name" >> "$JOURNAL"; sleep 0.2; echo "end $name" >> "$JOURNAL"
+echo "start $name" >> "$JOURNAL"; sleep 0.2; echo "end $name" >> "$JOURNAL"; echo "$*"
 [[ $name == "${FAIL:-}" ]] && exit 3
 exit 0
 """
@@ -39,8 +39,9 @@ def test_one_queue_runs_every_stage_and_a_job_starts_after_the_runs_it_needs(tmp
     assert len(done) == 15 + 2 + 3 and "stress_id5" in done and "finetune_id5_s2" in done
     for dependent, needs in (("finetune_id5_s1", ["id5_s1"]), ("stress_id5", ["id5_s0", "id5_s1", "id5_s2"])):
         assert all(journal.index(f"end {need}") < journal.index(f"start {dependent}") for need in needs)
-    # Jobs that need nothing go first: every Table 4 run starts before any stress or fine-tuning job.
-    first_dependent = min(journal.index(f"start {name}") for name in ("stress_id1", "stress_id5", "finetune_id5_s0"))
+    # Jobs that need nothing go first: every Table 4 run starts before any stress or fine-tuning job ends (the last
+    # Table 4 run and the first dependent job are launched together, so their journal lines come in either order).
+    first_dependent = min(journal.index(f"end {name}") for name in ("stress_id1", "stress_id5", "finetune_id5_s0"))
     assert max(journal.index(f"start id{i}_s{s}") for i in range(1, 6) for s in range(3)) < first_dependent
 
     again, journal_again = regenerate(tmp_path, "finetune stress table4")
@@ -81,3 +82,18 @@ def test_the_protocol_shares_its_gp_nerf_runs_with_the_layouts_curve(tmp_path):
             run = f"layouts_n8{family}_s{seed}"
             assert journal.index(f"end {run}") < journal.index(f"start finetune_{run}")
     assert len(done) == 3 * 3 + 12 + 12  # the other three counts x 3 seeds, the protocol's runs, their fine-tuning
+
+
+def test_a_weight_averaged_protocol_has_runs_of_its_own_each_keeping_an_average(tmp_path):
+    result, _ = regenerate(tmp_path, "protocol", PROTOCOL_LAYOUTS="8", PROTOCOL_EMA_DECAY="0.99")
+    work = tmp_path / "work"
+    assert result.returncode == 0, result.stderr
+    families = ("", "_semantic_ray", "_neuray", "_mvsnerf")
+    trained = {f"layouts_n8_ema{f}_s{s}" for f in families for s in range(3)}
+    done = {p.name for p in (work / "done").iterdir()}
+    assert done == trained | {f"finetune_{run}" for run in trained}  # none shared with the layouts curve's runs
+    for run in trained:
+        arguments = (work / "logs" / f"{run}.log").read_text()
+        assert " train.ema_decay=0.99 " in arguments and "dataset.num_train_scenes=8 " in arguments
+        assert f"checkpoint={work}/runs/{run}/checkpoints/step_0001200.pt " in (
+            work / "logs" / f"finetune_{run}.log").read_text()

@@ -34,7 +34,8 @@ def test_each_protocol_count_gets_table_1_with_its_orderings_and_its_fine_tuning
             write_run(runs, f"{prefix}_s{seed}", miou + 0.01 * seed)
     write_run(runs, "finetune_layouts_n8_s0", 0.70, finetuned=[0.70, 0.75, 0.80, 0.79])
     text = summary(tmp_path)
-    heading = "## The generalized protocol (8 training layouts, 1200 steps, 4 unseen layouts): Table 1's generalization rows"
+    heading = ("## The generalized protocol (8 training layouts, 1200 steps, 4 unseen layouts, last step's weights): "
+               "Table 1's generalization rows")
     section = text[text.index(heading):]
     assert "| GP-NeRF > Semantic-Ray | +20.0, +20.0, +20.0 | yes |" in section
     assert "| Semantic-Ray > NeuRay + semantic head | -5.0, -5.0, -5.0 | yes |" in section  # a reversal holds too
@@ -42,6 +43,20 @@ def test_each_protocol_count_gets_table_1_with_its_orderings_and_its_fine_tuning
     fine = section[section.index("fine-tuned on unseen_00"):]
     assert "| GP-NeRF (ID 5) | 0 | 0: 0.700, 100: 0.750, 200: 0.800, 300: 0.790 | 21.00 | 100 | 0 (0) |" in fine
     assert "| Semantic-Ray | 0 | not run |" in fine
+
+
+def test_a_weight_averaged_protocol_gets_its_own_tables_beside_the_last_step_one(tmp_path):
+    runs = tmp_path / "runs"
+    for seed in range(3):
+        for prefix, miou in (("layouts_n8", 0.70), ("layouts_n8_semantic_ray", 0.50),
+                             ("layouts_n8_ema", 0.80), ("layouts_n8_ema_semantic_ray", 0.82)):
+            write_run(runs, f"{prefix}_s{seed}", miou + 0.01 * seed)
+    text = summary(tmp_path)
+    last = text.index("(8 training layouts, 1200 steps, 4 unseen layouts, last step's weights): Table 1's")
+    averaged = text.index("(8 training layouts, 1200 steps, 4 unseen layouts, weight average (train.ema_decay)): Table 1's")
+    assert last < averaged
+    assert "| GP-NeRF > Semantic-Ray | +20.0, +20.0, +20.0 | yes |" in text[last:averaged]
+    assert "| GP-NeRF > Semantic-Ray | -2.0, -2.0, -2.0 | yes |" in text[averaged:]
 
 
 def test_without_protocol_runs_there_is_no_protocol_section(tmp_path):

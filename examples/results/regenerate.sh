@@ -17,7 +17,9 @@
 #   protocol  Table 1 on the generalized protocol: GP-NeRF and the three compared families x seeds 0-2 trained on
 #             PROTOCOL_LAYOUTS layouts (default 16, 150 steps per layout, 4 unseen layouts, 3 views a scene; GP-NeRF's
 #             runs are the layouts stage's of that count), each fine-tuned 300 steps on unseen_00 (not in the default
-#             stages: 2 h 35 min on 2026-12-04 with the 16-layout seed 0 done)
+#             stages: 2 h 35 min on 2026-12-04 with the 16-layout seed 0 done). PROTOCOL_EMA_DECAY=0.99: every run
+#             keeps a weight average, is scored with it and fine-tuned from it, runs layouts_n<count>_ema[_<family>]_s<seed>
+#             (GP-NeRF's too: the layouts stage keeps none)
 #   per_scene the per-scene families x seeds 0-2: Semantic-NeRF fitted from scratch on the unseen layout's training
 #             frames (evaluated every 500 of its 2000 steps: against ID 5 zero-shot and fine-tuned, the finetune stage;
 #             and one 8000-step run, seed 0, evaluated every 1000), its grid option (baselines/semantic_nerf_grid,
@@ -26,7 +28,7 @@
 #   instance  the instance head on layout_00 x seeds 0-2, and the connected-components baseline on ID 5's runs
 #   finetune  ID 5's three runs fine-tuned on the unseen layout (300 steps)                      (needs table4's runs)
 #   report    the tables (report_*.md, summary.md: examples/results/summarize.py) and the charts (chart/, chart_methods/,
-#             chart_baselines/, chart_protocol/, chart_samplers/, chart_per_scene/)
+#             chart_baselines/, chart_protocol_<n16|n32_ema|...>/, chart_samplers/, chart_per_scene/)
 # The jobs of every stage asked for form one queue, PARALLEL (2) at a time, so no core idles between stages: jobs
 # that need no other job first, then those that do, each waiting for the runs it needs (WORK/done markers). After a
 # failure the queue goes on (a job needing the failed one fails at once) and the script exits 1 before the report.
@@ -43,6 +45,7 @@ WORK=${1:-/tmp/gpnerf-results}
 STAGES=${2:-table4 methods baselines grid samplers per_scene stress instance finetune report}
 PARALLEL=${PARALLEL:-2}
 PROTOCOL_LAYOUTS=${PROTOCOL_LAYOUTS:-16}  # the protocol's training layouts: seed 0's choice (3 seeds favour 32)
+PROTOCOL_EMA_DECAY=${PROTOCOL_EMA_DECAY:-}  # set (e.g. 0.99): every protocol run keeps a weight average, scored with it
 POLL_SECONDS=${POLL_SECONDS:-10}
 RUNS="$WORK/runs"
 KNOWN="table4 methods baselines grid samplers per_scene layouts protocol stress instance finetune report"
@@ -70,6 +73,9 @@ job() { local name=$1 needs=$2; shift 2; printf '%s\t%s\t%s\n' "$name" "$needs" 
 train_job() {  # train_job <name> <seed> <overrides...>
   local name=$1 seed=$2; shift 2
   job "$name" - run "$@" seed="$seed" threads=1 train.resume=auto "out_dir=$RUNS/$name"
+}
+protocol_tag() {  # the protocol's runs are layouts_<tag>[_<family>]_s<seed>: n<count>, then _ema with a weight average
+  echo "n$PROTOCOL_LAYOUTS${PROTOCOL_EMA_DECAY:+_ema}"
 }
 stage_jobs() {
   case $1 in
@@ -117,20 +123,22 @@ stage_jobs() {
         train_job "layouts_n${n}_s$s" $s +head=unet +loss=dgs dataset.num_train_scenes=$n dataset.num_unseen_scenes=4 \
           train.steps=$((150 * n)) eval.max_views_per_scene=3 eval.save_images=0
       done; done ;;
-    protocol)  # GP-NeRF's runs are the layouts stage's of the same count (one job, one name each)
-      local n=$PROTOCOL_LAYOUTS steps=$((150 * PROTOCOL_LAYOUTS)) family s
+    protocol)  # without a weight average GP-NeRF's runs are the layouts stage's of the same count (one job, one name)
+      local n=$PROTOCOL_LAYOUTS steps=$((150 * PROTOCOL_LAYOUTS)) tag family s
+      tag=$(protocol_tag)
       local data=(dataset.num_train_scenes=$n dataset.num_unseen_scenes=4 train.steps=$steps eval.max_views_per_scene=3
-                  eval.save_images=0) ckpt=checkpoints/step_$(printf %07d $steps).pt
+                  eval.save_images=0 ${PROTOCOL_EMA_DECAY:+train.ema_decay=$PROTOCOL_EMA_DECAY})
+      local ckpt=checkpoints/step_$(printf %07d $steps).pt
       for s in 0 1 2; do
-        train_job "layouts_n${n}_s$s" $s +head=unet +loss=dgs "${data[@]}"
+        train_job "layouts_${tag}_s$s" $s +head=unet +loss=dgs "${data[@]}"
         for family in semantic_ray neuray mvsnerf; do
-          train_job "layouts_n${n}_${family}_s$s" $s +experiment=baselines/$family "${data[@]}"
+          train_job "layouts_${tag}_${family}_s$s" $s +experiment=baselines/$family "${data[@]}"
         done
       done
-      for family in "" _semantic_ray _neuray _mvsnerf; do for s in 0 1 2; do
-        job "finetune_layouts_n${n}${family}_s$s" "layouts_n${n}${family}_s$s" finetune \
-          "checkpoint=$RUNS/layouts_n${n}${family}_s$s/$ckpt" "'dataset.scenes=[unseen_00]'" train.steps=300 \
-          finetune.points=4 eval.save_images=0 threads=1 "out_dir=$RUNS/finetune_layouts_n${n}${family}_s$s"
+      for s in 0 1 2; do for family in "" _semantic_ray _neuray _mvsnerf; do
+        job "finetune_layouts_${tag}${family}_s$s" "layouts_${tag}${family}_s$s" finetune \
+          "checkpoint=$RUNS/layouts_${tag}${family}_s$s/$ckpt" "'dataset.scenes=[unseen_00]'" train.steps=300 \
+          finetune.points=4 eval.save_images=0 threads=1 "out_dir=$RUNS/finetune_layouts_${tag}${family}_s$s"
       done; done ;;
     stress)
       for id in 1 5; do
@@ -199,10 +207,11 @@ if [[ " $STAGES " == *" report "* ]]; then
   if (( ${#baseline_runs[@]} )); then  # Table 1's generalization rows beside the paper's, and their chart
     "$PYTHON" -m gpnerf_core report "${baseline_runs[@]}" --chart "$WORK/chart_baselines" > "$WORK/report_baselines.md"
   fi
-  n=$PROTOCOL_LAYOUTS
-  mapfile -t protocol_runs < <(existing "$RUNS"/{,finetune_}layouts_n$n{,_semantic_ray,_neuray,_mvsnerf}_s?)
+  tag=$(protocol_tag)
+  mapfile -t protocol_runs < <(existing "$RUNS"/{,finetune_}layouts_$tag{,_semantic_ray,_neuray,_mvsnerf}_s?)
   if (( ${#protocol_runs[@]} )); then  # Table 1's rows (both settings) on the generalized protocol, and their chart
-    "$PYTHON" -m gpnerf_core report "${protocol_runs[@]}" --chart "$WORK/chart_protocol" > "$WORK/report_protocol.md"
+    "$PYTHON" -m gpnerf_core report "${protocol_runs[@]}" --chart "$WORK/chart_protocol_$tag" \
+      > "$WORK/report_protocol_$tag.md"
   fi
   mapfile -t sampler_runs < <(existing "$RUNS"/id5_s? "$RUNS"/sampler_*_s?)
   if (( ${#sampler_runs[@]} )); then  # where the samples go: accuracy against render time
