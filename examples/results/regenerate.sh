@@ -19,7 +19,8 @@
 #             runs are the layouts stage's of that count), each fine-tuned 300 steps on unseen_00 (not in the default
 #             stages: 2 h 35 min on 2026-12-04 with the 16-layout seed 0 done). PROTOCOL_EMA_DECAY=0.99: every run
 #             keeps a weight average, is scored with it and fine-tuned from it, runs layouts_n<count>_ema[_<family>]_s<seed>
-#             (GP-NeRF's too: the layouts stage keeps none)
+#             (GP-NeRF's too: the layouts stage keeps none); at 32 layouts seed 0's four runs and their fine-tuning
+#             took 2 h here (2026-12-04), evaluation included (108 frames a run: 3-12 min)
 #   per_scene the per-scene families x seeds 0-2: Semantic-NeRF fitted from scratch on the unseen layout's training
 #             frames (evaluated every 500 of its 2000 steps: against ID 5 zero-shot and fine-tuned, the finetune stage;
 #             and one 8000-step run, seed 0, evaluated every 1000), its grid option (baselines/semantic_nerf_grid,
