@@ -396,25 +396,23 @@ def finetune(runs: Path, run_prefix: Callable[[str], str] = same_prefix,
     return lines
 
 
-def protocol_tags(runs: Path) -> list[tuple[int, bool]]:
-    """The protocols the ``protocol`` stage ran: ``(layout count, weight average)`` of each tag with a compared family's
-    run (``layouts_n<N>[_ema]_<family>_s<seed>``; ``_ema``: ``PROTOCOL_EMA_DECAY``, every run scored on its weight
-    average)."""
+def protocol_tags(runs: Path) -> list[tuple[int, str]]:
+    """The protocols the ``protocol`` stage ran: ``(layout count, tag)`` of each tag with a compared family's run
+    (``layouts_<tag>_<family>_s<seed>``, tag ``n<N>`` or ``n<N>_ema``: ``PROTOCOL_EMA_DECAY``, every run scored on its
+    weight average)."""
     families = "|".join(prefix for _, prefix, _ in TABLE1[1:])
-    pattern = re.compile(rf"layouts_n(\d+)(_ema)?_(?:{families})_s\d+")
-    return sorted({(int(m.group(1)), bool(m.group(2))) for path in runs.iterdir() if (m := pattern.fullmatch(path.name))})
+    pattern = re.compile(rf"layouts_(n(\d+)(?:_ema)?)_(?:{families})_s\d+")
+    return sorted({(int(m.group(2)), m.group(1)) for path in runs.iterdir() if (m := pattern.fullmatch(path.name))})
 
 
 def protocol(runs: Path) -> list[str]:
     """Table 1's generalization and fine-tuning rows on each generalized protocol the ``protocol`` stage ran (N training
     layouts, 150 steps each, scored over 4 unseen layouts; fine-tuned on unseen_00): the same tables, other runs."""
     lines: list[str] = []
-    for count, averaged in protocol_tags(runs):
-        tag = f"n{count}_ema" if averaged else f"n{count}"
-
+    for count, tag in protocol_tags(runs):
         def run_prefix(prefix: str, tag: str = tag) -> str:
             return f"layouts_{tag}" if prefix == "id5" else f"layouts_{tag}_{prefix}"
-        weights = "weight average (train.ema_decay)" if averaged else "last step's weights"
+        weights = "weight average (train.ema_decay)" if tag.endswith("_ema") else "last step's weights"
         where = f"{count} training layouts, {150 * count} steps, 4 unseen layouts, {weights}"
         lines += baselines(runs, run_prefix, f"The generalized protocol ({where}): Table 1's generalization rows") + [""]
         lines += finetune(runs, run_prefix, f"The generalized protocol ({where}): fine-tuned on unseen_00") + [""]
