@@ -64,7 +64,7 @@ def test_a_failed_run_fails_what_needs_it_and_stops_before_the_report(tmp_path):
 def test_an_unknown_stage_is_one_line_listing_the_known(tmp_path):
     result, journal = regenerate(tmp_path, "table4 tabel5")
     assert result.returncode == 2 and journal == []
-    assert result.stderr == "unknown stage 'tabel5' (known: table4 methods baselines grid samplers per_scene layouts protocol stress instance finetune report)\n"
+    assert result.stderr == "unknown stage 'tabel5' (known: table4 methods baselines grid samplers per_scene layouts protocol stress instance finetune report records)\n"
 
 
 def test_the_protocol_shares_its_gp_nerf_runs_with_the_layouts_curve(tmp_path):
@@ -97,3 +97,22 @@ def test_a_weight_averaged_protocol_has_runs_of_its_own_each_keeping_an_average(
         assert " train.ema_decay=0.99 " in arguments and "dataset.num_train_scenes=8 " in arguments
         assert f"checkpoint={work}/runs/{run}/checkpoints/step_0001200.pt " in (
             work / "logs" / f"finetune_{run}.log").read_text()
+
+
+def test_records_copy_each_finished_runs_figures_and_the_provenance(tmp_path):
+    records, work = tmp_path / "records", tmp_path / "work"
+    (work / "done").mkdir(parents=True)
+    for name, finished in (("id5_s0", True), ("id5_s1", True), ("half_written_s0", False)):
+        (work / "runs" / name).mkdir(parents=True)
+        (work / "runs" / name / "metrics.json").write_text(f'{{"name": "{name}"}}')
+        if finished:
+            (work / "done" / name).touch()
+    result, journal = regenerate(tmp_path, "records", RECORDS=str(records))
+    assert result.returncode == 0 and journal == [], result.stderr
+    assert "records of 2 runs" in result.stdout
+    assert sorted(p.name for p in (records / "runs").iterdir()) == ["id5_s0", "id5_s1"]  # not the unfinished run
+    assert (records / "runs" / "id5_s1" / "metrics.json").read_text() == '{"name": "id5_s1"}'
+    assert [p.name for p in (records / "runs" / "id5_s0").iterdir()] == ["metrics.json"]  # nothing half-written
+    (provenance,) = (records / "provenance").iterdir()
+    assert ":" not in provenance.name and provenance.read_text() == (work / "provenance.txt").read_text()
+    assert (work / "runs" / "id5_s0" / "metrics.json").is_file()  # copied, never moved

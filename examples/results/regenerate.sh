@@ -30,6 +30,9 @@
 #   finetune  ID 5's three runs fine-tuned on the unseen layout (300 steps)                      (needs table4's runs)
 #   report    the tables (report_*.md, summary.md: examples/results/summarize.py) and the charts (chart/, chart_methods/,
 #             chart_baselines/, chart_protocol_<n16|n32_ema|...>/, chart_samplers/, chart_per_scene/)
+#   records   every finished run's metrics.json (no weights) and WORK/provenance.txt copied into RECORDS (default
+#             examples/results/records, beside this script) to commit: WORK does not outlive its machine, and
+#             `python examples/results/summarize.py RECORDS` tables what the records hold (seeds run on other days too)
 # The jobs of every stage asked for form one queue, PARALLEL (2) at a time, so no core idles between stages: jobs
 # that need no other job first, then those that do, each waiting for the runs it needs (WORK/done markers). After a
 # failure the queue goes on (a job needing the failed one fails at once) and the script exits 1 before the report.
@@ -47,9 +50,10 @@ STAGES=${2:-table4 methods baselines grid samplers per_scene stress instance fin
 PARALLEL=${PARALLEL:-2}
 PROTOCOL_LAYOUTS=${PROTOCOL_LAYOUTS:-16}  # the protocol's training layouts: seed 0's choice (3 seeds favour 32)
 PROTOCOL_EMA_DECAY=${PROTOCOL_EMA_DECAY:-}  # set (e.g. 0.99): every protocol run keeps a weight average, scored with it
+RECORDS=${RECORDS:-$(cd "$(dirname "$0")" && pwd)/records}
 POLL_SECONDS=${POLL_SECONDS:-10}
 RUNS="$WORK/runs"
-KNOWN="table4 methods baselines grid samplers per_scene layouts protocol stress instance finetune report"
+KNOWN="table4 methods baselines grid samplers per_scene layouts protocol stress instance finetune report records"
 for stage in $STAGES; do
   [[ " $KNOWN " == *" $stage "* ]] || { echo "unknown stage '$stage' (known: $KNOWN)" >&2; exit 2; }
 done
@@ -228,3 +232,18 @@ if [[ " $STAGES " == *" report "* ]]; then
   fi
 fi
 echo "finished $(date -u +%FT%TZ)" >> "$WORK/provenance.txt"
+
+if [[ " $STAGES " == *" records "* ]]; then  # finished runs only (a done marker and a metrics.json), each written whole
+  echo "== records -> $RECORDS $(date -u +%T)"
+  for metrics in "$RUNS"/*/metrics.json; do
+    name=$(basename "$(dirname "$metrics")")
+    [[ -f $metrics && -f "$WORK/done/$name" ]] || continue
+    mkdir -p "$RECORDS/runs/$name"
+    cp "$metrics" "$RECORDS/runs/$name/.metrics.json.partial"
+    mv "$RECORDS/runs/$name/.metrics.json.partial" "$RECORDS/runs/$name/metrics.json"
+  done
+  started=$(sed -n 's/^started \([^ ]*\) .*/\1/p' "$WORK/provenance.txt" | head -1 | tr -d :)
+  mkdir -p "$RECORDS/provenance"
+  cp "$WORK/provenance.txt" "$RECORDS/provenance/.partial" && mv "$RECORDS/provenance/.partial" "$RECORDS/provenance/$started.txt"
+  echo "records of $(ls "$RECORDS/runs" | wc -l) runs in $RECORDS (commit them)"
+fi

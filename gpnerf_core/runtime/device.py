@@ -68,15 +68,31 @@ def autocast(device: torch.device, precision: str) -> ContextManager:
     return torch.autocast(device_type=device.type, dtype=dtype)
 
 
+def cpu_model() -> str:
+    """The CPU's model name: /proc/cpuinfo's first ``model name`` on Linux, else what ``platform`` knows."""
+    import platform
+
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as cpuinfo:
+            for line in cpuinfo:
+                key, _, value = line.partition(":")
+                if key.strip() == "model name" and value.strip():
+                    return value.strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def machine_info() -> dict[str, object]:
-    """What a run's figures were measured on (``metrics.json``'s ``machine``): platform, CPU count, torch threads and
-    the CUDA device's name (None without one)."""
+    """What a run's figures were measured on (``metrics.json``'s ``machine``): platform, CPU model (figures move
+    between CPU models of one machine type), CPU count, torch threads and the CUDA device's name (None without one)."""
     import os
     import platform
 
     return {
         "platform": platform.platform(),
         "processor": platform.machine(),
+        "cpu_model": cpu_model(),
         "cpus": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
         "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,

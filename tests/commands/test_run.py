@@ -64,6 +64,7 @@ def test_run_writes_metrics_pictures_and_checkpoint(first_run):
         assert "miou/image_mean_present" in values["baseline_majority"]
         assert values["timing"]["seconds_per_frame"] > 0
     assert metrics["train"]["steps"] == 4
+    assert metrics["machine"]["cpu_model"] and metrics["machine"]["torch_threads"] >= 1  # figures name their CPU
     assert (out / "config.yaml").is_file() and (out / "plugins.json").is_file()
     assert (out / "training_curves.png").is_file()
     assert len(json.loads((out / "training_curves.json").read_text())) == 2
