@@ -41,8 +41,9 @@ def test_each_protocol_count_gets_table_1_with_its_orderings_and_its_fine_tuning
     assert "| Semantic-Ray > NeuRay + semantic head | -5.0, -5.0, -5.0 | yes |" in section  # a reversal holds too
     assert "| MVSNeRF + semantic head (`baselines/mvsnerf`) |" in section and "seed 0, seed 1, seed 2 |" in section
     fine = section[section.index("fine-tuned on unseen_00"):]
-    assert "| GP-NeRF (ID 5) | 0 | 0: 0.700, 100: 0.750, 200: 0.800, 300: 0.790 | 21.00 | 100 | 0 (0) |" in fine
-    assert "| Semantic-Ray | 0 | not run |" in fine
+    assert "| steps (s) to mIoU 0.70 | steps (s) to mIoU 0.80 |" in fine
+    assert "| GP-NeRF (ID 5) | 0 | 0: 0.700, 100: 0.750, 200: 0.800, 300: 0.790 | 21.00 | 100 | 0 (0) | 200 (67) |" in fine
+    assert "| Semantic-Ray | 0 | not run | | | | |" in fine
 
 
 def test_a_weight_averaged_protocol_gets_its_own_tables_beside_the_last_step_one(tmp_path):
@@ -79,3 +80,16 @@ def test_the_layout_curve_is_per_seed_with_each_step_up_in_width_paired_by_seed(
     steps = [line.split(" |")[0] for line in section.splitlines() if " -> " in line]
     assert steps == ["| 4 -> 8 layouts", "| 8 -> 16 layouts", "| 16 -> 32 layouts", "| 4 -> 16 layouts",
                      "| 8 -> 32 layouts", "| 4 -> 32 layouts"]  # each step up, then the wider ones
+
+
+def test_a_records_folder_is_summarized_with_each_batchs_provenance(tmp_path):
+    records = tmp_path / "records"
+    write_run(records / "runs", "layouts_n8_ema_s1", 0.80)
+    write_run(records / "runs", "layouts_n8_ema_semantic_ray_s1", 0.78)
+    write_run(records / "runs", "finetune_layouts_n8_ema_semantic_ray_s1", 0.78, finetuned=[0.78, 0.79, 0.79, 0.79])
+    (records / "provenance").mkdir()
+    for day in ("2026-12-04T181853Z", "2026-12-05T090000Z"):
+        (records / "provenance" / f"{day}.txt").write_text(f"commit abc\nstarted {day} stages: protocol\n")
+    text = summary(records)
+    assert text.index("started 2026-12-04T181853Z") < text.index("started 2026-12-05T090000Z") < text.index("## ")
+    assert "| Semantic-Ray | 1 | 0: 0.780, 100: 0.790, 200: 0.790, 300: 0.790 | 21.00 | 100 | 0 (0) | not reached |" in text
