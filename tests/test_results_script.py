@@ -105,6 +105,8 @@ def test_records_copy_each_finished_runs_figures_and_the_provenance(tmp_path):
     for name, finished in (("id5_s0", True), ("id5_s1", True), ("half_written_s0", False)):
         (work / "runs" / name).mkdir(parents=True)
         (work / "runs" / name / "metrics.json").write_text(f'{{"name": "{name}"}}')
+        (work / "runs" / name / "config.yaml").write_text(f"seed: {name[-1]}\n")
+        (work / "runs" / name / "checkpoints").mkdir()
         if finished:
             (work / "done" / name).touch()
     result, journal = regenerate(tmp_path, "records", RECORDS=str(records))
@@ -112,7 +114,8 @@ def test_records_copy_each_finished_runs_figures_and_the_provenance(tmp_path):
     assert "records of 2 runs" in result.stdout
     assert sorted(p.name for p in (records / "runs").iterdir()) == ["id5_s0", "id5_s1"]  # not the unfinished run
     assert (records / "runs" / "id5_s1" / "metrics.json").read_text() == '{"name": "id5_s1"}'
-    assert [p.name for p in (records / "runs" / "id5_s0").iterdir()] == ["metrics.json"]  # nothing half-written
+    assert sorted(p.name for p in (records / "runs" / "id5_s0").iterdir()) == ["config.yaml", "metrics.json"]
+    assert (records / "runs" / "id5_s0" / "config.yaml").read_text() == "seed: 0\n"  # no weights, nothing half-written
     (provenance,) = (records / "provenance").iterdir()
     assert ":" not in provenance.name and provenance.read_text() == (work / "provenance.txt").read_text()
     assert (work / "runs" / "id5_s0" / "metrics.json").is_file()  # copied, never moved
