@@ -67,7 +67,9 @@ def scores_against_truth(out: Path, truth: np.ndarray, index_of) -> tuple[dict, 
 
 def test_a_photo_folder_becomes_a_capture_near_the_true_poses(orbit, tmp_path, capsys):
     photos = copy_frames(orbit, tmp_path / "photos", range(15))  # one side of the table, like a photo set
-    code, out, err = prepare(capsys, photos, "--out", tmp_path / "scene", "--matcher", "exhaustive")
+    # one thread, as for the video below: two-threaded, a fresh-clone CI run (2026-12-04, AMD EPYC) got a 42-degree
+    # median rotation error that alone it never gives
+    code, out, err = prepare(capsys, photos, "--out", tmp_path / "scene", "--matcher", "exhaustive", "--threads", 1)
     assert code == 0, err
     transforms, scores = scores_against_truth(tmp_path / "scene", true_poses(orbit), lambda s: int(s[4:-4]))
     summary = transforms["gpnerf_summary"]
