@@ -30,9 +30,9 @@
 #   finetune  ID 5's three runs fine-tuned on the unseen layout (300 steps)                      (needs table4's runs)
 #   report    the tables (report_*.md, summary.md: examples/results/summarize.py) and the charts (chart/, chart_methods/,
 #             chart_baselines/, chart_protocol_<n16|n32_ema|...>/, chart_samplers/, chart_per_scene/)
-#   records   every finished run's metrics.json and config.yaml (no weights) and WORK/provenance.txt copied into RECORDS (default
-#             examples/results/records, beside this script) to commit: WORK does not outlive its machine, and
-#             `python examples/results/summarize.py RECORDS` tables what the records hold (seeds run on other days too)
+#   records   every finished run's metrics.json and config.yaml (no weights) and WORK/provenance.txt copied into
+#             RECORDS (default examples/results/records, beside this script) to commit: WORK does not outlive its
+#             machine; `python examples/results/summarize.py RECORDS` tables the records (seeds of other days too)
 # The jobs of every stage asked for form one queue, PARALLEL (2) at a time, so no core idles between stages: jobs
 # that need no other job first, then those that do, each waiting for the runs it needs (WORK/done markers). After a
 # failure the queue goes on (a job needing the failed one fails at once) and the script exits 1 before the report.
@@ -241,11 +241,13 @@ if [[ " $STAGES " == *" records "* ]]; then  # finished runs only (a done marker
     mkdir -p "$RECORDS/runs/$name"
     for file in config.yaml metrics.json; do  # metrics.json last: with it the record is whole (`report` reads both)
       [[ -f "$RUNS/$name/$file" ]] || continue
-      cp "$RUNS/$name/$file" "$RECORDS/runs/$name/.$file.partial" && mv "$RECORDS/runs/$name/.$file.partial" "$RECORDS/runs/$name/$file"
+      cp "$RUNS/$name/$file" "$RECORDS/runs/$name/.$file.partial"
+      mv "$RECORDS/runs/$name/.$file.partial" "$RECORDS/runs/$name/$file"
     done
   done
   started=$(sed -n 's/^started \([^ ]*\) .*/\1/p' "$WORK/provenance.txt" | head -1 | tr -d :)
   mkdir -p "$RECORDS/provenance"
-  cp "$WORK/provenance.txt" "$RECORDS/provenance/.partial" && mv "$RECORDS/provenance/.partial" "$RECORDS/provenance/$started.txt"
+  cp "$WORK/provenance.txt" "$RECORDS/provenance/.partial"
+  mv "$RECORDS/provenance/.partial" "$RECORDS/provenance/$started.txt"
   echo "records of $(ls "$RECORDS/runs" | wc -l) runs in $RECORDS (commit them)"
 fi
