@@ -30,8 +30,12 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     ),
     "gpnerf_core.interfaces.stress": ("ChooseSources",),
     "gpnerf_core.interfaces.head": ("Predicts",),
-    "gpnerf_core.interfaces.model": ("ModelFamily", "ModelParts", "SemanticMode", "SemanticOutput", "one_pass_preview"),
-    "gpnerf_core.config.schema": ("ModelConfig",),
+    "gpnerf_core.interfaces.model": (
+        "ModelFamily", "ModelParts", "SemanticMode", "SemanticOutput", "SourceEncoding", "TrainingBatch",
+        "one_pass_preview",
+    ),
+    "gpnerf_core.interfaces.training": ("TrainingCallback", "TrainingPhase", "TrainingState"),
+    "gpnerf_core.config.schema": ("ModelConfig", "RayMarchingConfig"),
     # the records passed between stages
     "gpnerf_core.types": (
         "FeatureMaps", "FieldBlockOutput", "Frame", "HeadOutput", "LossInputs", "Prediction", "ProjectedFeatures",
@@ -93,7 +97,7 @@ def __dir__() -> list[str]:
 if TYPE_CHECKING:  # the same names, for type checkers and readers
     from gpnerf_core.config.arguments import ArgumentParser
     from gpnerf_core.config.compose import compose
-    from gpnerf_core.config.schema import ModelConfig
+    from gpnerf_core.config.schema import ModelConfig, RayMarchingConfig
     from gpnerf_core.data.base import (
         MAX_FAR,
         DatasetBase,
@@ -161,7 +165,16 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
         ViewSelector,
     )
     from gpnerf_core.interfaces.head import Predicts
-    from gpnerf_core.interfaces.model import ModelFamily, ModelParts, SemanticMode, SemanticOutput, one_pass_preview
+    from gpnerf_core.interfaces.model import (
+        ModelFamily,
+        ModelParts,
+        SemanticMode,
+        SemanticOutput,
+        SourceEncoding,
+        TrainingBatch,
+        one_pass_preview,
+    )
+    from gpnerf_core.interfaces.training import TrainingCallback, TrainingPhase, TrainingState
     from gpnerf_core.interfaces.stress import ChooseSources
     from gpnerf_core.model.build import build_components
     from gpnerf_core.registry.components import get_registry

@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from gpnerf_core.errors import NonFiniteError
+from gpnerf_core.errors import ConfigError, NonFiniteError
 from gpnerf_core.runtime.finite import all_finite
 
 
@@ -171,6 +171,11 @@ class TargetView:
         pixels: ``[R, 2]`` the chosen target pixels ``(u, v)``; the rays are cast through them (the one copy).
         render_seed: seeds this view's stochastic rendering (sample jitter, importance sampling), so a view
             renders the same on any rank and at any world size.
+        whole_image: ``pixels`` are every pixel of the image in row-major order (``u`` fastest), so any ``[R, C]``
+            output reshapes to ``[H, W, C]``: the batch of a family that trains on whole images
+            (``ModelFamily.trains_on``), e.g. one that rasterizes Gaussians. False: R pixels drawn at random.
+        valid: ``[H, W]`` bool, False where the capture's mask excludes the pixel (``Frame.valid``), on a whole-image
+            batch only (a ray batch draws its pixels inside the mask); None when every pixel counts.
     """
 
     scene: str
@@ -183,6 +188,8 @@ class TargetView:
     pixels: Tensor
     render_seed: int
     instances: Tensor | None = None
+    whole_image: bool = False
+    valid: Tensor | None = None
 
     @property
     def num_rays(self) -> int:
@@ -357,19 +364,25 @@ class RayReadout:
 class RenderedRays:
     """Everything one rendering pass produces for a batch of rays.
 
+    A ray-marching family fills every field it renders; a family that rasterizes primitives (3D Gaussians) has no
+    samples along its rays and leaves ``weights``, ``samples`` and ``sample_semantic`` None: what reads them (the D.G
+    loss, importance sampling) refuses such a family in one line.
+
     Attributes:
-        rgb: ``[R, 3]``; weights: ``[R, S]``; depth: ``[R]`` metres (``sum_s weights * depths``).
-        samples: the samples the pass used.
+        rgb: ``[R, 3]``; depth: ``[R]`` metres (``sum_s weights * depths`` for a ray-marching family; a rasterizing
+            one's composited depth).
+        weights: ``[R, S]`` per-sample weights along each ray, or None for a family without samples.
+        samples: the samples the pass used, or None for a family without samples.
         semantic: ``[R, C_sem]`` rendered semantic features, or None when the semantic field is off.
         sample_semantic: ``[R, S, C_sem]`` per-sample semantic features (for the D.G loss), or None.
         logits: ``[R, K]`` per-ray scores of a label-rendering model (``SemanticMode.LABEL_RENDERING``: per-sample
-            scores composited along the ray), or None.
+            scores composited along the ray, or per-primitive scores composited per pixel), or None.
     """
 
     rgb: Tensor
-    weights: Tensor
     depth: Tensor
-    samples: RaySamples
+    weights: Tensor | None = None
+    samples: RaySamples | None = None
     semantic: Tensor | None = None
     sample_semantic: Tensor | None = None
     logits: Tensor | None = None
@@ -473,6 +486,11 @@ class LossInputs:
             or None without labels.
         instances_at_rays: ``[R]`` the target instance ids at the rays' pixels (for per-ray instance scores), or None
             unless the loss set ``needs_instances`` and the model renders per-ray scores.
+        image_size: ``(H, W)`` when the rays are every pixel of the target in row-major order (a whole-image batch,
+            ``TargetView.whole_image``): ``as_image`` then gives any per-ray tensor as an image, for terms on whole
+            images (SSIM); None for R pixels drawn at random.
+        valid_at_rays: ``[R]`` bool, False at pixels the capture's mask excludes (a whole-image batch of a masked
+            frame: such pixels are rendered but no colour term may read them), or None when every ray counts.
     """
 
     coarse: RenderedRays
@@ -486,8 +504,18 @@ class LossInputs:
     instances: Tensor | None = None
     labels_at_rays: Tensor | None = None
     instances_at_rays: Tensor | None = None
+    image_size: tuple[int, int] | None = None
+    valid_at_rays: Tensor | None = None
 
     @property
     def last(self) -> RenderedRays:
         """The pass that carries semantics: fine when present, else coarse."""
         return self.fine if self.fine is not None else self.coarse
+
+    def as_image(self, values: Tensor) -> Tensor:
+        """``[R, C]`` per-ray values of a whole-image batch as ``[C, H, W]``; a ConfigError on a ray batch."""
+        if self.image_size is None:
+            raise ConfigError("a loss term on whole images needs a family that trains on whole images "
+                              "(ModelFamily.trains_on = TrainingBatch.IMAGES); this one trains on random rays")
+        height, width = self.image_size
+        return values.T.reshape(values.shape[1], height, width)

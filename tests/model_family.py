@@ -29,6 +29,7 @@ from gpnerf_core import (
     ConfigError,
     FeatureMaps,
     ModelConfig,
+    RayMarchingConfig,
     ModelFamily,
     ModelParts,
     Prediction,
@@ -60,7 +61,7 @@ DISTRIBUTION = "gpnerf-test-family"
 
 
 @dataclass
-class PooledViewsConfig(ModelConfig):
+class PooledViewsConfig(RayMarchingConfig):
     """Options of the ``pooled_views`` family."""
 
     name: str = "pooled_views"

@@ -82,3 +82,41 @@ def test_the_budget_evicts_least_recently_used_frames(setup):
     assert cache.stats.misses == 3
     with pytest.raises(ConfigError, match="budget"):
         SourceFeatureCache(budget_mb=0)
+
+
+class SetEncoder(torch.nn.Module):
+    """A family that encodes its source views together (``SourceEncoding.SOURCE_SET``), counting its encodings."""
+
+    def __init__(self):
+        super().__init__()
+        self.weight = torch.nn.Parameter(torch.ones(1))
+        self.calls = 0
+
+    @property
+    def source_encoding(self):
+        from gpnerf_core.interfaces.model import SourceEncoding
+
+        return SourceEncoding.SOURCE_SET
+
+    def encode_sources(self, sources, *, near, far):
+        self.calls += 1
+        return {"mean": sources.rgb.mean(0) * self.weight, "bounds": torch.tensor([near, far])}
+
+
+def test_a_source_set_is_encoded_once_per_set_model_state_and_bounds(setup):
+    _, _, scene, _ = setup
+    _, chosen, sources, _ = next(views(setup))
+    model, cache = SetEncoder(), SourceFeatureCache(budget_mb=64)
+    first = cache.for_sources(model, scene.name, chosen, sources, near=0.5, far=4.0)
+    again = cache.for_sources(model, scene.name, chosen, sources, near=0.5, far=4.0)
+    assert again is first and model.calls == 1 and (cache.stats.hits, cache.stats.misses) == (1, 1)
+    assert cache.stats.bytes == first["mean"].numel() * 4 + 2 * 4  # every tensor inside is counted
+    reordered = [chosen[1], chosen[0], *chosen[2:]]
+    cache.for_sources(model, scene.name, reordered, sources, near=0.5, far=4.0)
+    cache.for_sources(model, scene.name, chosen, sources, near=0.5, far=5.0)
+    with torch.no_grad():
+        model.weight.mul_(2.0)
+    fresh = cache.for_sources(model, scene.name, chosen, sources, near=0.5, far=4.0)
+    assert model.calls == 4 and torch.allclose(fresh["mean"], 2 * first["mean"])
+    with pytest.raises(ConfigError, match="2 frame indices for 3 source views"):
+        cache.for_sources(model, scene.name, chosen[:2], sources, near=0.5, far=4.0)

@@ -80,10 +80,10 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     reinitialised = load_weights(
         components.model, start_weights, f"finetune checkpoint={checkpoint}",
         new_classes=(old_classes, components.classes.num_classes) if old_classes is not None else None,
-        explain=lambda: format_differences(model_differences(trained.config_yaml, new_config))
+        explain=lambda: format_differences(model_differences(trained.config_yaml, new_config, trained.model_sections))
         or "no key (a different plugin version?)",
     )
-    record = run_record(cfg)
+    record = run_record(cfg, components.model_sections)
     run_dir = shared_run_dir(cfg, dist)
     trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record)  # resumes: refused before the claim
     folder, record = claim_run_folder(

@@ -48,7 +48,7 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
         report = init_weights(components.model, Path(cfg.model.init), strict=bool(cfg.model.init_strict))
         if dist.is_main:
             print(report, file=sys.stderr)
-    record = run_record(cfg)
+    record = run_record(cfg, components.model_sections)
     run_dir = shared_run_dir(cfg, dist)
     trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record)  # resumes: its checks refuse here
     folder, record = claim_run_folder(

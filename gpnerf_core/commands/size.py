@@ -64,7 +64,7 @@ def main(argv: list[str]) -> int:
     steps = options.steps or max(1, int(cfg.train.steps) // 2)
     out = Path(options.out or Path("outputs") / "size" / time.strftime("%Y-%m-%d_%H-%M-%S"))
     request = {"overrides": overrides, **options.request(), "metric": metric, "tolerance": tolerance, "steps": steps,
-               "coarse_samples": int(cfg.model.coarse_samples)}
+               "coarse_samples": cfg.model.get("coarse_samples")}
     with RunFolder(out) as folder:
         folder.claim(resuming=True, overwrite=False)
         _check_request(out, request, options.overwrite)

@@ -16,15 +16,14 @@ from omegaconf import MISSING
 class ModelConfig:
     """The options every model family has: its config (``model=<name>``) subclasses this one.
 
-    The core reads ``num_source_views``, ``init`` and ``init_strict`` itself; the family's factory gets the others.
+    The core reads ``num_source_views``, ``init`` and ``init_strict`` itself, and a family's own learning rates where
+    its config has them (an ``lr`` section of its own dataclass, ``model.lr.<group>``: see
+    ``ModelFamily.parameter_groups``); the family's factory gets the others. A ray-marching family's config subclasses
+    ``RayMarchingConfig`` (its sample counts).
     """
 
     name: str = ""
     """Registry name of the model family (each subclass defaults it to its own)."""
-    coarse_samples: int = 48
-    """Stratified samples per ray (inverse-depth spacing)."""
-    fine_samples: int = 16
-    """Importance samples added for the fine pass (0 = single pass)."""
     num_source_views: int = 10
     """Source views per target (a generalizable family's; a per-scene family has none)."""
     init: Optional[str] = None
@@ -37,6 +36,17 @@ class ModelConfig:
     runtime_keys: ClassVar[tuple[str, ...]] = ("init", "init_strict")
     """Fields that change how weights start, or how time and memory are spent, not the model: resuming or evaluating
     with other values is allowed (a family's config adds its own)."""
+
+
+@dataclass
+class RayMarchingConfig(ModelConfig):
+    """The options of a family that samples points along rays (GNT, NeuRay, MVSNeRF, Semantic-NeRF, ...): its sample
+    counts, which the core validates, ``size`` tries and ``bench`` reports for such a family only."""
+
+    coarse_samples: int = 48
+    """Stratified samples per ray (inverse-depth spacing)."""
+    fine_samples: int = 16
+    """Importance samples added for the fine pass (0 = single pass)."""
 
 
 @dataclass

@@ -573,15 +573,17 @@ def command_inputs(cfg: DictConfig) -> list[Path]:
     return [Path(str(v)) for v in values if v and str(v) != "auto"]
 
 
-def run_record(cfg: DictConfig) -> RunRecord:
-    """The run's config (resolved), overrides and the components it uses with their providers and versions."""
+def run_record(cfg: DictConfig, model_sections: tuple[str, ...] | None = None) -> RunRecord:
+    """The run's config (resolved), overrides and the components it uses with their providers and versions, and the
+    config sections that define its model (``Components.model_sections``; None: not known)."""
     components = {
         kind: {"name": entry.spec.name, "provider": entry.provider, "version": entry.version,
                "distribution": entry.distribution}
         for kind, entry in components_of(cfg).items()
     }
     return RunRecord(
-        config_yaml=OmegaConf.to_yaml(cfg, resolve=True), overrides=task_overrides(), components=components
+        config_yaml=OmegaConf.to_yaml(cfg, resolve=True), overrides=task_overrides(), components=components,
+        model_sections=model_sections or None,
     )
 
 

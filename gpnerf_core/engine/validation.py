@@ -79,7 +79,7 @@ RULES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("train.log_every", _count(1), COUNT),
     ("train.checkpoint_every", _count(0), f"{COUNT0} (0 = only the final checkpoint)"),
     ("train.keep_checkpoints", _count(0), f"{COUNT0} (0 = keep every checkpoint)"),
-    ("model.coarse_samples", _count(2), "an integer >= 2"),
+    ("model.coarse_samples", _count(2), "an integer >= 2"),  # a ray-marching family's (RayMarchingConfig) only
     ("model.fine_samples", _count(0), f"{COUNT0} (0 = one pass)"),
     ("model.num_source_views", _count(0), f"{COUNT0} (0 only for a per-scene family: it reads no source views)"),
     ("eval.render_stride", _count(0), f"{COUNT0} (0 = the semantic map's stride)"),
@@ -100,6 +100,9 @@ RULES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
 )
 """(key, check, what is expected) for every numeric key of the schema (``gpnerf_core/config/schema.py``)."""
 
+FAMILY_KEYS = {"model.coarse_samples": "coarse_samples", "model.fine_samples": "fine_samples"}
+"""Keys of ``RULES`` that only some model families have (checked where the family's config has them)."""
+
 SPLITS = ("train", "unseen")
 
 
@@ -107,6 +110,8 @@ def validate_config(cfg: DictConfig) -> None:
     """Refuse unknown keys (also those added with ``+``) and out-of-range values of the schema's keys."""
     _refuse_unknown_keys(cfg, RootConfig, "")
     for key, check, expected in RULES:
+        if key in FAMILY_KEYS and FAMILY_KEYS[key] not in cfg.model:
+            continue
         value = OmegaConf.select(cfg, key)
         if not check(value):
             raise ConfigError(f"{key}={value!r}: expected {expected}")

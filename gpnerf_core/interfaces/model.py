@@ -13,7 +13,7 @@ import contextlib
 import dataclasses
 import enum
 from abc import ABC, abstractmethod
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Mapping
 
@@ -22,8 +22,30 @@ from torch import Tensor, nn
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.interfaces.depth_source import DepthSource
 from gpnerf_core.interfaces.head import PerceptionHead, Predicts
+from gpnerf_core.interfaces.training import TrainingCallback
 from gpnerf_core.interfaces.weights import ImportedWeights, ImportsWeights
 from gpnerf_core.types import FeatureMaps, Prediction, SourceViews, StepBatch, StepOutput, TargetCamera
+
+
+class TrainingBatch(str, enum.Enum):
+    """What one target view of a training step is: what the family renders and the loss compares."""
+
+    RAYS = "rays"
+    """``train.rays`` pixels drawn at random (a ray-marching family: each ray costs its samples)."""
+    IMAGES = "images"
+    """Every pixel, in row-major order (``TargetView.whole_image``): a family that renders whole images at once
+    (rasterized Gaussians), whose loss may read images (``LossInputs.as_image``, e.g. SSIM)."""
+
+
+class SourceEncoding(str, enum.Enum):
+    """What a generalizable family computes from its source views that can be kept between renders (the
+    ``feature_cache`` of ``render``, ``view`` and ``export``)."""
+
+    PER_VIEW = "per_view"
+    """``encode(images)``: each source image encoded alone, kept per frame (a CNN on each view)."""
+    SOURCE_SET = "source_set"
+    """``encode_sources(sources, near, far)``: the source views encoded together (a cost volume, cross-view
+    attention) into something kept per set of source frames: for a feed-forward Gaussian family, its Gaussians."""
 
 
 class SemanticMode(str, enum.Enum):
@@ -144,10 +166,17 @@ class ModelFamily(ImportsWeights, nn.Module, ABC):
         generalizable: renders from source views.
         accepts_head: decodes a rendered feature map with the configured ``+head``; a family that only renders
             per-pixel scores (label rendering) sets False and refuses a configured head with a ConfigError.
+        trains_on: ``TrainingBatch.RAYS`` (random pixels, the default) or ``TrainingBatch.IMAGES`` (whole target
+            images: a rasterizing family, whose ``forward`` renders every pixel and may leave ``RenderedRays.weights``
+            and ``samples`` None).
+        source_encoding: what ``render``, ``view`` and ``export`` keep between frames (``SourceEncoding``): each
+            source view's ``encode`` (the default), or the whole source set's ``encode_sources``.
     """
 
     generalizable: ClassVar[bool] = True
     accepts_head: ClassVar[bool] = True
+    trains_on: ClassVar[TrainingBatch] = TrainingBatch.RAYS
+    source_encoding: ClassVar[SourceEncoding] = SourceEncoding.PER_VIEW
 
     # ---- what the model is ------------------------------------------------------------------------------------------
 
@@ -158,8 +187,15 @@ class ModelFamily(ImportsWeights, nn.Module, ABC):
 
     @abstractmethod
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
-        """Parameters by learning-rate group; each group is a key of ``train.lr`` (``feature_extractor``,
-        ``transformer``, ``head``, and ``field`` for a per-scene family's own field)."""
+        """Parameters by learning-rate group; every trainable parameter in exactly one group (checked when the
+        optimizer is built). A group's rate is the family's own ``model.lr.<group>`` where its config has an ``lr``
+        section naming the group, else ``train.lr.<group>`` (``feature_extractor``, ``transformer``, ``head``, and
+        ``field`` / ``grid`` for a per-scene family's own field)."""
+
+    def training_callbacks(self) -> Sequence[TrainingCallback]:
+        """Work the training loop runs at fixed points of each step, told the step (``TrainingCallback``): a schedule
+        tied to the step, or work between backward and the optimizer step. None by default."""
+        return ()
 
     def parameter_counts(self) -> dict[str, int]:
         """Parameters per direct child module (absent ones left out) and their ``total``."""
@@ -206,20 +242,29 @@ class ModelFamily(ImportsWeights, nn.Module, ABC):
         *,
         stride: int,
         chunk_rays: int,
-        features: FeatureMaps | None = None,
+        features: FeatureMaps | Any | None = None,
     ) -> Prediction:
         """Render a whole view (under inference mode) on a ``stride`` grid, ``chunk_rays`` rays at a time.
 
         Args:
             sources: its source views (None for a per-scene family).
             stride: pixels per rendered cell; 0 = the model's natural stride (the semantic map's, for GP-NeRF).
-            features: the sources' encoded maps when the caller keeps them (``encode``); None encodes them.
+            features: what the caller kept of the sources: their ``encode`` maps (``SourceEncoding.PER_VIEW``) or the
+                set's ``encode_sources`` (``SOURCE_SET``); None computes it.
         """
 
     def encode(self, images: Tensor) -> FeatureMaps:
         """Encoded maps of ``[N, 3, H, W]`` source images, which ``predict`` reuses when given them (kept between renders
-        by ``model.feature_cache``). A family without an encoder raises ConfigError."""
+        by ``model.feature_cache``; ``SourceEncoding.PER_VIEW``). A family without an encoder raises ConfigError."""
         raise ConfigError(f"model {type(self).__name__} encodes no source views")
+
+    def encode_sources(self, sources: SourceViews, *, near: float, far: float) -> Any:
+        """What a ``SourceEncoding.SOURCE_SET`` family computes from a whole set of source views and their scene's
+        depth bounds (its Gaussians, say), which ``predict`` reuses when given it as ``features`` (kept between renders
+        per set of source frames). Whatever it returns, its tensors are counted against the cache's budget. By
+        default a family has none (ConfigError)."""
+        raise ConfigError(f"model {type(self).__name__} encodes no source set (its source_encoding is "
+                          f"{self.source_encoding.value})")
 
     def teacher_logits(self, image: Tensor) -> Tensor | None:
         """The 2D-only reference: its head on the target image's own features, ``[3, H, W]`` -> ``[1, K, H, W]``; None

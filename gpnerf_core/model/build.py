@@ -25,6 +25,8 @@ class Components:
     Attributes:
         classes: the classes the model predicts (and evaluation scores, renders and names): the dataset's, or, for a
             dataset without a class list (a capture without labels), the checkpoint's the model was trained with.
+        model_sections: the config sections that define this model (``model_sections``): written into its
+            checkpoints, so resuming, fine-tuning and evaluating compare and restore only those.
     """
 
     dataset: SceneDataset
@@ -32,6 +34,7 @@ class Components:
     model: ModelFamily
     loss: LossSet | None
     classes: ClassList
+    model_sections: tuple[str, ...] = ()
 
 
 def head_predicts(head_cfg: Any, registry: Registry) -> Predicts:
@@ -111,6 +114,11 @@ def build_model(cfg: Any, num_classes: int, registry: Registry | None = None) ->
     Raises:
         ConfigError: the config selects a head or depth source the family does not use.
     """
+    return built_model(cfg, num_classes, registry)[0]
+
+
+def built_model(cfg: Any, num_classes: int, registry: Registry | None = None) -> tuple[ModelFamily, tuple[str, ...]]:
+    """``build_model``, and the config sections that define the model built (``model_sections``)."""
     registry = registry or get_registry()
     parts = ConfiguredParts(cfg, num_classes, registry)
     model = registry.build("model", cfg.model, parts=parts)
@@ -119,7 +127,15 @@ def build_model(cfg: Any, num_classes: int, registry: Registry | None = None) ->
             raise ConfigError(f"+{kind}={parts.name(kind)}: model {cfg.model.name!r} as configured uses no {kind} "
                               f"(it would be ignored); drop +{kind}=..., or choose a model that reads one "
                               f"(docs/configuration.md)")
-    return model
+    return model, model_sections(parts.built_kinds)
+
+
+def model_sections(built_kinds: set[str] | frozenset[str]) -> tuple[str, ...]:
+    """The config sections that define a model whose family built the parts ``built_kinds``: ``model``, ``loss``, and
+    each part's kind that defines a model (``ComponentKind.defines_model``), in ``KINDS`` order. A part the family
+    never built (GNT's aggregators under another family) is not the model's: changing its options is no model change."""
+    return tuple(kind.name for kind in KINDS.values() if kind.defines_model
+                 and (kind.name in ("model", "loss") or kind.name in built_kinds))
 
 
 def model_classes(
@@ -157,12 +173,13 @@ def build_components(cfg: Any, registry: Registry | None = None, *, classes: Cla
     dataset = registry.build("dataset", cfg.dataset)
     selector = registry.build("view_selector", cfg.view_selector)
     label_space = model_classes(cfg, dataset, classes, registry)
-    model = build_model(cfg, label_space.num_classes, registry)
+    model, sections = built_model(cfg, label_space.num_classes, registry)
     loss = None
     if cfg.get("loss") is not None:
         loss = registry.build("loss", cfg.loss)
         check_loss_fits(cfg, model, loss)
-    return Components(dataset=dataset, view_selector=selector, model=model, loss=loss, classes=label_space)
+    return Components(dataset=dataset, view_selector=selector, model=model, loss=loss, classes=label_space,
+                      model_sections=sections)
 
 
 def check_loss_fits(cfg: Any, model: ModelFamily, loss: LossSet) -> None:

@@ -51,12 +51,27 @@ def runtime_keys(config_yaml: str) -> tuple[str, ...]:
     return tuple(f"model.{key}" for key in getattr(config, "runtime_keys", ModelConfig.runtime_keys))
 
 
-def model_differences(old_yaml: str, new_yaml: str) -> list[tuple[str, Any, Any]]:
+def model_differences(
+    old_yaml: str, new_yaml: str, sections: Iterable[str] | None = None
+) -> list[tuple[str, Any, Any]]:
     """``config_differences`` of the model sections, runtime keys left out, and keys the checkpoint predates left out:
     an option added since takes its default, and a new option's default is the behaviour before it existed (the
-    project's rule for new options), so a checkpoint stays resumable and evaluable as it was trained."""
+    project's rule for new options), so a checkpoint stays resumable and evaluable as it was trained.
+
+    Args:
+        sections: the sections that define the checkpoint's model (``checkpoint_sections``); None: every section of a
+            kind that can define one (``model_sections``).
+    """
+    wanted = model_sections() if sections is None else tuple(sections)
     return [(key, old, new) for key, old, new in
-            config_differences(old_yaml, new_yaml, model_sections(), runtime_keys(new_yaml)) if old != ABSENT]
+            config_differences(old_yaml, new_yaml, wanted, runtime_keys(new_yaml)) if old != ABSENT]
+
+
+def checkpoint_sections(state: Mapping[str, Any]) -> tuple[str, ...]:
+    """The config sections that define a checkpoint's model: those its run recorded (the model, the loss and the parts
+    its family built), or, for a checkpoint written before they were recorded, every kind that can define one."""
+    recorded = state.get("model_sections")
+    return tuple(str(s) for s in recorded) if isinstance(recorded, (list, tuple)) and recorded else model_sections()
 
 
 @dataclass(frozen=True)
@@ -67,11 +82,14 @@ class RunRecord:
         config_yaml: the composed, resolved config.
         overrides: the Hydra overrides that composed it (``+head=unet``, ``train.steps=10``, ...).
         components: ``{kind: {"name", "provider", "version"}}`` of the components the config selects.
+        model_sections: the config sections that define the model (``build.model_sections``), or None when not known
+            (a benchmark's record).
     """
 
     config_yaml: str
     overrides: tuple[str, ...]
     components: dict[str, dict[str, str]]
+    model_sections: tuple[str, ...] | None = None
 
     @property
     def config_sha256(self) -> str:
@@ -117,6 +135,7 @@ def save_checkpoint(
         "config_sha256": record.config_sha256,
         "overrides": list(record.overrides),
         "components": record.components,
+        "model_sections": list(record.model_sections) if record.model_sections else None,
         "versions": software_versions(),
         "class_names": None if classes is None else [str(name) for name in classes.names],
         "ignore_index": None if classes is None else int(classes.ignore_index),
@@ -318,13 +337,15 @@ def format_differences(differences: list[tuple[str, Any, Any]], limit: int = 12)
     return "; ".join(parts)
 
 
-def check_resume_config(path: Path, checkpoint_yaml: str, config_yaml: str, strict: bool) -> list[str]:
-    """Compare the model and loss sections of a checkpoint's config with this run's.
+def check_resume_config(path: Path, checkpoint_yaml: str, config_yaml: str, strict: bool,
+                        sections: Iterable[str] | None = None) -> list[str]:
+    """Compare the model and loss sections of a checkpoint's config with this run's (``sections``: those defining the
+    checkpoint's model, ``checkpoint_sections``; None: every kind that can).
 
     Returns:
         Lines describing accepted differences (``strict`` False); raises ConfigError when ``strict``.
     """
-    differences = model_differences(checkpoint_yaml, config_yaml)
+    differences = model_differences(checkpoint_yaml, config_yaml, sections)
     if not differences:
         return []
     if strict:

@@ -1,5 +1,10 @@
-"""Encoded source-view feature maps kept per (model state, scene, frame), so many renders of one scene encode each
-source frame once: a trajectory (``render``), a moving camera (``view``), the held-out views of a scene.
+"""What a model computes from its source views, kept between renders of one scene: a trajectory (``render``), a
+moving camera (``view``), the held-out views of a scene (``export``).
+
+A family says what it can reuse (``ModelFamily.source_encoding``): encoded feature maps of each source frame, kept per
+(model state, scene, frame), so each source frame is encoded once (``PER_VIEW``); or what it computes from a whole set
+of source views together (a feed-forward Gaussian family's Gaussians), kept per (model state, scene, frame set)
+(``SOURCE_SET``). ``for_sources`` serves either.
 
 The model state is the model object and the version counters of its parameters and buffers: an optimizer step, a
 ``load_state_dict`` or any in-place change of a weight bumps a counter, so features of old weights are never
@@ -13,15 +18,17 @@ colour, depth and rendered features within 1e-4 (measured ~1e-5), logits 1e-3, t
 
 from __future__ import annotations
 
+import dataclasses
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Sequence
 
 import torch
 from torch import Tensor, nn
 
 from gpnerf_core.errors import ConfigError
-from gpnerf_core.types import FeatureMaps
+from gpnerf_core.interfaces.model import SourceEncoding
+from gpnerf_core.types import FeatureMaps, SourceViews
 
 
 @dataclass
@@ -41,10 +48,11 @@ def model_state(model: nn.Module) -> tuple[int, ...]:
 
 
 class SourceFeatureCache:
-    """Feature maps of source frames under a memory budget.
+    """What models compute from source frames, under a memory budget.
 
     Args:
-        budget_mb: the most megabytes of feature maps kept (radiance and semantic maps of every cached frame).
+        budget_mb: the most megabytes kept (the radiance and semantic maps of every cached frame, and the tensors of
+            every cached source-set encoding).
     """
 
     def __init__(self, budget_mb: float = 512.0) -> None:
@@ -52,7 +60,35 @@ class SourceFeatureCache:
             raise ConfigError(f"feature cache budget {budget_mb} MB: expected a positive size")
         self.budget = int(budget_mb * 2**20)
         self.stats = CacheStats()
-        self._entries: OrderedDict[tuple, tuple[Tensor, Tensor | None]] = OrderedDict()
+        self._entries: OrderedDict[tuple, Any] = OrderedDict()
+
+    def for_sources(self, model: nn.Module, scene: str, frames: Sequence[int], sources: SourceViews, *,
+                    near: float, far: float) -> Any:
+        """What ``model.predict`` reuses for ``sources`` (frames ``frames`` of ``scene``, depth bounds ``near`` /
+        ``far``): the frames' ``features`` for a ``PER_VIEW`` family, the set's ``source_set`` for a ``SOURCE_SET``
+        one."""
+        if model.source_encoding is SourceEncoding.SOURCE_SET:
+            return self.source_set(model, scene, frames, sources, near=near, far=far)
+        return self.features(model, scene, frames, sources.rgb)
+
+    def source_set(self, model: nn.Module, scene: str, frames: Sequence[int], sources: SourceViews, *,
+                   near: float, far: float) -> Any:
+        """``model.encode_sources(sources, near=near, far=far)`` of frames ``frames`` of ``scene``, computed once per
+        model state, frame set (in order), image size and depth bounds; one hit or miss per request."""
+        if len(frames) != sources.num_views:
+            raise ConfigError(f"{len(frames)} frame indices for {sources.num_views} source views; "
+                              "expected one per view")
+        key = ("set", model_state(model), scene, tuple(int(f) for f in frames), tuple(sources.rgb.shape[1:]),
+               str(sources.rgb.device), float(near), float(far))
+        if key in self._entries:
+            self.stats.hits += 1
+        else:
+            with torch.inference_mode():
+                self._store(key, model.encode_sources(sources, near=near, far=far))
+            self.stats.misses += 1
+        self._entries.move_to_end(key)
+        self._evict(keep={key})
+        return self._entries[key]
 
     def features(self, model: nn.Module, scene: str, frames: Sequence[int], images: Tensor) -> FeatureMaps:
         """The feature maps of ``frames`` of ``scene`` (``images``: their ``[V, 3, H, W]`` pictures, used for the
@@ -98,5 +134,14 @@ class SourceFeatureCache:
             self.stats.bytes -= _size(self._entries.pop(key))
 
 
-def _size(value: tuple[Tensor, Tensor | None]) -> int:
-    return sum(t.numel() * t.element_size() for t in value if t is not None)
+def _size(value: Any) -> int:
+    """Bytes of the tensors in ``value``: a tensor, or tensors inside tuples, lists, dicts and dataclasses."""
+    if isinstance(value, Tensor):
+        return value.numel() * value.element_size()
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return sum(_size(getattr(value, f.name)) for f in dataclasses.fields(value))
+    if isinstance(value, dict):
+        return sum(_size(v) for v in value.values())
+    if isinstance(value, (tuple, list)):
+        return sum(_size(v) for v in value)
+    return 0

@@ -20,7 +20,9 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from gpnerf_core.config.compose import compose
 from gpnerf_core.config.overrides import merge_overrides, override_key
 from gpnerf_core.errors import DataError
-from gpnerf_core.model.checkpoint import ABSENT, evaluation_weights, model_differences, read_checkpoint
+from gpnerf_core.model.checkpoint import (
+    ABSENT, checkpoint_sections, evaluation_weights, model_differences, read_checkpoint,
+)
 from gpnerf_core.model.classes import ClassList, checkpoint_classes
 
 
@@ -52,6 +54,11 @@ class TrainedModel:
     def overrides(self) -> list[str]:
         """The Hydra overrides that composed the trained config (as typed, run-specific ones included)."""
         return [str(o) for o in self.state.get("overrides") or []]
+
+    @property
+    def model_sections(self) -> tuple[str, ...]:
+        """The config sections that define the trained model (``checkpoint_sections``)."""
+        return checkpoint_sections(self.state)
 
     @property
     def classes(self) -> ClassList | None:
@@ -142,7 +149,7 @@ def restore_model_settings(cfg: DictConfig, trained: TrainedModel, typed: list[s
     """
     current = OmegaConf.to_yaml(cfg, resolve=True)
     restored, dropped = [], []
-    for key, old, new in model_differences(trained.config_yaml, current):
+    for key, old, new in model_differences(trained.config_yaml, current, trained.model_sections):
         if any(key == t or key.startswith(t + ".") for t in typed):
             continue
         if new == ABSENT:  # an option of the checkpoint this version no longer has

@@ -5,6 +5,7 @@ maps. The one place ``render``, the viewer and ``bench`` assemble it (evaluation
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -17,12 +18,13 @@ from gpnerf_core.types import FeatureMaps, Scene, SourceViews
 
 @dataclass(frozen=True)
 class ViewInputs:
-    """The sources of one view: frame indices, images and cameras, encoded maps (None: ``predict`` encodes them).
-    A per-scene model (``ModelFamily.generalizable`` False) gets none."""
+    """The sources of one view: frame indices, images and cameras, what the model reuses of them (its encoded maps, or
+    its source set's encoding; None: ``predict`` computes it). A per-scene model (``ModelFamily.generalizable`` False)
+    gets none."""
 
     indices: tuple[int, ...] = ()
     sources: SourceViews | None = None
-    features: FeatureMaps | None = None
+    features: FeatureMaps | Any | None = None
 
 
 def view_inputs(
@@ -36,11 +38,13 @@ def view_inputs(
     exclude: int | None = None,
     cache: SourceFeatureCache | None = None,
 ) -> ViewInputs:
-    """The sources the selector picks for a camera at ``c2w`` (never frame ``exclude``), their maps from ``cache``
-    when one is kept; nothing for a per-scene model."""
+    """The sources the selector picks for a camera at ``c2w`` (never frame ``exclude``), what the model reuses of them
+    from ``cache`` when one is kept (``SourceFeatureCache.for_sources``); nothing for a per-scene model."""
     if not model.generalizable:
         return ViewInputs()
     indices = sources_at_pose(selector, scene, c2w, num_views, exclude)
     sources = frames.source_views(scene, indices)
-    features = cache.features(model, scene.name, indices, sources.rgb) if cache is not None else None
+    features = None
+    if cache is not None:
+        features = cache.for_sources(model, scene.name, indices, sources, near=scene.near, far=scene.far)
     return ViewInputs(tuple(indices), sources, features)

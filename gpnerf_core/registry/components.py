@@ -116,7 +116,7 @@ class Registry:
         if "name" not in node:
             raise ConfigError(f"config group {kind!r} has no 'name' key; known names: {', '.join(self.names(kind))}")
         entry = self.get(kind, str(node["name"]))
-        withheld = {"name", *KINDS[kind].core_fields}
+        withheld = KINDS[kind].withheld
         given = {k: _plain(v) for k, v in node.items() if k not in withheld}
         expected = {f.name for f in dataclasses.fields(entry.spec.config)} - withheld
         unknown = set(given) - expected
@@ -205,7 +205,7 @@ class Registry:
                 raise PluginError(f"{factory.__name__} leaves abstract members unimplemented: {members}")
         elif not callable(factory):
             raise PluginError(f"factory {factory!r} is not callable")
-        withheld = {"name", *KINDS[kind].core_fields}
+        withheld = KINDS[kind].withheld
         arguments = [n for n in fields if n not in withheld] + list(KINDS[kind].runtime_arguments)
         try:
             signature = inspect.signature(factory)

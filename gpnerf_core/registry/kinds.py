@@ -28,6 +28,8 @@ class ComponentKind:
             refused, ``eval`` restores the checkpoint's values).
         core_fields: fields every config of the kind has (its base config's) that the core reads itself and does not
             pass to the factory.
+        core_options: fields a config of the kind may have that the core reads itself and does not pass to the
+            factory (a model family's own learning rates, ``model.lr``).
     """
 
     name: str
@@ -37,13 +39,19 @@ class ComponentKind:
     add_on: bool = False
     defines_model: bool = False
     core_fields: tuple[str, ...] = ()
+    core_options: tuple[str, ...] = ()
+
+    @property
+    def withheld(self) -> frozenset[str]:
+        """The config fields the core keeps from the factory: ``name``, ``core_fields`` and ``core_options``."""
+        return frozenset({"name", *self.core_fields, *self.core_options})
 
 
 KINDS: dict[str, ComponentKind] = {
     kind.name: kind
     for kind in (
         ComponentKind("model", "gpnerf_register_models", ModelFamily, ("parts",), defines_model=True,
-                      core_fields=("num_source_views", "init", "init_strict")),
+                      core_fields=("num_source_views", "init", "init_strict"), core_options=("lr",)),
         ComponentKind("feature_extractor", "gpnerf_register_feature_extractors", I.FeatureExtractor,
                       defines_model=True),
         ComponentKind("field_aggregator", "gpnerf_register_field_aggregators", I.FieldAggregator, ("in_dim",),

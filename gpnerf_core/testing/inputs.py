@@ -246,17 +246,20 @@ def model_view(*, sources: bool = True, seed: int = 0) -> tuple[TargetCamera, So
     return camera, views
 
 
-def model_batch(*, sources: bool = True, views: int = 2, rays: int = 12) -> StepBatch:
-    """A step of ``views`` target views of the synthetic scene, ``rays`` pixels each, labels in ``[0, KIT_CLASSES)``."""
+def model_batch(*, sources: bool = True, views: int = 2, rays: int = 12, whole_images: bool = False) -> StepBatch:
+    """A step of ``views`` target views of the synthetic scene, ``rays`` pixels each (every pixel, row-major, with
+    ``whole_images``: ``TargetView.whole_image``), labels in ``[0, KIT_CLASSES)``."""
     targets = []
     for index in range(views):
         g = generator(100 + index)
         camera, source_views = model_view(sources=sources, seed=index)
         flat = torch.randperm(HEIGHT * WIDTH, generator=g)[:rays]
+        if whole_images:
+            flat = torch.arange(HEIGHT * WIDTH)
         targets.append(TargetView(
             scene="kit", frame=index, camera=camera, image=images(1, HEIGHT, WIDTH, seed=10 + index)[0],
             depth=torch.rand(HEIGHT, WIDTH, generator=g) * 2 + 1, labels=torch.randint(KIT_CLASSES, (HEIGHT, WIDTH), generator=g),
             sources=source_views, pixels=torch.stack([flat % WIDTH, flat // WIDTH], -1).float(), render_seed=7 + index,
-            instances=torch.randint(3, (HEIGHT, WIDTH), generator=g),
+            instances=torch.randint(3, (HEIGHT, WIDTH), generator=g), whole_image=whole_images,
         ))
     return StepBatch(tuple(targets))

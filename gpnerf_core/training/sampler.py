@@ -41,6 +41,8 @@ class StepSampler:
         scene_names: the training scenes.
         num_source_views: V, source views per target; 0 for a per-scene model (``TargetView.sources`` None).
         rays_per_view: pixels drawn per target view (at most the image's pixel count).
+        whole_images: give every target view all its pixels in row-major order instead (``TargetView.whole_image``,
+            the batch of a family that trains on whole images); ``rays_per_view`` is then unused.
         targets_per_step: the global batch of target views per step.
         seed: seed of the selection generator.
         rank, world_size: this process and the number of processes; ``world_size`` must divide
@@ -59,6 +61,7 @@ class StepSampler:
         seed: int,
         rank: int = 0,
         world_size: int = 1,
+        whole_images: bool = False,
     ) -> None:
         if not scene_names:
             raise ConfigError("the dataset has no training scenes")
@@ -68,6 +71,7 @@ class StepSampler:
         self.scene_names = list(scene_names)
         self.num_source_views = num_source_views
         self.rays_per_view = rays_per_view
+        self.whole_images = whole_images
         self.targets_per_step = targets_per_step
         self.rank = rank
         self.targets_per_rank = targets_per_step // world_size
@@ -105,12 +109,15 @@ class StepSampler:
             sources = frames.source_views(scene, indices)
         frame = frames.frame(scene, frame_index)
         height, width = frame.height, frame.width
-        if frame.valid is None:
+        if self.whole_images:  # every pixel, row-major; a masked frame's excluded pixels are marked, not dropped
+            flat = torch.arange(height * width)
+        elif frame.valid is None:
             flat = torch.randperm(height * width, generator=view_generator, device="cpu")
         else:  # a masked frame: rays only through the pixels its mask keeps
             kept = frame.valid.reshape(-1).nonzero().squeeze(1).cpu()
             flat = kept[torch.randperm(kept.numel(), generator=view_generator, device="cpu")]
-        flat = flat[: min(self.rays_per_view, flat.numel())]
+        if not self.whole_images:
+            flat = flat[: min(self.rays_per_view, flat.numel())]
         pixels = torch.stack([flat % width, flat // width], dim=-1).to(torch.float32)
         device = frames.device
         return TargetView(
@@ -124,4 +131,6 @@ class StepSampler:
             pixels=pixels.to(device),
             render_seed=self._randint(view_generator, SEED_RANGE),
             instances=None if frame.instance is None else frame.instance.to(device),
+            whole_image=self.whole_images,
+            valid=frame.valid.to(device) if self.whole_images and frame.valid is not None else None,
         )

@@ -20,19 +20,22 @@ import torch
 from torch import Tensor
 from torch.nn.parallel import DistributedDataParallel
 
+from gpnerf_core.interfaces.model import TrainingBatch
+from gpnerf_core.interfaces.training import TrainingPhase, TrainingState
 from gpnerf_core.model.build import Components
 from gpnerf_core.runtime.device import autocast, check_precision, peak_memory_mb
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError, NonFiniteError
 from gpnerf_core.data.frames import FrameCache
 from gpnerf_core.runtime.profiling import stage
-from gpnerf_core.model.checkpoint import RunRecord, check_resume_config, save_checkpoint
+from gpnerf_core.model.checkpoint import RunRecord, check_resume_config, checkpoint_sections, save_checkpoint
 from gpnerf_core.model.trained import load_trained, release_trained
 from gpnerf_core.model.weights import load_weights
 from gpnerf_core.training.interrupt import StopNow, StopRequest, TrainingInterrupted
 from gpnerf_core.training.loggers import ScalarLogger
 from gpnerf_core.training.resume import checkpoint_path, prune_checkpoints
 from gpnerf_core.training.sampler import StepSampler
+from gpnerf_core.training.optimizer import learning_rates, make_optimizer
 from gpnerf_core.training.schedule import lr_factor
 from gpnerf_core.training.weight_average import WeightAverage
 from gpnerf_core.types import LossInputs, StepBatch, StepOutput, TargetView, ViewOutput
@@ -60,23 +63,11 @@ class TrainResult:
     checkpoint: Path | None = None
 
 
-def make_optimizer(model: torch.nn.Module, lrs: Any) -> torch.optim.Optimizer:
-    """Adam with one parameter group per module kind and its own learning rate."""
-    groups = []
-    for name, params in model.parameter_groups().items():
-        params = [p for p in params if p.requires_grad]
-        if not params:
-            continue
-        if name not in lrs:
-            raise ConfigError(f"model {type(model).__name__} trains a parameter group {name!r} that train.lr has no "
-                              f"learning rate for; train.lr has: {', '.join(lrs)}")
-        groups.append({"params": params, "lr": float(lrs[name]), "name": name})
-    return torch.optim.Adam(groups)
-
-
 def loss_inputs(view: TargetView, output: ViewOutput, ignore_index: int) -> LossInputs:
-    """What a loss set reads for one target view: its outputs and the ground truth at its rays."""
+    """What a loss set reads for one target view: its outputs and the ground truth at its rays (every pixel of a
+    whole-image batch, which the loss may also read as images)."""
     rows, cols = view.pixels[:, 1].long(), view.pixels[:, 0].long()
+    whole = view.whole_image
     return LossInputs(
         coarse=output.coarse,
         fine=output.fine,
@@ -90,6 +81,8 @@ def loss_inputs(view: TargetView, output: ViewOutput, ignore_index: int) -> Loss
         labels_at_rays=view.labels[rows, cols] if output.last.logits is not None else None,
         instances_at_rays=(view.instances[rows, cols]
                            if output.last.logits is not None and view.instances is not None else None),
+        image_size=view.camera.image_size if whole else None,
+        valid_at_rays=view.valid[rows, cols] if whole and view.valid is not None else None,
     )
 
 
@@ -165,6 +158,7 @@ class Trainer:
         self.loss = components.loss.to(self.device)
         self.ignore_index = components.dataset.ignore_index
         self.frames = FrameCache(components.dataset, self.device)
+        self.whole_images = self.model.trains_on is TrainingBatch.IMAGES
         self.sampler = StepSampler(
             self.frames,
             components.view_selector,
@@ -175,8 +169,11 @@ class Trainer:
             seed=int(cfg.seed),
             rank=dist.rank,
             world_size=dist.world_size,
+            whole_images=self.whole_images,
         )
-        self.optimizer = make_optimizer(self.model, cfg.train.lr)
+        self.optimizer = make_optimizer(self.model, learning_rates(cfg.train.lr, cfg.model.get("lr")))
+        self.callbacks = {phase: [c for c in self.model.training_callbacks() if c.phase is phase]
+                          for phase in TrainingPhase}
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(
             self.optimizer,
             lr_factor(
@@ -244,6 +241,7 @@ class Trainer:
         """
         with stage("sample batch"):
             batch = self.sampler.next_batch()
+        self._run_family_callbacks(TrainingPhase.BEFORE_STEP)
         try:
             with autocast(self.device, self.cfg.train.precision):
                 output = self.wrapped(
@@ -257,6 +255,7 @@ class Trainer:
         total: Tensor = sum(terms.values())
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
+        self._run_family_callbacks(TrainingPhase.AFTER_BACKWARD)
         with stage("optimizer"):
             clip = self.cfg.train.grad_clip
             grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), clip if clip > 0 else math.inf)
@@ -266,9 +265,20 @@ class Trainer:
             self.scheduler.step()
             if self.average is not None:
                 self.average.update(self.model)
+        self._run_family_callbacks(TrainingPhase.AFTER_STEP)
         self.last_grad_norm = grad_norm.detach()
         detached = {name: value.detach() for name, value in terms.items()} | {"loss": total.detach()}
         return detached, batch.num_rays, stop_signal
+
+    def _run_family_callbacks(self, phase: TrainingPhase) -> None:
+        """The model family's callbacks of ``phase`` that are due at this step (``ModelFamily.training_callbacks``)."""
+        due = [c for c in self.callbacks[phase] if c.due(self.step)]
+        if not due:
+            return
+        state = TrainingState(step=self.step, total_steps=int(self.cfg.train.steps), optimizer=self.optimizer)
+        with stage(f"model callbacks ({phase.value})"):
+            for callback in due:
+                callback.run(state)
 
     def _loss_terms(self, batch: StepBatch, output: StepOutput) -> dict[str, Tensor]:
         """Each term averaged over this process's target views (so DDP's mean over processes is the global mean)."""
@@ -386,10 +396,17 @@ class Trainer:
             rays_per_second=global_rays / seconds if seconds > 0 else 0.0,
             world_size=self.dist.world_size,
             targets_per_rank=self.sampler.targets_per_rank,
-            rays_per_step=int(cfg.rays) * int(cfg.targets_per_step),
+            rays_per_step=self._rays_per_view() * int(cfg.targets_per_step),
             history=self.history,
             checkpoint=checkpoint,
         )
+
+    def _rays_per_view(self) -> int:
+        """``train.rays``, or a whole-image batch's pixels (the first training scene's image size)."""
+        if not self.whole_images:
+            return int(self.cfg.train.rays)
+        scene = self.frames.scene(self.sampler.scene_names[0])
+        return int(scene.height) * int(scene.width)
 
     @property
     def training_seconds(self) -> float:
@@ -501,7 +518,8 @@ class Trainer:
         """Continue from the checkpoint ``path``; every refusal (another model or loss, weights or optimizer state that
         do not fit, no weight average) is raised here, in the constructor, before ``run`` claims its folder."""
         state = load_trained(path, "train.resume").state  # plan_resume read it already: not read again
-        self.notes += check_resume_config(path, state["config"], self.record.config_yaml, self.cfg.train.resume_strict)
+        self.notes += check_resume_config(path, state["config"], self.record.config_yaml, self.cfg.train.resume_strict,
+                                          checkpoint_sections(state))
         load_weights(self.model, state["model"], f"checkpoint {path}")
         try:
             self.optimizer.load_state_dict(state["optimizer"])

@@ -55,7 +55,11 @@ class Subject:
         samples per ray unless told otherwise: ``inputs.KIT_SAMPLES``)."""
         from gpnerf_core.testing.inputs import KIT_SAMPLES
 
-        return {"name": self.name, **(KIT_SAMPLES if self.kind == "model" else {}), **self.config}
+        samples = {}
+        if self.kind == "model":  # a ray-marching family's sample counts (RayMarchingConfig)
+            fields = {f.name for f in dataclasses.fields(self.entry.spec.config)}
+            samples = {key: value for key, value in KIT_SAMPLES.items() if key in fields}
+        return {"name": self.name, **samples, **self.config}
 
     @property
     def predicts_instances(self) -> bool:

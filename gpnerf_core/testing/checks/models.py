@@ -7,11 +7,13 @@ the ``unet`` head, at 3 classes) and renders a synthetic 32 x 48 scene seen from
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 from torch import Tensor, nn
 
 from gpnerf_core.interfaces.head import Predicts
-from gpnerf_core.interfaces.model import ModelFamily, SemanticMode, SemanticOutput
+from gpnerf_core.interfaces.model import ModelFamily, SemanticMode, SemanticOutput, TrainingBatch
 from gpnerf_core.testing.checks.common import (
     CheckFailed,
     Subject,
@@ -78,17 +80,29 @@ def check_build(subject: Subject) -> None:
                                                       f"{KIT_CLASSES}-class dataset, expected {KIT_CLASSES}")
 
 
+def family_rates(subject: Subject) -> set[str]:
+    """The learning-rate groups a family's config names itself (its ``lr`` section's fields, ``model.lr.<group>``)."""
+    lr = next((f for f in dataclasses.fields(subject.entry.spec.config) if f.name == "lr"), None)
+    if lr is None:
+        return set()
+    default = lr.default_factory() if lr.default_factory is not dataclasses.MISSING else lr.default
+    if dataclasses.is_dataclass(default):
+        return {f.name for f in dataclasses.fields(default)}
+    return set(default) if isinstance(default, dict) else set()
+
+
 def check_parameter_groups(subject: Subject) -> None:
-    """Every trainable parameter is in exactly one learning-rate group, named by a ``train.lr`` key."""
+    """Every trainable parameter is in exactly one learning-rate group, named by a ``train.lr`` key or a key of the
+    family's own ``model.lr``."""
     from gpnerf_core.config.schema import LearningRates
 
     model = build(subject, head=subject.takes_head)
     groups = call("parameter_groups()", model.parameter_groups)
     expect(isinstance(groups, dict), f"parameter_groups() returned {type(groups).__name__}, expected a dict")
-    known = set(LearningRates.__dataclass_fields__)
+    known = set(LearningRates.__dataclass_fields__) | family_rates(subject)
     unknown = [name for name in groups if name not in known]
-    expect(not unknown, f"parameter group {unknown[0] if unknown else ''!r} is not a key of train.lr "
-                        f"({', '.join(sorted(known))})")
+    expect(not unknown, f"parameter group {unknown[0] if unknown else ''!r} is not a key of train.lr or of the "
+                        f"family's model.lr ({', '.join(sorted(known))})")
     seen: dict[int, str] = {}
     for name, params in groups.items():
         for p in params:
@@ -101,9 +115,17 @@ def check_parameter_groups(subject: Subject) -> None:
 def _pass_outputs(name: str, rendered: RenderedRays, rays: int, classes: int | None) -> dict[str, Tensor]:
     expect(isinstance(rendered, RenderedRays), f"{name} is {type(rendered).__name__}, expected RenderedRays")
     out = {f"{name}.rgb": expect_tensor(rendered.rgb, f"{name}.rgb", [rays, 3])}
-    samples = expect_tensor(rendered.weights, f"{name}.weights").shape[-1]
-    expect_tensor(rendered.weights, f"{name}.weights", [rays, samples])
-    out[f"{name}.weights"] = rendered.weights
+    if rendered.weights is not None:  # a ray-marching family's samples; a rasterizing one has none
+        samples = expect_tensor(rendered.weights, f"{name}.weights").shape[-1]
+        expect_tensor(rendered.weights, f"{name}.weights", [rays, samples])
+        out[f"{name}.weights"] = rendered.weights
+        depths = rendered.samples.depths if rendered.samples is not None else None
+        expect(depths is not None and tuple(depths.shape) == (rays, samples),
+               f"{name}.weights {shape(rendered.weights)} but samples.depths "
+               f"{shape(depths) if depths is not None else 'None'}; expected [{rays}, {samples}]")
+    else:
+        expect(rendered.samples is None and rendered.sample_semantic is None,
+               f"{name}.weights is None but samples or sample_semantic is not: a pass has samples with weights or none")
     out[f"{name}.depth"] = expect_tensor(rendered.depth, f"{name}.depth", [rays])
     if rendered.semantic is not None:
         out[f"{name}.semantic"] = expect_tensor(rendered.semantic, f"{name}.semantic")
@@ -143,7 +165,7 @@ def check_forward(subject: Subject) -> None:
         model, part_parameters = built(subject, head=head)
         model.train()
         output = semantic_output(model)
-        batch = model_batch(sources=model.generalizable)
+        batch = model_batch(sources=model.generalizable, whole_images=model.trains_on is TrainingBatch.IMAGES)
         result = call("forward(batch of 2 views, semantics=True, sample_semantics=True)", model, batch,
                       semantics=output is not None, sample_semantics=output is not None)
         expect(isinstance(result, StepOutput) and len(result.views) == len(batch.views),

@@ -178,8 +178,8 @@ def main(argv: list[str]) -> int:
     with tempfile.TemporaryDirectory() as folder:
         trainer = make_trainer(settings["size"], overrides, Path(folder))
         cfg = trainer.cfg
-        print(f"bench.ab size={settings['size']} phase={settings['phase']}: {cfg.train.rays} rays, {cfg.model.coarse_samples}+"
-              f"{cfg.model.fine_samples} samples, {cfg.model.num_source_views} views, {torch.get_num_threads()} threads, "
+        print(f"bench.ab size={settings['size']} phase={settings['phase']}: {cfg.train.rays} rays, {cfg.model.get('coarse_samples')}+"
+              f"{cfg.model.get('fine_samples')} samples, {cfg.model.num_source_views} views, {torch.get_num_threads()} threads, "
               f"{settings['rounds']} rounds, torch {torch.__version__}")
         for option in options:
             times, warm_up = alternate(trainer, OPTIONS[option](settings), int(settings["rounds"]), settings["phase"])

@@ -103,7 +103,8 @@ def measure(spec: dict[str, Any]) -> dict[str, Any]:
             "device": str(device),
             "torch_threads": torch.get_num_threads(),
             "parameters": {name: n for name, n in model.parameter_counts().items() if name != "total"},
-            "samples_per_ray": int(cfg.model.coarse_samples) + int(cfg.model.fine_samples),
+            "samples_per_ray": (int(cfg.model.coarse_samples) + int(cfg.model.fine_samples)
+                                if "coarse_samples" in cfg.model else None),  # None: a family without samples
         }
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)

@@ -106,10 +106,11 @@ def format_report(scene: SceneMeasurement, request: dict[str, Any], trials: list
            if k not in ("overrides", "coarse_samples") and v not in ("", [], 0, 0.0))]),
         "```", "", "## The scene (training frames only)", ""]
     if scene.has_depth:
+        samples = [] if request.get("coarse_samples") is None else sorted(  # a ray-marching family's only
+            {int(t.changes.get("model.coarse_samples", request["coarse_samples"])) for t in trials}, reverse=True)
         spacing = "; ".join(
             f"{n}: {cm:.1f} cm apart at the median depth ({cm / (100 * scene.metres_per_pixel):.1f} pixel footprints)"
-            for n in sorted({int(t.changes.get("model.coarse_samples", request["coarse_samples"])) for t in trials},
-                            reverse=True)
+            for n in samples
             if (cm := sample_spacing_cm(scene, scene.near, scene.far, n)) is not None
         )
         lines += [
@@ -117,7 +118,7 @@ def format_report(scene: SceneMeasurement, request: dict[str, Any], trials: list
             f"{scene.percentiles[1]}): {scene.depth_low} / {scene.depth_median} / {scene.depth_high} m",
             f"- ray bounds: near {scene.near} m, far {scene.far} m (the range widened by {scene.margin:.0%})",
             f"- a pixel at the median depth: {scene.metres_per_pixel * 100:.2f} cm (focal {scene.focal_px} px)",
-            f"- coarse samples over the measured bounds: {spacing}",
+            *([f"- coarse samples over the measured bounds: {spacing}"] if samples else []),
             "- target pixels seen by at least two of the V nearest sources: "
             + ", ".join(f"V={v}: {c['2']:.1%}" for v, c in sorted(scene.coverage.items())),
         ]

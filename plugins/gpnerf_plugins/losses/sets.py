@@ -171,9 +171,12 @@ class WeightedLossSet(LossSet):
 
     @staticmethod
     def _rgb(inputs: LossInputs) -> Tensor:
-        loss = rgb_mse(inputs.coarse.rgb, inputs.target_rgb)
+        """Per pass; on a whole-image batch of a masked frame, at the pixels its mask keeps."""
+        valid = inputs.valid_at_rays
+        target = inputs.target_rgb if valid is None else inputs.target_rgb[valid]
+        loss = rgb_mse(inputs.coarse.rgb if valid is None else inputs.coarse.rgb[valid], target)
         if inputs.fine is not None:
-            loss = loss + rgb_mse(inputs.fine.rgb, inputs.target_rgb)
+            loss = loss + rgb_mse(inputs.fine.rgb if valid is None else inputs.fine.rgb[valid], target)
         return loss
 
     @staticmethod

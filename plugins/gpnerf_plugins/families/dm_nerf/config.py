@@ -5,11 +5,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from gpnerf_core import ModelConfig
+from gpnerf_core import RayMarchingConfig
 
 
 @dataclass
-class DMNeRFConfig(ModelConfig):
+class DMNeRFConfig(RayMarchingConfig):
     """One scene's radiance field with DM-NeRF's object field on its detached trunk features: ``slots + 1`` object
     logits per sample, composited with detached weights, a sigmoid per slot (docs/families/dm_nerf.md)."""
 

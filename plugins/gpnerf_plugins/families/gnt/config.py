@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import ClassVar
 
-from gpnerf_core import ModelConfig
+from gpnerf_core import ModelConfig, RayMarchingConfig
 
 
 @dataclass
@@ -19,7 +19,7 @@ class SemanticFieldConfig:
 
 
 @dataclass
-class GNTModelConfig(ModelConfig):
+class GNTModelConfig(RayMarchingConfig):
     """GNT's view and ray transformers (``field_aggregator``, ``ray_aggregator``) over the ``feature_extractor``'s maps,
     GP-NeRF's semantic field on their attention, and the ``+head`` on the rendered map."""
 

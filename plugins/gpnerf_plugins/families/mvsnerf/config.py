@@ -5,11 +5,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import ClassVar
 
-from gpnerf_core import ModelConfig
+from gpnerf_core import ModelConfig, RayMarchingConfig
 
 
 @dataclass
-class MVSNeRFConfig(ModelConfig):
+class MVSNeRFConfig(RayMarchingConfig):
     """MVSNeRF + semantic head: a plane-sweep cost volume in the first source view's frustum, regularised by a 3D U-Net
     into an encoding volume, read per sample by a modulated MLP that renders colour, density and class scores (with a
     ``+head``: semantic features the head decodes, ``+experiment=baselines/mvsnerf_unet``)."""

@@ -5,11 +5,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-from gpnerf_core import ModelConfig
+from gpnerf_core import ModelConfig, RayMarchingConfig
 
 
 @dataclass
-class NeuRayConfig(ModelConfig):
+class NeuRayConfig(RayMarchingConfig):
     """NeuRay's visibility-aware renderer with Semantic-Ray's semantic head, without the Cross-Reprojection Attention
     ("NeuRay + Semantic Head" of GP-NeRF's Table 1)."""
 

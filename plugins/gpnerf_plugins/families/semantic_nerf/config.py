@@ -5,11 +5,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from gpnerf_core import ModelConfig
+from gpnerf_core import RayMarchingConfig
 
 
 @dataclass
-class SemanticNeRFConfig(ModelConfig):
+class SemanticNeRFConfig(RayMarchingConfig):
     """One scene's radiance and semantic field: a positional-encoding MLP with a view-independent semantic branch,
     coarse and fine networks, class scores volume-rendered (docs/families/semantic_nerf.md)."""
 

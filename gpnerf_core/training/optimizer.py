@@ -1,0 +1,63 @@
+"""The optimizer of a training run: Adam with one parameter group per learning-rate group a model family names.
+
+A group's rate is the family's own where its config has an ``lr`` section naming the group (``model.lr.<group>``: a
+family's own groups, e.g. a Gaussian family's means and opacities), else the shared ``train.lr.<group>``
+(``feature_extractor``, ``transformer``, ``head``, ``field``, ``grid``). Every trainable parameter must be in exactly
+one group: one left out would never be trained, one listed twice would be stepped twice.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping
+
+import torch
+
+from gpnerf_core.errors import ConfigError
+
+
+def learning_rates(shared: Mapping[str, Any], family: Mapping[str, Any] | None) -> dict[str, float]:
+    """Rates by group name: ``train.lr`` (``shared``) overlaid with the family's ``model.lr`` (``family``; None when its
+    config has no such section). A family rate that is not a finite number > 0 is refused naming its key."""
+    rates = {str(name): float(value) for name, value in dict(shared).items()}
+    for name, value in dict(family or {}).items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+            raise ConfigError(f"model.lr.{name}={value!r}: expected a finite learning rate > 0")
+        rates[str(name)] = float(value)
+    return rates
+
+
+def check_parameter_groups(model: torch.nn.Module, groups: Mapping[str, list[torch.nn.Parameter]]) -> None:
+    """Every trainable parameter of ``model`` in exactly one group; a ConfigError naming the family and the first
+    parameter otherwise."""
+    names = {id(p): n for n, p in model.named_parameters()}
+    seen: dict[int, str] = {}
+    family = type(model).__name__
+    for group, params in groups.items():
+        for p in params:
+            if id(p) in seen and seen[id(p)] != group:
+                raise ConfigError(f"model {family}: parameter {names.get(id(p), '?')!r} is in both learning-rate "
+                                  f"groups {seen[id(p)]!r} and {group!r} of parameter_groups(); expected exactly one")
+            seen[id(p)] = group
+    missing = [n for n, p in model.named_parameters() if p.requires_grad and id(p) not in seen]
+    if missing:
+        raise ConfigError(f"model {family}: {len(missing)} trainable parameter(s) are in no learning-rate group of "
+                          f"parameter_groups() and would never be trained (first: {missing[0]!r}); put each in "
+                          "exactly one group, or set requires_grad=False")
+
+
+def make_optimizer(model: torch.nn.Module, rates: Mapping[str, float]) -> torch.optim.Optimizer:
+    """Adam with one parameter group per learning-rate group of ``model.parameter_groups()`` at its rate in
+    ``rates`` (``learning_rates``); each optimizer group carries its ``name``."""
+    named = model.parameter_groups()
+    check_parameter_groups(model, named)
+    groups = []
+    for name, params in named.items():
+        params = [p for p in params if p.requires_grad]
+        if not params:
+            continue
+        if name not in rates:
+            raise ConfigError(f"model {type(model).__name__} trains a parameter group {name!r} that neither train.lr "
+                              f"nor model.lr has a learning rate for; they have: {', '.join(rates)}")
+        groups.append({"params": params, "lr": float(rates[name]), "name": name})
+    return torch.optim.Adam(groups)
