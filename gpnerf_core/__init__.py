@@ -59,6 +59,11 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
         "PlaneSweep", "ReferenceFrustum", "plane_sweep", "points_in_views", "variance_over_views",
     ),
     "gpnerf_core.geometry.ray_depth": ("DepthBelief", "feature_cost_belief", "source_depth_belief"),
+    "gpnerf_core.geometry.gaussians": ("Gaussians", "RASTERIZER_BACKENDS", "Rasterized", "rasterize_gaussians"),
+    "gpnerf_core.geometry.gaussians.harmonics": (
+        "colour_to_dc", "quaternion_product", "quaternions_of", "sh_coefficients", "sh_colours",
+    ),
+    "gpnerf_core.geometry.gaussians.scene": ("GaussianScene", "rotate_harmonics"),
     "gpnerf_core.geometry.pose_sanity": ("check_poses",),
     "gpnerf_core.data.checks": (
         "ValueProblem", "check_scene_files", "check_validation_level", "depth_problem", "far_away_cameras",
@@ -139,6 +144,15 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
         points_in_views,
         variance_over_views,
     )
+    from gpnerf_core.geometry.gaussians import RASTERIZER_BACKENDS, Gaussians, Rasterized, rasterize_gaussians
+    from gpnerf_core.geometry.gaussians.harmonics import (
+        colour_to_dc,
+        quaternion_product,
+        quaternions_of,
+        sh_coefficients,
+        sh_colours,
+    )
+    from gpnerf_core.geometry.gaussians.scene import GaussianScene, rotate_harmonics
     from gpnerf_core.geometry.pose_sanity import check_poses
     from gpnerf_core.geometry.ray_depth import DepthBelief, feature_cost_belief, source_depth_belief
     from gpnerf_core.geometry.projection import project_points, world_to_camera

@@ -11,6 +11,9 @@ optional voxel grid merges the rest (``export.voxel``). Writes into the run fold
   rendered colour) and ``label`` (int: the class id or instance slot, -1 for a model without scores), readable by
   Open3D, MeshLab, CloudCompare, trimesh and viser's loaders (an unknown property is passed over);
 - ``points_labels.ply``: the same points coloured by label in the palette of ``render`` and the viewer (with scores);
+- ``gaussians.ply``, for a family that renders 3D Gaussians (``ModelFamily.scene_gaussians``; a feed-forward one's
+  from the source views of the first exported frame): the standard 3D Gaussian splatting PLY (``x y z``, ``f_dc_*``,
+  ``f_rest_*``, ``opacity``, ``scale_*``, ``rot_*``) with each Gaussian's ``label``, which splat viewers open;
 - ``legend.png`` (classes) and ``export.json``: the frames, the settings, the point counts, the class names.
 """
 
@@ -87,12 +90,13 @@ def export_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
         for note in loaded.notes:
             print(f"note: {note}", file=sys.stderr)
         started = time.perf_counter()
-        views, clouds, sensor_depths = [], [], []
+        views, clouds, sensor_depths, first = [], [], [], None
         for index in tqdm(indices, desc="export", unit="frame", file=sys.stderr, dynamic_ncols=True):
             frame = frames.frame(scene, index)
             camera = frames.camera(scene, frame)
             given = view_inputs(model, frames, components.view_selector, scene, camera.c2w,
                                 int(cfg.model.num_source_views), exclude=index)
+            first = first or given
             with torch.no_grad():
                 prediction = model.predict(camera, given.sources, stride=stride, chunk_rays=int(cfg.eval.chunk_rays),
                                            features=given.features)
@@ -113,14 +117,36 @@ def export_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             raise DataError(f"export: no point of scene {name!r} is inside its depth bounds and seen by "
                             f"{min_views} other view(s) within {settings.tolerance:g}; lower export.min_views or raise "
                             "export.tolerance")
+        splats = scene_gaussians(model, first, scene, owners, name)
         seconds = time.perf_counter() - started
         result = _result(cfg, loaded, components, name, indices, prediction.stride, rendered, len(fused), len(merged),
                          seconds)
         result["depth_error_m"] = errors
-        write_staged(folder.path, _writes(merged, result, components), STAGING_PREFIX)
+        if splats is not None:
+            result["gaussians"] = {"count": splats.count, "source_frames": list(first.indices),
+                                   "file": "gaussians.ply"}
+            result["outputs"].insert(-1, "gaussians.ply")
+        write_staged(folder.path, _writes(merged, result, components, splats), STAGING_PREFIX)
         print(f"exported {len(merged)} points of {name} from {len(indices)} frames ({rendered} rendered, "
               f"{len(fused)} agreed by {min_views}+ views) to {folder.path / 'points.ply'}")
     return result
+
+
+def scene_gaussians(model: Any, given: Any, scene: Any, owners: Any, name: str) -> Any:
+    """The Gaussians a Gaussian family renders ``scene`` from (a feed-forward family's from the source views of the
+    first exported frame, ``given``), checked finite; None for a family without Gaussians."""
+    from gpnerf_core.errors import NonFiniteError
+    from gpnerf_core.runtime.finite import all_finite
+
+    with torch.no_grad():
+        splats = model.scene_gaussians(given.sources, near=scene.near, far=scene.far, features=given.features)
+    if splats is None:
+        return None
+    for field in ("means", "scales", "rotations", "opacities", "harmonics"):
+        if not all_finite(getattr(splats, field)):
+            raise NonFiniteError(f"export: scene {name!r}: the {owners.get('colour', 'model')} gave NaN or Inf in its "
+                                 f"Gaussians' {field}; nothing was written")
+    return splats
 
 
 def rendered_points(prediction: Any, camera: Any, output: Any) -> tuple[Any, Any]:
@@ -210,7 +236,7 @@ def _result(cfg: DictConfig, loaded: Any, components: Any, scene: str, indices: 
     }
 
 
-def _writes(cloud: Any, result: dict[str, Any], components: Any) -> list[tuple[str, Write]]:
+def _writes(cloud: Any, result: dict[str, Any], components: Any, splats: Any = None) -> list[tuple[str, Write]]:
     from gpnerf_core.evaluation import visualize as vis
     from gpnerf_core.runtime.io import atomic_write_json
     from gpnerf_core.runtime.ply import write_ply
@@ -232,6 +258,10 @@ def _writes(cloud: Any, result: dict[str, Any], components: Any) -> list[tuple[s
     if result["labels"]:
         writes.append(("points_labels.ply", partial(write_ply, columns=columns(label_colours.astype(np.uint8)),
                                                     comments=comment)))
+    if splats is not None:
+        splat_comment = (f"gpnerf-core 3D Gaussian splatting export of scene {result['scene']} from "
+                         f"{result['checkpoint']}: Gaussians of source frames {result['gaussians']['source_frames']}",)
+        writes.append(("gaussians.ply", partial(write_ply, columns=splats.ply_columns(), comments=splat_comment)))
     if "legend.png" in result["outputs"]:
         writes.append(("legend.png", partial(vis.save_image, image=vis.class_legend(components.classes.names))))
     writes.append(("export.json", partial(atomic_write_json, obj=result)))

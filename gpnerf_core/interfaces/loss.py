@@ -28,6 +28,9 @@ class LossSet(nn.Module, ABC):
     (``Scene.labelled`` False, its labels all ``ignore_index``) is then refused before any work. True unless the loss
     set says otherwise, so a loss set that never declared it is never trained silently on empty labels; a loss set
     whose terms need none (colour, distillation from the 2D teacher) sets it False."""
+    needs_whole_images: bool = False
+    """Some term reads whole images (``LossInputs.as_image``, e.g. SSIM): only a family that trains on whole images
+    (``ModelFamily.trains_on``) can use it; another is refused when the run is built."""
     head_predicts: Predicts | None = None
     """What the model's semantic scores must be for this loss set (``Predicts``), or None (none needed, or either)."""
 

@@ -15,7 +15,7 @@ import enum
 from abc import ABC, abstractmethod
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar, Mapping
+from typing import TYPE_CHECKING, Any, ClassVar, Mapping
 
 from torch import Tensor, nn
 
@@ -25,6 +25,9 @@ from gpnerf_core.interfaces.head import PerceptionHead, Predicts
 from gpnerf_core.interfaces.training import TrainingCallback
 from gpnerf_core.interfaces.weights import ImportedWeights, ImportsWeights
 from gpnerf_core.types import FeatureMaps, Prediction, SourceViews, StepBatch, StepOutput, TargetCamera
+
+if TYPE_CHECKING:
+    from gpnerf_core.geometry.gaussians.scene import GaussianScene
 
 
 class TrainingBatch(str, enum.Enum):
@@ -110,6 +113,19 @@ class ModelParts(ABC):
     @abstractmethod
     def name(self, kind: str) -> str | None:
         """The configured component name of ``kind`` (None when the config selects none)."""
+
+    def semantic_head(self, extractor: Any, family: str, decodes: str = "rendered features") -> PerceptionHead | None:
+        """The configured head decoding ``extractor``'s semantic-map space (its ``semantic_dim`` channels in
+        ``semantic_levels`` blocks), None without one; a ConfigError naming ``+head``, ``model={family}`` and the
+        extractor when the extractor makes no semantic maps (``decodes``: what the head decodes, for the message)."""
+        if not self.configured("head"):
+            return None
+        if not extractor.semantic_dim:
+            raise ConfigError(f"+head={self.name('head')} with model={family} decodes {decodes} in the semantic maps' "
+                              f"space of the feature extractor, and feature_extractor "
+                              f"{self.name('feature_extractor')!r} makes none (feature_extractor.semantic=true, or "
+                              "another extractor such as feature_extractor=resunet_fpn)")
+        return self.head(in_dim=extractor.semantic_dim, in_levels=extractor.semantic_levels)
 
     def depth_source(self, sampler: str) -> DepthSource | None:
         """The configured ``+depth_source`` built, or None without one. It places the samples of
@@ -265,6 +281,14 @@ class ModelFamily(ImportsWeights, nn.Module, ABC):
         default a family has none (ConfigError)."""
         raise ConfigError(f"model {type(self).__name__} encodes no source set (its source_encoding is "
                           f"{self.source_encoding.value})")
+
+    def scene_gaussians(self, sources: SourceViews | None, *, near: float, far: float,
+                        features: Any = None) -> GaussianScene | None:
+        """The 3D Gaussians the family renders from (``export`` writes them as the standard 3D Gaussian splatting PLY,
+        ``view`` draws them as splats), each labelled with its class or instance slot; None for a family that renders
+        no Gaussians (the default). A feed-forward family gives those it predicts from ``sources`` (``features``: what
+        ``encode_sources`` gave for them, when the caller kept it); a per-scene one its own."""
+        return None
 
     def teacher_logits(self, image: Tensor) -> Tensor | None:
         """The 2D-only reference: its head on the target image's own features, ``[3, H, W]`` -> ``[1, K, H, W]``; None

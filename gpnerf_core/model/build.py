@@ -11,7 +11,7 @@ from gpnerf_core.data.dataset import SceneDataset
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.interfaces import LossSet, PerceptionHead, ViewSelector
 from gpnerf_core.interfaces.head import Predicts
-from gpnerf_core.interfaces.model import ModelFamily, ModelParts
+from gpnerf_core.interfaces.model import ModelFamily, ModelParts, TrainingBatch
 from gpnerf_core.model.classes import ClassList
 from gpnerf_core.registry.components import Registry, get_registry
 from gpnerf_core.registry.guards import guard_outputs
@@ -184,6 +184,10 @@ def build_components(cfg: Any, registry: Registry | None = None, *, classes: Cla
 
 def check_loss_fits(cfg: Any, model: ModelFamily, loss: LossSet) -> None:
     """The loss set reads only what the model renders: semantic outputs, and scores of the kind it trains."""
+    if getattr(loss, "needs_whole_images", False) and model.trains_on is not TrainingBatch.IMAGES:
+        raise ConfigError(f"loss {cfg.loss.name!r} reads whole images, and model {cfg.model.name!r} trains on random "
+                          f"rays; use a loss set on rays (+loss=ce, +loss=dgs, ...) or a model that renders whole "
+                          f"images (model=mvsplat)")
     output = model.semantic_output
     wanted = Predicts(loss.head_predicts) if loss.head_predicts is not None else None
     if loss.needs_semantics and output is None:

@@ -141,6 +141,7 @@ def loss_inputs(
     instances: bool = False,
     instance_ids: int = 3,
     seed: int = 0,
+    whole_image: bool = False,
 ) -> LossInputs:
     """What the trainer passes a loss set for one target view, shaped by the loss set's ``needs_*`` flags.
 
@@ -149,30 +150,34 @@ def loss_inputs(
     pixel with the ignore index. ``instances`` adds target instance ids (``instance_ids`` of them; ``zeros``: one), for
     a loss set that ``needs_instances``; its logits then have ``classes`` = slots + 1 channels. With ``semantics`` each
     pass also carries per-ray scores of ``classes`` channels, and the labels (and instance ids) at the rays, for the
-    loss sets of label-rendering families.
+    loss sets of label-rendering families. ``whole_image``: the rays are every pixel of the 6 x 7 target in row-major
+    order (``LossInputs.image_size``), for a loss set that ``needs_whole_images``.
     """
     g = generator(seed + 1)
-    passes = dict(semantic=semantics, sample_semantic=sample_semantics, zeros=zeros, scores=classes if semantics else 0)
     height, width = 6, 7
+    rays = height * width if whole_image else LOSS_RAYS
+    passes = dict(rays=rays, semantic=semantics, sample_semantic=sample_semantics, zeros=zeros,
+                  scores=classes if semantics else 0)
     labels = torch.randint(0, classes, (1, height, width), generator=g)
     if ignore_all:
         labels.fill_(255)
-    teacher = torch.zeros(LOSS_RAYS, LOSS_CHANNELS) if zeros else torch.randn(LOSS_RAYS, LOSS_CHANNELS, generator=g)
+    teacher = torch.zeros(rays, LOSS_CHANNELS) if zeros else torch.randn(rays, LOSS_CHANNELS, generator=g)
     logits = torch.zeros(1, classes, height, width) if zeros else torch.randn(1, classes, height, width, generator=g)
     return LossInputs(
         coarse=rendered(seed=seed, **passes),
         fine=rendered(seed=seed + 2, **passes) if fine else None,
-        target_rgb=torch.rand(LOSS_RAYS, 3, generator=g),
-        target_depth=torch.zeros(LOSS_RAYS) if zeros else torch.rand(LOSS_RAYS, generator=g) + 0.5,
+        target_rgb=torch.rand(rays, 3, generator=g),
+        target_depth=torch.zeros(rays) if zeros else torch.rand(rays, generator=g) + 0.5,
         logits=logits.requires_grad_() if semantics else None,
         labels=labels if semantics else None,
         teacher_at_rays=teacher.requires_grad_() if semantics else None,
         ignore_index=255,
         instances=(torch.zeros if zeros else lambda *s: torch.randint(0, instance_ids, s, generator=g))(
             1, height, width).long() if instances and semantics else None,
-        labels_at_rays=labels.reshape(-1)[:LOSS_RAYS] if semantics else None,
-        instances_at_rays=(torch.zeros(LOSS_RAYS, dtype=torch.long) if zeros else torch.randint(
-            0, instance_ids, (LOSS_RAYS,), generator=g)) if instances and semantics else None,
+        labels_at_rays=labels.reshape(-1)[:rays] if semantics else None,
+        instances_at_rays=(torch.zeros(rays, dtype=torch.long) if zeros else torch.randint(
+            0, instance_ids, (rays,), generator=g)) if instances and semantics else None,
+        image_size=(height, width) if whole_image else None,
     )
 
 

@@ -18,7 +18,14 @@ FAMILIES = {
     "semantic_ray_unet": ["model.fine_samples=4"],  # GP-NeRF's decoding on Semantic-Ray's field
     # GP-NeRF's decoding on MVSNeRF's field: resunet_fpn (TINY_CLI's feature_extractor.* apply), one pass
     "mvsnerf_unet": ["model.num_planes=8", "model.coarse_samples=8", "model.fine_samples=0"],
+    # MVSplat's Gaussians, label rendering and GP-NeRF's decoding: whole images, a tiny cost volume
+    "mvsplat": ["model.feature_dim=8", "model.transformer_layers=1", "model.depth_candidates=4",
+                "model.cost_unet_dim=4", "model.depth_unet_dim=4", "model.unet_levels=2", "model.sh_degree=1"],
+    "mvsplat_unet": ["model.feature_dim=8", "model.transformer_layers=1", "model.depth_candidates=4",
+                     "model.cost_unet_dim=4", "model.depth_unet_dim=4", "model.unet_levels=2", "model.sh_degree=1"],
 }
+RAY_MARCHING = ("model.coarse_samples", "model.fine_samples", "field_aggregator.")
+"""TINY_CLI keys of the ray-marching families' (a rasterizing family has no samples, and no GNT aggregator)."""
 
 
 def in_process(*argv: str) -> int:
@@ -34,6 +41,8 @@ def trained(request, tmp_path_factory):
     """The family trained 2 steps by ``run``: (name, run folder)."""
     name, out = request.param, tmp_path_factory.mktemp(request.param) / "run"
     tiny = [o for o in TINY_CLI if not o.startswith("feature_extractor.")] if name == "mvsnerf" else TINY_CLI
+    if name.startswith("mvsplat"):
+        tiny = [o for o in TINY_CLI if not o.startswith(RAY_MARCHING)]
     assert in_process("run", f"+experiment=baselines/{name}", *tiny, *FAMILIES[name], "train.steps=2",
                       f"out_dir={out}") == 0
     return name, out
@@ -58,7 +67,7 @@ def test_render_writes_a_frame_of_its_checkpoint(trained, tmp_path):
     assert written["frames"] == 1 and Path(tmp_path / "video" / "trajectory.gif").is_file()
 
 
-@pytest.mark.parametrize("trained", ["mvsnerf", "semantic_ray"], indirect=True)
+@pytest.mark.parametrize("trained", ["mvsnerf", "semantic_ray", "mvsplat_unet"], indirect=True)
 def test_finetune_and_stress_take_its_checkpoint(trained, tmp_path):
     name, out = trained
     checkpoint = next((out / "checkpoints").glob("*.pt"))

@@ -189,7 +189,7 @@ def test_gt_depth_centre_picks_the_nearest_sample_and_falls_back_when_unknown():
 )
 def test_registered_sets_return_their_terms_and_flags(config, keys, semantics, sample_semantics, labels):
     registry = collect(make_plugin_manager(builtins=("gpnerf_plugins.losses.plugin",), autoload=False))
-    assert registry.names("loss") == ["ce", "dgs", "dm_nerf", "instance", "label_free", "rgb", "sd"]
+    assert registry.names("loss") == ["ce", "dgs", "dm_nerf", "image", "instance", "label_free", "rgb", "sd"]
     loss_set = registry.build("loss", OmegaConf.structured(config))
     assert (loss_set.needs_semantics, loss_set.needs_sample_semantics) == (semantics, sample_semantics)
     assert loss_set.needs_labels is labels
@@ -330,3 +330,21 @@ def test_needs_labels_follows_the_cross_entropy_weight():
     assert WeightedLossSet(ce_weight=0.5).needs_labels is True
     registry = collect(make_plugin_manager(builtins=("gpnerf_plugins.losses.plugin",), autoload=False))
     assert registry.build("loss", {"name": "instance"}).needs_labels is True  # instance ids are labels
+
+
+def test_the_image_set_adds_d_ssim_on_whole_images_and_is_zero_for_a_perfect_render():
+    from gpnerf_core.testing.inputs import loss_inputs
+    from gpnerf_plugins.losses.sets import ImageLossConfig
+
+    registry = collect(make_plugin_manager(builtins=("gpnerf_plugins.losses.plugin",), autoload=False))
+    loss_set = registry.build("loss", OmegaConf.structured(ImageLossConfig))
+    assert set(loss_set.weights) == {"rgb", "ce", "ssim"} and loss_set.needs_whole_images
+    inputs = loss_inputs(semantics=True, sample_semantics=False, fine=False, whole_image=True)
+    terms = loss_set(inputs)
+    assert set(terms) == {"rgb", "ce", "ssim"} and float(terms["ssim"]) > 0
+    perfect = dataclasses.replace(inputs, coarse=dataclasses.replace(inputs.coarse, rgb=inputs.target_rgb.clone()))
+    assert float(loss_set(perfect)["ssim"]) == pytest.approx(0.0, abs=1e-6)
+    colour_only = registry.build("loss", {"name": "image", "ce_weight": 0.0})
+    assert not colour_only.needs_semantics and not colour_only.needs_labels
+    with pytest.raises(ConfigError, match="trains on random rays"):
+        loss_set(loss_inputs(semantics=True, sample_semantics=False))

@@ -94,10 +94,21 @@ def test_knob_levels_shrink_from_the_reference_and_respect_the_coverage_floor():
     assert levels["field_aggregator.width"] == (32, [24, 16])
     assert levels["field_aggregator.num_blocks"] == (4, [3, 2])
     assert levels["feature_extractor.fpn_channels"] == (16, [12, 8])
-    assert notes == []
+    assert [n.split(":")[0] for n in notes] == ["model.depth_candidates", "model.feature_dim"]  # MVSplat's knobs
     without_head, notes = knob_levels(compose(["scale=cpu"]), min_source_views=4)
     assert "feature_extractor.fpn_channels" not in without_head and "model.num_source_views" not in without_head
     assert any("no head" in n for n in notes) and any("needs all 4" in n for n in notes)
+
+
+def test_only_knobs_of_components_the_family_builds_are_sized():
+    cfg = compose(["+experiment=baselines/neuray"])
+    sections = build_components(cfg).model_sections
+    levels, notes = knob_levels(cfg, min_source_views=1, model_sections=sections)
+    assert not any(key.startswith("field_aggregator.") for key in levels)  # NeuRay builds no GNT aggregator
+    assert "field_aggregator.width: model 'neuray' builds no field_aggregator; not sized" in notes
+    splat = compose(["+experiment=baselines/mvsplat"])
+    levels, _ = knob_levels(splat, min_source_views=1, model_sections=build_components(splat).model_sections)
+    assert set(levels) == {"model.num_source_views", "model.depth_candidates", "model.feature_dim"}
 
 
 def _cost(changes):

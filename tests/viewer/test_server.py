@@ -103,3 +103,58 @@ def test_depth_points_lie_on_the_frames_depths(tiny):
     uv = (frame.intrinsics.double() @ camera.T).T
     u, v = (uv[:, 0] / uv[:, 2]).round().long(), (uv[:, 1] / uv[:, 2]).round().long()
     assert torch.allclose(camera[:, 2].float(), frame.depth[v, u], atol=1e-4)
+
+
+MVSPLAT = ["+experiment=baselines/mvsplat", "model.feature_dim=8", "model.transformer_layers=1",
+           "model.depth_candidates=4", "model.cost_unet_dim=4", "model.depth_unet_dim=4", "model.unet_levels=2",
+           "model.sh_degree=1", "feature_extractor.widths=[8,8,8,16]", "threads=1"]
+
+
+def test_a_gaussian_family_shows_its_gaussians_as_splats_in_either_colouring(tiny, at_frame):
+    from gpnerf_core.config.compose import compose
+    from gpnerf_core.model.build import build_components
+    from gpnerf_core.model.feature_cache import SourceFeatureCache
+    from gpnerf_core.tools.viewer.renderer import SceneRenderer
+    from pipeline_check import TINY_SCENES
+
+    components = build_components(compose([*MVSPLAT, *TINY_SCENES]))
+    model = components.model.eval()
+    renderer = SceneRenderer(model, tiny[1].frames, components.view_selector,
+                             num_classes=components.classes.num_classes, chunk_rays=256, default_source_views=2,
+                             feature_cache=SourceFeatureCache(64))
+    assert renderer.draws_gaussians and not tiny[1].draws_gaussians
+    server = ViewerServer(renderer, ViewerOptions(**OPTIONS)).start()
+    try:
+        request = at_frame(renderer, "layout_00", 0)
+        with connect(f"ws://127.0.0.1:{server.port}", subprotocols=[f"viser-v{viser.__version__}"],
+                     open_timeout=10, close_timeout=5, max_size=None) as websocket:
+            websocket.send(_camera_message(request))
+            _wait(lambda: server.frames_delivered >= 2)
+            (state,) = server._clients.values()
+            assert state.splats is not None and state.splats_shown == ("layout_00", state.last.sources, "rgb")
+            first = state.splats
+            misses = renderer.feature_cache.stats.misses  # the splats reuse the rendered view's Gaussians
+            state.gui["splat_colours"].value = "class"
+            server._show_splats(next(iter(server.server.get_clients().values())), state, "layout_00",
+                                state.last.sources)
+            assert state.splats is not first and state.splats_shown[2] == "class"
+            assert renderer.feature_cache.stats.misses == misses
+            state.gui["gaussians"].value = False
+            server._show_splats(next(iter(server.server.get_clients().values())), state, "layout_00",
+                                state.last.sources)
+            assert state.splats.visible is False
+    finally:
+        server.stop()
+
+
+def test_splat_arrays_hold_the_gaussians_covariances_and_label_colours():
+    from gpnerf_core.geometry.gaussians.scene import GaussianScene
+    from gpnerf_core.tools.viewer.splats import splat_arrays
+
+    scene = GaussianScene(means=torch.zeros(2, 3), scales=torch.tensor([[1.0, 2.0, 3.0], [0.1, 0.1, 0.1]]),
+                          rotations=torch.tensor([[1.0, 0, 0, 0], [0, 0, 0, 1.0]]), opacities=torch.tensor([0.5, 1.0]),
+                          harmonics=torch.zeros(2, 3, 1), labels=torch.tensor([1, -1]))
+    arrays = splat_arrays(scene, "class", 3)
+    assert arrays["covariances"][0].diagonal().tolist() == pytest.approx([1.0, 4.0, 9.0])
+    assert arrays["rgbs"][1].tolist() == pytest.approx([0.5, 0.5, 0.5])  # unlabelled: its own colour (C0 * 0 + 0.5)
+    assert arrays["rgbs"][0].tolist() != pytest.approx([0.5, 0.5, 0.5]) and arrays["opacities"].shape == (2, 1)

@@ -41,7 +41,9 @@ def inputs_for(loss: Any, **options: Any) -> LossInputs:
         # K = slots + 1 logits; "one class" becomes one slot and one instance id.
         options["classes"] = max(2, int(options.get("classes", 5)))
         options["instance_ids"] = min(3, options["classes"] - 1)
-    return loss_inputs(semantics=semantics, sample_semantics=samples, instances=instances, **options)
+    whole = bool(getattr(loss, "needs_whole_images", False))
+    return loss_inputs(semantics=semantics, sample_semantics=samples, instances=instances, whole_image=whole,
+                       **options)
 
 
 def terms(loss: Any, inputs: LossInputs, when: str = "") -> Outputs:

@@ -54,19 +54,31 @@ KNOBS: tuple[Knob, ...] = (
     Knob("field_aggregator.width", "transformer width", _fractions(8, 8, 0.75, 0.5)),
     Knob("field_aggregator.num_blocks", "transformer blocks", lambda r: sorted({v for v in (r - 1, r // 2) if 1 <= v < r}, reverse=True)),
     Knob("feature_extractor.fpn_channels", "semantic width", _fractions(4, 4, 0.75, 0.5)),
+    Knob("model.depth_candidates", "depth candidates", _fractions(2, 4, 0.75, 0.5)),
+    Knob("model.feature_dim", "matching width", _fractions(2, 4, 0.75, 0.5)),
 )
 
 
-def knob_levels(cfg: Any, min_source_views: int) -> tuple[dict[str, tuple[int, list[int]]], list[str]]:
+def knob_levels(cfg: Any, min_source_views: int, model_sections: tuple[str, ...] | None = None
+                ) -> tuple[dict[str, tuple[int, list[int]]], list[str]]:
     """Each applicable knob's reference value and smaller levels, and notes on the knobs left out.
 
     Args:
         cfg: the reference config.
         min_source_views: no fewer source views are tried (the scene's coverage floor).
+        model_sections: the config sections that define the model (``Components.model_sections``): a knob of a
+            component kind the family never built is left out (changing it would train the same model). None: every
+            section counts.
     """
+    from gpnerf_core.registry.kinds import KINDS
+
     levels: dict[str, tuple[int, list[int]]] = {}
     notes = []
     for knob in KNOBS:
+        section = knob.key.split(".")[0]
+        if model_sections is not None and section in KINDS and section not in model_sections:
+            notes.append(f"{knob.key}: model {cfg.model.name!r} builds no {section}; not sized")
+            continue
         value = OmegaConf.select(cfg, knob.key, default=None)
         if value is None:
             notes.append(f"{knob.key}: not an option of the configured component; not sized")

@@ -19,6 +19,7 @@ import torch.nn.functional as F
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.evaluation import visualize as vis
 from gpnerf_core.evaluation.pictures import prediction_layers
+from gpnerf_core.geometry.gaussians.scene import GaussianScene
 from gpnerf_core.model.feature_cache import SourceFeatureCache
 from gpnerf_core.model.view_inputs import view_inputs
 from gpnerf_core.data.frames import FrameCache
@@ -193,6 +194,26 @@ class SceneRenderer:
             psnr = float(-10 * torch.log10(((rendered - real.clamp(0, 1)) ** 2).mean().clamp_min(1e-10)))
         return RenderedView(stage=stage, stride=prediction.stride, layers=layers, sources=given.indices,
                             seconds=time.perf_counter() - began, prediction=prediction, frame=index, psnr=psnr)
+
+    @property
+    def draws_gaussians(self) -> bool:
+        """The model renders from 3D Gaussians the viewer can draw (``ModelFamily.scene_gaussians``)."""
+        return type(self.model).scene_gaussians is not ModelFamily.scene_gaussians
+
+    def gaussians(self, scene_name: str, sources: tuple[int, ...]) -> GaussianScene | None:
+        """The model's Gaussians of ``scene_name`` for the source frames ``sources`` (a per-scene family's own for
+        none), from the feature cache when it holds them; None for a family without Gaussians."""
+        if not self.draws_gaussians:
+            return None
+        with self.lock:
+            scene = self.frames.scene(scene_name)
+            views = self.frames.source_views(scene, list(sources)) if sources else None
+            features = None
+            if views is not None and self.feature_cache is not None:
+                features = self.feature_cache.for_sources(self.model, scene.name, sources, views, near=scene.near,
+                                                          far=scene.far)
+            with torch.no_grad():
+                return self.model.scene_gaussians(views, near=scene.near, far=scene.far, features=features)
 
     def layers(self, prediction: Prediction, near: float, far: float) -> dict[str, np.ndarray]:
         """The picture layers of a prediction (``evaluation.pictures``); non-finite values are shown black, never

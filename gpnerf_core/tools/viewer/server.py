@@ -1,7 +1,8 @@
 """The viser server of the viewer: per browser, the chosen scene's cameras (frustums with thumbnails; training frames
 blue, held-out frames orange), the depth points of its training frames, the model's novel view for the browser's
 camera as the background (a layer at a time), the source views of that view highlighted (yellow), the time per frame,
-and controls for scene, layer, number of source views and render strides.
+and controls for scene, layer, number of source views and render strides; for a Gaussian family, its 3D Gaussians
+themselves as splats (those of the view's sources), in their own colours or their classes'.
 
 Every browser (client) has its own controls, scene content, camera and frames: nothing one client does reaches
 another's view."""
@@ -21,6 +22,7 @@ from gpnerf_core.errors import ConfigError
 from gpnerf_core.evaluation import visualize as vis
 from gpnerf_core.types import Scene
 from gpnerf_core.tools.viewer.camera import vertical_fov, viser_pose
+from gpnerf_core.tools.viewer.splats import splat_arrays
 from gpnerf_core.tools.viewer.renderer import (
     LAYERS,
     ProgressiveRenderer,
@@ -128,6 +130,9 @@ class _ClientState:
     last: RenderedView | None = None
     last_request: ViewRequest | None = None
     highlighted: list[Any] = field(default_factory=list)
+    splats: Any = None
+    splats_shown: tuple[Any, ...] | None = None
+    """The splat node and what it shows: (scene, sources, colours), so the same Gaussians are not sent twice."""
     frustums: list[Any] = field(default_factory=list)
     hidden_frustums: set[int] = field(default_factory=set)
     gui: dict[str, Any] = field(default_factory=dict)
@@ -236,6 +241,11 @@ class ViewerServer:
         state.gui["preview"] = gui.add_dropdown("Preview stride", stride_options,
                                                 initial_value=str(state.preview_stride))
         state.gui["cameras"] = gui.add_checkbox("Cameras", True, hint="show the frames' frustums and thumbnails")
+        if self.renderer.draws_gaussians:
+            state.gui["gaussians"] = gui.add_checkbox("Gaussians", True,
+                                                      hint="draw the model's 3D Gaussians (those of the view's sources)")
+            colours = ["rgb", "class"] if self.options.class_names else ["rgb"]
+            state.gui["splat_colours"] = gui.add_dropdown("Gaussian colours", colours, initial_value="rgb")
         state.gui["snap"] = gui.add_button("Snap to nearest frame")
         state.gui["status"] = gui.add_markdown("waiting for the first frame")
         if self.options.class_names:
@@ -266,6 +276,11 @@ class ViewerServer:
                 lambda _: state.last is not None and self._show(client, state, state.last_request, state.last)
             )
         state.gui["snap"].on_click(lambda _: self._snap(client, state))
+        for key in ("gaussians", "splat_colours"):
+            if key in state.gui:
+                state.gui[key].on_update(
+                    lambda _: state.last is not None and self._show_splats(client, state, state.last_request.scene,
+                                                                          state.last.sources))
 
         def cameras_shown(_: Any) -> None:
             for index, handle in enumerate(state.frustums):
@@ -281,6 +296,7 @@ class ViewerServer:
             state.gui["status"].content = f"**cannot show scene {state.scene}**: {exc}"
             return
         client.scene.reset()
+        state.splats, state.splats_shown = None, None
         held_out = set(scene.eval_frames)
         shown: list[Any] = []
         state.frustums, state.hidden_frustums = [], set()
@@ -392,10 +408,32 @@ class ViewerServer:
                 picture = highlight_class(picture, labels, list(self.options.class_names).index(chosen))
         client.scene.set_background_image(picture, format="jpeg")
         self._highlight(client, state, request.scene, view.sources)
+        self._show_splats(client, state, request.scene, view.sources)
         sources = ", ".join(str(s) for s in view.sources)
         compared = f"  \nat frame {view.frame}: PSNR {view.psnr:.2f} against it" if view.frame is not None else ""
         state.gui["status"].content = (f"**{view.stage}** (stride {view.stride}): {view.seconds:.2f} s  \n"
                                        f"source views: {sources}{compared}")
+
+    def _show_splats(self, client: Any, state: _ClientState, scene_name: str, sources: Sequence[int]) -> None:
+        """The model's Gaussians of the view's sources as splats (hidden with the checkbox), coloured as chosen; sent
+        only when the scene, the sources or the colours changed."""
+        if "gaussians" not in state.gui:
+            return
+        if not bool(state.gui["gaussians"].value):
+            if state.splats is not None:
+                state.splats.visible = False
+            return
+        shown = (scene_name, tuple(sources), str(state.gui["splat_colours"].value))
+        if shown != state.splats_shown:
+            splats = self.renderer.gaussians(scene_name, tuple(sources))
+            if splats is None:
+                return
+            if state.splats is not None:
+                state.splats.remove()
+            arrays = splat_arrays(splats, shown[2], self.renderer.num_classes)
+            state.splats = client.scene.add_gaussian_splats("/gaussians", **arrays)
+            state.splats_shown = shown
+        state.splats.visible = True
 
     def _highlight(self, client: Any, state: _ClientState, scene_name: str, sources: Sequence[int]) -> None:
         for handle in state.highlighted:

@@ -9,6 +9,8 @@ from gpnerf_plugins.families.gnt.build import build_gnt
 from gpnerf_plugins.families.gnt.config import GNTModelConfig
 from gpnerf_plugins.families.mvsnerf.build import build_mvsnerf
 from gpnerf_plugins.families.mvsnerf.config import MVSNeRFConfig
+from gpnerf_plugins.families.mvsplat.build import build_mvsplat
+from gpnerf_plugins.families.mvsplat.config import MVSplatConfig
 from gpnerf_plugins.families.neuray.build import build_neuray, build_semantic_ray
 from gpnerf_plugins.families.neuray.config import NeuRayConfig, SemanticRayConfig
 from gpnerf_plugins.families.semantic_nerf.build import build_semantic_nerf
@@ -29,6 +31,13 @@ def gpnerf_register_models() -> list[ComponentSpec]:
             build_mvsnerf,
             MVSNeRFConfig,
             "MVSNeRF + semantic head: plane-sweep cost volume, 3D U-Net encoding volume, modulated MLP, label rendering",
+        ),
+        ComponentSpec(
+            "mvsplat",
+            build_mvsplat,
+            MVSplatConfig,
+            "MVSplat: feed-forward 3D Gaussians from a cost volume, one per source pixel, rasterized; label rendering or "
+            "+head decodes",
         ),
         ComponentSpec(
             "neuray",

@@ -8,6 +8,8 @@ from gpnerf_plugins.losses.instance import InstanceLossConfig, InstanceLossSet
 from gpnerf_plugins.losses.sets import (
     CeLossConfig,
     DgsLossConfig,
+    ImageLossConfig,
+    ImageLossSet,
     LabelFreeLossConfig,
     LabelFreeLossSet,
     RgbLossConfig,
@@ -23,6 +25,8 @@ def gpnerf_register_losses() -> list[ComponentSpec]:
         ComponentSpec("ce", WeightedLossSet, CeLossConfig, "colour + semantic cross-entropy"),
         ComponentSpec("sd", WeightedLossSet, SdLossConfig, "colour + cross-entropy + 2D semantic distillation"),
         ComponentSpec("dgs", WeightedLossSet, DgsLossConfig, "colour + cross-entropy + 2D and depth-guided distill."),
+        ComponentSpec("image", ImageLossSet, ImageLossConfig,
+                      "colour MSE + D-SSIM on whole images + cross-entropy (Gaussian splatting: MVSplat's)"),
         ComponentSpec("instance", InstanceLossSet, InstanceLossConfig, "colour + Hungarian instance loss + 2D distill"),
         ComponentSpec(
             "label_free", LabelFreeLossSet, LabelFreeLossConfig, "colour + 2D and depth-guided distill., no labels"

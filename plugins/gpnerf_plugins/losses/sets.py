@@ -34,6 +34,7 @@ from gpnerf_plugins.losses.terms import (
     depth_guided_distance,
     rgb_mse,
     sample_window,
+    structural_dissimilarity,
 )
 
 DGS_CENTERS = ("pred_weights", "gt_depth")
@@ -116,6 +117,23 @@ class LabelFreeLossConfig(LossSetConfig):
     """Registry name of the loss set."""
     ce_weight: float = 0.0
     """The cross-entropy reads labels; this loss set has none (must stay 0)."""
+
+
+@dataclass
+class ImageLossConfig(LossSetConfig):
+    """Colour on whole images, MSE and D-SSIM, and the cross-entropy, for a family that renders whole images
+    (``TrainingBatch.IMAGES``: Gaussian splatting). MVSplat's loss is MSE + 0.05 LPIPS; LPIPS needs pretrained weights
+    that cannot be downloaded here, so the structural term is SSIM's, 3D Gaussian splatting's D-SSIM."""
+
+    name: str = "image"
+    """Registry name of the loss set."""
+    ssim_weight: float = 0.05
+    """Weight of ``1 - SSIM`` of the rendered image against the target (MVSplat's LPIPS weight; 3DGS: 0.2 with its L1
+    at 0.8)."""
+    sd_weight: float = 0.0
+    """Weight of the 2D semantic distillation (off; on for a family with a head: 0.25)."""
+    dgs_weight: float = 0.0
+    """Weight of the depth-guided distillation (off: a rasterizing family has no samples along its rays)."""
 
 
 class WeightedLossSet(LossSet):
@@ -225,3 +243,20 @@ class LabelFreeLossSet(WeightedLossSet):
                 "(a loss set with the cross-entropy: +loss=dgs)"
             )
         super().__init__(ce_weight=0.0, **options)
+
+
+class ImageLossSet(WeightedLossSet):
+    """``WeightedLossSet``'s terms and ``ssim``: ``1 - SSIM`` of the rendered image against the target, which needs a
+    whole-image batch (``LossInputs.as_image``; a ray batch is refused in one line). Args: the fields of
+    ``ImageLossConfig`` except ``name``."""
+
+    def __init__(self, *, ssim_weight: float = ImageLossConfig.ssim_weight, **options: float | bool | str) -> None:
+        super().__init__(**options, extra_weights={"ssim": float(ssim_weight)})
+        self.needs_semantics = any(term not in ("rgb", "ssim") for term in self.weights)
+        self.needs_whole_images = "ssim" in self.weights
+
+    @staticmethod
+    def _ssim(inputs: LossInputs) -> Tensor:
+        """On the last pass, at the pixels a masked frame's mask keeps."""
+        valid = None if inputs.valid_at_rays is None else inputs.as_image(inputs.valid_at_rays[:, None])[0]
+        return structural_dissimilarity(inputs.as_image(inputs.last.rgb), inputs.as_image(inputs.target_rgb), valid)

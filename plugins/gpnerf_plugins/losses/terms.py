@@ -131,3 +131,22 @@ def depth_guided_distance(sample_features: Tensor, teacher: Tensor, window: Tens
     if outside.numel() == 0:
         return pull
     return pull + outside.clamp(min=0.0).mean()
+
+
+def structural_dissimilarity(pred: Tensor, target: Tensor, valid: Tensor | None = None) -> Tensor:
+    """``1 - SSIM`` of two images, averaged over pixels and channels: Wang et al.'s SSIM with an 11-pixel Gaussian window
+    of sigma 1.5 on values in [0, 1] (``kornia.metrics.ssim``), the D-SSIM of 3D Gaussian splatting.
+
+    Args:
+        pred, target: ``[C, H, W]``.
+        valid: ``[H, W]`` bool, the pixels averaged over (None: all).
+    """
+    from kornia.metrics import ssim
+
+    if pred.shape != target.shape or pred.dim() != 3:
+        raise ConfigError(f"SSIM got images {tuple(pred.shape)} and {tuple(target.shape)}; expected the same [C, H, W]")
+    similarity = ssim(pred[None], target[None].to(pred.dtype), window_size=11, max_val=1.0)[0]  # [C, H, W]
+    if valid is None:
+        return 1.0 - similarity.mean()
+    weights = valid.to(similarity.dtype)[None].expand_as(similarity)
+    return 1.0 - (similarity * weights).sum() / weights.sum().clamp_min(1.0)

@@ -35,14 +35,8 @@ def build_mvsnerf(
         raise ConfigError(f"model.pad={pad}: expected [rows, columns], two cell counts")
     sampling = SurfaceSampling(sampler, surface_spread, surface_uncertainty)
     depth_source = parts.one_pass_depth_source("mvsnerf", sampler, fine_samples)
-    extractor, head = parts.build("feature_extractor"), None
-    if parts.configured("head"):
-        if not extractor.semantic_dim:
-            raise ConfigError(f"+head={parts.name('head')} with model=mvsnerf decodes rendered features in the "
-                              f"semantic maps' space of the feature extractor, and feature_extractor "
-                              f"{parts.name('feature_extractor')!r} makes none (feature_extractor.semantic=true, or "
-                              "another extractor such as feature_extractor=resunet_fpn)")
-        head = parts.head(in_dim=extractor.semantic_dim, in_levels=extractor.semantic_levels)
+    extractor = parts.build("feature_extractor")
+    head = parts.semantic_head(extractor, "mvsnerf")
     return MVSNeRF(
         extractor=extractor,
         head=head,

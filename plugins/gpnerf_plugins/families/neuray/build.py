@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from gpnerf_core import ConfigError, ModelParts, SurfaceSampling
+from gpnerf_core import ModelParts, SurfaceSampling
 from gpnerf_plugins.families.neuray.config import NeuRayConfig
 from gpnerf_plugins.families.neuray.model import VisibilityAwareRenderer
 
@@ -10,13 +10,8 @@ from gpnerf_plugins.families.neuray.model import VisibilityAwareRenderer
 def _build(parts: ModelParts, name: str, cross_reprojection: bool, coarse_samples: int, fine_samples: int,
            visibility_dim: int, sampling: SurfaceSampling) -> VisibilityAwareRenderer:
     depth_source = parts.one_pass_depth_source(name, sampling.sampler, fine_samples)
-    extractor, head = parts.build("feature_extractor"), None
-    if parts.configured("head"):
-        if not extractor.semantic_dim:
-            raise ConfigError(f"+head={parts.name('head')} with model={name} decodes rendered features in the semantic "
-                              f"maps' space of the feature extractor, and feature_extractor "
-                              f"{parts.name('feature_extractor')!r} makes none (feature_extractor.semantic=true)")
-        head = parts.head(in_dim=extractor.semantic_dim, in_levels=extractor.semantic_levels)
+    extractor = parts.build("feature_extractor")
+    head = parts.semantic_head(extractor, name)
     return VisibilityAwareRenderer(extractor=extractor, num_classes=parts.num_classes, head=head,
                                    coarse_samples=coarse_samples, fine_samples=fine_samples,
                                    visibility_dim=visibility_dim, cross_reprojection=cross_reprojection,

@@ -1,0 +1,19 @@
+"""A differentiable 3D Gaussian rasterizer (3DGS, Kerbl et al. 2023): EWA projection, tile binning, front-to-back
+compositing of any channels, with a pure-torch reference, a numba CPU backend and gsplat's CUDA kernel
+(docs/rasterizer.md).
+
+    from gpnerf_core import Gaussians, rasterize_gaussians
+    out = rasterize_gaussians(Gaussians(means, scales, rotations, opacities, features),
+                              intrinsics=K, c2w=c2w, height=H, width=W)
+
+Modules: ``records`` (what goes in and out), ``projection`` (EWA, culling, footprints), ``binning`` (tiles),
+``torch_backend``, ``numba_backend`` with ``numba_kernels`` (imported on first use), ``gsplat_backend``, and
+``rasterizer`` (the entry point and the backend choice).
+"""
+
+from gpnerf_core.geometry.gaussians.rasterizer import (
+    BACKENDS, RASTERIZER_BACKENDS, choose_backend, rasterize_gaussians,
+)
+from gpnerf_core.geometry.gaussians.records import Gaussians, Rasterized
+
+__all__ = ["BACKENDS", "Gaussians", "RASTERIZER_BACKENDS", "Rasterized", "choose_backend", "rasterize_gaussians"]

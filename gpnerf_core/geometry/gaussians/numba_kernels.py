@@ -1,0 +1,270 @@
+"""Numba CPU kernels: the tile compositor forward (front to back) and backward (back to front), tile by tile.
+
+Imported only by ``numba_backend`` when it first runs (numba's import and compilation stay out of ``import
+gpnerf_core``); compiled once per dtype and cached on disk (``cache=True``). The kernels release the GIL and take a
+list of tiles, so ``numba_backend`` runs them on its own threads (no numba threading layer: see there). Arrays are
+numpy views of contiguous tensors: ``means2d [G, 2]``, ``conics [G, 3]``, ``opacities [G]``, ``features [G, C]``,
+``depths [G]``, one float dtype; ``offsets [T + 1]`` and ``ids [N]`` int64 as ``binning.TileBins`` holds them. Pixel
+centres are at integer coordinates; a pixel's sums are kept in float64.
+
+A tile first copies its Gaussians' centres, conics and opacities into one local float64 table, with the ``power``
+under which ``o exp(power)`` is surely below 1/255 (``ln(1 / (255 o))`` less a hair), and lists them again per 4 x 4
+block of its pixels (those whose footprint box, ``projection``'s, touches the block; the others cannot reach its
+pixels). A pixel walks its block's list in chunks: a branch-free pass keeps the Gaussians whose ``power`` clears the
+cut (most do not, and a data-dependent branch per Gaussian cost more than its arithmetic), and only those get an
+``exp`` and the official tests, exactly as ``torch_backend`` makes them. The forward kernel at 24k Gaussians, 35
+channels, 96 x 128, one thread (docs/rasterizer.md): 154 ms as a plain per-Gaussian loop, 64 ms with the local table
+and the cut, 39 ms with the chunks, about 35 ms with the blocks. ``fill_tiles`` is the binning's counting sort.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from gpnerf_core.geometry.gaussians.projection import ALPHA_MAX, ALPHA_MIN, BOX_MARGIN, TRANSMITTANCE_MIN
+
+SURELY_BELOW = 1e-9
+"""Slack on the ``power`` cut, far above float64 rounding of ``log`` and ``exp``."""
+
+U, V, A, B, C, OPACITY, CUT = range(7)
+"""Columns of a tile's local table."""
+
+CHUNK = 64
+"""Gaussians a pixel sifts at once."""
+
+BLOCK = 4
+"""Side of the pixel blocks a tile lists its Gaussians for."""
+
+CHANNEL_MATH = {"reassoc", "contract"}
+"""LLVM may reorder and fuse the channel loops' sums (so it vectorizes them); nothing else is relaxed."""
+
+
+@njit(nogil=True, cache=True)
+def _table(means2d, conics, opacities, ids, start, end):
+    """``[n, 7]`` float64: u, v, conic a, b, c, opacity and the power cut of the tile's Gaussians ``ids[start:end]``."""
+    table = np.empty((end - start, 7))
+    for j in range(end - start):
+        gaussian = ids[start + j]
+        opacity = opacities[gaussian]
+        table[j, U], table[j, V] = means2d[gaussian, 0], means2d[gaussian, 1]
+        table[j, A], table[j, B], table[j, C] = conics[gaussian, 0], conics[gaussian, 1], conics[gaussian, 2]
+        table[j, OPACITY] = opacity
+        table[j, CUT] = math.log(ALPHA_MIN / opacity) - SURELY_BELOW if opacity > 0.0 else np.inf
+    return table
+
+
+@njit(nogil=True, cache=True)
+def _blocks(table, x0, y0, columns, rows):
+    """``(lists [blocks, n] int64, counts [blocks])``: per ``BLOCK`` x ``BLOCK`` block of the tile's ``rows`` x
+    ``columns`` pixels from (x0, y0), row-major, the local Gaussians (in order) whose footprint box touches it: the box
+    of ``d^T conic d <= 2 ln(255 o)``, half-widths ``sqrt(2 ln(255 o) Sigma'_uu)`` (``Sigma' = conic^-1``) widened
+    as ``projection`` widens them."""
+    across = (columns + BLOCK - 1) // BLOCK
+    count = across * ((rows + BLOCK - 1) // BLOCK)
+    lists = np.empty((count, table.shape[0]), dtype=np.int64)
+    counts = np.zeros(count, dtype=np.int64)
+    for j in range(table.shape[0]):
+        reach = 2.0 * (-table[j, CUT] - SURELY_BELOW)  # 2 ln(255 o): k^2
+        if reach < 0.0:
+            continue
+        det = table[j, A] * table[j, C] - table[j, B] * table[j, B]
+        first_col, last_col, first_row, last_row = 0, columns - 1, 0, rows - 1
+        if det > 0.0:  # else (rounding of a needle's conic): every block
+            half_u = math.sqrt(reach * table[j, C] / det) * (1.0 + 1e-6) + BOX_MARGIN
+            half_v = math.sqrt(reach * table[j, A] / det) * (1.0 + 1e-6) + BOX_MARGIN
+            first_col = max(first_col, math.ceil(table[j, U] - half_u) - x0)
+            last_col = min(last_col, math.floor(table[j, U] + half_u) - x0)
+            first_row = max(first_row, math.ceil(table[j, V] - half_v) - y0)
+            last_row = min(last_row, math.floor(table[j, V] + half_v) - y0)
+        for block_row in range(first_row // BLOCK, last_row // BLOCK + 1) if first_row <= last_row else range(0):
+            for block_col in range(first_col // BLOCK, last_col // BLOCK + 1) if first_col <= last_col else range(0):
+                block = block_row * across + block_col
+                lists[block, counts[block]] = j
+                counts[block] += 1
+    return lists, counts
+
+
+@njit(nogil=True, cache=True, fastmath=CHANNEL_MATH)
+def _channels_back(grads, features, gaussian, rest, alpha, weight, out_features, k):
+    """One Gaussian's channels on the way back, f = ``features[gaussian]``: ``out_features[k] += weight * grads`` (its
+    features' gradient), the rest behind it ``rest += alpha (f - rest)``; returns ``grads . (f - rest_before)``."""
+    dot = 0.0
+    for channel in range(rest.shape[0]):
+        difference = features[gaussian, channel] - rest[channel]
+        dot += grads[channel] * difference
+        rest[channel] += alpha * difference
+        out_features[k, channel] += weight * grads[channel]
+    return dot
+
+
+@njit(nogil=True, cache=True)
+def fill_tiles(ids, low, high, tiles_x, tiles_y):
+    """``binning.fill_tiles``'s lists by a counting sort: ``(offsets [T + 1], listed ids [N])`` of Gaussians ``ids``
+    (front to back) over the tile rectangles ``low [n, 2]`` ... ``high [n, 2]``."""
+    offsets = np.zeros(tiles_x * tiles_y + 1, dtype=np.int64)
+    for i in range(ids.shape[0]):
+        for row in range(low[i, 1], high[i, 1] + 1):
+            for col in range(low[i, 0], high[i, 0] + 1):
+                offsets[row * tiles_x + col + 1] += 1
+    for tile in range(tiles_x * tiles_y):
+        offsets[tile + 1] += offsets[tile]
+    cursor = offsets[:-1].copy()
+    listed = np.empty(offsets[-1], dtype=np.int64)
+    for i in range(ids.shape[0]):
+        for row in range(low[i, 1], high[i, 1] + 1):
+            for col in range(low[i, 0], high[i, 0] + 1):
+                tile = row * tiles_x + col
+                listed[cursor[tile]] = ids[i]
+                cursor[tile] += 1
+    return offsets, listed
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _sift(table, listed, low, high, px, py, found, backwards):
+    """Write into ``found`` the positions m in ``[low, high)`` of the block list ``listed`` whose Gaussian's power at
+    pixel (px, py) lies in [cut, 0] (in order, or in reverse order); return how many. No branch depends on the data."""
+    count = 0
+    for step in range(high - low):
+        m = high - 1 - step if backwards else low + step
+        j = listed[m]
+        dx, dy = table[j, U] - px, table[j, V] - py
+        power = -0.5 * (table[j, A] * dx * dx + table[j, C] * dy * dy) - table[j, B] * dx * dy
+        found[count] = m
+        count += (power >= table[j, CUT]) & (power <= 0.0)
+    return count
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _alpha(table, j, px, py):
+    """(alpha, exp(power), dx, dy) of local Gaussian j at pixel (px, py), d = centre - pixel; alpha 0 if skipped."""
+    dx, dy = table[j, U] - px, table[j, V] - py
+    power = -0.5 * (table[j, A] * dx * dx + table[j, C] * dy * dy) - table[j, B] * dx * dy
+    if power < table[j, CUT] or power > 0.0:
+        return 0.0, 0.0, dx, dy
+    gauss = math.exp(power)
+    alpha = min(ALPHA_MAX, table[j, OPACITY] * gauss)
+    if alpha < ALPHA_MIN:
+        return 0.0, gauss, dx, dy
+    return alpha, gauss, dx, dy
+
+
+@njit(nogil=True, cache=True)
+def forward_tiles(tiles, means2d, conics, opacities, features, depths, offsets, ids, height, width, tile_size,
+                  out_features, out_depth, out_transmittance, out_walked):
+    """Composite the ``tiles`` (indices) into ``out_features [H, W, C]``, ``out_depth [H, W]``, the final
+    transmittance ``[H, W]`` and ``out_walked [H, W]`` int32: how far down its block's list the pixel's last
+    composited Gaussian is (1-based; 0: none)."""
+    tiles_x = (width + tile_size - 1) // tile_size
+    channels = features.shape[1]
+    accumulated = np.empty(channels)
+    found = np.empty(CHUNK, dtype=np.int64)
+    for tile in tiles:
+        start, end = offsets[tile], offsets[tile + 1]
+        y0, x0 = (tile // tiles_x) * tile_size, (tile % tiles_x) * tile_size
+        table = _table(means2d, conics, opacities, ids, start, end)
+        columns, rows = min(tile_size, width - x0), min(tile_size, height - y0)
+        lists, counts = _blocks(table, x0, y0, columns, rows)
+        across = (columns + BLOCK - 1) // BLOCK
+        for py in range(y0, y0 + rows):
+            for px in range(x0, x0 + columns):
+                block = ((py - y0) // BLOCK) * across + (px - x0) // BLOCK
+                listed, length = lists[block], counts[block]
+                transmittance, depth, walked = 1.0, 0.0, 0
+                accumulated[:] = 0.0
+                low, stopped = 0, False
+                while low < length and not stopped:
+                    high = min(low + CHUNK, length)
+                    for q in range(_sift(table, listed, low, high, px, py, found, False)):
+                        m = found[q]
+                        j = listed[m]
+                        alpha, _, _, _ = _alpha(table, j, px, py)
+                        if alpha == 0.0:
+                            continue
+                        after = transmittance * (1.0 - alpha)
+                        if after < TRANSMITTANCE_MIN:
+                            stopped = True
+                            break
+                        weight = alpha * transmittance
+                        gaussian = ids[start + j]
+                        for channel in range(channels):
+                            accumulated[channel] += weight * features[gaussian, channel]
+                        depth += weight * depths[gaussian]
+                        transmittance = after
+                        walked = m + 1
+                    low = high
+                for channel in range(channels):
+                    out_features[py, px, channel] = accumulated[channel]
+                out_depth[py, px] = depth
+                out_transmittance[py, px] = transmittance
+                out_walked[py, px] = walked
+
+
+@njit(nogil=True, cache=True)
+def backward_tiles(tiles, means2d, conics, opacities, features, depths, offsets, ids, height, width, tile_size,
+                   transmittance, walked, grad_features, grad_depth, grad_alpha,
+                   out_means2d, out_conics, out_opacities, out_features, out_depths):
+    """Per-intersection gradients (row k of each ``out_*`` belongs to ``ids[k]``; zero-filled by the caller) of the
+    loss whose gradients on the outputs are ``grad_features [H, W, C]``, ``grad_depth [H, W]``, ``grad_alpha [H, W]``.
+
+    Walks each pixel's block list back to front from its last composited Gaussian, recovering
+    ``T_i = T_{i+1} / (1 - a_i)`` and the normalised rest behind it ``S_{i+1}``: ``dL/da_i = T_i (g_F . (f_i - S_{i+1}) + g_D (z_i - SD_{i+1}))
+    + g_A T_final / (1 - a_i)``; then through ``a = o exp(power)`` (zero where the 0.99 cap binds).
+    """
+    tiles_x = (width + tile_size - 1) // tile_size
+    channels = features.shape[1]
+    rest = np.empty(channels)
+    grads = np.empty(channels)
+    found = np.empty(CHUNK, dtype=np.int64)
+    for tile in tiles:
+        start = offsets[tile]
+        y0, x0 = (tile // tiles_x) * tile_size, (tile % tiles_x) * tile_size
+        table = _table(means2d, conics, opacities, ids, start, offsets[tile + 1])
+        columns, rows = min(tile_size, width - x0), min(tile_size, height - y0)
+        lists, _ = _blocks(table, x0, y0, columns, rows)
+        across = (columns + BLOCK - 1) // BLOCK
+        for py in range(y0, y0 + rows):
+            for px in range(x0, x0 + columns):
+                listed = lists[((py - y0) // BLOCK) * across + (px - x0) // BLOCK]
+                last = walked[py, px]
+                if last == 0:
+                    continue
+                final = transmittance[py, px]
+                after = final
+                rest[:] = 0.0
+                rest_depth = 0.0
+                g_depth, g_alpha = grad_depth[py, px], grad_alpha[py, px]
+                for channel in range(channels):
+                    grads[channel] = grad_features[py, px, channel]
+                high = last
+                while high > 0:
+                    low = max(0, high - CHUNK)
+                    for q in range(_sift(table, listed, low, high, px, py, found, True)):
+                        j = listed[found[q]]
+                        alpha, gauss, dx, dy = _alpha(table, j, px, py)
+                        if alpha == 0.0:
+                            continue
+                        k = start + j
+                        gaussian = ids[k]
+                        before = after / (1.0 - alpha)
+                        weight = alpha * before
+                        dot = _channels_back(grads, features, gaussian, rest, alpha, weight, out_features, k)
+                        depth = depths[gaussian]
+                        out_depths[k] += weight * g_depth
+                        d_alpha = before * (dot + g_depth * (depth - rest_depth)) + g_alpha * final / (1.0 - alpha)
+                        rest_depth = alpha * depth + (1.0 - alpha) * rest_depth
+                        after = before
+                        raw = table[j, OPACITY] * gauss
+                        if raw > ALPHA_MAX:  # the cap binds: alpha does not move with o or power
+                            continue
+                        out_opacities[k] += gauss * d_alpha
+                        d_power = raw * d_alpha
+                        a, b, c = table[j, A], table[j, B], table[j, C]
+                        out_means2d[k, 0] -= d_power * (a * dx + b * dy)
+                        out_means2d[k, 1] -= d_power * (b * dx + c * dy)
+                        out_conics[k, 0] -= 0.5 * d_power * dx * dx
+                        out_conics[k, 1] -= d_power * dx * dy
+                        out_conics[k, 2] -= 0.5 * d_power * dy * dy
+                    high = low

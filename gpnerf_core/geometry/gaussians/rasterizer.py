@@ -1,0 +1,99 @@
+"""``rasterize_gaussians``: project, bin into tiles, composite front to back with the chosen backend.
+
+Per pixel, front to back over its tile's depth-sorted list (the official 3DGS kernel's rules): ``power = -d^T conic d
+/ 2`` with d the centre minus the pixel centre, skipped if ``power > 0``; ``alpha = min(0.99, o exp(power))``, skipped
+below 1/255; the walk stops at the first Gaussian that would bring the transmittance T under 1e-4, that one excluded;
+otherwise ``w = alpha T`` weighs its features and depth and ``T <- T (1 - alpha)``. ``alpha_out = 1 - T``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import fields
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from gpnerf_core.errors import ConfigError, NonFiniteError
+from gpnerf_core.geometry.gaussians.binning import TileBins, bin_gaussians, fill_tiles
+from gpnerf_core.geometry.gaussians.gsplat_backend import composite_gsplat, gsplat_available
+from gpnerf_core.geometry.gaussians.numba_backend import composite_numba, fill_tiles_numba, kernels
+from gpnerf_core.geometry.gaussians.projection import project_gaussians
+from gpnerf_core.geometry.gaussians.records import Gaussians, Rasterized
+from gpnerf_core.geometry.gaussians.torch_backend import composite_torch
+from gpnerf_core.runtime.finite import all_finite
+
+Compositor = Callable[[Tensor, Tensor, Tensor, Tensor, Tensor, TileBins, int, int], tuple[Tensor, Tensor, Tensor]]
+
+BACKENDS: dict[str, Compositor] = {"torch": composite_torch, "numba": composite_numba, "gsplat": composite_gsplat}
+"""Backend name -> compositor; ``"auto"`` picks one of them (``choose_backend``)."""
+
+RASTERIZER_BACKENDS: tuple[str, ...] = ("auto", *BACKENDS)
+"""The names ``rasterize_gaussians(backend=...)`` takes."""
+
+
+def choose_backend(name: str, device: torch.device) -> str:
+    """The backend ``name`` resolves to for tensors on ``device``: ``"auto"`` is gsplat on CUDA when installed, numba on
+    the CPU when importable, else torch; a named backend that cannot run there is a ``ConfigError``."""
+    if name == "auto":
+        if device.type == "cuda" and gsplat_available():
+            return "gsplat"
+        return "numba" if device.type == "cpu" and kernels() is not None else "torch"
+    if name not in BACKENDS:
+        raise ConfigError(f"rasterizer backend {name!r} is unknown; known: auto, {', '.join(BACKENDS)}")
+    if name == "numba" and (device.type != "cpu" or kernels() is None):
+        raise ConfigError(f"rasterizer backend 'numba' needs CPU tensors and an importable numba "
+                          f"(tensors on {device}, numba {'importable' if kernels() else 'not importable'})")
+    if name == "gsplat" and (device.type != "cuda" or not gsplat_available()):
+        raise ConfigError(f"rasterizer backend 'gsplat' needs CUDA tensors and gsplat installed "
+                          f"(tensors on {device}, gsplat {'installed' if gsplat_available() else 'not installed'})")
+    return name
+
+
+def _check(gaussians: Gaussians, intrinsics: Tensor, c2w: Tensor, height: int, width: int, tile_size: int,
+           background: Tensor | None) -> None:
+    if min(height, width, tile_size) < 1:
+        raise ConfigError(f"rasterizer image {height} x {width}, tile_size {tile_size}: expected all >= 1")
+    if tuple(intrinsics.shape) != (3, 3) or tuple(c2w.shape) != (4, 4):
+        raise ValueError(f"intrinsics {list(intrinsics.shape)}, c2w {list(c2w.shape)}: expected [3, 3] and [4, 4]")
+    if background is not None and tuple(background.shape) != (gaussians.channels,):
+        raise ValueError(f"background {list(background.shape)}: expected [{gaussians.channels}] (one per channel)")
+    named = {"means": gaussians.means, "scales": gaussians.scales, "rotations": gaussians.rotations,
+             "opacities": gaussians.opacities, "features": gaussians.features, "intrinsics": intrinsics, "c2w": c2w,
+             "background": background}
+    for name, tensor in named.items():
+        if tensor is not None and not all_finite(tensor.detach()):
+            raise NonFiniteError(f"rasterize_gaussians: {name} holds NaN or Inf")
+
+
+def rasterize_gaussians(gaussians: Gaussians, *, intrinsics: Tensor, c2w: Tensor, height: int, width: int,
+                        near: float = 0.01, background: Tensor | None = None, tile_size: int = 16,
+                        backend: str = "auto") -> Rasterized:
+    """Render ``gaussians`` into one pinhole view, differentiably in every Gaussian parameter.
+
+    Args:
+        gaussians: G activated Gaussians in the world frame; every tensor is cast to ``means``' dtype.
+        intrinsics: ``[3, 3]`` pinhole matrix at ``height`` x ``width`` (pixel centres at integer coordinates).
+        c2w: ``[4, 4]`` camera-to-world pose (OpenCV: x right, y down, z forward), metres.
+        height, width: image size, pixels.
+        near: Gaussians at camera z <= near (metres) are culled.
+        background: ``[C]`` added as ``background * (1 - alpha)`` to the features, or None.
+        tile_size: side of the square tiles, pixels (the result does not depend on it).
+        backend: ``"torch"``, ``"numba"``, ``"gsplat"`` or ``"auto"`` (``choose_backend``).
+
+    Raises:
+        NonFiniteError: NaN or Inf in an input (named), or a covariance overflowing the dtype.
+        ConfigError: an unknown backend, or one that cannot run on these tensors; a size below 1.
+    """
+    _check(gaussians, intrinsics, c2w, height, width, tile_size, background)
+    name = choose_backend(backend, gaussians.means.device)
+    dtype = gaussians.means.dtype
+    gaussians = Gaussians(*(getattr(gaussians, field.name).to(dtype) for field in fields(Gaussians)))
+    projected = project_gaussians(gaussians, intrinsics, c2w, height, width, near)
+    bins = bin_gaussians(projected, height, width, tile_size, fill_tiles_numba if name == "numba" else fill_tiles)
+    features, depth, alpha = BACKENDS[name](projected.means2d, projected.conics, projected.opacities,
+                                            gaussians.features, projected.depths, bins, height, width)
+    if background is not None:
+        features = features + background.to(dtype) * (1.0 - alpha)[..., None]
+    return Rasterized(features=features, depth=depth, alpha=alpha, means2d=projected.means2d, radii=projected.radii,
+                      culled_behind=projected.culled_behind, clamped=projected.clamped, backend=name)

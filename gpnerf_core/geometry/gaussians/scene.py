@@ -1,0 +1,97 @@
+"""A scene as 3D Gaussians in the world frame, as splat viewers and the standard 3D Gaussian splatting PLY hold it.
+
+``GaussianScene`` is what a Gaussian family hands ``export`` (the PLY) and ``view`` (splats in the browser):
+activated values in the world frame, colour as spherical harmonics whose directions are world directions, and a label
+per Gaussian (its class or instance slot, -1 where the model has none).
+
+The PLY is the one the official code writes (``GaussianModel.save_ply``) and common viewers read: one ``vertex``
+element with float properties ``x y z nx ny nz``, ``f_dc_0..2`` (the degree-0 coefficient per channel),
+``f_rest_*`` (the others, channel-major: all of red's, then green's, then blue's), ``opacity`` (a logit), ``scale_0..2``
+(natural logs) and ``rot_0..3`` (``w x y z``), then an int ``label``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from gpnerf_core.geometry.gaussians.harmonics import sh_basis
+
+OPACITY_LIMIT = 1e-6
+"""Opacities are clamped to [this, 1 - this] before their logit is written (a 0 or 1 has no finite logit)."""
+
+
+@dataclass(frozen=True)
+class GaussianScene:
+    """G Gaussians in the world frame.
+
+    Attributes:
+        means: ``[G, 3]`` metres; scales: ``[G, 3]`` standard deviations, metres; rotations: ``[G, 4]`` unit
+            quaternions ``(w, x, y, z)``; opacities: ``[G]`` in [0, 1].
+        harmonics: ``[G, 3, (degree + 1)^2]`` colour coefficients in world directions (``sh_colours``'s convention:
+            colour = max(0, sum_k Y_k(d) c_k + 0.5)).
+        labels: ``[G]`` int64 class id or instance slot, -1 where none.
+    """
+
+    means: Tensor
+    scales: Tensor
+    rotations: Tensor
+    opacities: Tensor
+    harmonics: Tensor
+    labels: Tensor
+
+    @property
+    def count(self) -> int:
+        return int(self.means.shape[0])
+
+    def ply_columns(self) -> dict[str, np.ndarray]:
+        """The standard 3DGS PLY's properties (the module docstring), then ``label``, as float32 / int32 arrays."""
+        def column(values: Tensor) -> np.ndarray:
+            return values.detach().to("cpu", torch.float32).numpy()
+
+        columns: dict[str, np.ndarray] = {}
+        for axis, name in enumerate("xyz"):
+            columns[name] = column(self.means[:, axis])
+        for name in ("nx", "ny", "nz"):
+            columns[name] = np.zeros(self.count, dtype=np.float32)
+        for channel in range(3):
+            columns[f"f_dc_{channel}"] = column(self.harmonics[:, channel, 0])
+        rest = self.harmonics[:, :, 1:].reshape(self.count, -1)  # channel-major
+        for index in range(rest.shape[1]):
+            columns[f"f_rest_{index}"] = column(rest[:, index])
+        opacity = self.opacities.clamp(OPACITY_LIMIT, 1 - OPACITY_LIMIT)
+        columns["opacity"] = column(torch.log(opacity / (1 - opacity)))
+        for axis in range(3):
+            columns[f"scale_{axis}"] = column(torch.log(self.scales[:, axis].clamp_min(1e-12)))
+        rotations = self.rotations / self.rotations.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        for index in range(4):
+            columns[f"rot_{index}"] = column(rotations[:, index])
+        columns["label"] = self.labels.detach().to("cpu", torch.int32).numpy()
+        return columns
+
+
+def harmonics_rotation(rotation: Tensor, degree: int) -> Tensor:
+    """``[(degree + 1)^2, (degree + 1)^2]`` M with ``Y(R^T d) = Y(d) M`` for every unit d: coefficients ``c`` of a colour
+    defined on directions of a frame rotated by ``R`` (frame-to-world) are ``M c`` in world directions. Found by least
+    squares on directions spread over the sphere (exact: each degree's harmonics span a rotation-invariant space, so
+    M is block-diagonal and the fit has no residual)."""
+    count = 2 * (degree + 1) ** 2 + 16
+    index = torch.arange(count, dtype=torch.float64) + 0.5
+    polar = torch.acos(1 - 2 * index / count)
+    azimuth = math.pi * (1 + 5**0.5) * index  # a Fibonacci sphere
+    directions = torch.stack([polar.sin() * azimuth.cos(), polar.sin() * azimuth.sin(), polar.cos()], dim=-1)
+    world = sh_basis(directions, degree)
+    framed = sh_basis(directions @ rotation.to(torch.float64), degree)  # Y(R^T d), d as rows
+    return torch.linalg.lstsq(world, framed).solution.to(rotation.dtype)
+
+
+def rotate_harmonics(coefficients: Tensor, rotations: Tensor, index: Tensor) -> Tensor:
+    """``[G, C, k]`` coefficients defined in frames rotated by ``rotations[index]`` (``[F, 3, 3]`` frame-to-world, one
+    per frame; ``index`` ``[G]``) turned into world directions."""
+    degree = math.isqrt(coefficients.shape[-1]) - 1
+    matrices = torch.stack([harmonics_rotation(r, degree) for r in rotations]).to(coefficients.dtype)  # [F, k, k]
+    return torch.einsum("gkj,gcj->gck", matrices[index], coefficients)

@@ -1,0 +1,61 @@
+"""Building the ``mvsplat`` family from its options and the configured feature extractor and head."""
+
+from __future__ import annotations
+
+import math
+
+from gpnerf_core import RASTERIZER_BACKENDS, ConfigError, ModelParts
+from gpnerf_plugins.families.mvsplat.config import MVSplatConfig
+from gpnerf_plugins.families.mvsplat.model import MVSplat
+
+
+def _check(feature_dim: int, transformer_layers: int, attention_splits: int, depth_candidates: int, cost_unet_dim: int,
+           depth_unet_dim: int, unet_levels: int, scale_min: float, scale_max: float, background: float,
+           rasterizer: str) -> None:
+    counts = {"feature_dim": (feature_dim, 2), "transformer_layers": (transformer_layers, 0),
+              "attention_splits": (attention_splits, 1), "depth_candidates": (depth_candidates, 2),
+              "cost_unet_dim": (cost_unet_dim, 1), "depth_unet_dim": (depth_unet_dim, 1), "unet_levels": (unet_levels, 1)}
+    for key, (value, least) in counts.items():
+        if isinstance(value, bool) or not isinstance(value, int) or value < least:
+            raise ConfigError(f"model.{key}={value!r}: expected an integer >= {least}")
+    if feature_dim % 2:
+        raise ConfigError(f"model.feature_dim={feature_dim}: expected an even number (half the position embedding is "
+                          "for rows, half for columns)")
+    if not (math.isfinite(scale_min) and math.isfinite(scale_max) and 0 < scale_min < scale_max):
+        raise ConfigError(f"model.scale_min={scale_min}, model.scale_max={scale_max}: expected finite 0 < min < max")
+    if not (math.isfinite(background) and 0 <= background <= 1):
+        raise ConfigError(f"model.background={background}: expected a colour value in [0, 1]")
+    if rasterizer not in RASTERIZER_BACKENDS:
+        raise ConfigError(f"model.rasterizer={rasterizer!r}: expected one of {', '.join(RASTERIZER_BACKENDS)}")
+
+
+def build_mvsplat(
+    *,
+    parts: ModelParts,
+    feature_dim: int = MVSplatConfig.feature_dim,
+    transformer_layers: int = MVSplatConfig.transformer_layers,
+    attention_splits: int = MVSplatConfig.attention_splits,
+    depth_candidates: int = MVSplatConfig.depth_candidates,
+    cost_unet_dim: int = MVSplatConfig.cost_unet_dim,
+    depth_unet_dim: int = MVSplatConfig.depth_unet_dim,
+    unet_levels: int = MVSplatConfig.unet_levels,
+    sh_degree: int = MVSplatConfig.sh_degree,
+    scale_min: float = MVSplatConfig.scale_min,
+    scale_max: float = MVSplatConfig.scale_max,
+    label_rendering: bool = MVSplatConfig.label_rendering,
+    background: float = MVSplatConfig.background,
+    rasterizer: str = MVSplatConfig.rasterizer,
+) -> MVSplat:
+    """The extractor the config selects (its 1/4 radiance maps are MVSplat's CNN features) and the family's own
+    networks. Without a ``+head`` each Gaussian carries class scores (label rendering); with one it carries the
+    extractor's semantic feature at its source pixel, which needs an extractor with semantic maps (refused in one line
+    otherwise)."""
+    _check(feature_dim, transformer_layers, attention_splits, depth_candidates, cost_unet_dim, depth_unet_dim,
+           unet_levels, float(scale_min), float(scale_max), float(background), rasterizer)
+    extractor = parts.build("feature_extractor")
+    head = parts.semantic_head(extractor, "mvsplat", decodes="the Gaussians' semantic features")
+    return MVSplat(extractor=extractor, head=head, num_classes=parts.num_classes if label_rendering else 0,
+                   feature_dim=feature_dim, transformer_layers=transformer_layers, attention_splits=attention_splits,
+                   depth_candidates=depth_candidates, cost_unet_dim=cost_unet_dim, depth_unet_dim=depth_unet_dim,
+                   unet_levels=unet_levels, sh_degree=sh_degree, scale_min=scale_min, scale_max=scale_max,
+                   background=background, rasterizer=rasterizer)

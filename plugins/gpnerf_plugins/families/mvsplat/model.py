@@ -1,0 +1,276 @@
+"""MVSplat (Chen et al., ECCV 2024, official code ``donydchen/mvsplat``) with semantics: ``model=mvsplat``, the first
+family that rasterizes instead of marching rays (docs/families/mvsplat.md).
+
+From the V source views, once per source set (``encode_sources``, kept by ``render``, ``view`` and ``export``):
+
+1. The configured ``feature_extractor`` encodes each view; its 1/4 radiance map, projected to ``feature_dim`` channels,
+   is MVSplat's "CNN feature" (``project``).
+2. The multi-view Transformer (``transformer.MultiViewTransformer``) lets every view attend to itself and to the others
+   in (shifted) windows.
+3. Per view, a plane-sweep cost volume of feature correlations with the other views over ``depth_candidates`` depths
+   uniform in inverse depth (``gpnerf_core.plane_sweep``), refined by a 2D U-Net; depth by soft-argmin; upsampled to
+   the image and refined by a second U-Net; a head gives each pixel's Gaussian (``depth.DepthPredictor``).
+4. One Gaussian per source pixel (``adapter.pixel_gaussians``): centre at its depth, opacity from the refinement
+   (MVSplat's ``map_pdf_to_opacity`` is the identity with its released settings), scale, rotation, spherical-harmonic
+   colour.
+
+Per target view, the Gaussians are rasterized (``gpnerf_core.rasterize_gaussians``, any backend): colour from the
+harmonics seen from the target, depth, and the semantics, both ways:
+
+* **label rendering** (no ``+head``): each Gaussian also carries K class scores from the same head, composited per
+  pixel like the colour (``+experiment=baselines/mvsplat``);
+* **decoded** (``+head=unet``): each Gaussian carries the extractor's semantic feature at its source pixel, rasterized
+  into a map at the semantic maps' resolution that the head decodes with its image context, GP-NeRF's decoding on a
+  Gaussian field (``+experiment=baselines/mvsplat_unet``); in training the map is rendered whole, so it is the head's
+  input as it is (every cell is rendered: nothing of the teacher is fused in), and the S.D loss compares it with the
+  target image's own map at every pixel.
+
+Training renders whole target images (``TrainingBatch.IMAGES``): MVSplat's loss is on images (MSE + 0.05 LPIPS; LPIPS
+needs weights that cannot be downloaded here, so the ``image`` loss set takes SSIM in its place).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from gpnerf_core import (
+    ConfigError,
+    FeatureExtractor,
+    GaussianScene,
+    Gaussians,
+    LabelsOrHead,
+    PerceptionHead,
+    Prediction,
+    RenderedRays,
+    SourceEncoding,
+    SourceViews,
+    StepBatch,
+    StepOutput,
+    TargetCamera,
+    TargetView,
+    TrainingBatch,
+    ViewOutput,
+    cells_of_pixels,
+    decode_checked,
+    gather_cells,
+    rasterize_gaussians,
+    rotate_harmonics,
+    sh_coefficients,
+)
+from gpnerf_plugins.families.mvsplat.adapter import GEOMETRY_CHANNELS, PixelGaussians, pixel_gaussians
+from gpnerf_plugins.families.mvsplat.depth import DepthPredictor
+from gpnerf_plugins.families.mvsplat.transformer import MultiViewTransformer
+
+MAP_STRIDE = 4
+"""Stride of the extractor's radiance map, the cost volume's cells."""
+
+
+@dataclass(frozen=True)
+class RenderedImage:
+    """One view rasterized on a ``stride`` grid: colour ``[h, w, 3]``, depth ``[h, w]`` (metres, the composited
+    depth over the accumulated opacity; 0 where nothing is), accumulated opacity ``[h, w]``, class scores ``[h, w, K]``
+    or None, and the semantic map ``[1, C, h, w]`` or None."""
+
+    rgb: Tensor
+    depth: Tensor
+    alpha: Tensor
+    scores: Tensor | None
+    semantic: Tensor | None = None
+
+
+def strided_camera(camera: TargetCamera, stride: int) -> tuple[Tensor, int, int]:
+    """``(intrinsics, height, width)`` of the grid of every ``stride``-th pixel's cell (a cell's centre is the full
+    image's pixel ``(j + 0.5) stride - 0.5``, as ``gpnerf_core.pixel_grid``)."""
+    if camera.height % stride or camera.width % stride:
+        raise ConfigError(f"image size {camera.height}x{camera.width} is not divisible by the render stride {stride}")
+    intrinsics = camera.intrinsics.clone()
+    intrinsics[:2, :2] /= stride
+    intrinsics[:2, 2] = (intrinsics[:2, 2] + 0.5) / stride - 0.5
+    return intrinsics, camera.height // stride, camera.width // stride
+
+
+class MVSplat(LabelsOrHead):
+    """MVSplat with semantics (the module docstring).
+
+    Args:
+        extractor: the configured feature extractor (its 1/4 radiance maps; with a head, its semantic maps and the
+            teacher).
+        head: the perception head decoding the rasterized semantic map, or None (label rendering).
+        num_classes: K class scores per Gaussian without a head (0: colour and depth only).
+        feature_dim, transformer_layers, attention_splits: the multi-view Transformer.
+        depth_candidates, cost_unet_dim, depth_unet_dim, unet_levels: the depth predictor.
+        sh_degree, scale_min, scale_max: the Gaussian adapter.
+        background: colour where no Gaussian covers a pixel.
+        rasterizer: the rasterizer backend (``gpnerf_core.rasterize_gaussians``).
+    """
+
+    trains_on = TrainingBatch.IMAGES
+    source_encoding = SourceEncoding.SOURCE_SET
+
+    def __init__(self, *, extractor: FeatureExtractor, head: PerceptionHead | None, num_classes: int, feature_dim: int,
+                 transformer_layers: int, attention_splits: int, depth_candidates: int, cost_unet_dim: int,
+                 depth_unet_dim: int, unet_levels: int, sh_degree: int, scale_min: float, scale_max: float,
+                 background: float, rasterizer: str) -> None:
+        super().__init__()
+        self.extractor, self.head = extractor, head
+        self.num_classes = int(num_classes) if head is None else 0
+        self.sh_degree, self.scale_min, self.scale_max = int(sh_degree), float(scale_min), float(scale_max)
+        self.background, self.rasterizer = float(background), str(rasterizer)
+        self.attention_splits, self.unet_levels = int(attention_splits), int(unet_levels)
+        raw = GEOMETRY_CHANNELS + 3 * sh_coefficients(self.sh_degree) + self.num_classes
+        self.project = nn.Conv2d(extractor.radiance_dim, feature_dim, 1)
+        self.transformer = MultiViewTransformer(feature_dim, transformer_layers, attention_splits)
+        self.depth = DepthPredictor(feature_dim=feature_dim, candidates=depth_candidates, cost_dim=cost_unet_dim,
+                                    depth_dim=depth_unet_dim, levels=unet_levels, raw_channels=raw,
+                                    upscale=MAP_STRIDE)
+
+    # ---- what the model is ------------------------------------------------------------------------------------------
+
+    def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
+        """The extractor under ``feature_extractor``, the head under ``head`` (``train.lr``), MVSplat's own networks
+        under its own group ``mvsplat`` (``model.lr.mvsplat``)."""
+        groups = super().parameter_groups()
+        groups["mvsplat"] = groups.pop("transformer")
+        return groups
+
+    def check_image_size(self, height: int, width: int) -> None:
+        """The extractor's sizes; a 1/4 map whose sides the attention windows and the U-Net can take."""
+        self.extractor.check_image_size(height, width)
+        unit = MAP_STRIDE * self.attention_splits
+        if height % unit or width % unit:
+            raise ConfigError(f"image size {height}x{width} (HxW): mvsplat's attention cuts the 1/{MAP_STRIDE} feature "
+                              f"map into {self.attention_splits}x{self.attention_splits} windows (model.attention_"
+                              f"splits); expected sides that are multiples of {unit} pixels")
+
+    # ---- the Gaussians of a source set ------------------------------------------------------------------------------
+
+    def encode_sources(self, sources: SourceViews, *, near: float, far: float) -> PixelGaussians:
+        """One Gaussian per pixel of every source view (the module docstring, steps 1-4); ``near`` and ``far`` bound
+        the depth candidates, metres."""
+        if sources.num_views < 1:
+            raise ConfigError("mvsplat predicts Gaussians from source views: expected at least 1 (2 to match them "
+                              "against each other; model.num_source_views)")
+        maps = self.extractor(sources.rgb)
+        cnn = self.project(maps.radiance)
+        depth = self.depth(self.transformer(cnn), cnn, sources, near, far)
+        semantic, semantic_stride = None, 0
+        if self.head is not None:
+            semantic_stride = sources.image_size[0] // int(maps.semantic.shape[-2])
+            semantic = F.interpolate(maps.semantic, size=sources.image_size, mode="bilinear", align_corners=False)
+        return pixel_gaussians(depth.raw, depth.depth, depth.opacity, depth.confidence, sources,
+                               sh_degree=self.sh_degree, scale_min=self.scale_min, scale_max=self.scale_max,
+                               semantic=semantic, semantic_stride=semantic_stride, extras=self.num_classes)
+
+    # ---- rasterizing ------------------------------------------------------------------------------------------------
+
+    def _rasterize(self, gaussians: PixelGaussians, features: Tensor, camera: TargetCamera, stride: int,
+                   background: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        intrinsics, height, width = strided_camera(camera, stride)
+        out = rasterize_gaussians(
+            Gaussians(gaussians.means, gaussians.scales, gaussians.rotations, gaussians.opacities, features),
+            intrinsics=intrinsics, c2w=camera.c2w, height=height, width=width, background=background,
+            backend=self.rasterizer)
+        return out.features, out.depth, out.alpha
+
+    def render_image(self, gaussians: PixelGaussians, camera: TargetCamera, stride: int, *, scores: bool,
+                     semantic: bool = False) -> RenderedImage:
+        """Colour, depth, and (``scores``, label rendering) class scores and (``semantic``) the semantic map of
+        ``camera`` on a ``stride`` grid, in one rasterization."""
+        parts = [gaussians.colours(camera.c2w[:3, 3])]
+        if scores:
+            parts.append(gaussians.scores)
+        if semantic:
+            parts.append(gaussians.semantic)
+        features = torch.cat(parts, dim=-1) if len(parts) > 1 else parts[0]
+        background = torch.zeros(features.shape[1], dtype=features.dtype, device=features.device)
+        background[:3] = self.background
+        image, depth, alpha = self._rasterize(gaussians, features, camera, stride, background)
+        expected = torch.where(alpha > 1e-6, depth / alpha.clamp_min(1e-6), torch.zeros_like(depth))
+        classes = gaussians.scores.shape[1] if scores else 0
+        return RenderedImage(rgb=image[..., :3], depth=expected, alpha=alpha,
+                             scores=image[..., 3:3 + classes] if scores else None,
+                             semantic=image[..., 3 + classes:].permute(2, 0, 1)[None] if semantic else None)
+
+    def render_semantic(self, gaussians: PixelGaussians, camera: TargetCamera, stride: int) -> Tensor:
+        """``[1, C, h, w]`` the Gaussians' semantic features rasterized on a ``stride`` grid (what the head decodes)."""
+        image, _, _ = self._rasterize(gaussians, gaussians.semantic, camera, stride)
+        return image.permute(2, 0, 1)[None]
+
+    # ---- the contract -----------------------------------------------------------------------------------------------
+
+    def forward(self, batch: StepBatch, *, semantics: bool, sample_semantics: bool = False) -> StepOutput:
+        return StepOutput(tuple(self._forward_view(view, semantics) for view in batch.views))
+
+    def _forward_view(self, target: TargetView, semantics: bool) -> ViewOutput:
+        """The whole target rendered; its pixels (every pixel, in a whole-image batch) read from the images."""
+        if target.sources is None:
+            raise ConfigError("mvsplat renders from source views; the target view has none")
+        camera = target.camera
+        gaussians = self.encode_sources(target.sources, near=camera.near, far=camera.far)
+        labels = semantics and self.head is None and self.num_classes > 0
+        image = self.render_image(gaussians, camera, 1, scores=labels)
+        rows, cols = target.pixels[:, 1].long(), target.pixels[:, 0].long()
+        rendered = RenderedRays(rgb=image.rgb[rows, cols], depth=image.depth[rows, cols],
+                                logits=image.scores[rows, cols] if labels else None)
+        if self.head is None or not semantics:
+            return ViewOutput(coarse=rendered, fine=None)
+        teacher = self.extractor(target.image[None]).semantic  # [1, C, h, w], not detached: the loss set decides
+        stride = camera.height // int(teacher.shape[-2])
+        semantic_map = self.render_semantic(gaussians, camera, stride)
+        cells = cells_of_pixels(target.pixels, camera.image_size, tuple(teacher.shape[-2:]))
+        rendered = RenderedRays(rgb=rendered.rgb, depth=rendered.depth, semantic=gather_cells(semantic_map, cells))
+        logits = decode_checked(self.head, semantic_map, camera.image_size).logits
+        return ViewOutput(coarse=rendered, fine=None, teacher_map=teacher, teacher_at_rays=gather_cells(teacher, cells),
+                          head_input=semantic_map, logits=logits)
+
+    @torch.inference_mode()
+    def predict(self, camera: TargetCamera, sources: SourceViews | None, *, stride: int, chunk_rays: int,
+                features: PixelGaussians | None = None) -> Prediction:
+        """The view rasterized on a ``stride`` grid (0: the semantic maps' stride with a head, else every pixel);
+        ``features``: the source set's Gaussians when the caller keeps them (``encode_sources``). ``chunk_rays`` is
+        unused: a rasterized view is one call."""
+        if sources is None and features is None:
+            raise ConfigError("mvsplat renders from source views; none were given")
+        gaussians = features if features is not None else self.encode_sources(sources, near=camera.near,
+                                                                                far=camera.far)
+        labels = self.head is None and self.num_classes > 0
+        stride = stride or (gaussians.semantic_stride if self.head is not None else 1)
+        image = self.render_image(gaussians, camera, stride, scores=labels, semantic=self.head is not None)
+        semantic = logits = None
+        if self.head is not None:
+            logits = decode_checked(self.head, image.semantic, camera.image_size).logits
+            semantic = image.semantic[0]
+        elif labels:
+            logits = image.scores.permute(2, 0, 1)[None]
+            if stride > 1:
+                logits = F.interpolate(logits, size=camera.image_size, mode="nearest")
+        return Prediction(rgb=image.rgb, depth=image.depth, semantic=semantic, logits=logits, stride=stride)
+
+    @torch.inference_mode()
+    def scene_gaussians(self, sources: SourceViews | None, *, near: float, far: float,
+                        features: PixelGaussians | None = None) -> GaussianScene:
+        """The Gaussians of ``sources`` in the world frame, each labelled with the class the model predicts at its
+        own source pixel: its class scores' argmax (label rendering), or the head's class in the source view
+        rendered from the set (decoded: the head needs the image context, so a label is a pixel's of a decoded view);
+        -1 without semantics."""
+        if sources is None and features is None:
+            raise ConfigError("mvsplat predicts Gaussians from source views; none were given")
+        gaussians = features if features is not None else self.encode_sources(sources, near=near, far=far)
+        views, height, width = gaussians.depth.shape
+        labels = torch.full((gaussians.count,), -1, dtype=torch.long, device=gaussians.means.device)
+        if self.head is None and self.num_classes:
+            labels = gaussians.scores.argmax(dim=-1)
+        elif self.head is not None and sources is not None:
+            per_view = []
+            for view in range(views):
+                camera = TargetCamera(sources.intrinsics[view], sources.c2w[view], height, width, near, far)
+                logits = self.predict(camera, None, stride=0, chunk_rays=0, features=gaussians).logits
+                per_view.append(logits[0].argmax(dim=0).reshape(-1))
+            labels = torch.cat(per_view)
+        harmonics = rotate_harmonics(gaussians.harmonics, gaussians.source_rotations, gaussians.view_of)
+        return GaussianScene(means=gaussians.means, scales=gaussians.scales, rotations=gaussians.rotations,
+                             opacities=gaussians.opacities, harmonics=harmonics, labels=labels)
