@@ -8,6 +8,9 @@
 #             head (+experiment=baselines/<name>), on the main job's data and steps; each run fine-tuned on the unseen
 #             layout as ID 5's (finetune stage), and each family's stress suite
 #   grid      the same families with GP-NeRF's context-aware decoding (baselines/<name>_unet), seed 0
+#   gaussians MVSplat's feed-forward Gaussians both ways (baselines/mvsplat: label rendering; baselines/mvsplat_unet:
+#             GP-NeRF's decoding) x seeds 0-2 on the main job's data and steps, each fine-tuned on the unseen layout as
+#             ID 5's (300 steps), and each variant's stress suite (not in the default stages)
 #   samplers  the main job's config with model.sampler=depth, its depth from the coarse pass and from the two depth
 #             sources (+depth_source=cost_volume, source_depth: one pass on 8 samples) x seeds 0-2 (uniform: ID 5)
 #   layouts   GP-NeRF (the main job's config) trained on 4, 8, 16, 32 layouts, 150 steps per layout (600 at 4, the main
@@ -53,7 +56,7 @@ PROTOCOL_EMA_DECAY=${PROTOCOL_EMA_DECAY:-}  # set (e.g. 0.99): every protocol ru
 RECORDS=${RECORDS:-$(cd "$(dirname "$0")" && pwd)/records}
 POLL_SECONDS=${POLL_SECONDS:-10}
 RUNS="$WORK/runs"
-KNOWN="table4 methods baselines grid samplers per_scene layouts protocol stress instance finetune report records"
+KNOWN="table4 methods baselines grid gaussians samplers per_scene layouts protocol stress instance finetune report records"
 for stage in $STAGES; do
   [[ " $KNOWN " == *" $stage "* ]] || { echo "unknown stage '$stage' (known: $KNOWN)" >&2; exit 2; }
 done
@@ -104,6 +107,17 @@ stage_jobs() {
     grid)
       for family in semantic_ray neuray mvsnerf; do
         train_job "${family}_unet_s0" 0 +experiment=baselines/${family}_unet eval.save_images=0
+      done ;;
+    gaussians)
+      for s in 0 1 2; do for family in mvsplat mvsplat_unet; do
+        train_job "${family}_s$s" $s +experiment=baselines/$family eval.save_images=0
+      done; done
+      for family in mvsplat mvsplat_unet; do
+        for s in 0 1 2; do job "finetune_${family}_s$s" "${family}_s$s" finetune "checkpoint=$RUNS/${family}_s$s/$CKPT" \
+          "'dataset.scenes=[unseen_00]'" train.steps=300 finetune.points=4 eval.save_images=0 threads=1 \
+          "out_dir=$RUNS/finetune_${family}_s$s"; done
+        job "stress_$family" "${family}_s0,${family}_s1,${family}_s2" stress "$RUNS"/${family}_s{0,1,2} \
+          --views-per-scene 1 --threads 1 --overwrite --out "$WORK/stress/$family"
       done ;;
     samplers)
       for s in 0 1 2; do
@@ -208,7 +222,7 @@ if [[ " $STAGES " == *" report "* ]]; then
   "$PYTHON" -m gpnerf_core report "${table4_runs[@]}" > "$WORK/report_table4.md"
   "$PYTHON" -m gpnerf_core report "${table4_runs[@]}" "${instance_runs[@]}" --chart "$WORK/chart" > "$WORK/report_chart.md"
   "$PYTHON" -m gpnerf_core report "${method_runs[@]}" --chart "$WORK/chart_methods" > "$WORK/report_methods.md"
-  mapfile -t baseline_runs < <(existing "$RUNS"/id5_s? "$RUNS"/{semantic_ray,neuray,mvsnerf}_s?)
+  mapfile -t baseline_runs < <(existing "$RUNS"/id5_s? "$RUNS"/{semantic_ray,neuray,mvsnerf,mvsplat,mvsplat_unet}_s?)
   if (( ${#baseline_runs[@]} )); then  # Table 1's generalization rows beside the paper's, and their chart
     "$PYTHON" -m gpnerf_core report "${baseline_runs[@]}" --chart "$WORK/chart_baselines" > "$WORK/report_baselines.md"
   fi
