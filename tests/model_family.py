@@ -84,6 +84,8 @@ class PooledViews(ModelFamily):
         hidden: MLP width.
     """
 
+    accepts_head = False  # label rendering: a configured head is refused by the build
+
     def __init__(self, *, extractor: nn.Module, num_classes: int, coarse_samples: int, fine_samples: int,
                  hidden: int) -> None:
         super().__init__()
@@ -178,6 +180,8 @@ class PooledViews(ModelFamily):
 def build_pooled_views(*, parts: ModelParts, coarse_samples: int = PooledViewsConfig.coarse_samples,
                        fine_samples: int = PooledViewsConfig.fine_samples, hidden: int = PooledViewsConfig.hidden,
                        label_rendering: bool = PooledViewsConfig.label_rendering) -> PooledViews:
+    if parts.configured("head"):
+        raise ConfigError(f"model=pooled_views renders labels per pixel; drop +head={parts.name('head')}")
     return PooledViews(extractor=parts.build("feature_extractor"),
                        num_classes=parts.num_classes if label_rendering else 0,
                        coarse_samples=coarse_samples, fine_samples=fine_samples, hidden=hidden)

@@ -128,6 +128,27 @@ def test_a_factory_the_pipeline_cannot_use_is_rejected_at_registration(factory, 
     assert reason in registry.problems[0].reason
 
 
+def build_abstract(width: int = 4, **runtime) -> AbstractHead:
+    """The docs' pattern, a factory function, returning a class that leaves members abstract."""
+    return AbstractHead(width)
+
+
+def build_not_a_head(width: int = 4, **runtime) -> NotAHead:
+    return NotAHead(width)
+
+
+@pytest.mark.parametrize("factory, reason", [
+    (build_abstract, "factory 'build_abstract' returns AbstractHead, which leaves abstract members unimplemented: "
+                     "forward, num_outputs"),
+    (build_not_a_head, "factory 'build_not_a_head' returns NotAHead, which does not subclass "
+                       "gpnerf_core.interfaces.head.PerceptionHead"),
+])
+def test_a_factory_function_returning_an_unusable_class_is_rejected_at_registration(factory, reason):
+    registry = registry_with(head_plugin("tiny", TinyHeadConfig, factory), head_plugin("other", _config("other")))
+    assert registry.names("head") == ["other"]
+    assert reason in registry.problems[0].reason
+
+
 def _config(name):
     return dataclasses.make_dataclass(f"{name.title()}Config", [("name", str, name), ("width", int, 4)])
 

@@ -31,7 +31,7 @@ def main(argv: list[str]) -> int:
 
 @job
 def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
-    from gpnerf_core.evaluation.evaluator import evaluate, print_summary
+    from gpnerf_core.evaluation.evaluator import check_splits_have_frames, evaluate, print_summary
     from gpnerf_core.evaluation.visualize import plot_training_curves
     from gpnerf_core.model.weights import init_weights
     from gpnerf_core.training.loggers import make_loggers
@@ -44,6 +44,8 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     resuming = plan.resuming
     components = build_components(cfg)
     check_data(cfg, components, training=True)
+    # An evaluation that would score nothing is refused before training (eval.splits=[] asks for none: no check).
+    split_notes = check_splits_have_frames(cfg, components) if list(cfg.eval.splits) else []
     if cfg.model.init and not resuming:
         report = init_weights(components.model, Path(cfg.model.init), strict=bool(cfg.model.init_strict))
         if dist.is_main:
@@ -56,7 +58,7 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     )
     with folder:
         if dist.is_main:
-            for note in (*plan.notes, *trainer.notes):
+            for note in (*plan.notes, *trainer.notes, *split_notes):
                 print(f"note: {note}", file=sys.stderr)
             if dist.enabled:
                 print(

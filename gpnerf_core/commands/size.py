@@ -127,6 +127,12 @@ def _size(cfg: Any, overrides: list[str], options: SizeOptions, metric: str, tol
     levels, knob_notes = knob_levels(reference_cfg, fewest, components.model_sections)
     notes += knob_notes
     if options.knobs:
+        missing = [knob for knob in options.knobs if knob not in levels]
+        if missing:  # a knob that cannot change this model would train the same model again and again
+            reason = next((n.split(": ", 1)[1] for n in knob_notes if n.startswith(f"{missing[0]}:")),
+                          "not one of size's knobs")
+            raise ConfigError(f"size.knobs names {missing[0]}, which cannot be sized for model {cfg.model.name!r}: "
+                              f"{reason}; knobs it can size: {', '.join(levels) or 'none'}")
         levels = {k: v for k, v in levels.items() if k in options.knobs}
     costs: dict[str, StaticCost] = {}
 

@@ -304,9 +304,10 @@ def _require_instances(cfg: DictConfig, components: Components, scenes: list[str
             instance = scene.load_frame(index).instance
             count = 0 if instance is None else len(instance.unique())
             if count > slots:
+                key = "head.slots" if cfg.get("head") is not None else "model.slots"  # DM-NeRF's slots are its own
                 raise ConfigError(
                     f"scene {name!r} frame {index} has {count} instance ids (background included) but "
-                    f"head.slots={slots}; set head.slots >= {count}"
+                    f"{key}={slots}; set {key} >= {count}"
                 )
 
 

@@ -192,10 +192,12 @@ def check_splits_have_frames(cfg: Any, components: Components) -> list[str]:
                             else f"split {split!r} has no scene")
     where = f"dataset {cfg.dataset.name!r}" + (f" (dataset.root={cfg.dataset.root})" if cfg.dataset.get("root") else "")
     if len(empty) == len(splits):
+        options = [f"dataset.{key}" for key in cfg.dataset if str(key).startswith("eval") or "unseen" in str(key)]
+        named = f" ({', '.join(options)})" if options else ""
         raise ConfigError(
             f"eval.splits=[{', '.join(splits)}] select no frame of {where}: {'; '.join(empty.values())}; expected "
             "held-out frames in the training scenes (split 'train') or unseen scenes (split 'unseen'): change the "
-            "dataset's split options (its held-out frames, dataset.unseen_scenes) or eval.splits"
+            f"dataset's held-out frame and scene options{named} or eval.splits"
         )
     return [f"{reason} in {where}: {SPLIT_LABELS[split]} scores no image" for split, reason in empty.items()]
 

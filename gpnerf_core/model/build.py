@@ -91,7 +91,9 @@ class ConfiguredParts(ModelParts):
             raise ConfigError(f"model {self._cfg.model.name!r} needs a {kind}; the config selects none "
                               f"(known: {', '.join(self._registry.names(kind))})")
         component = self._registry.build(kind, self._cfg[kind], **runtime)
-        guard_outputs(kind, component, self._registry.get(kind, self.name(kind)).where)
+        model = self._registry.components["model"].get(str(self._cfg.model.name))
+        guard_outputs(kind, component, self._registry.get(kind, self.name(kind)).where,
+                      upstream=model.where if model is not None else None)
         self.built.append(component)
         self.built_kinds.add(kind)
         return component

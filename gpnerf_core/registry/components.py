@@ -14,6 +14,7 @@ import functools
 import inspect
 import os
 import re
+import typing
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
@@ -205,6 +206,8 @@ class Registry:
                 raise PluginError(f"{factory.__name__} leaves abstract members unimplemented: {members}")
         elif not callable(factory):
             raise PluginError(f"factory {factory!r} is not callable")
+        else:
+            _check_returned_class(factory, KINDS[kind].interface)
         withheld = KINDS[kind].withheld
         arguments = [n for n in fields if n not in withheld] + list(KINDS[kind].runtime_arguments)
         try:
@@ -218,6 +221,25 @@ class Registry:
                 f"factory {getattr(factory, '__name__', factory)!r} cannot be called with the config fields and the "
                 f"pipeline's arguments ({', '.join(arguments) or 'none'}): {exc}"
             ) from None
+
+
+def _check_returned_class(factory: Any, interface: type) -> None:
+    """A factory function whose return annotation is a class (``def build(...) -> MyFamily``, the docs' pattern):
+    that class must implement ``interface`` and leave no abstract member (it would fail only when first built)."""
+    try:
+        returned = typing.get_type_hints(factory).get("return")
+    except Exception:  # an annotation that does not resolve here: checked when built
+        return
+    if not inspect.isclass(returned):
+        return
+    name = getattr(factory, "__name__", repr(factory))
+    if not issubclass(returned, interface):
+        raise PluginError(f"factory {name!r} returns {returned.__name__}, which does not subclass "
+                          f"{interface.__module__}.{interface.__name__}")
+    if inspect.isabstract(returned):
+        members = ", ".join(sorted(returned.__abstractmethods__))
+        raise PluginError(f"factory {name!r} returns {returned.__name__}, which leaves abstract members "
+                          f"unimplemented: {members}")
 
 
 def _plain(value: Any) -> Any:

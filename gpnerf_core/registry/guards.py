@@ -22,12 +22,13 @@ GUARDED_KINDS = ("head", "feature_extractor")
 """The kinds whose outputs are checked (each a module called once per view, through ``forward``)."""
 
 
-def guard_outputs(kind: str, component: Any, where: str) -> None:
-    """Check every output of ``component`` (a built ``kind``; ``where`` names it and its plugin, for errors)."""
+def guard_outputs(kind: str, component: Any, where: str, upstream: str | None = None) -> None:
+    """Check every output of ``component`` (a built ``kind``; ``where`` names it and its plugin, for errors;
+    ``upstream`` names what makes its input, the model family and its plugin, blamed when that input is not finite)."""
     if not isinstance(component, torch.nn.Module):
         return
     if kind == "head":
-        component.register_forward_hook(_head_hook(where), with_kwargs=True)
+        component.register_forward_hook(_head_hook(where, upstream), with_kwargs=True)
     elif kind == "feature_extractor":
         component.register_forward_hook(_extractor_hook(where), with_kwargs=True)
 
@@ -36,7 +37,7 @@ def _argument(args: tuple[Any, ...], kwargs: dict[str, Any], index: int, name: s
     return args[index] if len(args) > index else kwargs.get(name)
 
 
-def _head_hook(where: str) -> Any:
+def _head_hook(where: str, upstream: str | None = None) -> Any:
     def check(module: Any, args: tuple[Any, ...], kwargs: dict[str, Any], output: Any) -> None:
         features = _argument(args, kwargs, 0, "features")
         size = _argument(args, kwargs, 1, "output_size")
@@ -52,7 +53,7 @@ def _head_hook(where: str) -> Any:
                 )
         if isinstance(logits, Tensor) and not all_finite(logits):
             raise NonFiniteError(f"{where} returned logits that are not finite ({_count(logits)}) "
-                                 f"{_inputs_note(features, 'features')}")
+                                 f"{_inputs_note(features, 'features', upstream)}")
 
     return check
 
@@ -78,8 +79,10 @@ def _count(values: Tensor) -> str:
     return f"{nan} NaN, {inf} Inf of {values.numel()} values"
 
 
-def _inputs_note(inputs: Any, name: str) -> str:
-    """Whose fault: the component's (its input was finite) or what fed it."""
+def _inputs_note(inputs: Any, name: str, upstream: str | None = None) -> str:
+    """Whose fault: the component's (its input was finite) or what fed it (``upstream``, when known)."""
     if isinstance(inputs, Tensor) and not all_finite(inputs):
-        return f"from input {name} that were not finite already ({_count(inputs)}): the fault is upstream of it"
+        culprit = f", in {upstream}, which made them" if upstream else ""
+        return (f"from input {name} that were not finite already ({_count(inputs)}): the fault is upstream of it"
+                f"{culprit}")
     return f"from finite input {name}"

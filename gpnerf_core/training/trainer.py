@@ -28,6 +28,7 @@ from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError, NonFiniteError
 from gpnerf_core.data.frames import FrameCache
 from gpnerf_core.runtime.profiling import stage
+from gpnerf_core.model.output_checks import check_step_output
 from gpnerf_core.model.checkpoint import RunRecord, check_resume_config, checkpoint_sections, save_checkpoint
 from gpnerf_core.model.trained import load_trained, release_trained
 from gpnerf_core.model.weights import load_weights
@@ -247,6 +248,7 @@ class Trainer:
                 output = self.wrapped(
                     batch, semantics=self.loss.needs_semantics, sample_semantics=self.loss.needs_sample_semantics
                 )
+                check_step_output(self.model, batch, output, self.loss.needs_semantics, self._where("model"))
                 with stage("loss"):
                     terms = self._loss_terms(batch, output)
         except NonFiniteError as exc:  # a component's output (registry.guards), named where it was made
@@ -313,9 +315,14 @@ class Trainer:
 
     def _loss_where(self) -> str:
         """``loss 'dgs' (plugin gpnerf_plugins.losses.plugin 0.1.0)``: the loss set, from the run record."""
-        used = self.record.components.get("loss") or {}
-        name = used.get("name", type(self.loss).__name__)
-        return f"loss {name!r} (plugin {used.get('provider', 'unknown')} {used.get('version', 'unknown')})"
+        return self._where("loss")
+
+    def _where(self, kind: str) -> str:
+        """``model 'gnt' (plugin gpnerf_plugins.families.plugin 0.1.0)``: a component of the run, from its record."""
+        used = self.record.components.get(kind) or {}
+        component = self.loss if kind == "loss" else self.model
+        name = used.get("name", type(component).__name__)
+        return f"{kind} {name!r} (plugin {used.get('provider', 'unknown')} {used.get('version', 'unknown')})"
 
     def _non_finite_inputs(self, batch: StepBatch, output: StepOutput) -> str:
         """Which ``LossInputs`` fields were not finite (looked at only once a term is): the model's fault, not the

@@ -16,15 +16,18 @@ from pipeline_check import TINY_MODEL, TINY_SCENES
     ("head", r"head 'unet' \(plugin gpnerf_plugins.heads.plugin, gpnerf-core [^)]*\) returned logits that are not "
              r"finite .* from finite input features; nothing was scored"),
     ("ray", r"ray aggregator 'gnt_ray' gave NaN or Inf \(colour\)"),
+    ("semantic", r"head 'unet' .* from input features that were not finite already .*: the fault is upstream of it, "
+                 r"in model 'gnt' \(plugin gpnerf_plugins.families.plugin, gpnerf-core [^)]*\), which made them"),
 ])
 def test_non_finite_outputs_stop_evaluation_naming_the_component(tmp_path, poisoned, named):
     cfg = compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES, f"dataset.root={tmp_path / 'scenes'}",
                    "eval.splits=[unseen]", "eval.save_images=0"])
     components = build_components(cfg)
-    module = components.model.head if poisoned == "head" else components.model.ray
+    module = {"head": components.model.head, "ray": components.model.ray,
+              "semantic": components.model.semantic}[poisoned]
     with torch.no_grad():
         last = [p for p in module.parameters() if p.dim() >= 1][-1]
-        last.fill_(float("nan") if poisoned == "head" else float("inf"))
+        last.fill_(float("inf") if poisoned == "ray" else float("nan"))
     components.model.eval()
     frames = FrameCache(components.dataset, torch.device("cpu"))
     with pytest.raises(NonFiniteError, match=r"scene '\w+' frame \d+: .*" + named):

@@ -102,3 +102,14 @@ def test_render_draws_the_instances_of_a_frame(fitted, tmp_path):
     checkpoint = next((fitted / "checkpoints").glob("*.pt"))
     assert cli_main(["render", f"checkpoint={checkpoint}", "render.frames=1", f"out_dir={tmp_path / 'video'}"]) == 0
     assert json.loads((tmp_path / "video" / "render.json").read_text())["frames"] == 1
+
+
+def test_too_few_slots_for_the_scene_names_dm_nerfs_own_key():
+    from gpnerf_core.config.compose import compose
+    from gpnerf_core.engine.validation import check_data
+    from gpnerf_core.model.build import build_components
+    from pipeline_check import TINY_SCENES
+
+    cfg = compose(["+experiment=baselines/dm_nerf", *TINY_SCENES, "dataset.scenes=[layout_00]", "model.slots=1"])
+    with pytest.raises(ConfigError, match=r"instance ids \(background included\) but model.slots=1; set model.slots >= "):
+        check_data(cfg, build_components(cfg), training=True)

@@ -221,3 +221,16 @@ def test_the_grid_variant_fits_one_scene_renders_it_and_repeats_itself(tmp_path)
     checkpoint = next((tmp_path / "grid" / "checkpoints").glob("*.pt"))
     assert cli_main(["render", f"checkpoint={checkpoint}", "render.frames=1", f"out_dir={tmp_path / 'video'}"]) == 0
     assert json.loads((tmp_path / "video" / "render.json").read_text())["frames"] == 1
+
+
+@pytest.mark.parametrize("key, value, expected", [
+    ("density_noise", float("inf"), "model.density_noise=inf: expected a finite number"),
+    ("position_scale", float("inf"), "model.position_scale=inf: expected a finite number"),
+    ("position_frequencies", 200, "model.position_frequencies=200: expected in [0, 30]"),
+    ("grid_base_resolution", float("inf"), "model.grid_base_resolution=inf: expected a finite number"),
+])
+def test_an_infinite_or_overflowing_field_option_is_refused_naming_its_key(key, value, expected):
+    options = {**SMALL, key: value, **({"field": "grid"} if key.startswith("grid_") else {})}
+    with pytest.raises(ConfigError) as error:
+        SemanticNeRF(**options)
+    assert str(error.value) == expected

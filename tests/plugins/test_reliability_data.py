@@ -280,6 +280,16 @@ def test_eval_of_a_capture_without_evaluation_frames_is_one_line_and_leaves_noth
     assert not out.exists()
 
 
+def test_run_whose_evaluation_would_score_nothing_is_refused_before_training(tmp_path):
+    out = tmp_path / "run"
+    result = gpnerf("run", "+experiment=baselines/semantic_nerf", "dataset.scenes=[layout_00]",
+                    "dataset.num_train_scenes=1", "dataset.num_unseen_scenes=0", "dataset.frames_per_scene=6",
+                    "dataset.eval_every=0", "dataset.height=32", "dataset.width=48", f"out_dir={out}", cwd=tmp_path)
+    line = one_error_line(result)
+    assert "select no frame of dataset 'embedded'" in line and "dataset.eval_every) or eval.splits" in line, line
+    assert not out.exists()
+
+
 # ------------------------------------------------------------------ 5. absurd near/far
 
 

@@ -235,6 +235,16 @@ def test_size_again_with_the_same_request_reuses_its_runs_and_refuses_another_re
     assert other.returncode == 2 and "holds a sizing of another request" in other.stderr
 
 
+def test_a_knob_of_a_component_the_family_never_builds_is_refused_before_training(tmp_path):
+    tiny = [o for o in TINY_CLI if not o.startswith(("model.coarse", "model.fine", "field_aggregator."))]
+    result = gpnerf("size", "+experiment=baselines/neuray", *tiny, "size.steps=2",
+                    "size.knobs=[field_aggregator.width]", f"size.out={tmp_path / 'out'}", cwd=tmp_path)
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert ("size.knobs names field_aggregator.width, which cannot be sized for model 'neuray': model 'neuray' builds "
+            "no field_aggregator; not sized") in result.stderr
+    assert not (tmp_path / "out" / "runs").exists()
+
+
 def test_a_budget_no_reachable_configuration_meets_is_refused_before_training(tmp_path):
     result = gpnerf("size", *SIZE, "size.max_parameters=1000", f"size.out={tmp_path / 'out'}", cwd=tmp_path)
     assert result.returncode == 2

@@ -690,3 +690,24 @@ def test_each_broken_stress_case_fails_its_check(case, check, words):
     failed = {r.check: r.message for r in results if r.failed}
     assert list(failed) == [check] and words in failed[check]
     assert failed[check].startswith(f"stress_case {case.name!r} (plugin stress_plugin_{case.name}")
+
+
+# ------------------------------------------------------------------------------------------------------- model families
+
+
+def test_a_family_that_silently_ignores_a_configured_head_fails_its_build_check():
+    import model_family
+
+    @dataclasses.dataclass
+    class IgnoresHeadConfig(model_family.PooledViewsConfig):
+        name: str = "ignores_head"
+
+    class IgnoresHead(model_family.PooledViews):
+        accepts_head = True  # says it decodes with a head, and never builds one
+
+    def build(*, parts, coarse_samples=8, fine_samples=0, hidden=8, label_rendering=True):
+        return IgnoresHead(extractor=parts.build("feature_extractor"), num_classes=parts.num_classes,
+                           coarse_samples=coarse_samples, fine_samples=fine_samples, hidden=hidden)
+
+    found = failures("model", build, IgnoresHeadConfig, name="ignores_head")
+    assert "a head was configured (+head=unet) but the family built none" in found["build"]

@@ -142,3 +142,52 @@ def test_a_ray_batch_is_refused_by_an_image_term():
 
     with pytest.raises(ConfigError, match="trains on whole images"):
         ImageLoss()(loss_inputs(semantics=False, sample_semantics=False))
+
+
+class BrokenFlat(FlatImage):
+    """FlatImage with one contract breach: depth ``[R, 1]``, NaN colour, or a decoded family without logits."""
+
+    def __init__(self, breach: str) -> None:
+        super().__init__()
+        self.breach = breach
+
+    @property
+    def semantic_output(self):
+        from gpnerf_core import Predicts, SemanticMode, SemanticOutput
+
+        if self.breach == "no logits":
+            return SemanticOutput(Predicts.CLASSES, SemanticMode.DECODED, 4)
+        return None
+
+    def forward(self, batch, *, semantics, sample_semantics=False):
+        output = super().forward(batch, semantics=semantics)
+        view = output.views[0]
+        if self.breach == "depth":
+            view = ViewOutput(coarse=RenderedRays(rgb=view.coarse.rgb, depth=view.coarse.depth[:, None]), fine=None)
+        elif self.breach == "nan":
+            view = ViewOutput(coarse=RenderedRays(rgb=view.coarse.rgb * float("nan"), depth=view.coarse.depth),
+                              fine=None)
+        return StepOutput((view, *output.views[1:]))
+
+
+class SemanticLoss(ImageLoss):
+    needs_semantics = True
+
+
+@pytest.mark.parametrize("breach, error, message", [
+    ("depth", "PluginError", r"model 'BrokenFlat' \(plugin unknown unknown\) returned coarse.depth \[1536, 1\]; the "
+                             r"ModelFamily contract is \[1536\] \(forward\)"),
+    ("nan", "NonFiniteError", r"step 0: model 'BrokenFlat' .* rendered coarse.rgb that is not finite \(NaN or Inf\) "
+                              r"\(scene 'layout_00' frame \d+\); training stopped"),
+    ("no logits", "ConfigError", r"model 'BrokenFlat' .* says its semantic output is decoded by a head "
+                                 r"\(SemanticMode.DECODED\) but its forward\(semantics=True\) gave no logits"),
+])
+def test_a_family_breaking_the_contract_stops_the_run_naming_it(tmp_path, breach, error, message):
+    import gpnerf_core.errors as errors
+
+    trainer = trainer_with(tmp_path, BrokenFlat(breach))
+    if breach == "no logits":
+        trainer.loss = SemanticLoss()
+    with pytest.raises(getattr(errors, error), match=message):
+        trainer.fit(progress=False)
+    assert not (tmp_path / "run" / "checkpoints").exists()

@@ -71,6 +71,16 @@ def check_build(subject: Subject) -> None:
         else:
             raise CheckFailed("accepts_head is False but the family built with a configured head (it would be "
                               "silently ignored): raise a ConfigError naming +head")
+    if subject.takes_head:  # a configured head is used, not silently ignored
+        parts = kit_parts(subject.registry, subject.name, head=True)
+        with_head = subject.build(parts=parts)
+        expect("head" in parts.built_kinds,
+               "a head was configured (+head=unet) but the family built none, so it would be silently ignored: build "
+               "it with parts.head(...), or set accepts_head = False and refuse it with a ConfigError naming +head")
+        decoded = semantic_output(with_head)
+        expect(decoded is not None and decoded.mode is SemanticMode.DECODED,
+               f"with a head configured semantic_output.mode is {getattr(decoded, 'mode', None)}, expected "
+               "SemanticMode.DECODED (the head decodes what the family renders)")
     for head in heads(subject):
         model = build(subject, head=head)
         expect_finite({f"parameter {k}": p for k, p in model.named_parameters()}, "after construction")

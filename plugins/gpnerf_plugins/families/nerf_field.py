@@ -5,6 +5,8 @@ of its densities along a ray, and ``PerSceneNeRF``, the family body both subclas
 
 from __future__ import annotations
 
+import math
+
 from typing import Mapping
 
 import torch
@@ -92,9 +94,18 @@ class NeRFField(nn.Module):
         return self.density(h)[..., 0], colour, out
 
 
+MAX_FREQUENCIES = 30
+"""Octaves of a positional encoding at most: 2^30 already exceeds float32's integer precision, and far more overflows."""
+
+
 def check_field_options(**options: float) -> None:
-    """One ConfigError naming every out-of-range option of a per-scene field (``model.<key>=<value>: expected ...``)."""
+    """One ConfigError naming every out-of-range option of a per-scene field (``model.<key>=<value>: expected ...``);
+    every number must be finite (an infinite noise or scale trains NaN or overflows, never an error of its own)."""
     depth = options["depth"]
+    finite = [key for key, value in options.items()
+              if isinstance(value, float) and not math.isfinite(value)]
+    if finite:
+        raise ConfigError("; ".join(f"model.{key}={options[key]}: expected a finite number" for key in finite))
     rules = {
         "coarse_samples": (lambda v: v >= 2, ">= 2"),
         "fine_samples": (lambda v: v >= 0, ">= 0"),
@@ -102,8 +113,8 @@ def check_field_options(**options: float) -> None:
         "depth": (lambda v: v >= 2, ">= 2"),
         "skip": (lambda v: 0 <= v < depth - 1, f"in [0, model.depth - 1) = [0, {depth - 1})"),
         "position_scale": (lambda v: v > 0, "> 0"),
-        "position_frequencies": (lambda v: v >= 0, ">= 0"),
-        "direction_frequencies": (lambda v: v >= 0, ">= 0"),
+        "position_frequencies": (lambda v: 0 <= v <= MAX_FREQUENCIES, f"in [0, {MAX_FREQUENCIES}]"),
+        "direction_frequencies": (lambda v: 0 <= v <= MAX_FREQUENCIES, f"in [0, {MAX_FREQUENCIES}]"),
         "density_noise": (lambda v: v >= 0, ">= 0"),
         "field": (lambda v: v in FIELDS, f"one of {', '.join(FIELDS)}"),
         "grid_levels": (lambda v: 1 <= v and v * 2 ** options.get("grid_table_log2", 0) <= 2**28,
