@@ -79,7 +79,7 @@ def export_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     components = loaded.components
     model = components.model.eval()
     frames = FrameCache(components.dataset, dist.device)
-    name = chosen_scene(components.dataset, "export.scene", str(settings.scene))
+    name = chosen_scene(components.dataset, "export.scene", str(settings.scene), loaded.fitted)
     scene = frames.scene(name)
     indices = exported_frames(scene, str(settings.frames), int(settings.every))
     min_views = checked_min_views(int(settings.min_views), len(indices))

@@ -77,7 +77,7 @@ def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     semantic = output is not None and output.predicts is Predicts.CLASSES
     frames = FrameCache(components.dataset, dist.device)
     feature_cache = SourceFeatureCache(budget) if budget > 0 else None
-    name = chosen_scene(components.dataset, "render.scene", str(cfg.render.scene))
+    name = chosen_scene(components.dataset, "render.scene", str(cfg.render.scene), loaded.fitted)
     scene = frames.scene(name)
     poses = trajectory(scene, cfg.render)
     reference = frames.frame(scene, scene.train_frames[0])

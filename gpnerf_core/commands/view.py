@@ -74,8 +74,8 @@ def _serve(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
         for note in loaded.notes:
             print(f"note: {note}", file=sys.stderr)
         model = components.model.eval()
-        scenes = shown_scenes(components.dataset)
-        first = chosen_scene(components.dataset, "view.scene", str(cfg.view.scene))
+        scenes = shown_scenes(components.dataset, loaded.fitted)
+        first = chosen_scene(components.dataset, "view.scene", str(cfg.view.scene), loaded.fitted)
         budget = float(cfg.view.feature_cache_mb)
         renderer = SceneRenderer(
             model, FrameCache(components.dataset, dist.device), components.view_selector,

@@ -139,7 +139,8 @@ class FinetuneConfig:
 @dataclass
 class RenderConfig:
     scene: str = ""
-    """``render``: the scene to render ("" = the first unseen scene, else the first training scene)."""
+    """``render``: the scene to render ("" = the first unseen scene, else the first training scene; a per-scene model's
+    own scene, the only one it renders)."""
     path: str = "interpolate"
     """``interpolate`` (through the held-out frames' poses) or ``spiral`` (around frame ``frame``)."""
     frames: int = 30
@@ -160,7 +161,8 @@ class RenderConfig:
 @dataclass
 class ExportConfig:
     scene: str = ""
-    """``export``: the scene to export ("" = the first unseen scene, else the first training scene)."""
+    """``export``: the scene to export ("" = the first unseen scene, else the first training scene; a per-scene model's
+    own scene, the only one it renders)."""
     frames: str = "eval"
     """Which of the scene's frames are rendered at their cameras: ``eval`` (held-out), ``train`` or ``all``; each
     takes its source views from the training frames but itself."""
@@ -185,7 +187,8 @@ class ViewConfig:
     host: str = "127.0.0.1"
     """``view``: address the viewer listens on (the default reaches this machine only; 0.0.0.0 = every interface)."""
     scene: str = ""
-    """``view``: the scene shown first ("" = the first unseen scene, else the first training scene)."""
+    """``view``: the scene shown first ("" = the first unseen scene, else the first training scene; a per-scene model's
+    own scene, the only one it shows)."""
     stride: int = 2
     """``view``: pixels per rendered cell of the full frame, rendered once the camera rests."""
     preview_stride: int = 8

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from dataclasses import dataclass
 from typing import Sequence
 
 from gpnerf_core.data.checks import check_scene_files
@@ -57,19 +58,39 @@ class SceneDataset(ABC):
         return check_scene_files(self, scenes, level)
 
 
-def shown_scenes(dataset: SceneDataset) -> list[str]:
-    """The scenes a command that shows one may choose from: the unseen ones first, then the training ones."""
+def shown_scenes(dataset: SceneDataset, fitted: FittedScenes | None = None) -> list[str]:
+    """The scenes a command that shows one may choose from: the unseen ones first, then the training ones; for a
+    per-scene model (``fitted``) only the scenes it was fitted on."""
+    if fitted is not None:
+        return list(fitted.scenes)
     return list(dataset.scenes("unseen")) + list(dataset.scenes("train"))
 
 
-def chosen_scene(dataset: SceneDataset, key: str, value: str) -> str:
-    """The scene a command shows: ``value``, or "" for the first unseen scene, else the first training scene.
+def chosen_scene(dataset: SceneDataset, key: str, value: str, fitted: FittedScenes | None = None) -> str:
+    """The scene a command shows: ``value``, or "" for the first unseen scene, else the first training scene (a
+    per-scene model's: its own scene).
 
     Raises:
-        ConfigError: ``value`` names no scene of the dataset (the message lists them, naming ``key``).
+        ConfigError: ``value`` names no scene of the dataset (the message lists them, naming ``key``), or a scene a
+            per-scene model was not fitted on.
     """
-    scenes = shown_scenes(dataset)
+    if fitted is not None and value and value not in fitted.scenes:
+        raise ConfigError(f"{key}={value!r}: {fitted.why}; expected {key}={fitted.scenes[0]} or {key} left out")
+    scenes = shown_scenes(dataset, fitted)
     name = value or (scenes[0] if scenes else "")
     if name not in scenes:
         raise ConfigError(f"{key}={name!r} is not a scene of this dataset; known: {', '.join(scenes)}")
     return name
+
+
+@dataclass(frozen=True)
+class FittedScenes:
+    """The scenes a per-scene model was fitted on (from its checkpoint): the only ones it can render.
+
+    Attributes:
+        scenes: their names; why: one phrase for refusals (``model 'semantic_nerf' was fitted on scene 'layout_00'
+            alone (checkpoint ...): a per-scene model renders only its scene``).
+    """
+
+    scenes: tuple[str, ...]
+    why: str

@@ -41,6 +41,7 @@ import torch
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from gpnerf_core.data.dataset import FittedScenes
 from gpnerf_core.model.build import build_components
 from gpnerf_core.runtime.distributed import Distributed, init_distributed
 from gpnerf_core.errors import ConfigError, DataError, GpnerfError
@@ -659,23 +660,51 @@ class CheckpointModel:
     notes: list[str]
     components: Any
     weights: str
+    fitted: FittedScenes | None = None
+    """A per-scene model's scenes (``chosen_scene`` takes only those and defaults to its own); None for a generalizable
+    one."""
 
 
 def model_from_checkpoint(cfg: DictConfig, dist: Distributed, command: str, *, check_scenes: bool) -> CheckpointModel:
     """``checkpoint_config``, ``start``, build the components (a dataset without a class list takes the checkpoint's),
-    (``check_scenes``: ``check_data`` on the evaluated splits), load the evaluation weights and move the model to the
-    job's device. Nothing is written."""
+    (``check_scenes``: ``check_data`` on the evaluated splits; a per-scene model is scored on its own scene only), load
+    the evaluation weights and move the model to the job's device. Nothing is written."""
     trained, notes = checkpoint_config(cfg, command)
     start(cfg)
     components = build_components(cfg, classes=trained.classes)
     if components.classes.from_checkpoint:
         notes.append(components.classes.note(str(cfg.dataset.name)))
+    fitted = fitted_scenes(cfg, components, trained)
     if check_scenes:
+        if fitted is not None:
+            check_evaluated_scenes(cfg, components, fitted)
         check_data(cfg, components, training=False)
     weights, which = trained.weights(str(cfg.eval.weights))
     load_weights(components.model, weights, f"checkpoint {trained.path}")
     components.model.to(dist.device)
-    return CheckpointModel(trained, notes, components, which)
+    return CheckpointModel(trained, notes, components, which, fitted)
+
+
+def fitted_scenes(cfg: DictConfig, components: Any, trained: TrainedModel) -> FittedScenes | None:
+    """The scenes a per-scene model (``ModelFamily.generalizable`` False) was fitted on, from its checkpoint; None for a
+    generalizable model, or a checkpoint that names none."""
+    if components.model.generalizable or not trained.scenes:
+        return None
+    scenes = trained.scenes
+    shown = f"scene {scenes[0]!r}" if len(scenes) == 1 else f"scenes {', '.join(map(repr, scenes))}"
+    return FittedScenes(scenes, f"model {cfg.model.name!r} was fitted on {shown} alone (checkpoint {trained.path}): a "
+                                "per-scene model renders only its scene")
+
+
+def check_evaluated_scenes(cfg: DictConfig, components: Any, fitted: FittedScenes) -> None:
+    """A per-scene model is scored on its own scene: any other scene of the evaluated splits is refused."""
+    for split in cfg.eval.splits:
+        foreign = [name for name in components.dataset.scenes(str(split)) if name not in fitted.scenes]
+        if foreign:
+            key = "dataset.scenes" if str(split) == "train" else "eval.splits"
+            raise ConfigError(f"eval.splits has {split!r} with scene {foreign[0]!r}, but {fitted.why}; set "
+                              f"dataset.scenes=[{','.join(fitted.scenes)}] and eval.splits=[train] ({key} names "
+                              f"another scene)")
 
 
 def checkpoint_config(cfg: DictConfig, command: str) -> tuple[TrainedModel, list[str]]:

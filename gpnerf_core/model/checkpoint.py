@@ -110,6 +110,7 @@ def save_checkpoint(
     elapsed: float,
     weight_average: Mapping[str, Any] | None = None,
     classes: ClassList | None = None,
+    scenes: tuple[str, ...] | None = None,
 ) -> Path:
     """Write a checkpoint atomically (a reader never sees half a file).
 
@@ -118,6 +119,7 @@ def save_checkpoint(
         classes: the classes it predicts (``Components.classes``), stored so that ``eval``, ``render`` and
             ``finetune`` name them on a dataset that has none; None stores none.
         rng_states: one ``{"cpu": ByteTensor, "cuda": ByteTensor | None}`` per process, in rank order.
+        scenes: the scenes it was trained on (a per-scene model renders only those), or None.
         weight_average: ``WeightAverage.state_dict()`` when the run keeps one (``train.ema_decay``).
     """
     state = {
@@ -139,6 +141,7 @@ def save_checkpoint(
         "versions": software_versions(),
         "class_names": None if classes is None else [str(name) for name in classes.names],
         "ignore_index": None if classes is None else int(classes.ignore_index),
+        "scenes": None if scenes is None else [str(name) for name in scenes],
     }
     state["content_sha256"] = content_digest(state)
     return atomic_torch_save(path, state)

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import torch
+import yaml
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from gpnerf_core.config.compose import compose
@@ -54,6 +55,17 @@ class TrainedModel:
     def overrides(self) -> list[str]:
         """The Hydra overrides that composed the trained config (as typed, run-specific ones included)."""
         return [str(o) for o in self.state.get("overrides") or []]
+
+    @property
+    def scenes(self) -> tuple[str, ...]:
+        """The scenes the model was trained on: those the checkpoint records, or for one written before they were, its
+        config's ``dataset.scenes`` (empty when neither names any)."""
+        recorded = self.state.get("scenes")
+        if isinstance(recorded, (list, tuple)) and recorded:
+            return tuple(str(name) for name in recorded)
+        dataset = (yaml.safe_load(self.config_yaml) or {}).get("dataset") or {}
+        chosen = dataset.get("scenes") if isinstance(dataset, dict) else None
+        return tuple(str(name) for name in chosen) if isinstance(chosen, list) else ()
 
     @property
     def model_sections(self) -> tuple[str, ...]:

@@ -517,6 +517,7 @@ class Trainer:
             elapsed=elapsed,
             weight_average=self.average.state_dict() if self.average is not None else None,
             classes=self.classes,
+            scenes=tuple(self.sampler.scene_names),
         )
         prune_checkpoints(self.run_dir, int(self.cfg.train.keep_checkpoints))
         return path

@@ -117,7 +117,21 @@ def test_run_fits_one_scene_and_scores_its_held_out_frames(fitted, capsys):
 def test_render_draws_a_frame_of_the_scene_from_its_own_field(fitted, tmp_path):
     checkpoint = next((fitted / "checkpoints").glob("*.pt"))
     assert cli_main(["render", f"checkpoint={checkpoint}", "render.frames=1", f"out_dir={tmp_path / 'video'}"]) == 0
-    assert json.loads((tmp_path / "video" / "render.json").read_text())["frames"] == 1
+    written = json.loads((tmp_path / "video" / "render.json").read_text())
+    assert written["frames"] == 1 and written["scene"] == "layout_00"  # its own scene, not the first unseen one
+
+
+def test_a_per_scene_model_is_refused_any_scene_but_its_own(fitted, tmp_path, capsys):
+    checkpoint = next((fitted / "checkpoints").glob("*.pt"))
+    other = in_process("render", f"checkpoint={checkpoint}", "render.scene=unseen_00", "render.frames=1",
+                       f"out_dir={tmp_path / 'video'}")
+    scored = in_process("eval", f"checkpoint={checkpoint}", "dataset.scenes=[layout_01]", "dataset.num_train_scenes=2",
+                        f"out_dir={tmp_path / 'eval'}")
+    err = capsys.readouterr().err
+    assert other == 2 and ("render.scene='unseen_00': model 'semantic_nerf' was fitted on scene 'layout_00' alone "
+                           "(checkpoint") in err and "expected render.scene=layout_00 or render.scene left out" in err
+    assert scored == 2 and "eval.splits has 'train' with scene 'layout_01', but model 'semantic_nerf'" in err
+    assert not (tmp_path / "video").exists() and not (tmp_path / "eval").exists()
 
 
 # ---- the grid option (model.field=grid) ------------------------------------------------------------------------------
