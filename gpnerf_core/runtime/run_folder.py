@@ -37,9 +37,12 @@ RUN_FILES = (
     "scalars.csv",
     "bench.json",
     "finetune_curve.json",
+    "render.json", "trajectory.mp4", "trajectory.gif", "legend.png",  # render's
+    "export.json", "points.ply", "points_labels.ply", "gaussians.ply",  # export's
 )
-RUN_FOLDERS = ("checkpoints", "images", "tensorboard")
-"""What a run writes; ``overwrite=true`` deletes exactly these."""
+RUN_FOLDERS = ("checkpoints", "images", "tensorboard", "frames")
+"""What a run (``run``, ``eval``, ``finetune``, ``render``, ``export``) writes; ``overwrite=true`` deletes exactly
+these."""
 
 _STARTED = time.time()
 """When this process imported the module: a folder made after it, still empty, was made for this command."""

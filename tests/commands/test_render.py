@@ -56,6 +56,15 @@ def test_render_writes_mp4_gif_and_frames(tmp_path):
     assert len(cloud.vertices) == exported["points_written"] > 0 and 0 <= labels.min() and labels.max() < 9
     assert len(trimesh.load(tmp_path / "points" / "points_labels.ply").vertices) == len(cloud.vertices)
     assert not list((tmp_path / "points").glob(".*partial*"))
+    # each replaces its own finished folder with overwrite=true, as the refusal without it advises
+    again = gpnerf("render", f"checkpoint={checkpoint}", "render.frames=2", f"out_dir={video}")
+    assert again.returncode == 2 and "replace it with overwrite=true" in again.stderr
+    again = gpnerf("render", f"checkpoint={checkpoint}", "render.frames=2", f"out_dir={video}", "overwrite=true")
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert json.loads((video / "render.json").read_text())["frames"] == 2 and len(list((video / "frames").iterdir())) == 2
+    again = gpnerf("export", f"checkpoint={checkpoint}", "export.min_views=0", f"out_dir={tmp_path / 'points'}",
+                   "overwrite=true")
+    assert again.returncode == 0, again.stderr[-2000:]
 
 
 def test_export_chooses_frames_and_refuses_what_cannot_be_exported():
