@@ -8,6 +8,8 @@ rendered semantic map). NaN or Inf show black: a picture never raises (the metri
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator, MutableMapping
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -48,6 +50,34 @@ def upscale(image: np.ndarray, factor: int) -> np.ndarray:
     return image if factor == 1 else image.repeat(factor, axis=0).repeat(factor, axis=1)
 
 
+class Layers(MutableMapping[str, np.ndarray]):
+    """Pictures by layer name, each drawn when first read (the viewer shows one layer of a frame: drawing every layer
+    of every frame, a PCA among them, cost more than rendering a small frame); a layer set directly is kept as it is."""
+
+    def __init__(self, draw: dict[str, Callable[[], np.ndarray]]) -> None:
+        self._draw = dict(draw)
+        self._drawn: dict[str, np.ndarray] = {}
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name not in self._drawn:
+            self._drawn[name] = self._draw[name]()
+        return self._drawn[name]
+
+    def __setitem__(self, name: str, picture: np.ndarray) -> None:
+        self._draw[name] = lambda: picture
+        self._drawn[name] = picture
+
+    def __delitem__(self, name: str) -> None:
+        del self._draw[name]
+        self._drawn.pop(name, None)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._draw)
+
+    def __len__(self) -> int:
+        return len(self._draw)
+
+
 def prediction_layers(
     prediction: Prediction,
     near: float,
@@ -56,8 +86,9 @@ def prediction_layers(
     num_classes: int,
     *,
     full_size: bool = False,
-) -> dict[str, np.ndarray]:
-    """The pictures of one prediction by layer name (``rgb``, ``depth``, ``semantic`` or ``instances``, ``features``).
+) -> Layers:
+    """The pictures of one prediction by layer name (``rgb``, ``depth``, ``semantic`` or ``instances``, ``features``),
+    each drawn when first read.
 
     Args:
         output: the model's ``semantic_output`` (None: no score layer).
@@ -67,14 +98,14 @@ def prediction_layers(
             image's).
     """
     factor = prediction.stride if full_size else 1
-    layers = {
-        "rgb": upscale(rgb_picture(prediction.rgb), factor),
-        "depth": upscale(depth_picture(torch.nan_to_num(prediction.depth.float()), near, far), factor),
+    draw: dict[str, Callable[[], np.ndarray]] = {
+        "rgb": lambda: upscale(rgb_picture(prediction.rgb), factor),
+        "depth": lambda: upscale(depth_picture(torch.nan_to_num(prediction.depth.float()), near, far), factor),
     }
     if prediction.logits is not None and output is not None:
-        name, picture = score_layer(prediction.logits, output, num_classes)
-        layers[name] = picture
+        name = "instances" if output.predicts is Predicts.INSTANCES else "semantic"
+        draw[name] = lambda: score_layer(prediction.logits, output, num_classes)[1]
     if prediction.semantic is not None:
-        features = torch.nan_to_num(prediction.semantic.detach().float().cpu())
-        layers["features"] = upscale(vis.pca_rgb(features), factor)
-    return layers
+        draw["features"] = lambda: upscale(vis.pca_rgb(torch.nan_to_num(prediction.semantic.detach().float().cpu())),
+                                           factor)
+    return Layers(draw)

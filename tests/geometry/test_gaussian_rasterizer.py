@@ -286,6 +286,34 @@ def test_the_numba_counting_sort_lists_what_the_torch_binning_lists(tile_size):
     assert ours.count > 300 and torch.equal(ours.offsets, theirs.offsets) and torch.equal(ours.ids, theirs.ids)
 
 
+@pytest.mark.parametrize("tile_size", [5, 16])
+def test_the_numba_projection_for_rendering_without_gradients_is_torchs(tile_size):
+    pytest.importorskip("numba")
+    from gpnerf_core.geometry.gaussians.binning import bin_gaussians, fill_tiles
+    from gpnerf_core.geometry.gaussians.numba_backend import project_and_bin_numba
+
+    gaussians, intrinsics, c2w = scene(300, 1, seed=13, spread=10.0, opaque=5)
+    means = gaussians.means.clone()
+    means[:3, 2] = -1.0  # behind the camera (world z here is close to camera z)
+    gaussians = Gaussians(means, gaussians.scales, gaussians.rotations, gaussians.opacities, gaussians.features)
+    torch_projected = project_gaussians(gaussians, intrinsics, c2w, HEIGHT, WIDTH, near=0.01)
+    torch_bins = bin_gaussians(torch_projected, HEIGHT, WIDTH, tile_size, fill_tiles)
+    ours, bins = project_and_bin_numba(gaussians, intrinsics, c2w, HEIGHT, WIDTH, 0.01, tile_size)
+    visible = torch_projected.visible
+    assert torch.equal(ours.visible, visible) and torch.equal(ours.radii, torch_projected.radii)
+    assert (ours.culled_behind, ours.clamped) == (torch_projected.culled_behind, torch_projected.clamped)
+    for name in ("means2d", "conics", "depths"):
+        assert torch.allclose(getattr(ours, name)[visible], getattr(torch_projected, name)[visible], rtol=1e-10), name
+    assert torch.equal(bins.offsets, torch_bins.offsets) and torch.equal(bins.ids, torch_bins.ids)
+    with torch.no_grad():  # and rasterize_gaussians takes it when nothing needs a gradient
+        fast = rasterize_gaussians(gaussians, intrinsics=intrinsics, c2w=c2w, height=HEIGHT, width=WIDTH,
+                                   backend="numba", tile_size=tile_size)
+    slow = rasterize_gaussians(Gaussians(means.requires_grad_(), *(getattr(gaussians, f) for f in FIELDS[1:])),
+                               intrinsics=intrinsics, c2w=c2w, height=HEIGHT, width=WIDTH, backend="numba",
+                               tile_size=tile_size)
+    assert torch.allclose(fast.features, slow.features.detach(), atol=1e-12)
+
+
 def test_no_gaussians_render_the_background(backend):
     empty = Gaussians(torch.zeros(0, 3), torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0), torch.zeros(0, 3))
     background = torch.tensor([0.2, 0.4, 0.6], requires_grad=True)

@@ -19,6 +19,7 @@ import functools
 import os
 from concurrent.futures import ThreadPoolExecutor
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 import torch
@@ -26,6 +27,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from gpnerf_core.geometry.gaussians.binning import TileBins
+from gpnerf_core.geometry.gaussians.projection import ProjectedGaussians
 
 
 @functools.cache
@@ -109,3 +111,27 @@ def composite_numba(means2d: Tensor, conics: Tensor, opacities: Tensor, features
     """``torch_backend.composite_torch``'s contract, on CPU tensors of one float dtype, by the numba kernels."""
     return _Composite.apply(means2d, conics, opacities, features, depths, bins.offsets, bins.ids, height, width,
                             bins.tile_size)
+
+
+def project_and_bin_numba(gaussians: Any, intrinsics: Tensor, c2w: Tensor, height: int, width: int, near: float,
+                          tile_size: int) -> tuple[ProjectedGaussians, TileBins]:
+    """``projection.project_gaussians`` and ``binning.bin_gaussians`` by one numba kernel, for a render without
+    gradients (the projection's torch ops cost more than compositing a small view). The same lists; the footprints'
+    sums in float64."""
+    from gpnerf_core.geometry.gaussians.projection import ALPHA_MIN, BOX_MARGIN, JACOBIAN_LIMIT, LOW_PASS
+
+    dtype = gaussians.means.dtype
+    rotation_cw = c2w[:3, :3].to(dtype).T.contiguous()
+    (means2d, conics, depths, visible, radii, clamped, behind, offsets, listed) = kernels().project_and_bin(
+        *map(_array, (gaussians.means, gaussians.scales, gaussians.rotations, gaussians.opacities)),
+        _array(intrinsics.to(torch.float64)), _array(rotation_cw.to(torch.float64)),
+        _array(c2w[:3, 3].to(torch.float64)), height, width, float(near), tile_size, LOW_PASS, JACOBIAN_LIMIT,
+        ALPHA_MIN, BOX_MARGIN)
+    projected = ProjectedGaussians(
+        means2d=torch.from_numpy(means2d), conics=torch.from_numpy(conics), depths=torch.from_numpy(depths),
+        opacities=gaussians.opacities, extents=torch.zeros(0), visible=torch.from_numpy(visible),
+        radii=torch.from_numpy(radii), culled_behind=int(behind), clamped=int(clamped))
+    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
+    bins = TileBins(offsets=torch.from_numpy(offsets), ids=torch.from_numpy(listed), tile_size=tile_size,
+                    tiles_x=tiles_x, tiles_y=tiles_y)
+    return projected, bins

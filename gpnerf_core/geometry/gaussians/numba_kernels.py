@@ -268,3 +268,97 @@ def backward_tiles(tiles, means2d, conics, opacities, features, depths, offsets,
                         out_conics[k, 1] -= d_power * dx * dy
                         out_conics[k, 2] -= 0.5 * d_power * dy * dy
                     high = low
+
+
+@njit(nogil=True, cache=True)
+def project_and_bin(means, scales, rotations, opacities, intrinsics, rotation_cw, origin, height, width, near,
+                    tile_size, low_pass, limit, alpha_min, box_margin):
+    """``projection.project_gaussians`` then ``binning.bin_gaussians`` in one pass per Gaussian, for rendering without
+    gradients: the same footprints, culling and front-to-back lists (the sums in float64, so a few ulps from torch's).
+
+    ``rotation_cw`` ``[3, 3]`` world-to-camera rotation, ``origin`` ``[3]`` the camera centre. Returns ``(means2d
+    [G, 2], conics [G, 3], depths [G], visible [G] bool, radii [G] int32, clamped, culled_behind, offsets, listed)``.
+    """
+    count = means.shape[0]
+    dtype = means.dtype
+    means2d = np.zeros((count, 2), dtype=dtype)
+    conics = np.zeros((count, 3), dtype=dtype)
+    depths = np.ones(count, dtype=dtype)
+    visible = np.zeros(count, dtype=np.bool_)
+    radii = np.zeros(count, dtype=np.int32)
+    low = np.zeros((count, 2), dtype=np.int64)
+    high = np.zeros((count, 2), dtype=np.int64)
+    fx, skew, cx = intrinsics[0, 0], intrinsics[0, 1], intrinsics[0, 2]
+    fy, cy = intrinsics[1, 1], intrinsics[1, 2]
+    spare_x, spare_y = (limit - 1.0) * 0.5 * width / fx, (limit - 1.0) * 0.5 * height / fy
+    lo_x, hi_x = -(cx + 0.5) / fx - spare_x, (width - 0.5 - cx) / fx + spare_x
+    lo_y, hi_y = -(cy + 0.5) / fy - spare_y, (height - 0.5 - cy) / fy + spare_y
+    eps = np.finfo(dtype).eps
+    tiles_x, tiles_y = (width + tile_size - 1) // tile_size, (height + tile_size - 1) // tile_size
+    clamped, behind = 0, 0
+    local = np.empty((3, 3))
+    world = np.empty((3, 3))
+    for i in range(count):
+        d0, d1, d2 = means[i, 0] - origin[0], means[i, 1] - origin[1], means[i, 2] - origin[2]
+        x = rotation_cw[0, 0] * d0 + rotation_cw[0, 1] * d1 + rotation_cw[0, 2] * d2
+        y = rotation_cw[1, 0] * d0 + rotation_cw[1, 1] * d1 + rotation_cw[1, 2] * d2
+        z = rotation_cw[2, 0] * d0 + rotation_cw[2, 1] * d1 + rotation_cw[2, 2] * d2
+        if not z > near:
+            behind += 1
+            continue
+        depths[i] = z
+        u = (fx * x + skew * y) / z + cx
+        v = fy * y / z + cy
+        means2d[i, 0], means2d[i, 1] = u, v
+        tx = z * min(max(x / z, lo_x), hi_x)
+        ty = z * min(max(y / z, lo_y), hi_y)
+        # J = K2 P with P = [[1/z, 0, -tx/z^2], [0, 1/z, -ty/z^2]]
+        j00, j01, j02 = fx / z, skew / z, -(fx * tx + skew * ty) / (z * z)
+        j10, j11, j12 = intrinsics[1, 0] / z, fy / z, -(intrinsics[1, 0] * tx + fy * ty) / (z * z)
+        qw, qx, qy, qz = rotations[i, 0], rotations[i, 1], rotations[i, 2], rotations[i, 3]
+        norm = max(math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12)
+        qw, qx, qy, qz = qw / norm, qx / norm, qy / norm, qz / norm
+        local[0, 0], local[0, 1], local[0, 2] = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)
+        local[1, 0], local[1, 1], local[1, 2] = 2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)
+        local[2, 0], local[2, 1], local[2, 2] = 2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)
+        for r in range(3):
+            for k in range(3):
+                world[r, k] = (rotation_cw[r, 0] * local[0, k] + rotation_cw[r, 1] * local[1, k]
+                               + rotation_cw[r, 2] * local[2, k]) * scales[i, k]
+        u0 = j00 * world[0, 0] + j01 * world[1, 0] + j02 * world[2, 0]
+        u1 = j00 * world[0, 1] + j01 * world[1, 1] + j02 * world[2, 1]
+        u2 = j00 * world[0, 2] + j01 * world[1, 2] + j02 * world[2, 2]
+        v0 = j10 * world[0, 0] + j11 * world[1, 0] + j12 * world[2, 0]
+        v1 = j10 * world[0, 1] + j11 * world[1, 1] + j12 * world[2, 1]
+        v2 = j10 * world[0, 2] + j11 * world[1, 2] + j12 * world[2, 2]
+        a = u0 * u0 + u1 * u1 + u2 * u2
+        b = u0 * v0 + u1 * v1 + u2 * v2
+        c = v0 * v0 + v1 * v1 + v2 * v2
+        c0, c1, c2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
+        det = c0 * c0 + c1 * c1 + c2 * c2
+        if det <= 8 * eps * (a + c) ** 2:
+            clamped += 1
+        det_filtered = det + low_pass * (a + c) + low_pass * low_pass
+        a, c = a + low_pass, c + low_pass
+        conics[i, 0], conics[i, 1], conics[i, 2] = c / det_filtered, -b / det_filtered, a / det_filtered
+        opacity = opacities[i]
+        if not opacity >= alpha_min:
+            continue
+        reach = math.sqrt(2.0 * math.log(max(opacity / alpha_min, 1.0)))
+        half_u, half_v = reach * math.sqrt(a) + box_margin, reach * math.sqrt(c) + box_margin
+        first_u, last_u = math.ceil(u - half_u), math.floor(u + half_u)
+        first_v, last_v = math.ceil(v - half_v), math.floor(v + half_v)
+        if first_u > width - 1 or last_u < 0 or first_u > last_u or first_v > height - 1 or last_v < 0 \
+                or first_v > last_v:
+            continue
+        visible[i] = True
+        spread = math.sqrt(max(((a - c) / 2) ** 2 + b * b, 0.1))
+        radii[i] = min(math.ceil(3.0 * math.sqrt((a + c) / 2 + spread)), 2**30)
+        low[i, 0] = min(max(first_u, 0), width - 1) // tile_size
+        low[i, 1] = min(max(first_v, 0), height - 1) // tile_size
+        high[i, 0] = min(max(last_u, 0), width - 1) // tile_size
+        high[i, 1] = min(max(last_v, 0), height - 1) // tile_size
+    ids = np.nonzero(visible)[0]
+    ids = ids[np.argsort(depths[ids], kind="mergesort")]  # front to back, ties by index (stable)
+    offsets, listed = fill_tiles(ids, low[ids], high[ids], tiles_x, tiles_y)
+    return means2d, conics, depths, visible, radii, clamped, behind, offsets, listed

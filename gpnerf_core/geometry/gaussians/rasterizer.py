@@ -17,7 +17,9 @@ from torch import Tensor
 from gpnerf_core.errors import ConfigError, NonFiniteError
 from gpnerf_core.geometry.gaussians.binning import TileBins, bin_gaussians, fill_tiles
 from gpnerf_core.geometry.gaussians.gsplat_backend import composite_gsplat, gsplat_available
-from gpnerf_core.geometry.gaussians.numba_backend import composite_numba, fill_tiles_numba, kernels
+from gpnerf_core.geometry.gaussians.numba_backend import (
+    composite_numba, fill_tiles_numba, kernels, project_and_bin_numba,
+)
 from gpnerf_core.geometry.gaussians.projection import project_gaussians
 from gpnerf_core.geometry.gaussians.records import Gaussians, Rasterized
 from gpnerf_core.geometry.gaussians.torch_backend import composite_torch
@@ -48,6 +50,12 @@ def choose_backend(name: str, device: torch.device) -> str:
         raise ConfigError(f"rasterizer backend 'gsplat' needs CUDA tensors and gsplat installed "
                           f"(tensors on {device}, gsplat {'installed' if gsplat_available() else 'not installed'})")
     return name
+
+
+def _needs_gradient(gaussians: Gaussians, intrinsics: Tensor, c2w: Tensor) -> bool:
+    """Autograd records this call: the projection must then be torch's (the numba one is for rendering only)."""
+    tensors = (*(getattr(gaussians, field.name) for field in fields(Gaussians)), intrinsics, c2w)
+    return torch.is_grad_enabled() and any(tensor.requires_grad for tensor in tensors)
 
 
 def _check(gaussians: Gaussians, intrinsics: Tensor, c2w: Tensor, height: int, width: int, tile_size: int,
@@ -89,8 +97,11 @@ def rasterize_gaussians(gaussians: Gaussians, *, intrinsics: Tensor, c2w: Tensor
     name = choose_backend(backend, gaussians.means.device)
     dtype = gaussians.means.dtype
     gaussians = Gaussians(*(getattr(gaussians, field.name).to(dtype) for field in fields(Gaussians)))
-    projected = project_gaussians(gaussians, intrinsics, c2w, height, width, near)
-    bins = bin_gaussians(projected, height, width, tile_size, fill_tiles_numba if name == "numba" else fill_tiles)
+    if name == "numba" and not _needs_gradient(gaussians, intrinsics, c2w):
+        projected, bins = project_and_bin_numba(gaussians, intrinsics, c2w, height, width, near, tile_size)
+    else:
+        projected = project_gaussians(gaussians, intrinsics, c2w, height, width, near)
+        bins = bin_gaussians(projected, height, width, tile_size, fill_tiles_numba if name == "numba" else fill_tiles)
     features, depth, alpha = BACKENDS[name](projected.means2d, projected.conics, projected.opacities,
                                             gaussians.features, projected.depths, bins, height, width)
     if background is not None:

@@ -399,7 +399,11 @@ class ViewerServer:
         if tuple(layer_gui.options) != tuple(layers):
             layer_gui.options = layers
         layer = state.layer if state.layer in view.layers else "rgb"
-        picture = view.layers[layer]
+        try:
+            picture = view.layers[layer]  # drawn when first shown (evaluation.pictures.Layers)
+        except Exception as exc:  # a picture that cannot be drawn is a status line, never a dead viewer
+            state.gui["status"].content = f"**layer {layer} failed**: {type(exc).__name__}: {exc}"
+            return
         if "legend" in state.gui:
             state.gui["legend"].visible = state.gui["highlight"].visible = layer == "semantic"
             chosen = state.gui["highlight"].value
