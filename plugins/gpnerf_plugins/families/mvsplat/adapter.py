@@ -65,7 +65,8 @@ class PixelGaussians:
     def colours(self, camera_centre: Tensor) -> Tensor:
         """``[G, 3]`` colours seen from a camera at ``camera_centre`` ``[3]`` (world, metres)."""
         directions = self.means - camera_centre.to(self.means.dtype)
-        in_source = torch.einsum("gij,gi->gj", self.source_rotations[self.view_of], directions)  # R^T d
+        views = self.source_rotations.shape[0]  # the Gaussians are view-major: one rotation per block
+        in_source = torch.bmm(directions.reshape(views, -1, 3), self.source_rotations).reshape(-1, 3)  # (R^T d)^T
         return sh_colours(self.harmonics, in_source)
 
 
