@@ -403,12 +403,12 @@ class Trainer:
             rays_per_second=global_rays / seconds if seconds > 0 else 0.0,
             world_size=self.dist.world_size,
             targets_per_rank=self.sampler.targets_per_rank,
-            rays_per_step=self._rays_per_view() * int(cfg.targets_per_step),
+            rays_per_step=self.rays_per_view() * int(cfg.targets_per_step),
             history=self.history,
             checkpoint=checkpoint,
         )
 
-    def _rays_per_view(self) -> int:
+    def rays_per_view(self) -> int:
         """``train.rays``, or a whole-image batch's pixels (the first training scene's image size)."""
         if not self.whole_images:
             return int(self.cfg.train.rays)

@@ -9,6 +9,8 @@ import pytest
 from omegaconf import OmegaConf
 import torch
 
+from gpnerf_core.errors import ConfigError
+
 TINY = [
     "dataset.height=32", "dataset.width=48", "dataset.frames_per_scene=6", "dataset.eval_every=3",
     "feature_extractor.widths=[8,8,8,16]", "feature_extractor.fpn_channels=4", "field_aggregator.width=16",
@@ -156,3 +158,14 @@ def test_every_family_composes_at_every_size_with_its_images_and_rays():
             same = [(key, OmegaConf.select(cfg, key), OmegaConf.select(reference, key))
                     for key in ("train.rays", "dataset.height", "dataset.width")]
             assert all(a == b for _, a, b in same), (size.name, family, same)
+
+
+def test_a_family_without_samples_along_its_rays_gets_the_scales_other_keys():
+    from gpnerf_core.tools.bench.sizes import _scale_keys, checked_families
+
+    keys = _scale_keys("scale=cpu")
+    assert "feature_extractor.widths=[32,32,64,96]" in keys and "model.num_source_views=4" in keys
+    assert not any(k.startswith(("model.coarse_samples", "model.fine_samples")) for k in keys)
+    assert checked_families("mvsplat,semantic_ray") == ["mvsplat", "semantic_ray"]
+    with pytest.raises(ConfigError, match="the baseline experiments and the registered model families"):
+        checked_families("mini")

@@ -87,3 +87,16 @@ def test_render_writes_its_trajectory_and_view_serves_it(trained):
         if process.poll() is None:
             process.kill()
             process.wait()
+
+
+def test_bench_measures_a_third_party_family_beside_gp_nerf(tmp_path):
+    model_family.install(tmp_path / "plugins")
+    tiny = [o for o in TINY_CLI if not o.startswith("eval.")]
+    result = gpnerf("bench", "size=demo", "repeats=1", "warmup=0", "phases=render", "families=pooled_views", *tiny,
+                    f"out_dir={tmp_path / 'bench'}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    demo = json.loads((tmp_path / "bench" / "bench.json").read_text())["sizes"]["demo"]
+    family = demo["pooled_views"]
+    assert "model=pooled_views" in family["overrides"] and "+loss=ce" in family["overrides"]
+    assert family["render"]["rays"] == demo["gpnerf"]["render"]["rays"] > 0
+    assert "pooled_views / GP-NeRF (min)" in result.stdout

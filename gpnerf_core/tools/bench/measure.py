@@ -111,7 +111,7 @@ def measure(spec: dict[str, Any]) -> dict[str, Any]:
         if spec["phase"] == "train":
             model.train()
             seconds, warmup_seconds = _timed(trainer.train_step, device, spec["warmup"], spec["repeats"], progress)
-            rays = int(cfg.train.rays) * int(cfg.train.targets_per_step)
+            rays = trainer.rays_per_view() * int(cfg.train.targets_per_step)  # every pixel for a whole-image family
             result.update(rays=rays, flops=count_flops(trainer.train_step))
         else:
             model.eval()

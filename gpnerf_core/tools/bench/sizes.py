@@ -6,6 +6,7 @@ Every preset trains on one generated embedded scene at the preset's image size (
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -98,13 +99,22 @@ def baseline_families() -> list[str]:
     return sorted(p.stem for p in folder.glob("*.yaml") if "override /model:" in _experiment_text(p.stem))
 
 
+def registered_families() -> list[str]:
+    """Every model family a plugin registers (third parties' too), GP-NeRF's own (``gnt``) aside."""
+    from gpnerf_core.registry.components import get_registry
+
+    return [name for name in get_registry().names("model") if name != "gnt"]
+
+
 def checked_families(value: str) -> list[str]:
-    """``bench families=<a,b>``: the named baseline families, refused in one line when one is unknown."""
+    """``bench families=<a,b>``: each a compared method's experiment (``baselines/<name>``) or a registered model
+    family (a third party's, measured as ``model=<name>``), refused in one line when one is neither."""
     names = [n.strip() for n in value.split(",") if n.strip()]
-    known = baseline_families()
+    known = sorted({*baseline_families(), *registered_families()})
     unknown = [n for n in names if n not in known]
     if not names or unknown:
-        raise ConfigError(f"bench families={value!r}: expected some of {', '.join(known)} (comma-separated)")
+        raise ConfigError(f"bench families={value!r}: expected some of {', '.join(known)} (comma-separated: the "
+                          "baseline experiments and the registered model families)")
     return names
 
 
@@ -114,12 +124,66 @@ def _sets_own_scale(family: str) -> bool:
 
 
 def variant_overrides(size: Size, variant: str, overrides: list[str]) -> list[str]:
-    """The overrides of ``variant`` at ``size``, the user's last (they win): ``gpnerf``, ``gnt_only``, or a baseline
-    family (its ``+experiment=baselines/<variant>`` on the size's common overrides: the same images, views and rays)."""
-    if variant not in VARIANTS:
+    """The overrides of ``variant`` at ``size``, the user's last (they win): ``gpnerf``, ``gnt_only``, a baseline
+    family (its ``+experiment=baselines/<variant>`` on the size's common overrides: the same images, views and rays), or
+    another registered family (``model=<variant>`` and ``family_loss``'s loss set on them)."""
+    if variant in VARIANTS:
+        extra = size.semantic if variant == "gpnerf" else GNT_ONLY
+        return [*size.common, *extra, *overrides]
+    if variant in baseline_families():
         common = list(size.common)
         if _sets_own_scale(variant):  # e.g. mvsnerf: scale's keys are another extractor's; its sizes are its own
             common = [o for o in common if not o.startswith("scale=")]
         return [*common, f"+experiment=baselines/{variant}", *overrides]
-    extra = size.semantic if variant == "gpnerf" else GNT_ONLY
-    return [*size.common, *extra, *overrides]
+    common = [*size.common, f"model={variant}"]
+    if not _samples_along_rays(variant):  # scale's sample counts are ray-marching options: its other keys, spelled out
+        common = [key for o in common for key in (_scale_keys(o) if o.startswith("scale=") else [o])]
+    return [*common, f"+loss={family_loss(tuple(common), variant)}", *overrides]
+
+
+def _samples_along_rays(family: str) -> bool:
+    from gpnerf_core.config.schema import RayMarchingConfig
+    from gpnerf_core.registry.components import get_registry
+
+    return issubclass(get_registry().get("model", family).spec.config, RayMarchingConfig)
+
+
+RAY_SAMPLE_KEYS = ("model.coarse_samples", "model.fine_samples")
+
+
+def _scale_keys(choice: str) -> list[str]:
+    """``scale=<name>`` as the overrides it sets (``conf/scale/<name>.yaml``), the ray-marching sample counts left
+    out: the same widths, views and schedule for a family without samples along its rays."""
+    from omegaconf import OmegaConf
+
+    from gpnerf_core.config.compose import config_dir
+
+    name = choice.split("=", 1)[1]
+    flat: list[str] = []
+
+    def walk(node: object, prefix: str) -> None:
+        if isinstance(node, dict):
+            for key, value in node.items():
+                walk(value, f"{prefix}{key}.")
+            return
+        key = prefix.rstrip(".")
+        if key not in RAY_SAMPLE_KEYS:
+            value = "[" + ",".join(map(str, node)) + "]" if isinstance(node, list) else node
+            flat.append(f"{key}={value}")
+
+    walk(OmegaConf.to_container(OmegaConf.load(Path(config_dir()) / "scale" / f"{name}.yaml")) or {}, "")
+    return flat
+
+
+@functools.cache
+def family_loss(common: tuple[str, ...], family: str) -> str:
+    """The loss set a registered family is measured with: ``ce`` (colour and class scores) where it renders semantics
+    as configured, else ``rgb``."""
+    from gpnerf_core.config.compose import compose
+    from gpnerf_core.model.build import build_components
+
+    try:
+        semantic = build_components(compose(list(common))).model.semantic_output is not None
+    except ConfigError:
+        return "ce"  # refused for another reason: the compose of the variant names it
+    return "ce" if semantic else "rgb"
