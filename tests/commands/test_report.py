@@ -79,6 +79,17 @@ def test_runs_differing_only_by_seed_form_one_row_with_mean_and_std(tmp_path):
     assert "| 60.00 +- 10.00 (n=3) | 30.00 +- 5.00 (n=3) | 20.00 +- 0.00 (n=3) |" in row
 
 
+def test_an_eval_of_a_runs_checkpoint_is_its_own_row_not_another_seed(tmp_path):
+    dgs = {"name": "dgs", "sd_weight": 0.25, "dgs_weight": 0.25, "teacher_stop_grad": True}
+    write_run(tmp_path / "run", dgs, True, 0.5)
+    write_run(tmp_path / "eval", dgs, True, 0.5)
+    metrics = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    metrics["checkpoint"] = str(tmp_path / "run" / "checkpoints" / "step_0000010.pt")
+    (tmp_path / "eval" / "metrics.json").write_text(json.dumps(metrics))
+    table = format_table(find_runs([tmp_path])).splitlines()
+    assert len(table) == 4 and all("(n=2)" not in row for row in table)
+
+
 def test_a_third_party_loss_or_head_never_gets_the_papers_number(tmp_path):
     look_alike = {"name": "my_loss", "sd_weight": 0.25, "dgs_weight": 0.25, "teacher_stop_grad": True}
     write_run(tmp_path / "a", look_alike, True, 0.5)
@@ -301,3 +312,25 @@ def test_chart_labels_name_where_a_run_sampled(tmp_path):
     assert labels == {"uniform": "unet + dgs (Table 4 ID 5)",
                       "first_pass": "unet + dgs (Table 4 ID 5) (depth samples: first pass)",
                       "swept": "unet + dgs (Table 4 ID 5) (depth samples: cost_volume)"}
+
+
+def test_report_of_built_in_runs_imports_no_third_party_plugin(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    plugins = tmp_path / "plugins"
+    info = plugins / "marker_plugin-0.1.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: marker-plugin\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text("[gpnerf]\nmarker_plugin = marker_plugin\n")
+    marker = tmp_path / "imported"
+    (plugins / "marker_plugin.py").write_text(f"open({str(marker)!r}, 'w').close()\n")
+    dgs = {"name": "dgs", "sd_weight": 0.25, "dgs_weight": 0.25, "teacher_stop_grad": True}
+    write_run(tmp_path / "runs" / "s0", dgs, True, 0.5)
+    env = {k: v for k, v in os.environ.items() if k != "GPNERF_DISABLE_PLUGIN_AUTOLOAD"}
+    env.update(PYTHONPATH=os.pathsep.join([str(plugins), env.get("PYTHONPATH", "")]), GPNERF_CACHE=str(tmp_path / "c"))
+    result = subprocess.run([sys.executable, "-m", "gpnerf_core", "report", str(tmp_path / "runs")], env=env,
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "| s0 |" in result.stdout and not marker.exists()

@@ -17,6 +17,7 @@ paper's numbers are Replica and ScanNet at full size: context, not a target for 
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import socket
@@ -116,6 +117,11 @@ class RunRow:
         return str((self.config.get("model") or {}).get("name") or "gnt")
 
     @property
+    def evaluated(self) -> bool:
+        """A run of ``eval`` (a trained checkpoint scored again: its metrics name the checkpoint)."""
+        return "checkpoint" in self.metrics and not self.fine_tuned
+
+    @property
     def fine_tuned(self) -> bool:
         """A run of ``finetune`` (a generalizable model fitted further on one scene)."""
         return "finetune" in self.metrics
@@ -145,6 +151,8 @@ class RunRow:
             config["train"] = {k: v for k, v in config["train"].items() if k not in NOT_METHOD_TRAIN_KEYS}
         if self.fine_tuned:  # a fine-tuned model is another row than the model it started from
             config["fine_tuned"] = True
+        elif self.evaluated:  # an eval of a checkpoint is that model again, not another seed of it
+            config["evaluation_of_a_checkpoint"] = True
         return json.dumps(_without_empty(config), sort_keys=True, default=str)
 
 
@@ -157,14 +165,33 @@ def _schema_defaults() -> dict[str, Any]:
     return {k: v for k, v in defaults.items() if isinstance(v, dict)}
 
 
+@functools.cache
+def _builtin_registry() -> Any:
+    """The built-in plugins' registry alone (no entry point imported)."""
+    from gpnerf_core.registry.components import collect
+    from gpnerf_core.registry.plugins import make_plugin_manager
+
+    return collect(make_plugin_manager(autoload=False))
+
+
+def _registry_for(config: dict[str, Any]) -> Any:
+    """The built-in registry where it has every component ``config`` names, else the full one: reading runs of the
+    built-in components imports no third-party plugin (one that is slow to import costs every ``report``)."""
+    from gpnerf_core.registry.components import get_registry
+    from gpnerf_core.registry.kinds import KINDS
+
+    builtin = _builtin_registry()
+    named = [(kind, str(config[kind].get("name"))) for kind in KINDS if isinstance(config.get(kind), dict)]
+    return builtin if all(name in builtin.components[kind] for kind, name in named) else get_registry()
+
+
 def _component_defaults(config: dict[str, Any]) -> dict[str, Any]:
     """The defaults of each component section's registered config (``model``, ``head``, ...), by the name it holds."""
     import dataclasses
 
-    from gpnerf_core.registry.components import get_registry
     from gpnerf_core.registry.kinds import KINDS
 
-    registry = get_registry()
+    registry = _registry_for(config)
     defaults = {}
     for kind in KINDS:
         section = config.get(kind)
