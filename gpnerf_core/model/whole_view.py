@@ -21,7 +21,8 @@ def render_whole_view(camera: TargetCamera, render: Callable[[RayBatch], Rendere
     Args:
         render: a chunk of rays -> the pass whose outputs are the model's (its last pass): ``logits`` ``[R, K]``
             (label rendering) or ``semantic`` ``[R, C]`` (decoded), or neither.
-        stride: pixels per rendered cell (0: every pixel).
+        stride: pixels per rendered cell, already resolved by the caller (``predict``'s 0, the model's natural
+            stride, is the family's to resolve; 0 here is every pixel).
         decode: the rendered semantic map ``[1, C, h, w]`` and the image size -> logits ``[1, K, H, W]`` (a head);
             None: the scores are the rendered ``logits``.
 
