@@ -64,6 +64,14 @@ def test_bad_value_is_refused_in_one_line(override, message):
     assert str(error.value).startswith(message) and "\n" not in str(error.value)
 
 
+def test_no_source_views_for_a_generalizable_family_names_the_key_not_a_derived_one():
+    with pytest.raises(ConfigError) as error:
+        validate_config(compose(["+experiment=baselines/mvsnerf", "model.num_source_views=0"]))
+    assert str(error.value) == ("model.num_source_views=0: model 'mvsnerf' renders from source views; expected an "
+                                "integer >= 1 (0 only for a per-scene family)")
+    assert validate_config(compose(["+experiment=baselines/semantic_nerf"])) is None  # per scene: 0 by default
+
+
 @pytest.mark.parametrize("overrides", [[], ["+head=unet", "+loss=dgs"], ["+experiment=table4_id5"],
                                        ["+experiment=paper/gpnerf"], ["+experiment=baselines/gnt"]])
 def test_defaults_and_presets_are_valid_and_still_checked(overrides):
@@ -187,16 +195,13 @@ def test_validation_off_skips_the_file_check(tmp_path):
 
 
 def test_a_generalizable_family_needs_a_source_view_a_per_scene_one_none(tmp_path):
-    """``model.num_source_views=0`` passes the value check (a per-scene family reads none) and is refused for a family
-    that renders from source views when its data is checked, before training."""
-    from gpnerf_core.engine.validation import check_data
-    from gpnerf_core.model.build import build_components
+    """``model.num_source_views=0`` is refused for a family that renders from source views (its config's default is
+    not 0) when the config is checked, before anything is built; a per-scene family reads none."""
     from pipeline_check import TINY_MODEL, TINY_SCENES
 
     cfg = compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES, f"dataset.root={tmp_path / 'scenes'}",
                    "model.num_source_views=0"])
-    validate_config(cfg)
-    with pytest.raises(ConfigError, match=r"^model.num_source_views=0: expected an integer >= 1 \(model=gnt renders "
-                                          r"from source views\)$"):
-        check_data(cfg, build_components(cfg))
+    with pytest.raises(ConfigError, match=r"^model.num_source_views=0: model 'gnt' renders from source views; expected "
+                                          r"an integer >= 1 \(0 only for a per-scene family\)$"):
+        validate_config(cfg)
 

@@ -84,6 +84,10 @@ def export_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     indices = exported_frames(scene, str(settings.frames), int(settings.every))
     min_views = checked_min_views(int(settings.min_views), len(indices))
     stride = int(settings.stride) or int(cfg.eval.render_stride)
+    if stride and (scene.height % stride or scene.width % stride):
+        key = "export.stride" if int(settings.stride) else "eval.render_stride (export.stride=0 takes it)"
+        raise ConfigError(f"{key}={stride}: scene {name!r} is {scene.height}x{scene.width}; expected a stride that "
+                          "divides both sides")
     owners = model.output_owners(component_names(cfg))
     folder, _ = claim_run_folder(cfg, dist, resuming=False)
     with folder:

@@ -7,6 +7,8 @@ validate it (``compose_checked``), then set torch's threads and seed and choose 
 
 from __future__ import annotations
 
+import re
+
 from typing import Any
 
 import torch
@@ -105,8 +107,17 @@ def check_component_choices(argv: list[str], registry: Any) -> None:
                 registry.get(group, name)
 
 
+MULTIPLE_VALUES = re.compile(r"Multiple values for (\w+)\. To override a value use 'override \w+: (\S+)'")
+
+
 def hydra_message(exc: BaseException) -> str:
-    """A Hydra/OmegaConf error and its causes on one line, without OmegaConf's ``full_key``/``object_type`` tail."""
+    """A Hydra/OmegaConf error and its causes on one line, without OmegaConf's ``full_key``/``object_type`` tail; the
+    errors a user meets most, said in this project's terms (``+loss=x`` where an experiment chose a loss already)."""
+    chosen = MULTIPLE_VALUES.search(str(exc))
+    if chosen is not None:
+        group, option = chosen.groups()
+        return (f"+{group}={option}: the config already selects a {group} (an experiment's or a checkpoint's); replace "
+                f"it with {group}={option} (without '+'), or leave the experiment out")
     parts: list[str] = []
     while exc is not None:
         lines = [line.strip() for line in str(exc).splitlines() if line.strip()]

@@ -121,6 +121,10 @@ def validate_config(cfg: DictConfig) -> None:
         raise ConfigError(f"eval.weights={cfg.eval.weights!r}: expected one of {', '.join(WEIGHT_CHOICES)}")
     if cfg.train.precision not in PRECISIONS:
         raise ConfigError(f"train.precision={cfg.train.precision!r}: expected one of {', '.join(PRECISIONS)}")
+    family = _component_config("model", cfg.model)
+    if cfg.model.num_source_views == 0 and family is not None and family().num_source_views > 0:
+        raise ConfigError(f"model.num_source_views=0: model {cfg.model.name!r} renders from source views; expected an "
+                          "integer >= 1 (0 only for a per-scene family)")
     bad_splits = [s for s in cfg.eval.splits if s not in SPLITS]
     if bad_splits:
         raise ConfigError(f"eval.splits contains {bad_splits[0]!r}; expected some of {', '.join(SPLITS)}")

@@ -51,6 +51,8 @@ CASES = {
     "bad schedule": (["train.lr_schedule=linear"], "train.lr_schedule='linear': expected one of exponential, cosine"),
     "instance loss on a class head": (["loss=instance"], "loss 'instance' trains instances but head 'unet' predicts"),
     "weight average decay of 1": (["train.ema_decay=1"], "train.ema_decay=1.0: expected a decay in [0, 1)"),
+    "a second loss with +": (["+loss=ce"], "+loss=ce: the config already selects a loss (an experiment's or a "
+                                           "checkpoint's); replace it with loss=ce (without '+')"),
     "unknown weight choice": (["eval.weights=best"], "eval.weights='best': expected one of average, trained"),
 }
 

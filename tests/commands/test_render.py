@@ -56,6 +56,9 @@ def test_render_writes_mp4_gif_and_frames(tmp_path):
     assert len(cloud.vertices) == exported["points_written"] > 0 and 0 <= labels.min() and labels.max() < 9
     assert len(trimesh.load(tmp_path / "points" / "points_labels.ply").vertices) == len(cloud.vertices)
     assert not list((tmp_path / "points").glob(".*partial*"))
+    stride = gpnerf("export", f"checkpoint={checkpoint}", "export.stride=3", f"out_dir={tmp_path / 'stride'}")
+    assert stride.returncode == 2 and "error: export.stride=3: scene 'unseen_00' is 32x48" in stride.stderr
+    assert not (tmp_path / "stride").exists()
     # each replaces its own finished folder with overwrite=true, as the refusal without it advises
     again = gpnerf("render", f"checkpoint={checkpoint}", "render.frames=2", f"out_dir={video}")
     assert again.returncode == 2 and "replace it with overwrite=true" in again.stderr

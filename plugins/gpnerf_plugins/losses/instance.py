@@ -116,7 +116,8 @@ class InstanceLossSet(WeightedLossSet):
         if float(options.get("ce_weight", 0.0)) != 0.0:
             raise ConfigError(
                 f"loss.ce_weight={options['ce_weight']}: the instance loss set's head predicts instance slots, not "
-                "classes; expected 0"
+                "classes; expected 0 (a weight an experiment sets for its own loss set stays when loss= replaces the "
+                "set: set loss.ce_weight=0, or leave the experiment out)"
             )
         options.setdefault("sd_weight", InstanceLossConfig.sd_weight)
         options.setdefault("dgs_weight", InstanceLossConfig.dgs_weight)
