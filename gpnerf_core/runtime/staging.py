@@ -18,7 +18,10 @@ def write_staged(run_dir: Path, writes: list[tuple[str, Write]], prefix: str) ->
     """Run each ``(name, write)`` into the staging folder ``run_dir/<prefix>*`` (``name`` may hold one folder level,
     ``frames/0001.png``), then rename each top-level file or folder into ``run_dir``. An error names the final path,
     not the staging one; whatever was already renamed is removed again and the staging folder always is."""
-    staging = Path(tempfile.mkdtemp(prefix=prefix, dir=run_dir))
+    try:
+        staging = Path(tempfile.mkdtemp(prefix=prefix, dir=run_dir))
+    except OSError as exc:  # a full or read-only disk: name the folder it could not write into
+        raise OSError(exc.errno, exc.strerror or str(exc), str(run_dir)) from None
     moved: list[Path] = []
     try:
         for name, write in writes:
