@@ -341,6 +341,7 @@ class SweepFailures(Callback):
                 failed = str(json.loads(marker.read_text()).get("run_folder") or marker.parent)
             except (OSError, ValueError, AttributeError):
                 failed = str(marker.parent)
+            failed = str(Path(failed).absolute())  # the job's own entry is absolute: one job is listed once
             if failed not in FAILED_SWEEP_JOBS:
                 FAILED_SWEEP_JOBS.append(failed)
 
@@ -393,7 +394,8 @@ def record_sweep_failure(cfg: DictConfig, message: str, *, refused_folder: bool 
             written = written or job_dir
     except (GpnerfError, OSError, ValueError):
         return False
-    FAILED_SWEEP_JOBS.append(str(written) if written else f"{folder or job_dir} (refused: no {ERROR_FILE} written)")
+    FAILED_SWEEP_JOBS.append(str(Path(written).absolute()) if written
+                             else f"{folder or job_dir} (refused: no {ERROR_FILE} written)")
     return True
 
 

@@ -141,11 +141,12 @@ def test_a_sweep_sharing_one_out_dir_writes_nothing_there_and_counts_both_jobs(t
     env = dict(os.environ, GPNERF_DISABLE_PLUGIN_AUTOLOAD="1", GPNERF_CACHE=str(tmp_path / "cache"))
     result = subprocess.run(
         [sys.executable, "-m", "gpnerf_core", "run", "-m", *DGS, "seed=0,1", f"out_dir={tmp_path / 'x'}",
-         f"hydra.sweep.dir={tmp_path / 'sweep'}"],
+         "hydra.sweep.dir=sweep"],  # relative, as Hydra's default: a job is still listed once
         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300,
     )
     assert result.returncode == 2, result.stderr[-2000:]
     assert "error: 2 job(s) of the sweep failed" in result.stderr and "Traceback" not in result.stderr
+    assert result.stderr.count(str(tmp_path / "sweep" / "0")) == 1
     assert not (tmp_path / "x").exists()
     for job in ("0", "1"):
         record = json.loads((tmp_path / "sweep" / job / "error.json").read_text())
