@@ -156,14 +156,14 @@ def test_report_chart_writes_png_csv_and_the_fronts(tmp_path):
     done = subprocess.run([sys.executable, "-m", "gpnerf_core", "report", str(tmp_path / "runs"), "--chart",
                            str(tmp_path / "chart")], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
-    front = "mIoU held-out vs training time: unet + ce (Table 4 ID 2), unet + dgs (Table 4 ID 5)"
+    front = "mIoU held-out vs training time: GP-NeRF (unet + ce, Table 4 ID 2), GP-NeRF (unet + dgs, Table 4 ID 5)"
     assert front in done.stdout
     assert (tmp_path / "chart" / "speed_accuracy.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert not (tmp_path / "chart" / "headline.png").exists()  # no run measured the seconds per frame
     rows = (tmp_path / "chart" / "speed_accuracy.csv").read_text().splitlines()
     assert rows[0].startswith("method,seeds,n,mIoU held-out (per-image mIoU) mean,mIoU held-out std")
-    full = next(row for row in rows if row.startswith("unet + dgs (Table 4 ID 5),"))
-    assert full.startswith("unet + dgs (Table 4 ID 5),0 1,2,0.65,0.0707107")
+    full = next(row for row in rows if row.startswith('"GP-NeRF (unet + dgs, Table 4 ID 5)",'))
+    assert full.startswith('"GP-NeRF (unet + dgs, Table 4 ID 5)",0 1,2,0.65,0.0707107')
     assert rows[0].endswith("parameters (millions) mean,parameters std") and full.endswith(",1000,0,2,0")
     assert front in (tmp_path / "chart" / "pareto.txt").read_text()
 
@@ -201,8 +201,8 @@ def test_chart_labels_name_the_method_and_tell_apart_two_variants_of_one():
         write_run(root / "mine", {"name": "focal"}, True, 0.4, head="mine")
         groups = group_runs(find_runs([root]))
         labels = sorted(method_labels(groups))
-    assert labels == ["mine + focal", "unet + dgs (Table 4 ID 5) [lr_schedule=cosine]",
-                      "unet + dgs (Table 4 ID 5) [lr_schedule=exponential]"]
+    assert labels == ["GP-NeRF (mine + focal)", "GP-NeRF (unet + dgs, Table 4 ID 5) [lr_schedule=cosine]",
+                      "GP-NeRF (unet + dgs, Table 4 ID 5) [lr_schedule=exponential]"]
 
 
 def test_chart_labels_name_the_size_first_and_stay_unique(tmp_path):
@@ -226,10 +226,10 @@ def test_chart_labels_name_the_size_first_and_stay_unique(tmp_path):
         (tmp_path / name / "config.yaml").write_text(yaml.safe_dump(config))
     groups = group_runs(find_runs([tmp_path]))
     labels = dict(zip((g.runs[0].folder.name for g in groups), method_labels(groups)))
-    assert labels["sized"] == ("unet + dgs (Table 4 ID 5) [fine_samples=0, num_source_views=3, num_blocks=2, "
+    assert labels["sized"] == ("GP-NeRF (unet + dgs, Table 4 ID 5) [fine_samples=0, num_source_views=3, num_blocks=2, "
                                "near=0.59, lr_schedule=exponential, +1 more]")
     assert labels["sized_lr"].endswith("near=0.59, lr_schedule=cosine, +1 more]")
-    assert labels["default"] == ("unet + dgs (Table 4 ID 5) [fine_samples=16, num_source_views=10, num_blocks=4, "
+    assert labels["default"] == ("GP-NeRF (unet + dgs, Table 4 ID 5) [fine_samples=16, num_source_views=10, num_blocks=4, "
                                  "near=0.2, +2 more]")
     assert len(set(labels.values())) == 3 and not any(name in label for name, label in labels.items())
 
@@ -309,9 +309,9 @@ def test_chart_labels_name_where_a_run_sampled(tmp_path):
         (tmp_path / name / "config.yaml").write_text(yaml.safe_dump(config))
     groups = group_runs(find_runs([tmp_path]))
     labels = dict(zip((g.runs[0].folder.name for g in groups), method_labels(groups)))
-    assert labels == {"uniform": "unet + dgs (Table 4 ID 5)",
-                      "first_pass": "unet + dgs (Table 4 ID 5) (depth samples: first pass)",
-                      "swept": "unet + dgs (Table 4 ID 5) (depth samples: cost_volume)"}
+    assert labels == {"uniform": "GP-NeRF (unet + dgs, Table 4 ID 5)",
+                      "first_pass": "GP-NeRF (unet + dgs, Table 4 ID 5) (depth samples: first pass)",
+                      "swept": "GP-NeRF (unet + dgs, Table 4 ID 5) (depth samples: cost_volume)"}
 
 
 def test_report_of_built_in_runs_imports_no_third_party_plugin(tmp_path):
@@ -334,3 +334,22 @@ def test_report_of_built_in_runs_imports_no_third_party_plugin(tmp_path):
                             capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
     assert "| s0 |" in result.stdout and not marker.exists()
+
+
+def test_chart_labels_name_each_method_then_its_variant(tmp_path):
+    from gpnerf_core.tools.reporting.runs import find_runs, group_runs, method_labels
+
+    write_run(tmp_path / "mvsnerf", {"name": "ce"}, True, 0.4, head=None, model="mvsnerf")
+    write_run(tmp_path / "mvsnerf_unet", {"name": "dgs"}, True, 0.4, head="unet", model="mvsnerf")
+    write_run(tmp_path / "splat", {"name": "image"}, True, 0.4, head=None, model="mvsplat")
+    write_run(tmp_path / "ray", {"name": "ce"}, True, 0.4, head=None, model="semantic_ray")
+    write_run(tmp_path / "mine", {"name": "ce"}, True, 0.4, head=None, model="mine")
+    write_run(tmp_path / "gnt", {"name": "rgb"}, True, 0.4, head=None)
+    config = yaml.safe_load((tmp_path / "gnt" / "config.yaml").read_text())
+    config["model"]["semantic_field"]["enabled"] = False
+    (tmp_path / "gnt" / "config.yaml").write_text(yaml.safe_dump(config))
+    groups = group_runs(find_runs([tmp_path]))
+    labels = dict(zip((g.runs[0].folder.name for g in groups), method_labels(groups)))
+    assert labels == {"mvsnerf": "MVSNeRF + semantic head (ce)", "mvsnerf_unet": "MVSNeRF + unet head (dgs)",
+                      "splat": "MVSplat (image)", "ray": "Semantic-Ray (ce)", "mine": "mine (ce)",
+                      "gnt": "GNT (no head + rgb)"}

@@ -448,19 +448,48 @@ def fronts_possible(method: Any) -> bool:
     return any(a.name in method.points for a in ACCURACY) and any(c.name in method.points for c in COSTS)
 
 
+METHOD_NAMES = {
+    "gnt": "GP-NeRF",
+    "semantic_ray": "Semantic-Ray",
+    "neuray": "NeuRay",
+    "mvsnerf": "MVSNeRF",
+    "mvsplat": "MVSplat",
+    "semantic_nerf": "Semantic-NeRF",
+    "dm_nerf": "DM-NeRF",
+}
+"""The methods the built-in families are, by family name (a third party's family is named by its own name)."""
+WITH_SEMANTIC_HEAD = ("neuray", "mvsnerf")
+"""Families the paper names "<method> + semantic head" when they render labels themselves (its Table 1 rows)."""
+
+
+def method_name(row: RunRow) -> str:
+    """The method a run is, by name: ``GP-NeRF``, ``GNT`` (GP-NeRF's field without semantics), ``Semantic-Ray``,
+    ``NeuRay + semantic head``, ``MVSNeRF + unet head``, ..., or a third-party family's own name."""
+    head = (row.config.get("head") or {}).get("name")
+    name = METHOD_NAMES.get(row.model, row.model)
+    if row.model == "gnt":
+        field = ((row.config.get("model") or {}).get("semantic_field") or {}).get("enabled", True)
+        return "GNT" if head is None and not field else name
+    if head is not None:
+        return f"{name} + {head} head"
+    return f"{name} + semantic head" if row.model in WITH_SEMANTIC_HEAD else name
+
+
 def method_labels(groups: list[RowGroup]) -> list[str]:
-    """Legend entries, one per group: head + loss (+ the Table 4 ID of the paper's methods); where several groups
-    share that text, each also names its own values of the config keys that tell them apart (its size: blocks,
-    samples, views, bounds, ...), and the first run's folder only where the configs name nothing."""
+    """Legend entries, one per group: the method's name, then its variant (head + loss for GP-NeRF, with the Table 4
+    ID of the paper's rows; the loss set for the others); where several groups share that text, each also names its
+    own values of the config keys that tell them apart (its size: blocks, samples, views, bounds, ...), and the first
+    run's folder only where the configs name nothing."""
     described = []
     for group in groups:
         first = group.runs[0]
-        head = (first.config.get("head") or {}).get("name", "no head")
+        head = (first.config.get("head") or {}).get("name")
         loss = (first.config.get("loss") or {}).get("name", "no loss")
         switches = first.paper_switches()
         paper = PAPER_TABLE4.get(switches) if switches else None
-        what = f"{head} + {loss}" if first.model == "gnt" else f"{first.model} + {loss}"
-        described.append(what + (f" (Table 4 ID {paper[0]})" if paper else "") + sampling_label(first.config))
+        variant = f"{head or 'no head'} + {loss}" if first.model == "gnt" else loss
+        variant += f", Table 4 ID {paper[0]}" if paper else ""
+        described.append(f"{method_name(first)} ({variant})" + sampling_label(first.config))
     labels = []
     for text, group in zip(described, groups):
         twins = [g for t, g in zip(described, groups) if t == text]
