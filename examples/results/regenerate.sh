@@ -22,7 +22,8 @@
 #             runs are the layouts stage's of that count), each fine-tuned 300 steps on unseen_00 (not in the default
 #             stages: 2 h 35 min on 2026-12-04 with the 16-layout seed 0 done). PROTOCOL_EMA_DECAY=0.99: every run
 #             keeps a weight average, is scored with it and fine-tuned from it, runs layouts_n<count>_ema[_<family>]_s<seed>
-#             (GP-NeRF's too: the layouts stage keeps none); at 32 layouts seed 0's four runs and their fine-tuning
+#             (GP-NeRF's too: the layouts stage keeps none); PROTOCOL_FAMILIES (default "semantic_ray neuray mvsnerf")
+#             names the compared families (e.g. "mvsplat_unet"); at 32 layouts seed 0's four runs and their fine-tuning
 #             took 2 h here (2026-12-04), evaluation included (108 frames a run: 3-12 min)
 #   per_scene the per-scene families x seeds 0-2: Semantic-NeRF fitted from scratch on the unseen layout's training
 #             frames (evaluated every 500 of its 2000 steps: against ID 5 zero-shot and fine-tuned, the finetune stage;
@@ -53,6 +54,7 @@ STAGES=${2:-table4 methods baselines grid samplers per_scene stress instance fin
 PARALLEL=${PARALLEL:-2}
 PROTOCOL_LAYOUTS=${PROTOCOL_LAYOUTS:-16}  # the protocol's training layouts: seed 0's choice (3 seeds favour 32)
 PROTOCOL_EMA_DECAY=${PROTOCOL_EMA_DECAY:-}  # set (e.g. 0.99): every protocol run keeps a weight average, scored with it
+PROTOCOL_FAMILIES=${PROTOCOL_FAMILIES:-semantic_ray neuray mvsnerf}  # the compared families beside GP-NeRF's runs
 RECORDS=${RECORDS:-$(cd "$(dirname "$0")" && pwd)/records}
 POLL_SECONDS=${POLL_SECONDS:-10}
 RUNS="$WORK/runs"
@@ -150,11 +152,11 @@ stage_jobs() {
       local ckpt=checkpoints/step_$(printf %07d $steps).pt
       for s in 0 1 2; do
         train_job "layouts_${tag}_s$s" $s +head=unet +loss=dgs "${data[@]}"
-        for family in semantic_ray neuray mvsnerf; do
+        for family in $PROTOCOL_FAMILIES; do
           train_job "layouts_${tag}_${family}_s$s" $s +experiment=baselines/$family "${data[@]}"
         done
       done
-      for s in 0 1 2; do for family in "" _semantic_ray _neuray _mvsnerf; do
+      for s in 0 1 2; do for family in "" $(printf ' _%s' $PROTOCOL_FAMILIES); do
         job "finetune_layouts_${tag}${family}_s$s" "layouts_${tag}${family}_s$s" finetune \
           "checkpoint=$RUNS/layouts_${tag}${family}_s$s/$ckpt" "'dataset.scenes=[unseen_00]'" train.steps=300 \
           finetune.points=4 eval.save_images=0 threads=1 "out_dir=$RUNS/finetune_layouts_${tag}${family}_s$s"
@@ -227,7 +229,8 @@ if [[ " $STAGES " == *" report "* ]]; then
     "$PYTHON" -m gpnerf_core report "${baseline_runs[@]}" --chart "$WORK/chart_baselines" > "$WORK/report_baselines.md"
   fi
   tag=$(protocol_tag)
-  mapfile -t protocol_runs < <(existing "$RUNS"/{,finetune_}layouts_$tag{,_semantic_ray,_neuray,_mvsnerf}_s?)
+  mapfile -t protocol_runs < <(for family in "" $(printf ' _%s' $PROTOCOL_FAMILIES); do
+    existing "$RUNS"/{,finetune_}layouts_$tag${family}_s?; done)
   if (( ${#protocol_runs[@]} )); then  # Table 1's rows (both settings) on the generalized protocol, and their chart
     "$PYTHON" -m gpnerf_core report "${protocol_runs[@]}" --chart "$WORK/chart_protocol_$tag" \
       > "$WORK/report_protocol_$tag.md"
