@@ -130,14 +130,14 @@ def test_a_pose_that_is_not_rigid_is_refused_before_training_naming_the_line(tmp
 
 def test_a_truncated_image_is_found_by_full_validation_only(tmp_path, monkeypatch):
     cfg, _ = _tiny(tmp_path)
-    label = tmp_path / "set" / "layout_00" / "Sequence_1" / "semantic_class" / "semantic_class_1.png"
+    label = tmp_path / "set" / "layout_00" / "Sequence_1" / "semantic_class" / "semantic_class_2.png"
     label.write_bytes(label.read_bytes()[: label.stat().st_size * 2 // 3])  # the header still reads
     (tmp_path / "set" / "checksums.json").unlink()  # as a real dataset, which has no checksum list
-    monkeypatch.setattr(checks, "QUICK_FRAMES", 2)  # quick decodes frames 0 and 5 of the 6, not frame 1
+    monkeypatch.setattr(checks, "QUICK_FRAMES", 2)  # quick decodes frames 0 and 5 and the held-out 1 and 4, not 2
     check_data(cfg, _fresh(cfg))  # quick: file index, sizes from the headers, poses, a sample of frames
     full = compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES, f"dataset.root={tmp_path / 'set'}",
                     "dataset.validate=full"])
-    with pytest.raises(DataError, match=r"semantic_class_1.png: unreadable image"):
+    with pytest.raises(DataError, match=r"semantic_class_2.png: unreadable image"):
         check_data(full, _fresh(full))
 
 
@@ -160,6 +160,25 @@ def test_full_validation_checks_label_ids_against_the_class_count():
     [problem] = check_scene_files(LabelsOutOfRange(), ["only"], "full")
     assert check_scene_files(LabelsOutOfRange(), ["only"], "quick") == [problem]  # quick decodes a sample (here: all)
     assert problem == "scene 'only' frame 0: label 7 is neither a class id in [0, 3) nor the ignore index 255"
+
+
+class HeldOutLabelOutOfRange(LabelsOutOfRange):
+    """40 frames; only held-out frame 21 has a label past the class count (no spread of 8 picks it)."""
+
+    def load_scene(self, name):
+        def frame(index):
+            semantic = torch.full((4, 4), 7 if index == 21 else 1)
+            return Frame(rgb=torch.zeros(4, 4, 3), depth=torch.ones(4, 4), semantic=semantic, intrinsics=torch.eye(3),
+                         c2w=torch.eye(4))
+
+        held_out = (21,)
+        return Scene(name, torch.eye(4).expand(40, 4, 4), torch.eye(3).expand(40, 3, 3), 4, 4, 0.1, 5.0,
+                     tuple(i for i in range(40) if i not in held_out), held_out, frame)
+
+
+def test_quick_validation_reads_every_held_out_frame_before_training():
+    problems = check_scene_files(HeldOutLabelOutOfRange(), ["only"], "quick")  # (its cameras share a pose: noted too)
+    assert "scene 'only' frame 21: label 7 is neither a class id in [0, 3) nor the ignore index 255" in problems
 
 
 def test_a_damaged_file_in_a_dataset_root_says_how_to_regenerate(tmp_path):

@@ -44,7 +44,7 @@ VALIDATION_LEVELS = ("quick", "full", "off")
 
 QUICK_FRAMES = 8
 """Frames per scene that ``quick`` decodes and checks like ``full`` does (spread evenly over the frames the scene uses,
-the first and last included): a badly converted scene (depth in other units or in 8 bits, labels outside the classes)
+the first and last included; every held-out frame too): a badly converted scene (depth in other units or in 8 bits, labels outside the classes)
 shows on every frame, and 8 decodes per scene keep ``quick`` a small part of a run's start."""
 
 
@@ -92,12 +92,13 @@ def check_scene_files(dataset: CheckedDataset, scenes: Sequence[str], level: str
 
 def frames_to_check(scene: Scene, level: str) -> list[int]:
     """The frames whose values ``level`` checks: every frame the scene uses (``full``), else ``QUICK_FRAMES`` of them
-    spread evenly (``quick``)."""
+    spread evenly and every held-out frame (``quick``: evaluation reads each of those after training, where a bad
+    value would cost the whole run)."""
     used = sorted(set(scene.train_frames) | set(scene.eval_frames))
     if level == "full" or len(used) <= QUICK_FRAMES:
         return used
     step = (len(used) - 1) / (QUICK_FRAMES - 1)
-    return sorted({used[round(k * step)] for k in range(QUICK_FRAMES)})
+    return sorted({used[round(k * step)] for k in range(QUICK_FRAMES)} | set(scene.eval_frames))
 
 
 def pose_warnings(dataset: CheckedDataset, scenes: Sequence[str], level: str) -> list[str]:

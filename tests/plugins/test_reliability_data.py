@@ -172,14 +172,17 @@ def test_quick_validation_refuses_a_bad_label_or_an_8_bit_depth_before_training(
     assert named in str(error.value)
 
 
-def test_quick_decodes_a_bounded_spread_of_frames():
+def test_quick_decodes_a_bounded_spread_of_frames_and_every_held_out_one():
     def scene(frames: int) -> Scene:
+        held_out = tuple(range(1, frames, 100))
         return Scene("s", torch.eye(4).expand(frames, 4, 4), torch.eye(3).expand(frames, 3, 3), 4, 4, 0.1, 5.0,
-                     tuple(range(0, frames, 2)), tuple(range(1, frames, 2)), lambda i: None)
+                     tuple(i for i in range(frames) if i not in held_out), held_out, lambda i: None)
 
     assert frames_to_check(scene(5), "quick") == [0, 1, 2, 3, 4]
     picked = frames_to_check(scene(900), "quick")
-    assert len(picked) == QUICK_FRAMES and picked[0] == 0 and picked[-1] == 899
+    spread = [i for i in picked if i % 100 != 1]
+    assert len(spread) == QUICK_FRAMES and picked[0] == 0 and picked[-1] == 899
+    assert set(range(1, 900, 100)) <= set(picked)  # every held-out frame: evaluation reads each after training
     assert frames_to_check(scene(900), "full") == list(range(900))
 
 
