@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import torch
+import yaml
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict
 
@@ -720,4 +721,8 @@ def checkpoint_config(cfg: DictConfig, command: str) -> tuple[TrainedModel, list
         raise ConfigError(f"{command} needs checkpoint=<path to a .pt file written by run>")
     trained = load_trained(str(cfg.checkpoint))
     typed = [override_key(o) for o in task_overrides() if o not in trained.overrides]
+    family = str(((yaml.safe_load(trained.config_yaml) or {}).get("model") or {}).get("name") or "gnt")
+    if "model" in typed and str(cfg.model.name) != family:
+        raise ConfigError(f"model={cfg.model.name}: checkpoint {trained.path} holds a trained model {family!r}; "
+                          f"{command} takes its model family from the checkpoint: drop model=...")
     return trained, restore_model_settings(cfg, trained, typed)

@@ -81,3 +81,14 @@ def test_finetune_and_stress_take_its_checkpoint(trained, tmp_path):
                       "--out", str(tmp_path / "stress")) == 0
     results = json.loads((tmp_path / "stress" / "stress.json").read_text())
     assert "source_views" in json.dumps(results) and "translation_noise" in json.dumps(results)
+
+
+@pytest.mark.parametrize("trained", ["semantic_ray"], indirect=True)
+def test_another_family_for_its_checkpoint_is_refused_naming_the_trained_one(trained, tmp_path, capsys):
+    _, out = trained
+    checkpoint = next((out / "checkpoints").glob("*.pt"))
+    assert in_process("eval", f"checkpoint={checkpoint}", "model=gnt", f"out_dir={tmp_path / 'eval'}") == 2
+    err = capsys.readouterr().err
+    assert f"model=gnt: checkpoint {checkpoint} holds a trained model 'semantic_ray'; eval takes its model family from " \
+           "the checkpoint: drop model=..." in err
+    assert not (tmp_path / "eval").exists()
