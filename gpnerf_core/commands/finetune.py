@@ -18,9 +18,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf import DictConfig, open_dict
 
-from gpnerf_core.model.build import build_components
 from gpnerf_core.runtime.device import machine_info
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError, DataError
@@ -28,6 +27,7 @@ from gpnerf_core.evaluation.curves import CURVE_KEYS, curve_points
 from gpnerf_core.runtime.io import atomic_write_json
 from gpnerf_core.config.overrides import foreign_dataset_note
 from gpnerf_core.engine.jobs import (
+    built_from_checkpoint,
     checkpoint_config,
     claim_run_folder,
     job,
@@ -38,8 +38,6 @@ from gpnerf_core.engine.jobs import (
     start,
     task_overrides,
 )
-from gpnerf_core.model.checkpoint import format_differences, model_differences
-from gpnerf_core.model.weights import load_weights
 from gpnerf_core.engine.validation import check_data
 
 
@@ -67,22 +65,14 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     with open_dict(cfg):
         cfg.eval.splits = ["train"]  # the chosen scenes' held-out frames
     start(cfg)
-    components = build_components(cfg, classes=trained.classes)
-    if components.classes.from_checkpoint:
-        notes.append(components.classes.note(str(cfg.dataset.name)))
+    built = built_from_checkpoint(cfg, trained, str(cfg.eval.weights), new_classes=True,
+                                  source=f"finetune checkpoint={checkpoint}")
+    components, which, reinitialised = built.components, built.weights, built.reinitialised
+    notes += built.notes
     check_data(cfg, components, training=True)
     check_splits_have_frames(cfg, components)  # the chosen scenes' held-out frames: a curve of no image is refused
     dataset_note = foreign_dataset_note(trained.overrides, list(task_overrides()))
     notes = [dataset_note, *notes] if dataset_note else notes
-    start_weights, which = trained.weights(str(cfg.eval.weights))
-    old_classes = trained.classes.num_classes if trained.classes is not None else None
-    new_config = OmegaConf.to_yaml(cfg, resolve=True)
-    reinitialised = load_weights(
-        components.model, start_weights, f"finetune checkpoint={checkpoint}",
-        new_classes=(old_classes, components.classes.num_classes) if old_classes is not None else None,
-        explain=lambda: format_differences(model_differences(trained.config_yaml, new_config, trained.model_sections))
-        or "no key (a different plugin version?)",
-    )
     record = run_record(cfg, components.model_sections)
     run_dir = shared_run_dir(cfg, dist)
     trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record)  # resumes: refused before the claim
@@ -94,9 +84,9 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             for note in (*notes, *plan.notes):
                 print(f"note: {note}", file=sys.stderr)
             if reinitialised:
-                old_classes = int(start_weights[reinitialised[0]].shape[0])
                 print(
-                    f"note: {components.classes.num_classes} classes instead of the checkpoint's {old_classes}: "
+                    f"note: {components.classes.num_classes} classes instead of the checkpoint's "
+                    f"{built.checkpoint_classes}: "
                     f"re-initialised {', '.join(reinitialised)} (the head's last layer); every other tensor loaded",
                     file=sys.stderr,
                 )

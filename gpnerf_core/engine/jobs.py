@@ -63,7 +63,9 @@ from gpnerf_core.runtime.run_folder import (
     make_folder,
     remove_made_folders,
 )
-from gpnerf_core.model.checkpoint import RunRecord, check_recorded_components, check_resume_config
+from gpnerf_core.model.checkpoint import (
+    RunRecord, check_recorded_components, check_resume_config, format_differences, model_differences,
+)
 from gpnerf_core.model.trained import TrainedModel, checked_checkpoint_path, load_trained, restore_model_settings
 from gpnerf_core.model.weights import load_weights
 from gpnerf_core.training.interrupt import TrainingInterrupted
@@ -669,23 +671,60 @@ class CheckpointModel:
 
 
 def model_from_checkpoint(cfg: DictConfig, dist: Distributed, command: str, *, check_scenes: bool) -> CheckpointModel:
-    """``checkpoint_config``, ``start``, build the components (a dataset without a class list takes the checkpoint's),
-    (``check_scenes``: ``check_data`` on the evaluated splits; a per-scene model is scored on its own scene only), load
-    the evaluation weights and move the model to the job's device. Nothing is written."""
+    """``checkpoint_config``, ``start``, ``built_from_checkpoint`` (``check_scenes``: ``check_data`` on the evaluated
+    splits; a per-scene model is scored on its own scene only) and the model moved to the job's device. Nothing is
+    written."""
     trained, notes = checkpoint_config(cfg, command)
     start(cfg)
-    components = build_components(cfg, classes=trained.classes)
-    if components.classes.from_checkpoint:
-        notes.append(components.classes.note(str(cfg.dataset.name)))
+    built = built_from_checkpoint(cfg, trained, str(cfg.eval.weights))
+    components = built.components
     fitted = fitted_scenes(cfg, components, trained)
     if check_scenes:
         if fitted is not None:
             check_evaluated_scenes(cfg, components, fitted)
         check_data(cfg, components, training=False)
-    weights, which = trained.weights(str(cfg.eval.weights))
-    load_weights(components.model, weights, f"checkpoint {trained.path}")
     components.model.to(dist.device)
-    return CheckpointModel(trained, notes, components, which, fitted)
+    return CheckpointModel(trained, [*notes, *built.notes], components, built.weights, fitted)
+
+
+@dataclass(frozen=True)
+class BuiltFromCheckpoint:
+    """A checkpoint's model built and loaded (``built_from_checkpoint``).
+
+    Attributes:
+        components: built from the config, the model holding the chosen weights; notes: the classes taken from the
+            checkpoint (a dataset without a class list); weights: which (``average`` or ``trained``); reinitialised:
+            the keys that kept a fresh initialisation for another class count (``new_classes``), with
+            ``checkpoint_classes`` the checkpoint's class count.
+    """
+
+    components: Any
+    notes: list[str]
+    weights: str
+    reinitialised: list[str]
+    checkpoint_classes: int | None
+
+
+def built_from_checkpoint(cfg: DictConfig, trained: TrainedModel, choice: str, *, new_classes: bool = False,
+                          source: str | None = None) -> BuiltFromCheckpoint:
+    """The one walk from a checkpoint to a built model (``eval``, ``render``, ``export``, ``view``, ``finetune``,
+    ``stress``): the components of ``cfg`` built with the checkpoint's classes where the dataset has none, and the
+    weights ``choice`` picks (``eval.weights``) loaded. ``new_classes``: a tensor sized by another class count keeps its
+    initialisation (``finetune`` on another dataset); a shape that differs otherwise is blamed on the model keys that
+    differ from the checkpoint's. ``source`` names the checkpoint in errors (default ``checkpoint <path>``)."""
+    components = build_components(cfg, classes=trained.classes)
+    notes = [components.classes.note(str(cfg.dataset.name))] if components.classes.from_checkpoint else []
+    weights, which = trained.weights(choice)
+    old = trained.classes.num_classes if trained.classes is not None else None
+    current = OmegaConf.to_yaml(cfg, resolve=True)
+    reinitialised = load_weights(
+        components.model, weights, source or f"checkpoint {trained.path}",
+        new_classes=(old, components.classes.num_classes) if new_classes and old is not None else None,
+        explain=lambda: format_differences(model_differences(trained.config_yaml, current, trained.model_sections))
+        or "no key (a different plugin version?)",
+    )
+    checkpoint_classes = int(weights[reinitialised[0]].shape[0]) if reinitialised else None
+    return BuiltFromCheckpoint(components, notes, which, reinitialised, checkpoint_classes)
 
 
 def fitted_scenes(cfg: DictConfig, components: Any, trained: TrainedModel) -> FittedScenes | None:

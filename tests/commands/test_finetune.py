@@ -87,7 +87,10 @@ def test_a_checkpoint_older_than_an_option_takes_its_default_and_keeps_its_own_v
     old_yaml = OmegaConf.to_yaml(OmegaConf.create(old))
     assert [key for key, _, _ in model_differences(old_yaml, OmegaConf.to_yaml(cfg))] == [
         "model.fine_samples", "model.retired_option"]
-    notes = restore_model_settings(cfg, SimpleNamespace(config_yaml=old_yaml), typed=[])
+    from gpnerf_core.model.checkpoint import model_sections
+
+    notes = restore_model_settings(cfg, SimpleNamespace(config_yaml=old_yaml, model_sections=model_sections()),
+                                   typed=[])
     assert cfg.model.fine_samples == 3 and cfg.model.sampler == "uniform"
     assert notes == ["kept the checkpoint's value of model.fine_samples (the defaults changed since it was written)",
                      "the checkpoint's model.retired_option is no option of this version (left out)"]

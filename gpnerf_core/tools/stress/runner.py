@@ -172,9 +172,8 @@ class _Evaluator:
     """One model, its weights loaded once; datasets (and frame caches) per dataset variant."""
 
     def __init__(self, model: ModelUnderTest, views_per_scene: int, device: torch.device) -> None:
-        from gpnerf_core.model.build import build_components
+        from gpnerf_core.engine.jobs import built_from_checkpoint
         from gpnerf_core.model.trained import load_trained, release_trained
-        from gpnerf_core.model.weights import load_weights
 
         self.model = model
         self.views_per_scene = views_per_scene
@@ -182,8 +181,7 @@ class _Evaluator:
         trained = load_trained(model.checkpoint)
         self.trained_config = trained.config()
         self.cfg = _config(self.trained_config, views_per_scene, {})
-        self.components = build_components(self.cfg, classes=trained.classes)
-        load_weights(self.components.model, trained.weights()[0], f"checkpoint {model.checkpoint}")
+        self.components = built_from_checkpoint(self.cfg, trained, "average").components
         release_trained()
         self.components.model.to(device).eval()
         self._variants: dict[str, tuple[DictConfig, Any, Any]] = {}
