@@ -160,12 +160,10 @@ def test_every_family_composes_at_every_size_with_its_images_and_rays():
             assert all(a == b for _, a, b in same), (size.name, family, same)
 
 
-def test_a_family_without_samples_along_its_rays_gets_the_scales_other_keys():
-    from gpnerf_core.tools.bench.sizes import _scale_keys, checked_families
+def test_bench_takes_baseline_experiments_and_registered_families():
+    from gpnerf_core.tools.bench.sizes import SIZES, checked_families, variant_overrides
 
-    keys = _scale_keys("scale=cpu")
-    assert "feature_extractor.widths=[32,32,64,96]" in keys and "model.num_source_views=4" in keys
-    assert not any(k.startswith(("model.coarse_samples", "model.fine_samples")) for k in keys)
     assert checked_families("mvsplat,semantic_ray") == ["mvsplat", "semantic_ray"]
     with pytest.raises(ConfigError, match="the baseline experiments and the registered model families"):
         checked_families("mini")
+    assert "+experiment=baselines/mvsplat" in variant_overrides(SIZES["demo"], "mvsplat", [])

@@ -121,10 +121,9 @@ def test_the_kit_fails_a_family_that_says_it_takes_no_head_but_ignores_one():
     class IgnoresHead(model_family.PooledViews):
         accepts_head = False
 
-    def build(*, parts, **options):
-        model = model_family.build_pooled_views(parts=parts, hidden=8)
-        model.__class__ = IgnoresHead
-        return model
+    def build(*, parts, coarse_samples=8, fine_samples=0, **options):
+        return IgnoresHead(extractor=parts.build("feature_extractor"), num_classes=parts.num_classes,
+                           coarse_samples=coarse_samples, fine_samples=fine_samples, hidden=8)
 
     module = types.ModuleType("ignores_head")
     config = dataclasses.make_dataclass("C", [("name", str, "ignores_head")], bases=(model_family.PooledViewsConfig,))

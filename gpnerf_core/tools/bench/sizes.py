@@ -136,43 +136,7 @@ def variant_overrides(size: Size, variant: str, overrides: list[str]) -> list[st
             common = [o for o in common if not o.startswith("scale=")]
         return [*common, f"+experiment=baselines/{variant}", *overrides]
     common = [*size.common, f"model={variant}"]
-    if not _samples_along_rays(variant):  # scale's sample counts are ray-marching options: its other keys, spelled out
-        common = [key for o in common for key in (_scale_keys(o) if o.startswith("scale=") else [o])]
     return [*common, f"+loss={family_loss(tuple(common), variant)}", *overrides]
-
-
-def _samples_along_rays(family: str) -> bool:
-    from gpnerf_core.config.schema import RayMarchingConfig
-    from gpnerf_core.registry.components import get_registry
-
-    return issubclass(get_registry().get("model", family).spec.config, RayMarchingConfig)
-
-
-RAY_SAMPLE_KEYS = ("model.coarse_samples", "model.fine_samples")
-
-
-def _scale_keys(choice: str) -> list[str]:
-    """``scale=<name>`` as the overrides it sets (``conf/scale/<name>.yaml``), the ray-marching sample counts left
-    out: the same widths, views and schedule for a family without samples along its rays."""
-    from omegaconf import OmegaConf
-
-    from gpnerf_core.config.compose import config_dir
-
-    name = choice.split("=", 1)[1]
-    flat: list[str] = []
-
-    def walk(node: object, prefix: str) -> None:
-        if isinstance(node, dict):
-            for key, value in node.items():
-                walk(value, f"{prefix}{key}.")
-            return
-        key = prefix.rstrip(".")
-        if key not in RAY_SAMPLE_KEYS:
-            value = "[" + ",".join(map(str, node)) + "]" if isinstance(node, list) else node
-            flat.append(f"{key}={value}")
-
-    walk(OmegaConf.to_container(OmegaConf.load(Path(config_dir()) / "scale" / f"{name}.yaml")) or {}, "")
-    return flat
 
 
 @functools.cache
