@@ -416,3 +416,13 @@ def test_gsplat_agrees_with_the_torch_backend_on_cuda():
     theirs = render(cuda, intrinsics.cuda(), c2w.cuda(), "gsplat")
     for got, want in ((theirs.features, ours.features), (theirs.depth, ours.depth), (theirs.alpha, ours.alpha)):
         torch.testing.assert_close(got, want, rtol=1e-3, atol=1e-3)
+
+
+def test_the_rasterizer_bench_prints_a_render_a_forward_and_a_backward_per_row(capsys):
+    from gpnerf_core.tools.bench import rasterizer as bench
+
+    assert bench.main(["counts=50", "channels=3", "backends=torch", "repeats=1", "size=32x48", "threads=1"]) == 0
+    header, row = capsys.readouterr().out.splitlines()[1:3]
+    assert header.split()[-6:] == ["no-grad", "ms", "forward", "ms", "fwd+bwd", "ms"]
+    assert row.split()[:3] == ["torch", "50", "3"] and all(float(v) > 0 for v in row.split()[3:])
+    assert bench.main(["count=5"]) == 2

@@ -1,4 +1,5 @@
-"""Speed of the Gaussian rasterizer's CPU backends: forward, and forward + backward, per Gaussian count and channels.
+"""Speed of the Gaussian rasterizer's CPU backends: a render (no gradients), a training forward and its backward, per
+Gaussian count and channels.
 
     python -m gpnerf_core.tools.bench.rasterizer [threads=2] [counts=12000,24000] [channels=3,32,131]
         [backends=numba,torch] [repeats=5] [size=96x128]
@@ -48,8 +49,10 @@ def random_view(count: int, channels: int, height: int, width: int, seed: int = 
     return gaussians, intrinsics, weights
 
 
-def time_one(backend: str, count: int, channels: int, height: int, width: int, repeats: int) -> tuple[float, float]:
-    """Median seconds of a forward and of a forward + backward."""
+def time_one(backend: str, count: int, channels: int, height: int, width: int,
+             repeats: int) -> tuple[float, float, float]:
+    """Median seconds of a forward without gradients (rendering: eval, render, view), of a forward that records them
+    (training) and of that forward's backward."""
     gaussians, intrinsics, (weight_features, weight_depth) = random_view(count, channels, height, width)
     leaves = Gaussians(*(tensor.clone().requires_grad_() for tensor in (
         gaussians.means, gaussians.scales, gaussians.rotations, gaussians.opacities, gaussians.features)))
@@ -62,17 +65,21 @@ def time_one(backend: str, count: int, channels: int, height: int, width: int, r
         out = forward()
         ((out.features * weight_features).sum() + (out.depth * weight_depth).sum() + out.alpha.sum()).backward()
 
-    forwards, steps = [], []
+    renders, forwards, steps = [], [], []
     for index in range(repeats + 1):
         started = time.perf_counter()
+        with torch.no_grad():
+            forward()
+        rendered = time.perf_counter()
         forward()
         middle = time.perf_counter()
         step()
         ended = time.perf_counter()
         if index:  # the first is the warm-up
-            forwards.append(middle - started)
+            renders.append(rendered - started)
+            forwards.append(middle - rendered)
             steps.append(ended - middle)
-    return statistics.median(forwards), statistics.median(steps)
+    return statistics.median(renders), statistics.median(forwards), statistics.median(steps)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -88,12 +95,13 @@ def main(argv: list[str] | None = None) -> int:
     height, width = (int(side) for side in options["size"].split("x"))
     print(f"CPU: {cpu_model()}; {threads} thread(s); torch {torch.__version__}; "
           f"image {height} x {width}, 16 x 16 tiles")
-    print(f"{'backend':<8} {'Gaussians':>9} {'channels':>8} {'forward ms':>11} {'fwd+bwd ms':>11}")
+    print(f"{'backend':<8} {'Gaussians':>9} {'channels':>8} {'no-grad ms':>11} {'forward ms':>11} {'fwd+bwd ms':>11}")
     for backend in options["backends"].split(","):
         for count in (int(c) for c in options["counts"].split(",")):
             for channels in (int(c) for c in options["channels"].split(",")):
-                forward, step = time_one(backend, count, channels, height, width, int(options["repeats"]))
-                print(f"{backend:<8} {count:>9} {channels:>8} {forward * 1e3:>11.1f} {step * 1e3:>11.1f}", flush=True)
+                render, forward, step = time_one(backend, count, channels, height, width, int(options["repeats"]))
+                print(f"{backend:<8} {count:>9} {channels:>8} {render * 1e3:>11.1f} {forward * 1e3:>11.1f} "
+                      f"{step * 1e3:>11.1f}", flush=True)
     return 0
 
 
