@@ -34,13 +34,14 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
         "ModelFamily", "ModelParts", "SemanticMode", "SemanticOutput", "SourceEncoding", "TrainingBatch",
         "one_pass_preview",
     ),
-    "gpnerf_core.interfaces.training": ("TrainingCallback", "TrainingPhase", "TrainingState"),
+    "gpnerf_core.interfaces.training": ("GroupOptions", "TrainingCallback", "TrainingPhase", "TrainingState"),
+    "gpnerf_core.training.resize": ("resize_parameter",),
     "gpnerf_core.config.schema": ("ModelConfig", "RayMarchingConfig"),
     # the records passed between stages
     "gpnerf_core.types": (
         "FeatureMaps", "FieldBlockOutput", "Frame", "HeadOutput", "LossInputs", "Prediction", "ProjectedFeatures",
         "RayBatch",
-        "RayBlockOutput", "RayReadout", "RaySamples", "RenderedRays", "SampledMaps", "Scene", "SourceViews",
+        "RayBlockOutput", "RayReadout", "RaySamples", "RenderedRays", "SampledMaps", "Scene", "ScenePoints", "SourceViews",
         "StepBatch", "StepOutput", "TargetCamera", "TargetView", "ViewOutput",
     ),
     # one-line errors
@@ -54,12 +55,15 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     "gpnerf_core.model.whole_view": ("render_whole_view",),
     "gpnerf_core.model.context_decoding": (
         "LabelsOrHead", "cells_of_pixels", "decode_checked", "decoded_view_output", "fuse_rendered", "gather_cells",
+        "labels_or_head_output",
     ),
     "gpnerf_core.geometry.plane_sweep": (
         "PlaneSweep", "ReferenceFrustum", "plane_sweep", "points_in_views", "variance_over_views",
     ),
     "gpnerf_core.geometry.ray_depth": ("DepthBelief", "feature_cost_belief", "source_depth_belief"),
-    "gpnerf_core.geometry.gaussians": ("Gaussians", "RASTERIZER_BACKENDS", "Rasterized", "rasterize_gaussians"),
+    "gpnerf_core.geometry.gaussians": (
+        "Gaussians", "RASTERIZER_BACKENDS", "Rasterized", "rasterize_gaussians", "strided_camera",
+    ),
     "gpnerf_core.geometry.gaussians.harmonics": (
         "colour_to_dc", "quaternion_product", "quaternions_of", "sh_coefficients", "sh_colours",
     ),
@@ -144,7 +148,9 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
         points_in_views,
         variance_over_views,
     )
-    from gpnerf_core.geometry.gaussians import RASTERIZER_BACKENDS, Gaussians, Rasterized, rasterize_gaussians
+    from gpnerf_core.geometry.gaussians import (
+        RASTERIZER_BACKENDS, Gaussians, Rasterized, rasterize_gaussians, strided_camera,
+    )
     from gpnerf_core.geometry.gaussians.harmonics import (
         colour_to_dc,
         quaternion_product,
@@ -164,6 +170,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
         decoded_view_output,
         fuse_rendered,
         gather_cells,
+        labels_or_head_output,
     )
     from gpnerf_core.data.dataset import SPLITS, SceneDataset
     from gpnerf_core.interfaces import (
@@ -188,7 +195,8 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
         TrainingBatch,
         one_pass_preview,
     )
-    from gpnerf_core.interfaces.training import TrainingCallback, TrainingPhase, TrainingState
+    from gpnerf_core.interfaces.training import GroupOptions, TrainingCallback, TrainingPhase, TrainingState
+    from gpnerf_core.training.resize import resize_parameter
     from gpnerf_core.interfaces.stress import ChooseSources
     from gpnerf_core.model.build import build_components
     from gpnerf_core.registry.components import get_registry
@@ -213,6 +221,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
         RenderedRays,
         SampledMaps,
         Scene,
+        ScenePoints,
         SourceViews,
         StepBatch,
         StepOutput,

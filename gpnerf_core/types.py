@@ -57,6 +57,28 @@ class Frame:
 
 
 @dataclass(frozen=True)
+class ScenePoints:
+    """A scene's sparse 3D points (structure from motion), in the scene's world.
+
+    Attributes:
+        xyz: ``[P, 3]`` float32 positions, metres (the frames' world, after the dataset's scale).
+        rgb: ``[P, 3]`` float32 colours in [0, 1].
+    """
+
+    xyz: Tensor
+    rgb: Tensor
+
+    def __post_init__(self) -> None:
+        count = self.xyz.shape[0] if self.xyz.ndim == 2 else -1
+        if tuple(self.xyz.shape) != (count, 3) or tuple(self.rgb.shape) != (count, 3):
+            raise ValueError(f"ScenePoints xyz {list(self.xyz.shape)}, rgb {list(self.rgb.shape)}: expected [P, 3] each")
+
+    @property
+    def count(self) -> int:
+        return int(self.xyz.shape[0])
+
+
+@dataclass(frozen=True)
 class Scene:
     """A scene: its cameras and frame lists, with frames loaded on demand.
 
@@ -72,6 +94,8 @@ class Scene:
         load_frame: ``index -> Frame``; the dataset decides caching.
         labelled: False for a scene without semantic labels (a user's own capture): its frames' ``semantic`` is all
             the dataset's ``ignore_index``, and no label metric is computed on it (reported as not available).
+        sparse_points: ``() -> ScenePoints``, the scene's sparse points read on demand (a capture's structure from
+            motion), or None for a dataset without them; what a per-scene Gaussian family starts from.
     """
 
     name: str
@@ -85,6 +109,7 @@ class Scene:
     eval_frames: tuple[int, ...]
     load_frame: Callable[[int], Frame] = field(repr=False, compare=False)
     labelled: bool = True
+    sparse_points: Callable[[], ScenePoints] | None = field(default=None, repr=False, compare=False)
 
     @property
     def num_frames(self) -> int:

@@ -64,6 +64,7 @@ def test_every_experiment_composes(registry, experiment):
     label_rendering_families = ("baselines/semantic_ray", "baselines/neuray", "baselines/mvsnerf",
                                 "baselines/semantic_nerf", "baselines/semantic_nerf_grid")
     assert (cfg.get("head") is None) == (experiment in ("baselines/gnt", "baselines/dm_nerf", "baselines/mvsplat",
+                                                        "baselines/semantic_3dgs",
                                                         *label_rendering_families))
     if experiment in label_rendering_families:  # the compared methods: their own family, scored by label rendering
         family = experiment.split("/")[1].removesuffix("_grid")  # semantic_nerf_grid: the family's grid option

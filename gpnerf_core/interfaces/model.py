@@ -22,9 +22,9 @@ from torch import Tensor, nn
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.interfaces.depth_source import DepthSource
 from gpnerf_core.interfaces.head import PerceptionHead, Predicts
-from gpnerf_core.interfaces.training import TrainingCallback
+from gpnerf_core.interfaces.training import GroupOptions, TrainingCallback
 from gpnerf_core.interfaces.weights import ImportedWeights, ImportsWeights
-from gpnerf_core.types import FeatureMaps, Prediction, SourceViews, StepBatch, StepOutput, TargetCamera
+from gpnerf_core.types import FeatureMaps, Prediction, Scene, SourceViews, StepBatch, StepOutput, TargetCamera
 
 if TYPE_CHECKING:
     from gpnerf_core.geometry.gaussians.scene import GaussianScene
@@ -187,12 +187,17 @@ class ModelFamily(ImportsWeights, nn.Module, ABC):
             and ``samples`` None).
         source_encoding: what ``render``, ``view`` and ``export`` keep between frames (``SourceEncoding``): each
             source view's ``encode`` (the default), or the whole source set's ``encode_sources``.
+        changes_size: its parameters are replaced by larger or smaller ones while it trains (3D Gaussian splatting's
+            densification and pruning, through ``gpnerf_core.resize_parameter``); it then takes a checkpoint's sizes
+            in ``resize_to``, and the trainer refuses what cannot follow a size change (a weight average, several
+            processes).
     """
 
     generalizable: ClassVar[bool] = True
     accepts_head: ClassVar[bool] = True
     trains_on: ClassVar[TrainingBatch] = TrainingBatch.RAYS
     source_encoding: ClassVar[SourceEncoding] = SourceEncoding.PER_VIEW
+    changes_size: ClassVar[bool] = False
 
     # ---- what the model is ------------------------------------------------------------------------------------------
 
@@ -212,6 +217,25 @@ class ModelFamily(ImportsWeights, nn.Module, ABC):
         """Work the training loop runs at fixed points of each step, told the step (``TrainingCallback``): a schedule
         tied to the step, or work between backward and the optimizer step. None by default."""
         return ()
+
+    def optimizer_options(self, total_steps: int) -> Mapping[str, GroupOptions]:
+        """By learning-rate group, where the family's optimizer differs from the run's (``GroupOptions``: its own rate
+        schedule over ``total_steps`` (``train.steps``), Adam's epsilon). Read once, when the optimizer is built
+        (after ``initialise``). None by default."""
+        return {}
+
+    def initialise(self, scene: Scene) -> None:
+        """Called once on a per-scene family (``generalizable`` False) before its first training step, with the scene
+        it is fitted on, unless the run resumes: a family whose parameters come from the scene's data (3D Gaussians
+        from its sparse points or depth) makes them here, and one that holds weights already (``model.init``,
+        ``finetune``) keeps them. A scene without what it needs is a ``DataError`` naming what is missing. Nothing by
+        default."""
+
+    def resize_to(self, weights: Mapping[str, Tensor], source: str) -> None:
+        """Called before ``weights`` (a checkpoint's, ``model.init``'s) are loaded into the model: a family that
+        ``changes_size`` gives its tensors the sizes the weights have (a checkpoint's Gaussian count), and refuses
+        weights whose sizes disagree with each other in one line naming ``source``. Nothing by default (a tensor of
+        another shape is then refused by the loader)."""
 
     def parameter_counts(self) -> dict[str, int]:
         """Parameters per direct child module (absent ones left out) and their ``total``."""

@@ -1,9 +1,12 @@
-"""What a model family may ask of the training loop: callbacks at fixed points of every step, which see the step.
+"""What a model family may ask of the training loop: callbacks at fixed points of every step, which see the step, and
+how the optimizer treats the family's own learning-rate groups.
 
-A family gives them through ``ModelFamily.training_callbacks`` (nerfstudio's ``get_training_callbacks``): a schedule
-tied to the step (pixelSplat's opacity warm-up), or work between the backward pass and the optimizer step (a per-scene
-Gaussian family's densification statistics). The trainer runs them on every process, on the model itself (never its
-``DistributedDataParallel`` wrapper), in the order given.
+A family gives callbacks through ``ModelFamily.training_callbacks`` (nerfstudio's ``get_training_callbacks``): a
+schedule tied to the step (pixelSplat's opacity warm-up), or work between the backward pass and the optimizer step (a
+per-scene Gaussian family's densification statistics). The trainer runs them on every process, on the model itself
+(never its ``DistributedDataParallel`` wrapper), in the order given. ``ModelFamily.optimizer_options`` gives a group's
+own learning-rate schedule and Adam epsilon (3D Gaussian splatting decays its positions' rate on its own schedule, with
+an epsilon of 1e-15).
 """
 
 from __future__ import annotations
@@ -66,3 +69,24 @@ class TrainingCallback:
 
     def due(self, step: int) -> bool:
         return step % self.every == 0
+
+
+@dataclass(frozen=True)
+class GroupOptions:
+    """How the optimizer treats one learning-rate group of a family, where it differs from the run's.
+
+    Attributes:
+        lr_factor: ``step -> factor`` of the group's rate (step 0 is the first optimizer step), in place of
+            ``train.lr_schedule``'s (with its warm-up); None keeps the run's schedule.
+        eps: Adam's epsilon for the group (None: torch's 1e-8).
+    """
+
+    lr_factor: Callable[[int], float] | None = None
+    eps: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.lr_factor is not None and not callable(self.lr_factor):
+            raise ConfigError(f"GroupOptions lr_factor={self.lr_factor!r}: expected a callable step -> factor")
+        if self.eps is not None and (isinstance(self.eps, bool) or not isinstance(self.eps, (int, float))
+                                     or not 0 < self.eps < 1):
+            raise ConfigError(f"GroupOptions eps={self.eps!r}: expected a number in (0, 1)")

@@ -87,6 +87,18 @@ def decoded_view_output(view: TargetView, coarse: RenderedRays, fine: RenderedRa
                       head_input=head_input, logits=decode_checked(head, head_input, camera.image_size).logits)
 
 
+def labels_or_head_output(head: PerceptionHead | None, num_classes: int) -> SemanticOutput | None:
+    """The ``semantic_output`` of a family whose scores are ``head``'s (decoded: its classes or instance slots), or
+    without a head its own K = ``num_classes`` class scores per pixel (label rendering); None with neither."""
+    if head is not None:
+        predicts = Predicts(head.predicts)
+        slots = getattr(head, "slots", None) if predicts is Predicts.INSTANCES else None
+        return SemanticOutput(predicts, SemanticMode.DECODED, int(head.num_outputs), slots)
+    if not num_classes:
+        return None
+    return SemanticOutput(Predicts.CLASSES, SemanticMode.LABEL_RENDERING, num_classes)
+
+
 class LabelsOrHead(ModelFamily):
     """A family whose semantic outputs are K class scores composited per ray (label rendering) without a head, and
     features decoded by ``head`` with GP-NeRF's context-aware decoding with one (``decoded_view_output``; on a whole
@@ -100,13 +112,7 @@ class LabelsOrHead(ModelFamily):
 
     @property
     def semantic_output(self) -> SemanticOutput | None:
-        if self.head is not None:
-            predicts = Predicts(self.head.predicts)
-            slots = getattr(self.head, "slots", None) if predicts is Predicts.INSTANCES else None
-            return SemanticOutput(predicts, SemanticMode.DECODED, int(self.head.num_outputs), slots)
-        if not self.num_classes:
-            return None
-        return SemanticOutput(Predicts.CLASSES, SemanticMode.LABEL_RENDERING, self.num_classes)
+        return labels_or_head_output(self.head, self.num_classes)
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """The extractor under ``feature_extractor``, the head under ``head``, the family's own networks under

@@ -14,11 +14,13 @@ from torch import Tensor
 
 from gpnerf_core.geometry import points_along_rays, rays_through_pixels, stratified_inverse_depths
 from gpnerf_core.types import (
+    Frame,
     LossInputs,
     ProjectedFeatures,
     RayBatch,
     RaySamples,
     RenderedRays,
+    Scene,
     SourceViews,
     StepBatch,
     TargetCamera,
@@ -249,6 +251,23 @@ def model_view(*, sources: bool = True, seed: int = 0) -> tuple[TargetCamera, So
     views = SourceViews(rgb=images(2, HEIGHT, WIDTH, seed=seed), intrinsics=KIT_INTRINSICS.expand(2, 3, 3).clone(),
                         c2w=torch.stack([_pose(-0.1), _pose(0.1)]))
     return camera, views
+
+
+def model_scene() -> Scene:
+    """The synthetic scene ``model_view`` and ``model_batch`` look at, as a dataset gives it: three 32 x 48 frames at
+    -0.1, 0 and 0.1 m, each with random colours and depth (1 to 3 m) and labels (what a per-scene family's
+    ``initialise`` is given); the middle one held out."""
+    poses = torch.stack([_pose(-0.1), _pose(0.0), _pose(0.1)])
+
+    def frame(index: int) -> Frame:
+        g = generator(200 + index)
+        return Frame(rgb=images(1, HEIGHT, WIDTH, seed=20 + index)[0].permute(1, 2, 0).contiguous(),
+                     depth=torch.rand(HEIGHT, WIDTH, generator=g) * 2 + 1,
+                     semantic=torch.randint(KIT_CLASSES, (HEIGHT, WIDTH), generator=g),
+                     intrinsics=KIT_INTRINSICS.clone(), c2w=poses[index].clone())
+
+    return Scene(name="kit", c2w=poses, intrinsics=KIT_INTRINSICS.expand(3, 3, 3).clone(), height=HEIGHT, width=WIDTH,
+                 near=0.5, far=4.0, train_frames=(0, 2), eval_frames=(1,), load_frame=frame)
 
 
 def model_batch(*, sources: bool = True, views: int = 2, rays: int = 12, whole_images: bool = False) -> StepBatch:

@@ -9,11 +9,12 @@ one group: one left out would never be trained, one listed twice would be steppe
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import torch
 
 from gpnerf_core.errors import ConfigError
+from gpnerf_core.interfaces.training import GroupOptions
 
 
 def learning_rates(shared: Mapping[str, Any], family: Mapping[str, Any] | None) -> dict[str, float]:
@@ -46,11 +47,18 @@ def check_parameter_groups(model: torch.nn.Module, groups: Mapping[str, list[tor
                           "exactly one group, or set requires_grad=False")
 
 
-def make_optimizer(model: torch.nn.Module, rates: Mapping[str, float]) -> torch.optim.Optimizer:
+def make_optimizer(model: torch.nn.Module, rates: Mapping[str, float],
+                   options: Mapping[str, GroupOptions] | None = None) -> torch.optim.Optimizer:
     """Adam with one parameter group per learning-rate group of ``model.parameter_groups()`` at its rate in
-    ``rates`` (``learning_rates``); each optimizer group carries its ``name``."""
+    ``rates`` (``learning_rates``); each optimizer group carries its ``name``, and its ``eps`` where ``options`` (the
+    family's ``optimizer_options``) gives one."""
     named = model.parameter_groups()
     check_parameter_groups(model, named)
+    options = dict(options or {})
+    unknown = [name for name in options if name not in named]
+    if unknown:
+        raise ConfigError(f"model {type(model).__name__}: optimizer_options() names the group {unknown[0]!r}, which "
+                          f"parameter_groups() has not (it has: {', '.join(named)})")
     groups = []
     for name, params in named.items():
         params = [p for p in params if p.requires_grad]
@@ -59,5 +67,19 @@ def make_optimizer(model: torch.nn.Module, rates: Mapping[str, float]) -> torch.
         if name not in rates:
             raise ConfigError(f"model {type(model).__name__} trains a parameter group {name!r} that neither train.lr "
                               f"nor model.lr has a learning rate for; they have: {', '.join(rates)}")
-        groups.append({"params": params, "lr": float(rates[name]), "name": name})
+        group = {"params": params, "lr": float(rates[name]), "name": name}
+        if name in options and options[name].eps is not None:
+            group["eps"] = float(options[name].eps)
+        groups.append(group)
     return torch.optim.Adam(groups)
+
+
+def make_scheduler(optimizer: torch.optim.Optimizer, shared: Callable[[int], float],
+                   options: Mapping[str, GroupOptions] | None = None) -> torch.optim.lr_scheduler.LambdaLR:
+    """The rate of each group of ``optimizer`` per step: the run's schedule ``shared`` (``schedule.lr_factor``), or a
+    group's own ``GroupOptions.lr_factor``."""
+    options = options or {}
+    own = [options[g["name"]].lr_factor if g["name"] in options else None for g in optimizer.param_groups]
+    if not any(own):
+        return torch.optim.lr_scheduler.LambdaLR(optimizer, shared)
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, [factor or shared for factor in own])

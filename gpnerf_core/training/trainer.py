@@ -36,7 +36,7 @@ from gpnerf_core.training.interrupt import StopNow, StopRequest, TrainingInterru
 from gpnerf_core.training.loggers import ScalarLogger
 from gpnerf_core.training.resume import checkpoint_path, prune_checkpoints
 from gpnerf_core.training.sampler import StepSampler
-from gpnerf_core.training.optimizer import learning_rates, make_optimizer
+from gpnerf_core.training.optimizer import learning_rates, make_optimizer, make_scheduler
 from gpnerf_core.training.schedule import lr_factor
 from gpnerf_core.training.weight_average import WeightAverage
 from gpnerf_core.types import LossInputs, StepBatch, StepOutput, TargetView, ViewOutput
@@ -90,6 +90,17 @@ def loss_inputs(view: TargetView, output: ViewOutput, ignore_index: int) -> Loss
 def _views(batch: StepBatch) -> str:
     """``scene 'a' frame 3, ...``: the target views of a step, for errors."""
     return ", ".join(f"scene {v.scene!r} frame {v.frame}" for v in batch.views)
+
+
+def _check_size_changes(family: str, ema_decay: float, world_size: int) -> None:
+    """A family whose parameters change size while training (``ModelFamily.changes_size``) cannot keep a weight
+    average of fixed-size copies, nor run under DistributedDataParallel (which registers the parameters once)."""
+    if ema_decay > 0:
+        raise ConfigError(f"model={family} adds and removes parameters while it trains (densification), so no weight "
+                          f"average can follow it: expected train.ema_decay=0 (got {ema_decay:g})")
+    if world_size > 1:
+        raise ConfigError(f"model={family} adds and removes parameters while it trains (densification), which "
+                          f"DistributedDataParallel cannot follow: expected one process (got {world_size})")
 
 
 def process_seed(seed: int, rank: int) -> int:
@@ -172,20 +183,15 @@ class Trainer:
             world_size=dist.world_size,
             whole_images=self.whole_images,
         )
-        self.optimizer = make_optimizer(self.model, learning_rates(cfg.train.lr, cfg.model.get("lr")))
+        decay = float(cfg.train.ema_decay)
+        if self.model.changes_size:
+            _check_size_changes(cfg.model.name, decay, dist.world_size)
+        if not self.model.generalizable and not cfg.train.resume:
+            with stage("model initialisation"):
+                self.model.initialise(self.frames.scene(self.sampler.scene_names[0]))
+        self.optimizer, self.scheduler = self._optimizer()
         self.callbacks = {phase: [c for c in self.model.training_callbacks() if c.phase is phase]
                           for phase in TrainingPhase}
-        self.scheduler = torch.optim.lr_scheduler.LambdaLR(
-            self.optimizer,
-            lr_factor(
-                str(cfg.train.lr_schedule),
-                steps=int(cfg.train.steps),
-                warmup_steps=int(cfg.train.warmup_steps),
-                decay_rate=float(cfg.train.lr_decay_rate),
-                decay_steps=int(cfg.train.lr_decay_steps),
-            ),
-        )
-        decay = float(cfg.train.ema_decay)
         self.average = WeightAverage(self.model, decay) if decay > 0 else None
         self.last_grad_norm = 0.0
         self.step = 0
@@ -210,6 +216,21 @@ class Trainer:
                 device_ids=[self.device.index] if self.device.type == "cuda" else None,
                 find_unused_parameters=bool(self.dist.all_reduce(unused, op="max")),
             )
+
+    def _optimizer(self) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LambdaLR]:
+        """Adam over the model's learning-rate groups and the rate schedule of each (``ModelFamily.optimizer_options``
+        where the family gives its own)."""
+        cfg = self.cfg
+        options = self.model.optimizer_options(int(cfg.train.steps))
+        optimizer = make_optimizer(self.model, learning_rates(cfg.train.lr, cfg.model.get("lr")), options)
+        shared = lr_factor(
+            str(cfg.train.lr_schedule),
+            steps=int(cfg.train.steps),
+            warmup_steps=int(cfg.train.warmup_steps),
+            decay_rate=float(cfg.train.lr_decay_rate),
+            decay_steps=int(cfg.train.lr_decay_steps),
+        )
+        return optimizer, make_scheduler(optimizer, shared, options)
 
     @property
     def resumed_step(self) -> int | None:
@@ -529,6 +550,8 @@ class Trainer:
         self.notes += check_resume_config(path, state["config"], self.record.config_yaml, self.cfg.train.resume_strict,
                                           checkpoint_sections(state))
         load_weights(self.model, state["model"], f"checkpoint {path}")
+        if self.model.changes_size:  # its parameters took the checkpoint's sizes: new tensors for the optimizer
+            self.optimizer, self.scheduler = self._optimizer()
         try:
             self.optimizer.load_state_dict(state["optimizer"])
             self.scheduler.load_state_dict(state["scheduler"])

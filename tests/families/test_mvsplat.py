@@ -19,6 +19,7 @@ from gpnerf_core.testing.inputs import KIT_INTRINSICS, kit_parts, model_view
 from gpnerf_plugins.families.mvsplat.adapter import GEOMETRY_CHANNELS, pixel_gaussians
 from gpnerf_plugins.families.mvsplat.depth import candidate_depths, correlation_volume
 from gpnerf_plugins.families.mvsplat.transformer import MultiViewTransformer
+from ply_reader import read_ply
 
 HEIGHT, WIDTH = 32, 48
 
@@ -129,18 +130,6 @@ def test_a_whole_view_is_its_gaussians_rasterized_and_kept_gaussians_render_the_
         assert torch.allclose(getattr(fresh, name), getattr(again, name), atol=1e-5), name
     with pytest.raises(ConfigError, match="multiples of 8 pixels"):
         model.check_image_size(36, 48)
-
-
-def read_ply(data: bytes) -> dict[str, np.ndarray]:
-    """A binary little-endian PLY's vertex properties, read from the format alone (no project code)."""
-    header, _, body = data.partition(b"end_header\n")
-    lines = header.decode("ascii").splitlines()
-    assert lines[0] == "ply" and lines[1] == "format binary_little_endian 1.0"
-    count = next(int(line.split()[2]) for line in lines if line.startswith("element vertex"))
-    types = {"float": "<f4", "int": "<i4", "uchar": "u1"}
-    fields = [(line.split()[2], types[line.split()[1]]) for line in lines if line.startswith("property")]
-    records = np.frombuffer(body, dtype=np.dtype(fields), count=count)
-    return {name: records[name].copy() for name, _ in fields}
 
 
 def test_the_exported_3dgs_ply_renders_what_the_model_renders():

@@ -12,8 +12,9 @@ Modules: ``records`` (what goes in and out), ``projection`` (EWA, culling, footp
 """
 
 from gpnerf_core.geometry.gaussians.rasterizer import (
-    BACKENDS, RASTERIZER_BACKENDS, choose_backend, rasterize_gaussians,
+    BACKENDS, RASTERIZER_BACKENDS, choose_backend, rasterize_gaussians, strided_camera,
 )
 from gpnerf_core.geometry.gaussians.records import Gaussians, Rasterized
 
-__all__ = ["BACKENDS", "Gaussians", "RASTERIZER_BACKENDS", "Rasterized", "choose_backend", "rasterize_gaussians"]
+__all__ = ["BACKENDS", "Gaussians", "RASTERIZER_BACKENDS", "Rasterized", "choose_backend", "rasterize_gaussians",
+           "strided_camera"]

@@ -24,6 +24,7 @@ from gpnerf_core.geometry.gaussians.projection import project_gaussians
 from gpnerf_core.geometry.gaussians.records import Gaussians, Rasterized
 from gpnerf_core.geometry.gaussians.torch_backend import composite_torch
 from gpnerf_core.runtime.finite import all_finite
+from gpnerf_core.types import TargetCamera
 
 Compositor = Callable[[Tensor, Tensor, Tensor, Tensor, Tensor, TileBins, int, int], tuple[Tensor, Tensor, Tensor]]
 
@@ -72,6 +73,18 @@ def _check(gaussians: Gaussians, intrinsics: Tensor, c2w: Tensor, height: int, w
     for name, tensor in named.items():
         if tensor is not None and not all_finite(tensor.detach()):
             raise NonFiniteError(f"rasterize_gaussians: {name} holds NaN or Inf")
+
+
+def strided_camera(camera: TargetCamera, stride: int) -> tuple[Tensor, int, int]:
+    """``(intrinsics, height, width)`` of the grid of every ``stride``-th pixel's cell of ``camera`` (a cell's centre is
+    the full image's pixel ``(j + 0.5) stride - 0.5``, as ``gpnerf_core.pixel_grid``): what a rasterizing family renders
+    a view on at a render stride."""
+    if stride < 1 or camera.height % stride or camera.width % stride:
+        raise ConfigError(f"image size {camera.height}x{camera.width} is not divisible by the render stride {stride}")
+    intrinsics = camera.intrinsics.clone()
+    intrinsics[:2, :2] /= stride
+    intrinsics[:2, 2] = (intrinsics[:2, 2] + 0.5) / stride - 0.5
+    return intrinsics, camera.height // stride, camera.width // stride
 
 
 def rasterize_gaussians(gaussians: Gaussians, *, intrinsics: Tensor, c2w: Tensor, height: int, width: int,

@@ -2,7 +2,8 @@
 Prediction`` on a whole view, and what they say about themselves (``semantic_output``, ``parameter_groups``).
 
 The kit builds a family with small built-in parts (``inputs.KIT_PARTS``: ``resunet_fpn``, ``gnt_view``, ``gnt_ray`` and
-the ``unet`` head, at 3 classes) and renders a synthetic 32 x 48 scene seen from two source views.
+the ``unet`` head, at 3 classes) and renders a synthetic 32 x 48 scene seen from two source views (a per-scene family
+is first ``initialise``d with that scene, ``inputs.model_scene``).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from gpnerf_core.testing.checks.common import (
     shape,
     total,
 )
-from gpnerf_core.testing.inputs import KIT_CLASSES, kit_parts, model_batch, model_view
+from gpnerf_core.testing.inputs import KIT_CLASSES, kit_parts, model_batch, model_scene, model_view
 from gpnerf_core.types import Prediction, RenderedRays, StepOutput, ViewOutput
 
 
@@ -38,6 +39,8 @@ def built(subject: Subject, *, head: bool) -> tuple[ModelFamily, set[int]]:
     parts = kit_parts(subject.registry, subject.name, head=head)
     model = subject.build(parts=parts)
     expect(isinstance(model, ModelFamily), f"built a {type(model).__name__}, expected a ModelFamily")
+    if not model.generalizable:  # as the trainer does before a per-scene family's first step
+        call("initialise(the synthetic scene)", model.initialise, model_scene())
     return model, {id(p) for part in parts.built if isinstance(part, nn.Module) for p in part.parameters()}
 
 

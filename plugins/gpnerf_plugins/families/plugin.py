@@ -13,6 +13,8 @@ from gpnerf_plugins.families.mvsplat.build import build_mvsplat
 from gpnerf_plugins.families.mvsplat.config import MVSplatConfig
 from gpnerf_plugins.families.neuray.build import build_neuray, build_semantic_ray
 from gpnerf_plugins.families.neuray.config import NeuRayConfig, SemanticRayConfig
+from gpnerf_plugins.families.semantic_3dgs.build import build_semantic_3dgs
+from gpnerf_plugins.families.semantic_3dgs.config import Semantic3DGSConfig
 from gpnerf_plugins.families.semantic_nerf.build import build_semantic_nerf
 from gpnerf_plugins.families.semantic_nerf.config import SemanticNeRFConfig
 
@@ -56,6 +58,13 @@ def gpnerf_register_models() -> list[ComponentSpec]:
             build_semantic_nerf,
             SemanticNeRFConfig,
             "Semantic-NeRF, per scene: positional-encoding MLP with a semantic branch, coarse + fine, label rendering",
+        ),
+        ComponentSpec(
+            "semantic_3dgs",
+            build_semantic_3dgs,
+            Semantic3DGSConfig,
+            "3D Gaussian splatting per scene with a semantic feature per Gaussian: densified while it trains, "
+            "rasterized; a 1x1 decoder or +head",
         ),
         ComponentSpec(
             "dm_nerf",

@@ -21,6 +21,11 @@ def rgb_mse(pred: Tensor, target: Tensor) -> Tensor:
     return (pred - target).square().mean()
 
 
+def rgb_l1(pred: Tensor, target: Tensor) -> Tensor:
+    """Mean absolute colour error over rays and channels (3D Gaussian splatting's ``l1_loss``). ``[R, 3]`` each."""
+    return (pred.float() - target.float()).abs().mean()
+
+
 def cross_entropy(logits: Tensor, labels: Tensor, ignore_index: int) -> Tensor:
     """Cross-entropy averaged over the pixels whose label is not ``ignore_index``; 0 when there is none.
 

@@ -8,6 +8,7 @@ its frames' labels are all the ignore index, and label metrics are not computed 
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from dataclasses import dataclass, field
@@ -25,6 +26,7 @@ from gpnerf_core import (
     DatasetConfig,
     Frame,
     Scene,
+    ScenePoints,
     check_image_size,
     from_launch_dir,
 )
@@ -223,6 +225,7 @@ class CaptureScenes(DatasetBase):
             name=name, c2w=torch.from_numpy(c2w).float(), intrinsics=torch.from_numpy(intrinsics).float(),
             height=height, width=width, near=near, far=far, train_frames=train, eval_frames=held_out,
             load_frame=reader, labelled=all(labelled),
+            sparse_points=functools.partial(read_sparse_points, capture, self.scale) if capture.points else None,
         )
 
     def _load_size(self, first: CaptureFrame) -> tuple[int, int]:
@@ -292,13 +295,10 @@ class CaptureScenes(DatasetBase):
                         "dataset.scale)")
 
 
-def _point_bounds(capture: CaptureFile, c2w: np.ndarray, intrinsics: np.ndarray, size: tuple[int, int],
-                  scale: float) -> tuple[float, float] | None:
-    """Scene bounds from the sparse points: per frame, ``import-colmap``'s rule on the depths of the points in front
-    of it and inside its image; the smallest near and the largest far. None when no frame sees enough points."""
+def _point_cloud(capture: CaptureFile) -> tuple[np.ndarray, np.ndarray]:
+    """``(xyz [P, 3] float64, rgb [P, 3] uint8)`` of the capture's sparse points (``ply_file_path``), in the file's
+    world."""
     import pycolmap
-
-    from gpnerf_plugins.datasets.capture.colmap_import import depth_bounds
 
     cloud = pycolmap.Reconstruction()
     try:
@@ -306,9 +306,28 @@ def _point_bounds(capture: CaptureFile, c2w: np.ndarray, intrinsics: np.ndarray,
     except Exception as exc:  # pycolmap raises its own exception types for a missing or malformed file
         raise DataError(f"{capture.points}: unreadable point cloud ({type(exc).__name__}: {exc}); expected the PLY "
                         "of ply_file_path") from None
-    if not cloud.num_points3D():
+    points = list(cloud.points3D.values())
+    if not points:
+        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint8)
+    return np.stack([p.xyz for p in points]), np.stack([p.color for p in points]).astype(np.uint8)
+
+
+def read_sparse_points(capture: CaptureFile, scale: float) -> ScenePoints:
+    """The capture's sparse points in the poses' world, metres after ``scale`` (``Scene.sparse_points``)."""
+    xyz, rgb = _point_cloud(capture)
+    xyz = (xyz @ capture.world[:3, :3].T + capture.world[:3, 3]) * scale
+    return ScenePoints(xyz=torch.from_numpy(xyz).float(), rgb=torch.from_numpy(rgb).float() / 255.0)
+
+
+def _point_bounds(capture: CaptureFile, c2w: np.ndarray, intrinsics: np.ndarray, size: tuple[int, int],
+                  scale: float) -> tuple[float, float] | None:
+    """Scene bounds from the sparse points: per frame, ``import-colmap``'s rule on the depths of the points in front
+    of it and inside its image; the smallest near and the largest far. None when no frame sees enough points."""
+    from gpnerf_plugins.datasets.capture.colmap_import import depth_bounds
+
+    points, _ = _point_cloud(capture)
+    if not len(points):
         return None
-    points = np.stack([p.xyz for p in cloud.points3D.values()])
     points = (points @ capture.world[:3, :3].T + capture.world[:3, 3]) * scale
     height, width = size
     bounds = []

@@ -60,6 +60,7 @@ from gpnerf_core import (
     rasterize_gaussians,
     rotate_harmonics,
     sh_coefficients,
+    strided_camera,
 )
 from gpnerf_plugins.families.mvsplat.adapter import GEOMETRY_CHANNELS, PixelGaussians, pixel_gaussians
 from gpnerf_plugins.families.mvsplat.depth import DepthPredictor
@@ -80,17 +81,6 @@ class RenderedImage:
     alpha: Tensor
     scores: Tensor | None
     semantic: Tensor | None = None
-
-
-def strided_camera(camera: TargetCamera, stride: int) -> tuple[Tensor, int, int]:
-    """``(intrinsics, height, width)`` of the grid of every ``stride``-th pixel's cell (a cell's centre is the full
-    image's pixel ``(j + 0.5) stride - 0.5``, as ``gpnerf_core.pixel_grid``)."""
-    if camera.height % stride or camera.width % stride:
-        raise ConfigError(f"image size {camera.height}x{camera.width} is not divisible by the render stride {stride}")
-    intrinsics = camera.intrinsics.clone()
-    intrinsics[:2, :2] /= stride
-    intrinsics[:2, 2] = (intrinsics[:2, 2] + 0.5) / stride - 0.5
-    return intrinsics, camera.height // stride, camera.width // stride
 
 
 class MVSplat(LabelsOrHead):

@@ -1,0 +1,242 @@
+"""Per-scene semantic 3D Gaussian splatting (``model=semantic_3dgs``): where the Gaussians start, densification and
+pruning with the optimizer's moments following the rows, a model whose size changes resumed bit for bit after a kill
+and built at its checkpoint's size by every command, and its refusals (no points, an inconsistent checkpoint, NaN in a
+parameter, the size cap, a weight average)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+
+import numpy as np
+import pytest
+import torch
+
+from gpnerf_core import DataError, NonFiniteError, Scene, ScenePoints, TrainingState, resize_parameter
+from gpnerf_core.cli import main as cli_main
+from gpnerf_core.config.compose import compose
+from gpnerf_core.errors import ConfigError
+from gpnerf_core.model.build import build_components
+from gpnerf_core.model.weights import load_weights
+from gpnerf_core.registry.components import get_registry
+from gpnerf_core.testing.inputs import kit_parts, model_scene, model_view
+from gpnerf_core.training.optimizer import make_optimizer
+from gpnerf_plugins.families.semantic_3dgs.densify import DensityControl, densify_and_prune, reset_opacity
+from gpnerf_plugins.families.semantic_3dgs.initial import neighbour_scales, scene_extent, starting_points
+from pipeline_check import TINY_SCENES, make_trainer
+from ply_reader import read_ply
+
+SMALL = {"name": "semantic_3dgs", "init_points": 300, "feature_dim": 4, "sh_degree": 1}
+TINY = [*TINY_SCENES, "dataset.scenes=[layout_00]", "model.init_points=400", "model.feature_dim=4",
+        "model.sh_degree=1", "model.schedule_steps=6", "model.densify_from=1", "model.densify_every=2",
+        "model.densify_until=5", "model.opacity_reset_every=4", "model.sh_degree_every=2", "train.log_every=1",
+        "threads=1", "eval.save_images=0"]
+"""A 6-step fit of one 32 x 48 layout whose schedule clones, splits, prunes and resets opacity within the steps."""
+
+
+def small_model(head: bool = False):
+    return get_registry().build("model", dict(SMALL), parts=kit_parts(get_registry(), "semantic_3dgs", head=head))
+
+
+def test_resize_parameter_carries_the_moments_of_kept_rows_and_starts_new_ones_at_zero():
+    old = torch.nn.Parameter(torch.arange(8.0).reshape(4, 2))
+    optimizer = torch.optim.Adam([{"params": [old], "lr": 0.1, "name": "rows"}])
+    old.grad = torch.ones(4, 2)
+    optimizer.step()
+    moments = optimizer.state[old]["exp_avg"].clone()
+    kept = torch.tensor([True, False, True, False])
+    values = torch.cat([old.detach()[kept], torch.full((3, 2), 7.0)])
+    new = resize_parameter(optimizer, old, values, kept)
+    assert optimizer.param_groups[0]["params"] == [new] and old not in optimizer.state
+    state = optimizer.state[new]
+    assert torch.equal(state["exp_avg"][:2], moments[kept]) and torch.equal(state["exp_avg"][2:], torch.zeros(3, 2))
+    assert state["exp_avg_sq"].shape == (5, 2) and int(state["step"]) == 1
+    new.grad = torch.ones(5, 2)
+    optimizer.step()  # the optimizer steps the new tensor with its state
+    with pytest.raises(ValueError, match="only the first dimension may change"):
+        resize_parameter(optimizer, new, torch.zeros(5, 3))
+
+
+def test_the_gaussians_start_from_sparse_points_else_from_depth_else_the_scene_is_refused():
+    scene = model_scene()
+    sparse = ScenePoints(xyz=torch.rand(50, 3) + torch.tensor([0.0, 0.0, 2.0]), rgb=torch.rand(50, 3))
+    points, origin = starting_points(dataclasses.replace(scene, sparse_points=lambda: sparse), 40, 1)
+    assert origin == "sparse points" and points.count == 40
+    assert all(any(torch.equal(p, q) for q in sparse.xyz) for p in points.xyz[:5])  # a subset of them
+    points, origin = starting_points(scene, 10_000, 4)
+    assert origin == "depth" and points.count == 2 * 8 * 12  # two training frames, every 4th pixel
+    frame = scene.load_frame(0)  # the first point is pixel (0, 0) of frame 0 at its depth
+    k = frame.intrinsics
+    z = frame.depth[0, 0]
+    assert torch.allclose(points.xyz[0], torch.stack([(0 - k[0, 2]) / k[0, 0] * z, (0 - k[1, 2]) / k[1, 1] * z, z])
+                          + frame.c2w[:3, 3], atol=1e-5)
+    assert scene_extent(scene) == pytest.approx(0.11)  # 1.1 x the cameras' largest distance from their mean
+
+    def without_depth(index):
+        return dataclasses.replace(scene.load_frame(index), depth=torch.zeros(32, 48))
+
+    bare = dataclasses.replace(scene, load_frame=without_depth)
+    with pytest.raises(DataError, match=r"scene 'kit' has no sparse points .* and no depth in its training frames; "
+                                        r"model=semantic_3dgs starts"):
+        starting_points(bare, 100, 1)
+
+
+def test_a_starting_scale_is_the_rms_distance_to_the_three_nearest_neighbours():
+    grid = torch.stack(torch.meshgrid(torch.arange(5.0), torch.arange(5.0), indexing="ij"), -1).reshape(-1, 2)
+    xyz = torch.cat([grid * 0.1, torch.zeros(25, 1)], dim=1)
+    scales = neighbour_scales(xyz)
+    assert scales[12] == pytest.approx(0.1)  # the centre: four neighbours at 0.1
+    assert scales[0] == pytest.approx(((0.01 + 0.01 + 0.02) / 3) ** 0.5)  # a corner: 0.1, 0.1, 0.1 sqrt 2
+
+
+def _fitted_field():
+    model = small_model()
+    model.initialise(model_scene())
+    optimizer = make_optimizer(model, {"means": 1.0, "harmonics": 1.0, "harmonics_rest": 1.0, "opacities": 1.0,
+                                       "scales": 1.0, "rotations": 1.0, "features": 1.0, "head": 1.0},
+                               model.optimizer_options(10))
+    for p in model.parameters():
+        p.grad = torch.ones_like(p)
+    optimizer.step()
+    return model, optimizer
+
+
+def test_densification_clones_small_splits_large_prunes_transparent_and_the_moments_follow():
+    torch.manual_seed(0)
+    model, optimizer = _fitted_field()
+    field = model.gaussians
+    count = field.size
+    with torch.no_grad():
+        field.log_scales[:] = np.log(0.001)
+        field.log_scales[1] = np.log(0.5)  # large: split
+        field.opacity_logits[2] = -10.0  # transparent: pruned
+    field.gradient_sum[:2] = 1.0  # Gaussians 0 (small: cloned) and 1 (large: split) are over the threshold
+    field.gradient_count[:] = 1
+    means_before = field.means.detach().clone()
+    moments = optimizer.state[field.means]["exp_avg"].clone()
+    control = DensityControl(grad_threshold=0.5, percent_dense=0.01, prune_opacity=0.005, prune_screen_radius=20.0,
+                             prune_world_scale=100.0, max_gaussians=10_000)
+    added, removed = densify_and_prune(field, optimizer, control, prune_large=False, warned=[False])
+    assert field.size == count + 1 + 1 - 1 and (added, removed) == (2, 1)  # +clone, +2 -1 split, -1 pruned
+    assert torch.equal(field.means[0], means_before[0]) and torch.equal(field.means[count - 2], means_before[0])
+    halves = field.log_scales[-2:].exp()
+    assert torch.allclose(halves, torch.full_like(halves, 0.5 / 1.6))  # the split pair, scales / (0.8 x 2)
+    assert not any(torch.equal(row, means_before[1]) for row in field.means)  # the split original is gone
+    state = optimizer.state[field.means]
+    assert state["exp_avg"].shape == (field.size, 3) and torch.equal(state["exp_avg"][0], moments[0])
+    assert torch.equal(state["exp_avg"][-2:], torch.zeros(2, 3))  # new rows start with zero moments
+    assert int(field.count) == field.size and field.gradient_sum.abs().sum() == 0  # statistics start again
+    for name, parameter in field.rows().items():
+        assert parameter.shape[0] == field.size and any(parameter is p for g in optimizer.param_groups
+                                                        for p in g["params"]), name
+    reset_opacity(field, optimizer)
+    assert float(torch.sigmoid(field.opacity_logits.detach()).max()) <= 0.01 + 1e-6
+    assert torch.equal(optimizer.state[field.opacity_logits]["exp_avg"], torch.zeros(field.size))
+
+
+def test_the_size_cap_stops_growth_and_is_said_once(caplog):
+    torch.manual_seed(0)
+    model, optimizer = _fitted_field()
+    field = model.gaussians
+    field.gradient_sum[:] = 1.0
+    field.gradient_count[:] = 1
+    control = DensityControl(grad_threshold=0.5, percent_dense=1.0, prune_opacity=0.0, prune_screen_radius=1e9,
+                             prune_world_scale=1e9, max_gaussians=field.size + 5)
+    warned = [False]
+    with caplog.at_level(logging.WARNING):
+        densify_and_prune(field, optimizer, control, prune_large=False, warned=warned)
+        field.gradient_sum[:] = 1.0
+        field.gradient_count[:] = 1
+        densify_and_prune(field, optimizer, control, prune_large=False, warned=warned)
+    assert field.size == control.max_gaussians
+    assert [r.getMessage() for r in caplog.records].count(
+        f"model.max_gaussians={control.max_gaussians} reached: densification adds no more Gaussians") == 1
+
+
+def test_nan_in_a_gaussian_parameter_stops_training_naming_it_and_the_step():
+    model, optimizer = _fitted_field()
+    with torch.no_grad():
+        model.gaussians.log_scales[3, 1] = float("nan")
+    state = TrainingState(step=7, total_steps=10, optimizer=optimizer)
+    with pytest.raises(NonFiniteError, match=r"^step 7: model 'semantic_3dgs' Gaussian parameter 'log_scales' holds "
+                                             r"NaN or Inf \(1 of \d+ Gaussians\); training stopped$"):
+        model._check_finite(state)
+
+
+def test_a_checkpoint_whose_count_differs_from_its_tensors_is_refused():
+    model = small_model()
+    model.initialise(model_scene())
+    weights = {k: v.clone() for k, v in model.state_dict().items()}
+    fresh = small_model()
+    load_weights(fresh, weights, "checkpoint x.pt")  # built empty, it takes the checkpoint's size
+    assert fresh.gaussians.size == model.gaussians.size
+    assert all(torch.equal(a, b) for a, b in zip(fresh.state_dict().values(), model.state_dict().values()))
+    weights["gaussians.opacity_logits"] = weights["gaussians.opacity_logits"][:-1]
+    with pytest.raises(DataError, match=rf"^checkpoint x.pt: it records {model.gaussians.size} Gaussians "
+                                        rf"\(gaussians.count\) but gaussians.opacity_logits has "
+                                        rf"{model.gaussians.size - 1} rows"):
+        load_weights(small_model(), weights, "checkpoint x.pt")
+
+
+def test_the_family_passes_the_contract_kit():
+    from gpnerf_core.registry.plugins import BUILTIN_PLUGINS
+    from gpnerf_core.testing import plugin_checks
+
+    options = {key: value for key, value in SMALL.items() if key != "name"}
+    checks = [check for check in plugin_checks(BUILTIN_PLUGINS, configs={"model/semantic_3dgs": options})
+              if check.component == "model/semantic_3dgs"]
+    assert len(checks) >= 4
+    for check in checks:
+        check.run()
+
+
+def test_a_weight_average_or_an_unknown_colour_error_is_refused(tmp_path):
+    cfg = compose(["+experiment=baselines/semantic_3dgs", *TINY, "train.ema_decay=0.9"])
+    with pytest.raises(ConfigError, match=r"model=semantic_3dgs adds and removes parameters .* expected "
+                                          r"train.ema_decay=0 \(got 0.9\)"):
+        make_trainer(cfg, tmp_path / "run")
+    with pytest.raises(ConfigError, match=r"^loss.rgb_error='l2': expected one of mse, l1$"):
+        build_components(compose(["+experiment=baselines/semantic_3dgs", *TINY, "loss.rgb_error=l2"]))
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    """A 6-step fit (checkpoints at 3 and 6) and its metrics."""
+    out = tmp_path_factory.mktemp("semantic_3dgs") / "run"
+    argv = ["run", "+experiment=baselines/semantic_3dgs", *TINY, "train.steps=6", "train.checkpoint_every=3",
+            f"out_dir={out}"]
+    assert cli_main(argv) == 0
+    return out
+
+
+def test_a_run_resumed_after_a_kill_trains_bit_for_bit(fitted, tmp_path):
+    straight = json.loads((fitted / "metrics.json").read_text())
+    resumed_dir = tmp_path / "resumed"
+    middle = fitted / "checkpoints" / "step_0000003.pt"  # what a kill after step 3 leaves
+    argv = ["run", "+experiment=baselines/semantic_3dgs", *TINY, "train.steps=6", f"train.resume={middle}",
+            f"out_dir={resumed_dir}"]
+    assert cli_main(argv) == 0
+    resumed = json.loads((resumed_dir / "metrics.json").read_text())
+    assert resumed["train"]["final_loss"] == straight["train"]["final_loss"]
+    scores = [{k: v for k, v in m["eval"]["train_heldout"].items() if k != "timing"} for m in (straight, resumed)]
+    assert scores[0] == scores[1]
+    a = torch.load(fitted / "checkpoints" / "step_0000006.pt", weights_only=False)["model"]
+    b = torch.load(resumed_dir / "checkpoints" / "step_0000006.pt", weights_only=False)["model"]
+    three = torch.load(middle, weights_only=False)["model"]
+    assert int(a["gaussians.count"]) != int(three["gaussians.count"])  # it changed size after the checkpoint
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_eval_render_and_export_build_it_at_the_checkpoints_size(fitted, tmp_path):
+    checkpoint = fitted / "checkpoints" / "step_0000006.pt"
+    count = int(torch.load(checkpoint, weights_only=False)["model"]["gaussians.count"])
+    assert cli_main(["eval", f"checkpoint={checkpoint}", f"out_dir={tmp_path / 'eval'}"]) == 0
+    scored = json.loads((tmp_path / "eval" / "metrics.json").read_text())["eval"]["train_heldout"]
+    trained = json.loads((fitted / "metrics.json").read_text())["eval"]["train_heldout"]
+    assert scored["miou/image_mean_present"] == trained["miou/image_mean_present"]
+    assert cli_main(["render", f"checkpoint={checkpoint}", "render.frames=1", f"out_dir={tmp_path / 'video'}"]) == 0
+    assert cli_main(["export", f"checkpoint={checkpoint}", f"out_dir={tmp_path / 'export'}"]) == 0
+    columns = read_ply((tmp_path / "export" / "gaussians.ply").read_bytes())
+    assert len(columns["x"]) == count and len([c for c in columns if c.startswith("f_rest_")]) == 3 * 3
+    assert set(np.unique(columns["label"])) <= set(range(21))
