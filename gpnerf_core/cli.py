@@ -27,6 +27,8 @@ commands:
             `render checkpoint=<path> [render.scene=<name>] [render.path=interpolate|spiral] [render.frames=N]`
   export    the points the model sees in a scene's frames, fused over views, as a PLY point cloud (colour, class):
             `export checkpoint=<path> [export.scene=<name>] [export.frames=eval|train|all] [export.voxel=0.02]`
+  label     a model's predicted labels of every frame of a scene, as class-id PNGs (targets for a per-scene model
+            on a capture without labels: `dataset.labels_from=<folder>`): `label checkpoint=<path> [label.scene=..]`
   view      serve an interactive web viewer of a checkpoint's novel views (RGB, depth, semantics) on localhost:
             `view checkpoint=<path> [view.scene=<name>] [view.port=8080] [view.host=127.0.0.1]`
   report    tabulate run folders (a sweep, the Table 4 ablation) beside the paper's numbers
@@ -41,7 +43,8 @@ commands:
 
 
 COMMANDS = (
-    "run", "eval", "finetune", "render", "export", "view", "report", "stress", "size", "bench", "data", "plugins",
+    "run", "eval", "finetune", "render", "export", "label", "view", "report", "stress", "size", "bench", "data",
+    "plugins",
 )
 """The commands, in the order ``--help`` lists them; each is ``gpnerf_core.commands.<name>``."""
 

@@ -181,6 +181,12 @@ class ExportConfig:
 
 
 @dataclass
+class LabelConfig:
+    scene: str = ""
+    """``label``: the scene whose frames are labelled ("" = the first unseen scene, else the first training scene)."""
+
+
+@dataclass
 class ViewConfig:
     port: int = 8080
     """``view``: TCP port of the web viewer (0 = any free port; a port in use is refused)."""
@@ -236,6 +242,7 @@ class RootConfig:
     render: RenderConfig = field(default_factory=RenderConfig)
     view: ViewConfig = field(default_factory=ViewConfig)
     export: ExportConfig = field(default_factory=ExportConfig)
+    label: LabelConfig = field(default_factory=LabelConfig)
     out_dir: str = ""
     """Run folder; empty = Hydra's output directory. Nothing is written under ``outputs/`` when it is set."""
     overwrite: bool = False

@@ -39,10 +39,11 @@ RUN_FILES = (
     "finetune_curve.json",
     "render.json", "trajectory.mp4", "trajectory.gif", "legend.png",  # render's
     "export.json", "points.ply", "points_labels.ply", "gaussians.ply",  # export's
+    "labels.json",  # label's
 )
-RUN_FOLDERS = ("checkpoints", "images", "tensorboard", "frames")
-"""What a run (``run``, ``eval``, ``finetune``, ``render``, ``export``) writes; ``overwrite=true`` deletes exactly
-these."""
+RUN_FOLDERS = ("checkpoints", "images", "tensorboard", "frames", "labels")
+"""What a run (``run``, ``eval``, ``finetune``, ``render``, ``export``, ``label``) writes; ``overwrite=true`` deletes
+exactly these."""
 
 _STARTED = time.time()
 """When this process imported the module: a folder made after it, still empty, was made for this command."""

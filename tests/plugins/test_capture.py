@@ -274,6 +274,10 @@ def test_bounds_from_the_sparse_points_of_ply_file_path(embedded_scene, tmp_path
     assert 0 < scene.near < float(seen.quantile(0.01)) and scene.far > float(seen.quantile(0.99))
     assert scene.far < 3 * float(seen.max())
     assert torch.allclose(scene.c2w, embedded_scene.c2w, atol=1e-6)
+    points = scene.sparse_points()  # what a per-scene Gaussian family starts from: in the poses' world
+    assert points.count == int((depth > 0).sum()) and torch.equal(points.rgb, torch.zeros(points.count, 3))
+    assert torch.cdist(points.xyz.double(), world[depth.reshape(-1) > 0]).min(dim=1).values.max() < 1e-5
+    assert load(write_capture(embedded_scene, tmp_path / "none", labels=False))[1].sparse_points is None
     transforms["ply_file_path"] = "missing.ply"
     (capture / "transforms.json").write_text(json.dumps(transforms))
     with pytest.raises(DataError, match="missing.ply: unreadable point cloud"):

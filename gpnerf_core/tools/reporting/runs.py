@@ -62,7 +62,7 @@ PAPER_TABLE1_PER_SCENE = {
 PAPER_HEADS = ("unet",)
 PAPER_LOSS_SETS = ("ce", "sd", "dgs")
 NOT_METHOD_KEYS = ("seed", "out_dir", "overwrite", "threads", "keep_freed_memory", "device", "checkpoint", "finetune",
-                   "render", "view", "export")
+                   "render", "view", "export", "label")
 """Top-level config keys that say where or how a run ran (or belong to other commands), not what it computes: runs
 differing only there group."""
 NOT_METHOD_TRAIN_KEYS = ("resume", "resume_strict", "loggers", "log_every")

@@ -8,6 +8,7 @@ its frames' labels are all the ignore index, and label metrics are not computed 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import math
@@ -78,6 +79,9 @@ class CaptureScenesConfig(DatasetConfig):
     """Metres per stored depth unit (0 = the file's depth_unit_scale_factor, else 0.001)."""
     classes_file: str = ""
     """A classes.json ({"classes": [...], "ignore_index": 255}) for every capture; "" = each capture's own or root's."""
+    labels_from: str = ""
+    """A folder ``python -m gpnerf_core label`` wrote for one capture (its labels.json and labels/): that capture's
+    frames take the model's predicted labels, at the dataset's size, and its classes (the label-free path)."""
     scenes: list[str] = field(default_factory=list)
     """Captures trained on (folder names under root); empty = every capture not in unseen_scenes."""
     unseen_scenes: list[str] = field(default_factory=list)
@@ -106,6 +110,7 @@ class CaptureScenes(DatasetBase):
         scale: float = CaptureScenesConfig.scale,
         depth_unit: float = CaptureScenesConfig.depth_unit,
         classes_file: str = CaptureScenesConfig.classes_file,
+        labels_from: str = CaptureScenesConfig.labels_from,
         validate: str = CaptureScenesConfig.validate,
         scenes: Sequence[str] = (),
         unseen_scenes: Sequence[str] = (),
@@ -130,6 +135,8 @@ class CaptureScenes(DatasetBase):
         self.scale = float(scale)
         self.depth_unit = float(depth_unit)
         self.classes_path = from_launch_dir(classes_file) if classes_file else None
+        self.labels_from = from_launch_dir(labels_from) if labels_from else None
+        self._predicted: PredictedLabels | None = None
         self._given = {"train": chosen_scenes("scenes", scenes, ()),
                        "unseen": chosen_scenes("unseen_scenes", unseen_scenes, ())}
         self._files: dict[str, CaptureFile] = {}
@@ -171,9 +178,25 @@ class CaptureScenes(DatasetBase):
 
     # -- classes ---------------------------------------------------------------------------------------------------
 
+    def predicted(self) -> PredictedLabels | None:
+        """``labels_from``'s labels.json, read once (None without ``labels_from``)."""
+        if self.labels_from is not None and self._predicted is None:
+            predicted = read_predicted_labels(self.labels_from)
+            found = self._found()
+            if predicted.scene not in found:
+                raise DataError(f"dataset.labels_from={self.labels_from}: its labels are of scene {predicted.scene!r}, "
+                                f"which is no capture under {self.root} (found: {', '.join(found)})")
+            self._predicted = predicted
+        return self._predicted
+
     def _class_list(self) -> ClassList | None:
-        """The one class list of the labelled captures: ``classes_file``, else their own or root's classes.json."""
+        """The one class list of the labelled captures: ``labels_from``'s (the model's), else ``classes_file``, else
+        their own or root's classes.json."""
         if self._classes_read:
+            return self._classes
+        predicted = self.predicted()
+        if predicted is not None:
+            self._classes, self._classes_read = predicted.classes, True
             return self._classes
         candidates = [self.classes_path] if self.classes_path else [
             *(folder / CLASSES_FILE for folder in self._found().values()), self.root / CLASSES_FILE]
@@ -204,6 +227,12 @@ class CaptureScenes(DatasetBase):
         return self._scene(name, self.capture(name))
 
     def _scene(self, name: str, capture: CaptureFile) -> Scene:
+        predicted = self.predicted()
+        if predicted is not None and predicted.scene == name:
+            return self._predicted_scene(name, capture, predicted)
+        return self._scene_of(name, capture)
+
+    def _scene_of(self, name: str, capture: CaptureFile) -> Scene:
         frames = capture.frames
         labelled = [f.semantic is not None for f in frames]
         if any(labelled) and not all(labelled):
@@ -227,6 +256,22 @@ class CaptureScenes(DatasetBase):
             load_frame=reader, labelled=all(labelled),
             sparse_points=functools.partial(read_sparse_points, capture, self.scale) if capture.points else None,
         )
+
+    def _predicted_scene(self, name: str, capture: CaptureFile, predicted: PredictedLabels) -> Scene:
+        """The capture with ``labels_from``'s labels: they must be of this capture's frames, at the dataset's size."""
+        without = self._scene_unlabelled(name, capture)
+        if predicted.frames != without.num_frames or predicted.size != (without.height, without.width):
+            raise DataError(f"{predicted.path}: labels of {predicted.frames} frames at {predicted.size[0]}x"
+                            f"{predicted.size[1]}, capture {name!r} has {without.num_frames} frames loaded at "
+                            f"{without.height}x{without.width}; expected `label` run on this capture at this "
+                            "dataset size")
+        reader = without.load_frame
+        reader.predicted = predicted
+        return dataclasses.replace(without, labelled=True)
+
+    def _scene_unlabelled(self, name: str, capture: CaptureFile) -> Scene:
+        frames = tuple(dataclasses.replace(f, semantic=None) for f in capture.frames)
+        return self._scene_of(name, dataclasses.replace(capture, frames=frames))
 
     def _load_size(self, first: CaptureFrame) -> tuple[int, int]:
         if self.size != (0, 0):
@@ -345,6 +390,49 @@ def _point_bounds(capture: CaptureFile, c2w: np.ndarray, intrinsics: np.ndarray,
     return min(b[0] for b in bounds), max(b[1] for b in bounds)
 
 
+@dataclass(frozen=True)
+class PredictedLabels:
+    """What ``python -m gpnerf_core label`` wrote (``dataset.labels_from``): a scene's frames' predicted class ids."""
+
+    path: Path
+    scene: str
+    frames: int
+    size: tuple[int, int]
+    classes: ClassList
+
+    def frame_labels(self, index: int) -> np.ndarray:
+        """``[H, W]`` int64 class ids of frame ``index``; a missing, damaged or mis-sized file is named."""
+        path = self.path / "labels" / f"{index:05d}.png"
+        if not path.is_file():
+            raise DataError(f"{path}: missing; expected the labels `label` wrote for frame {index} of {self.scene!r}")
+        labels = np.asarray(decode_image(path, "a label image"))
+        if labels.shape != self.size or not np.issubdtype(labels.dtype, np.integer):
+            raise DataError(f"{path}: labels of shape {list(labels.shape)} and type {labels.dtype}; expected "
+                            f"{self.size[0]}x{self.size[1]} class ids, as labels.json says")
+        labels = labels.astype(np.int64)
+        bad = (labels >= len(self.classes.names)) & (labels != self.classes.ignore_index)
+        if bad.any():
+            raise DataError(f"{path}: class id {int(labels[bad][0])} outside the {len(self.classes.names)} classes "
+                            "of labels.json")
+        return labels
+
+
+def read_predicted_labels(folder: Path) -> PredictedLabels:
+    """``folder/labels.json`` (``dataset.labels_from``), checked."""
+    path = folder / "labels.json"
+    if not path.is_file():
+        raise DataError(f"dataset.labels_from={folder}: no labels.json in it; expected the folder `python -m "
+                        "gpnerf_core label` wrote (its out_dir)")
+    try:
+        data = json.loads(path.read_text())
+        size = (int(data["size"][0]), int(data["size"][1]))
+        classes = ClassList(tuple(str(c) for c in data["classes"]), int(data["ignore_index"]), path)
+        return PredictedLabels(folder, str(data["scene"]), int(data["frames"]), size, classes)
+    except (ValueError, KeyError, TypeError, IndexError) as exc:
+        raise DataError(f"{path}: not a labels.json `label` writes ({type(exc).__name__}: {exc}); expected scene, "
+                        "frames, size, classes and ignore_index") from None
+
+
 def read_class_list(path: Path) -> ClassList:
     """``classes.json``: ``{"classes": [names...], "ignore_index": 255}``."""
     try:
@@ -375,6 +463,9 @@ class _FrameReader(FrameDecoder):
         self.depth_scale = unit * dataset.scale
         self._undistorters: dict[tuple, Undistorter] = {}
         self._frames = {frame.name: frame for frame in capture.frames}
+        self._index = {frame.name: index for index, frame in enumerate(capture.frames)}
+        self.predicted: PredictedLabels | None = None
+        """``dataset.labels_from``'s labels, which replace the frames' own (set for the capture they were made of)."""
 
     def _undistorter(self, frame: CaptureFrame) -> Undistorter | None:
         camera = frame.camera
@@ -438,6 +529,8 @@ class _FrameReader(FrameDecoder):
 
     def labels(self, files: FrameFiles) -> np.ndarray:
         frame = self._frames[files.name]
+        if self.predicted is not None:
+            return self.predicted.frame_labels(self._index[files.name])
         if files.semantic is None:
             return np.full(self.size, self.ignore_index, dtype=np.int64)
         stored = self._stored(files.semantic, frame, "semantic label")
