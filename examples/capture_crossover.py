@@ -1,17 +1,18 @@
 """When a capture needs its own model: GP-NeRF zero-shot and fine-tuned against Semantic-NeRF from scratch on one
-capture (docs/results.md, "When a scene needs its own model").
+capture (docs/results_detail.md, "When a scene needs its own model").
 
     python examples/capture_crossover.py --checkpoint <main job>/checkpoints/step_0000600.pt --work <folder>
-        [--seed 0] [--finetune-steps 300] [--scratch-steps 8000] [--grid-steps 2000] [--threads 2]
+        [--seed 0] [--finetune-steps 300] [--scratch-steps 8000] [--grid-steps 2000] [--splat-steps 2000] [--threads 2]
         [--labelled <work of an earlier run>/capture_labelled]
 
 1. The capture of ``capture_adaptation.py`` (the unseen layout filmed as a 40-frame video, ``data prepare-capture``)
    and its labelled copy, which every model here trains and is scored on: the labels are the rendered ones.
 2. ``eval`` of the checkpoint on it (zero-shot), ``finetune`` of the checkpoint on its training frames with its own
    loss set (``--finetune-steps``, scored at four points), ``run +experiment=baselines/semantic_nerf`` on the same
-   frames from scratch (``--scratch-steps``, scored every 500 steps and at its last) and its grid option
-   ``baselines/semantic_nerf_grid`` (``--grid-steps``, scored every 250), all at the main job's 96 x 128, each scored
-   on the capture's held-out frames. 0 steps leaves a from-scratch row out; ``--labelled`` reuses an earlier run's
+   frames from scratch (``--scratch-steps``, scored every 500 steps and at its last), its grid option
+   ``baselines/semantic_nerf_grid`` (``--grid-steps``, scored every 250) and per-scene semantic 3D Gaussian splatting
+   ``baselines/semantic_3dgs`` (``--splat-steps``, scored every 250; it starts from the capture's sparse points), all
+   at the main job's 96 x 128, each scored on the capture's held-out frames. 0 steps leaves a from-scratch row out; ``--labelled`` reuses an earlier run's
    labelled capture (the same frames and poses for every seed) instead of making it again.
 Prints one JSON object (steps, training seconds, per-image mIoU, PSNR and seconds per rendered frame of each row) and
 writes it to ``<work>/crossover.json``. Each step is a real command line; its log is in ``<work>``.
@@ -50,6 +51,7 @@ def main() -> int:
     parser.add_argument("--finetune-steps", type=int, default=300)
     parser.add_argument("--scratch-steps", type=int, default=8000)
     parser.add_argument("--grid-steps", type=int, default=2000)
+    parser.add_argument("--splat-steps", type=int, default=2000)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--labelled", type=Path, help="an earlier run's capture_labelled folder, reused as it is")
     args = parser.parse_args()
@@ -71,7 +73,8 @@ def main() -> int:
     seconds["finetune"] = command(work, "finetune", "finetune", f"checkpoint={checkpoint}", *common, scene,
                                   f"train.steps={args.finetune_steps}", "finetune.points=4", f"seed={args.seed}",
                                   f"out_dir={work / 'finetune'}")
-    scratch_runs = {"semantic_nerf": (args.scratch_steps, 500), "semantic_nerf_grid": (args.grid_steps, 250)}
+    scratch_runs = {"semantic_nerf": (args.scratch_steps, 500), "semantic_nerf_grid": (args.grid_steps, 250),
+                    "semantic_3dgs": (args.splat_steps, 250)}
     for name, (steps, every) in scratch_runs.items():
         if steps > 0:
             seconds[name] = command(work, name, "run", f"+experiment=baselines/{name}", *common, scene,

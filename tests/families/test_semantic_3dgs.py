@@ -240,3 +240,14 @@ def test_eval_render_and_export_build_it_at_the_checkpoints_size(fitted, tmp_pat
     columns = read_ply((tmp_path / "export" / "gaussians.ply").read_bytes())
     assert len(columns["x"]) == count and len([c for c in columns if c.startswith("f_rest_")]) == 3 * 3
     assert set(np.unique(columns["label"])) <= set(range(21))
+
+
+def test_stress_skips_what_a_per_scene_model_cannot_be_asked(fitted, tmp_path):
+    out = tmp_path / "stress"
+    assert cli_main(["stress", str(fitted), "--quick", "--threads", "1", "--cases", "unseen,textureless,source_views",
+                     "--out", str(out)]) == 0
+    outcomes = json.loads((out / "stress.json").read_text())["outcomes"]
+    assert outcomes[0]["case"] == "clean" and outcomes[0]["method"] == "Semantic 3DGS (image)"
+    reasons = {o["case"]: o["skipped"] for o in outcomes[1:]}
+    assert "is fitted on its own scene's frames (per-scene): another scene" in reasons["unseen"]
+    assert reasons["textureless"] == reasons["unseen"] and "no source views to change" in reasons["source_views"]

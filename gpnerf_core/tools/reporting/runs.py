@@ -455,6 +455,7 @@ METHOD_NAMES = {
     "mvsnerf": "MVSNeRF",
     "mvsplat": "MVSplat",
     "semantic_nerf": "Semantic-NeRF",
+    "semantic_3dgs": "Semantic 3DGS",
     "dm_nerf": "DM-NeRF",
 }
 """The methods the built-in families are, by family name (a third party's family is named by its own name)."""

@@ -303,10 +303,14 @@ def changes_sources(case: StressCase) -> bool:
 def _unavailable(case: StressCase, level: float, evaluator: _Evaluator) -> str | None:
     """Why the level cannot run: the model has no source views to change, a dataset option its variant needs is
     missing, or the case's own reason."""
-    if changes_sources(case) and not evaluator.components.model.generalizable:
+    per_scene = not evaluator.components.model.generalizable
+    if changes_sources(case) and per_scene:
         return (f"model {evaluator.cfg.model.name!r} renders from its own parameters (per-scene): it has no source "
                 "views to change")
     dataset = evaluator.cfg.dataset
+    if per_scene and (case.split != "train" or case.dataset_overrides(level, dataset)):
+        return (f"model {evaluator.cfg.model.name!r} is fitted on its own scene's frames (per-scene): another scene, or "
+                "its scene re-rendered, is not its to render (it would be scored against frames it never modelled)")
     options = dataset_options(str(dataset.get("name")))
     missing = [key for key in case.dataset_overrides(level, dataset) if key not in options]
     if missing:
