@@ -1,7 +1,9 @@
 """How long the viewer takes for one camera: ``python -m gpnerf_core.tools.viewer.timing [--repeats=3] [overrides]``.
 
-Builds the model of the given config (its weights do not change the time; ``checkpoint=<pt>`` is not read), then, for
-a camera at a training frame of the first scene, times what the viewer does when a camera stops: the preview at
+Builds the model of the given config (its weights do not change the time of a fixed-size model), or with
+``checkpoint=<pt>`` the checkpoint's model with its weights (its config, the overrides after it: the size of a model
+that grows while it trains, per-scene Gaussians, is its checkpoint's), then, for a camera at a training frame of the
+first scene (a per-scene model's own), times what the viewer does when a camera stops: the preview at
 ``view.preview_stride`` (``view.preview_samples`` per ray around ``view.preview_depth_source``'s depth; 0 = as the full
 frame) and the full frame at ``view.stride``, each for a camera whose sources are not encoded yet
 (cold) and again with the feature cache holding them (warm, as while the camera moves among the same sources).
@@ -29,11 +31,24 @@ def measure(overrides: list[str], repeats: int = 3) -> dict[str, object]:
     from gpnerf_core.tools.viewer.camera import vertical_fov, viser_pose
     from gpnerf_core.tools.viewer.renderer import SceneRenderer, ViewRequest, preview_of
 
-    cfg = compose(overrides)
-    setup_process(cfg)
-    components = build_components(cfg)
+    given = [o for o in overrides if o.startswith("checkpoint=")]
+    fitted = None
+    if given:
+        from gpnerf_core.config.overrides import merge_overrides
+        from gpnerf_core.engine.jobs import built_from_checkpoint, fitted_scenes
+        from gpnerf_core.model.trained import load_trained
+
+        trained = load_trained(given[-1].split("=", 1)[1])
+        cfg = compose(merge_overrides(trained.overrides, [o for o in overrides if o not in given]))
+        setup_process(cfg)
+        components = built_from_checkpoint(cfg, trained, "trained").components
+        fitted = fitted_scenes(cfg, components, trained)
+    else:
+        cfg = compose(overrides)
+        setup_process(cfg)
+        components = build_components(cfg)
     model = components.model.eval()
-    scenes = shown_scenes(components.dataset)
+    scenes = shown_scenes(components.dataset, fitted)
     renderer = SceneRenderer(model, FrameCache(components.dataset, torch.device("cpu")), components.view_selector,
                              num_classes=components.classes.num_classes, chunk_rays=int(cfg.eval.chunk_rays),
                              default_source_views=int(cfg.model.num_source_views),
