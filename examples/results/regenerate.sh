@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Regenerate the numbers of docs/results.md from scratch on a 2-core CPU, at one commit:
+# Regenerate docs/results_detail.md's numbers (headline: docs/results.md) from scratch on a 2-core CPU, at one commit:
 #   bash examples/results/regenerate.sh [WORK] [STAGES]      (WORK default /tmp/gpnerf-results)
 # STAGES (default "table4 methods baselines grid samplers per_scene stress instance finetune report"):
 #   table4    Table 4 IDs 1-5 x seeds 0-2 (ID 5 is the main job's config)
@@ -29,6 +29,9 @@
 #             frames (evaluated every 500 of its 2000 steps: against ID 5 zero-shot and fine-tuned, the finetune stage;
 #             and one 8000-step run, seed 0, evaluated every 1000), its grid option (baselines/semantic_nerf_grid,
 #             evaluated every 250 of 2000 steps), DM-NeRF on layout_00 (against the instance stage's head)
+#   per_scene_gaussians  per-scene semantic 3D Gaussian splatting (baselines/semantic_3dgs) and Semantic-NeRF's grid
+#             option on unseen_00 x seeds 0-2, 2000 steps each evaluated every 250, each seed's two runs side by side
+#             (the same job names as per_scene's grid runs), and the 3DGS stress suite (not in the default stages)
 #   stress    the stress suite of IDs 1 and 5 (3 seeds each), one process per method, merged   (needs table4's runs)
 #   instance  the instance head on layout_00 x seeds 0-2, and the connected-components baseline on ID 5's runs
 #   finetune  ID 5's three runs fine-tuned on the unseen layout (300 steps)                      (needs table4's runs)
@@ -45,7 +48,7 @@
 # again (create the marker to skip a job, delete it to redo one); an interrupted training run starts again
 # (train.resume=auto: a run keeps only its final checkpoint, and a folder without one is replaced).
 # Timings of runs that share the cores are comparable with each other, not with a run alone. WORK must not contain
-# spaces. Figures: docs/results.md; machine and commit: WORK/provenance.txt. About 5 h on the 2-core CI machine type
+# spaces. Figures: docs/results_detail.md; machine and commit: WORK/provenance.txt. About 5 h on the 2-core CI machine type
 # (2026-12-02: a Table 4 run's training took 560-820 s, two at a time).
 set -euo pipefail
 PYTHON=${PYTHON:-python}
@@ -58,7 +61,7 @@ PROTOCOL_FAMILIES=${PROTOCOL_FAMILIES:-semantic_ray neuray mvsnerf}  # the compa
 RECORDS=${RECORDS:-$(cd "$(dirname "$0")" && pwd)/records}
 POLL_SECONDS=${POLL_SECONDS:-10}
 RUNS="$WORK/runs"
-KNOWN="table4 methods baselines grid gaussians samplers per_scene layouts protocol stress instance finetune report records"
+KNOWN="table4 methods baselines grid gaussians samplers per_scene per_scene_gaussians layouts protocol stress instance finetune report records"
 for stage in $STAGES; do
   [[ " $KNOWN " == *" $stage "* ]] || { echo "unknown stage '$stage' (known: $KNOWN)" >&2; exit 2; }
 done
@@ -76,7 +79,7 @@ export OMP_NUM_THREADS=1
 
 CKPT=checkpoints/step_0000600.pt
 SIZED=(+head=unet +loss=dgs dataset.near=0.59 dataset.far=5.696 field_aggregator.num_blocks=2 model.fine_samples=0
-       model.num_source_views=3)  # the configuration `size` chose for the embedded scenes (docs/results.md, Sizing)
+       model.num_source_views=3)  # the configuration `size` chose for the embedded scenes (docs/results_detail.md, Sizing)
 
 # One queued job per line: "<name>\t<needed jobs, comma-separated, or ->\t<gpnerf_core arguments>".
 job() { local name=$1 needs=$2; shift 2; printf '%s\t%s\t%s\n' "$name" "$needs" "$*"; }
@@ -129,6 +132,15 @@ stage_jobs() {
             eval.save_images=0
         done
       done ;;
+    per_scene_gaussians)
+      for s in 0 1 2; do
+        train_job "semantic_nerf_grid_unseen_s$s" $s +experiment=baselines/semantic_nerf_grid \
+          "'dataset.scenes=[unseen_00]'" eval.every_steps=250 eval.save_images=0
+        train_job "semantic_3dgs_unseen_s$s" $s +experiment=baselines/semantic_3dgs "'dataset.scenes=[unseen_00]'" \
+          eval.every_steps=250 eval.save_images=0
+      done
+      job stress_semantic_3dgs "semantic_3dgs_unseen_s0,semantic_3dgs_unseen_s1,semantic_3dgs_unseen_s2" stress \
+        "$RUNS"/semantic_3dgs_unseen_s{0,1,2} --views-per-scene 1 --threads 1 --overwrite --out "$WORK/stress/semantic_3dgs" ;;
     per_scene)
       for s in 0 1 2; do
         train_job "semantic_nerf_unseen_s$s" $s +experiment=baselines/semantic_nerf "'dataset.scenes=[unseen_00]'" \

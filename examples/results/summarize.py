@@ -1,4 +1,4 @@
-"""The tables of docs/results.md from the run folders ``regenerate.sh`` wrote (reads ``metrics.json`` only):
+"""The tables of docs/results_detail.md from the run folders ``regenerate.sh`` wrote (reads ``metrics.json`` only):
 
     python examples/results/summarize.py [WORK, default /tmp/gpnerf-results] > WORK/summary.md
     python examples/results/summarize.py examples/results/records     # the committed records (the records stage)

@@ -1,6 +1,7 @@
 """A real browser: headless Chromium opens the viewer, the first rendered frame arrives, and the screenshot shows the
 scene (the rendered view as the background, frustums and controls), not a blank or an error page. The screenshot is
-docs/images/viewer.png when GPNERF_VIEWER_SCREENSHOT names that path."""
+docs/images/viewer.png when GPNERF_VIEWER_SCREENSHOT names that path; GPNERF_VIEWER_CHECKPOINT=<.pt> shows that trained
+model instead of the tests' tiny untrained one (what the docs' screenshot shows)."""
 
 import base64
 import io
@@ -70,10 +71,34 @@ def _browser(tmp_path):
     return process, DevTools(page["webSocketDebuggerUrl"])
 
 
+def trained_renderer(checkpoint: str):
+    """The renderer of a trained checkpoint (``GPNERF_VIEWER_CHECKPOINT``: the docs' screenshot shows a trained model)
+    and its class names."""
+    import torch
+
+    from gpnerf_core.config.compose import compose
+    from gpnerf_core.config.overrides import merge_overrides
+    from gpnerf_core.data.frames import FrameCache
+    from gpnerf_core.engine.jobs import built_from_checkpoint
+    from gpnerf_core.model.trained import load_trained
+    from gpnerf_core.tools.viewer.renderer import SceneRenderer
+
+    trained = load_trained(checkpoint)
+    cfg = compose(merge_overrides(trained.overrides, []))
+    components = built_from_checkpoint(cfg, trained, "trained").components
+    renderer = SceneRenderer(components.model.eval(), FrameCache(components.dataset, torch.device("cpu")),
+                             components.view_selector, num_classes=components.classes.num_classes,
+                             chunk_rays=int(cfg.eval.chunk_rays), default_source_views=int(cfg.model.num_source_views))
+    return renderer, tuple(components.classes.names)
+
+
 def test_chromium_shows_the_rendered_scene(tiny, tmp_path):
     _, renderer = tiny
+    class_names = ("floor", "wall", "table")
+    if os.environ.get("GPNERF_VIEWER_CHECKPOINT"):
+        renderer, class_names = trained_renderer(os.environ["GPNERF_VIEWER_CHECKPOINT"])
     options = ViewerOptions(host="127.0.0.1", port=0, scene="layout_00", scenes=("unseen_00", "layout_00"),
-                            stride=2, preview_stride=8, source_views=2, class_names=("floor", "wall", "table"))
+                            stride=2, preview_stride=8, source_views=2, class_names=class_names)
     server = ViewerServer(renderer, options).start()
     process = devtools = None
     try:
