@@ -40,7 +40,9 @@ def test_repeated_large_tensors_stop_faulting_once_freed_memory_is_kept():
     faults = json.loads(result.stdout)
     assert faults["applied"]
     assert faults["default"] > 0.9 * 8 * PAGES_PER_TENSOR  # glibc's default: every tensor faults all its pages in
-    assert faults["kept"] < 0.05 * 8 * PAGES_PER_TENSOR
+    # kept: at most one of the eight tensors still faults in (CI once saw exactly one: the heap's top block had not yet
+    # grown to fit the aligned request); without the setting all eight do
+    assert faults["kept"] <= 1.05 * PAGES_PER_TENSOR
 
 
 @pytest.mark.parametrize("keep", [True, False])
