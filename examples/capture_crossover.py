@@ -12,7 +12,8 @@ capture (docs/results_detail.md, "When a scene needs its own model").
    frames from scratch (``--scratch-steps``, scored every 500 steps and at its last), its grid option
    ``baselines/semantic_nerf_grid`` (``--grid-steps``, scored every 250) and per-scene semantic 3D Gaussian splatting
    ``baselines/semantic_3dgs`` (``--splat-steps``, scored every 250; it starts from the capture's sparse points), all
-   at the main job's 96 x 128, each scored on the capture's held-out frames. 0 steps leaves a from-scratch row out; ``--labelled`` reuses an earlier run's
+   at the main job's 96 x 128, each scored on the capture's held-out frames. 0 steps leaves a row out (the fine-tuning
+   or a from-scratch one); ``--labelled`` reuses an earlier run's
    labelled capture (the same frames and poses for every seed) instead of making it again.
 Prints one JSON object (steps, training seconds, per-image mIoU, PSNR and seconds per rendered frame of each row) and
 writes it to ``<work>/crossover.json``. Each step is a real command line; its log is in ``<work>``.
@@ -70,9 +71,10 @@ def main() -> int:
 
     seconds["zero_shot"] = command(work, "zero_shot", "eval", f"checkpoint={checkpoint}", *common,
                                    f"out_dir={work / 'zero_shot'}")
-    seconds["finetune"] = command(work, "finetune", "finetune", f"checkpoint={checkpoint}", *common, scene,
-                                  f"train.steps={args.finetune_steps}", "finetune.points=4", f"seed={args.seed}",
-                                  f"out_dir={work / 'finetune'}")
+    if args.finetune_steps > 0:
+        seconds["finetune"] = command(work, "finetune", "finetune", f"checkpoint={checkpoint}", *common, scene,
+                                      f"train.steps={args.finetune_steps}", "finetune.points=4", f"seed={args.seed}",
+                                      f"out_dir={work / 'finetune'}")
     scratch_runs = {"semantic_nerf": (args.scratch_steps, 500), "semantic_nerf_grid": (args.grid_steps, 250),
                     "semantic_3dgs": (args.splat_steps, 250)}
     for name, (steps, every) in scratch_runs.items():
@@ -85,11 +87,11 @@ def main() -> int:
         return json.loads((work / name / "metrics.json").read_text())
 
     zero_shot = metrics("zero_shot")["eval"]["train_heldout"]
-    finetune = metrics("finetune")
+    finetuned = metrics("finetune")["finetune"]["curve"] if "finetune" in seconds else []
     result = {
         "held_out_images": zero_shot.get("count/images"),
         "gpnerf_zero_shot": row(zero_shot, 0, 0.0),
-        "gpnerf_finetuned": [row(point, point["step"], point["train_seconds"]) for point in finetune["finetune"]["curve"]],
+        "gpnerf_finetuned": [row(point, point["step"], point["train_seconds"]) for point in finetuned],
         **{name: scratch_rows(metrics(name)) for name in seconds if name in scratch_runs},
         "command_seconds": {key: round(value, 1) for key, value in seconds.items()},
     }
