@@ -72,8 +72,8 @@ def _browser(tmp_path):
 
 
 def trained_renderer(checkpoint: str):
-    """The renderer of a trained checkpoint (``GPNERF_VIEWER_CHECKPOINT``: the docs' screenshot shows a trained model)
-    and its class names."""
+    """The renderer of a trained checkpoint (``GPNERF_VIEWER_CHECKPOINT``: the docs' screenshot shows a trained model),
+    its class names and the source-view count it was trained with."""
     import torch
 
     from gpnerf_core.config.compose import compose
@@ -89,16 +89,16 @@ def trained_renderer(checkpoint: str):
     renderer = SceneRenderer(components.model.eval(), FrameCache(components.dataset, torch.device("cpu")),
                              components.view_selector, num_classes=components.classes.num_classes,
                              chunk_rays=int(cfg.eval.chunk_rays), default_source_views=int(cfg.model.num_source_views))
-    return renderer, tuple(components.classes.names)
+    return renderer, tuple(components.classes.names), int(cfg.model.num_source_views)
 
 
 def test_chromium_shows_the_rendered_scene(tiny, tmp_path):
     _, renderer = tiny
-    class_names = ("floor", "wall", "table")
+    class_names, source_views = ("floor", "wall", "table"), 2
     if os.environ.get("GPNERF_VIEWER_CHECKPOINT"):
-        renderer, class_names = trained_renderer(os.environ["GPNERF_VIEWER_CHECKPOINT"])
+        renderer, class_names, source_views = trained_renderer(os.environ["GPNERF_VIEWER_CHECKPOINT"])
     options = ViewerOptions(host="127.0.0.1", port=0, scene="layout_00", scenes=("unseen_00", "layout_00"),
-                            stride=2, preview_stride=8, source_views=2, class_names=class_names)
+                            stride=2, preview_stride=8, source_views=source_views, class_names=class_names)
     server = ViewerServer(renderer, options).start()
     process = devtools = None
     try:
