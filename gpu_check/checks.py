@@ -36,6 +36,10 @@ STEPS = [
                          "tests/training/test_device_placement.py", "-k", "cuda" if not DRY else "default_device"]),
     ("main_job", 240, [sys.executable, "-m", "gpnerf_core", "run", "+head=unet", "+loss=dgs", f"device={DEVICE}",
                        "out_dir={out}/main_job", *(["train.steps=2", "eval.max_views_per_scene=1"] if DRY else [])]),
+    ("rasterizer_backends", 90, [sys.executable, "gpu_check/rasterizer.py", "{out}/rasterizer.json"]),
+    ("mvsplat_unet", 150, [sys.executable, "-m", "gpnerf_core", "run", "+experiment=baselines/mvsplat_unet",
+                           f"device={DEVICE}", "out_dir={out}/mvsplat_unet",
+                           *(["train.steps=2", "eval.max_views_per_scene=1"] if DRY else ["train.steps=100"])]),
     ("bench_fp32", 150, [sys.executable, "-m", "gpnerf_core", "bench", *BENCH, f"device={DEVICE}",
                          "out_dir={out}/bench_fp32"]),
     ("bench_bf16", 150, [sys.executable, "-m", "gpnerf_core", "bench", *BENCH, f"device={DEVICE}",
@@ -47,8 +51,9 @@ STEPS = [
                            "-m", "gpnerf_core", "run", "+head=unet", "+loss=dgs", *TINY, f"device={DEVICE}",
                            "out_dir={out}/torchrun"]),
 ]
-"""(name, seconds allowed, command): about 16.5 minutes at most, about 7 expected on an H200 (compilation with
-Triton included in the compiled bench's warm-up)."""
+"""(name, seconds allowed, command): about 20 minutes at most, about 8 expected on an H200 (compilation with
+Triton included in the compiled bench's warm-up); the steps run in this order, so the ones every GPU session should see
+come first."""
 
 
 def machine() -> dict[str, object]:
@@ -86,6 +91,21 @@ def summarize(out: Path, name: str) -> str:
                              f"{render.get('peak_memory_mb')} MiB" + (f", error {train.get('error') or render.get('error')}"
                                                                      if "error" in train or "error" in render else ""))
         return "; ".join(parts)
+    if name == "rasterizer_backends" and (out / "rasterizer.json").is_file():
+        report = json.loads((out / "rasterizer.json").read_text())
+        parts = [report["gsplat"]] if "gsplat" in report else []
+        for case in report["cases"]:
+            timed = {k: v for k, v in case.items() if isinstance(v, dict) and "render_ms" in v}
+            parts.append(f"{case['gaussians']} Gaussians at {case['size']}: " + ", ".join(
+                f"{backend} {v['render_ms']} / {v['forward_backward_ms']} ms" for backend, v in timed.items())
+                + (f", max difference {max(case['max_abs_difference'].values()):.2e}"
+                   if "max_abs_difference" in case else ""))
+        return "; ".join(parts)
+    if name == "mvsplat_unet" and (out / "mvsplat_unet" / "metrics.json").is_file():
+        metrics = json.loads((out / "mvsplat_unet" / "metrics.json").read_text())
+        held = metrics["eval"].get("train_heldout", {})
+        return (f"held-out mIoU {held.get('miou/image_mean_present')}, PSNR {held.get('psnr/clamped')}, "
+                f"train {metrics['train']['seconds']} s")
     if name == "torchrun_nccl" and (out / "torchrun" / "metrics.json").is_file():
         train = json.loads((out / "torchrun" / "metrics.json").read_text())["train"]
         return f"world size {train['world_size']}, backend {train['backend']}, {train['steps']} steps"

@@ -13,6 +13,10 @@ for version in 3.11 3.12; do
     --python-version "$version" --platform manylinux2014_x86_64 --platform manylinux_2_17_x86_64 \
     --platform manylinux_2_28_x86_64 -d gpu_check/wheels kornia-rs pycocotools
 done
+# gsplat for the rasterizer step (optional: its CUDA kernels compile on first use where the GPU image has nvcc; without
+# it the step times the torch backend alone and says why)
+"$PYTHON" -m pip download --quiet --disable-pip-version-check --no-deps --only-binary=:all: -d gpu_check/wheels \
+  gsplat jaxtyping wadler-lindig || echo "gsplat: no wheel downloaded; the rasterizer step will time the torch backend alone"
 "$PYTHON" - <<'PY'
 """Render the scene sets of gpu_check/checks.py's SCENE_SETS into gpu_check/cache under the cache key a machine
 without pybullet computes (its version reads "unknown" there), so the checks find them instead of rendering."""
