@@ -22,6 +22,7 @@ from gpnerf_plugins.datasets.capture.colmap_import import (
     camera_keys,
     import_colmap,
 )
+from gpnerf_plugins.datasets.capture.dataset import read_sparse_points
 from gpnerf_plugins.datasets.capture.staging import staged
 from gpnerf_plugins.datasets.capture.transforms import read_transforms
 from gpnerf_plugins.datasets.embedded.trajectory import look_at
@@ -127,6 +128,12 @@ def test_a_model_imports_to_the_true_poses_intrinsics_and_depth_bounds(tmp_path,
     capture = read_transforms(tmp_path / "scene" / "transforms.json")  # the capture reader takes it
     np.testing.assert_allclose(capture.frames[0].c2w, truth[NAMES[0]]["c2w"], atol=1e-6)
     assert capture.frames[0].camera.distortion[:4] == pytest.approx(OPENCV_PARAMS[4:])
+    # the sparse points, in the poses' world, for a per-scene Gaussian family to start from
+    assert transforms["ply_file_path"] == "sparse_points.ply"
+    xyz = read_sparse_points(capture, scale=1.0).xyz.numpy()
+    expected_xyz = np.stack([point.xyz for point in model.points3D.values()])
+    assert len(xyz) == model.num_points3D()
+    np.testing.assert_allclose(np.sort(xyz, axis=0), np.sort(expected_xyz, axis=0), atol=1e-5)
 
 
 @pytest.mark.parametrize(

@@ -14,6 +14,9 @@ Turns a COLMAP sparse model (binary or text, read through pycolmap) and its imag
   ``FULL_OPENCV``, ...) has its images undistorted by pycolmap's ``undistort_image`` and is written as ``PINHOLE``
   (PNG images, the undistorted size). ``cx, cy`` keep COLMAP's convention (top-left pixel centre at 0.5, 0.5).
 - Near/far (``NEAR_FAR_RULE``): per frame, from the depths (camera z) of the sparse points that frame observes.
+- Sparse points: the chosen model's 3D points with their colours, written as ``sparse_points.ply`` (pycolmap's
+  ``export_PLY``, COLMAP's world as the poses) and named by ``ply_file_path`` as nerfstudio does: what a per-scene
+  Gaussian family starts from (``Scene.sparse_points``). A model without points writes none.
 - Frames: the registered images of the chosen model, sorted by file name; images not registered, registered only in
   another model, or missing from ``--images`` are dropped and listed with the reason.
 - Summary (printed and stored in ``transforms.json`` under ``gpnerf_summary``): registered / given frames (given: the
@@ -42,6 +45,7 @@ from gpnerf_plugins.datasets.common.image_io import decode_image, image_size, on
 
 TRANSFORMS_FILE = "transforms.json"
 IMAGES_DIR = "images"
+POINTS_FILE = "sparse_points.ply"
 MODEL_FILES = ("cameras", "images", "points3D")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 
@@ -348,6 +352,9 @@ def import_model(model: Path, images: Path, scene: Path, *, progress: bool | Non
             frame["near"], frame["far"] = bounds.get(frame["file_path"], scene_bounds)
     frames.sort(key=lambda f: f["file_path"])
     transforms: dict[str, Any] = {"frames": frames}
+    if reconstruction.num_points3D():
+        reconstruction.export_PLY(str(scene / POINTS_FILE))
+        transforms["ply_file_path"] = POINTS_FILE
     shared = _shared_intrinsics(frames)
     transforms.update(shared)
     for frame in frames:
