@@ -92,3 +92,11 @@ def test_another_family_for_its_checkpoint_is_refused_naming_the_trained_one(tra
     assert f"model=gnt: checkpoint {checkpoint} holds a trained model 'semantic_ray'; eval takes its model family from " \
            "the checkpoint: drop model=..." in err
     assert not (tmp_path / "eval").exists()
+
+
+def test_mvsplat_with_the_instance_head_trains_and_is_scored_by_instance_ap(tmp_path):
+    tiny = [o for o in TINY_CLI if not o.startswith(RAY_MARCHING)]
+    assert in_process("run", "model=mvsplat", "+head=instance", "+loss=instance", *tiny, *FAMILIES["mvsplat"],
+                      "train.steps=2", f"out_dir={tmp_path / 'run'}") == 0
+    held_out = json.loads((tmp_path / "run" / "metrics.json").read_text())["eval"]["train_heldout"]
+    assert 0.0 <= held_out["instance/ap_matched@0.75"] <= 1.0 and "miou/image_mean_present" not in held_out
