@@ -13,8 +13,8 @@ capture (docs/results_detail.md, "When a scene needs its own model").
    ``baselines/semantic_nerf_grid`` (``--grid-steps``, scored every 250) and per-scene semantic 3D Gaussian splatting
    ``baselines/semantic_3dgs`` (``--splat-steps``, scored every 250; it starts from the capture's sparse points), all
    at the main job's 96 x 128, each scored on the capture's held-out frames. 0 steps leaves a row out (the fine-tuning
-   or a from-scratch one); ``--labelled`` reuses an earlier run's
-   labelled capture (the same frames and poses for every seed) instead of making it again.
+   or a from-scratch one); ``--labelled`` reuses an earlier run's labelled capture (the same frames and poses for
+   every seed) instead of making it again.
 Prints one JSON object (steps, training seconds, per-image mIoU, PSNR and seconds per rendered frame of each row) and
 writes it to ``<work>/crossover.json``. Each step is a real command line; its log is in ``<work>``.
 """
