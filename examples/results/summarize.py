@@ -105,7 +105,9 @@ def holds(diffs: list[float]) -> str:
 METHODS = (("GP-NeRF (U-Net head, S.D + D.G: Table 4 ID 5, the main job)", "id5"),
            ("GP-NeRF sized (bounds 0.59 / 5.70 m, 2 blocks, no fine samples, 3 views)", "sized"),
            ("per-pixel head + cross-entropy (`baselines/label_rendering`)", "label_rendering"),
-           ("GNT alone (`baselines/gnt`: RGB only)", "gnt"))
+           ("GNT alone (`baselines/gnt`: RGB only)", "gnt"),
+           ("MVSplat, label rendering (`baselines/mvsplat`)", "mvsplat"),
+           ("MVSplat + GP-NeRF's U-Net head (`baselines/mvsplat_unet`)", "mvsplat_unet"))
 
 
 def methods(runs: Path) -> list[str]:
@@ -274,8 +276,9 @@ LONG_STEPS = 8000
 def per_scene(runs: Path) -> list[str]:
     """When a scene needs its own model (unseen_00): GP-NeRF zero-shot (its fine-tuning's step 0) and fine-tuned
     (ID 5's runs, ``finetune`` stage) against Semantic-NeRF fitted from scratch on the same frames (2000 steps x seeds
-    0-2, one ``LONG_STEPS`` run, and its grid option's 2000 steps x seeds 0-2), by steps and training seconds; a crossover is the first Semantic-NeRF point at or
-    above GP-NeRF's mean mIoU, zero-shot and fine-tuned."""
+    0-2, one ``LONG_STEPS`` run, its grid option's 2000 steps x seeds 0-2) and semantic 3D Gaussian splatting (2000
+    steps x seeds 0-2, ``per_scene_gaussians``), by steps and training seconds; a crossover is the first per-scene point
+    at or above GP-NeRF's mean mIoU, zero-shot and fine-tuned."""
     lines = ["## When a scene needs its own model (unseen_00, seeds 0-2): accuracy against steps and seconds", "",
              "| method | seed | step | train s | mIoU (per image) | PSNR |", "|---|---|---|---|---|---|"]
     finals = []
@@ -294,7 +297,8 @@ def per_scene(runs: Path) -> list[str]:
     crossings = []
     for name, label in (("semantic_nerf_unseen", "Semantic-NeRF from scratch"),
                         ("semantic_nerf_unseen_8k", f"Semantic-NeRF from scratch, {LONG_STEPS} steps"),
-                        ("semantic_nerf_grid_unseen", "Semantic-NeRF's grid option from scratch")):
+                        ("semantic_nerf_grid_unseen", "Semantic-NeRF's grid option from scratch"),
+                        ("semantic_3dgs_unseen", "Semantic 3DGS from scratch")):
         for seed in SEEDS:
             fitted = load(runs, f"{name}_s{seed}")
             if fitted is None:
@@ -369,7 +373,7 @@ def instance(runs: Path) -> list[str]:
 
 
 FINETUNED = (("GP-NeRF (ID 5)", "id5"), ("Semantic-Ray", "semantic_ray"), ("NeuRay + semantic head", "neuray"),
-             ("MVSNeRF + semantic head", "mvsnerf"))
+             ("MVSNeRF + semantic head", "mvsnerf"), ("MVSplat", "mvsplat"), ("MVSplat + U-Net head", "mvsplat_unet"))
 FEW_STEP_TARGETS = (0.70, 0.80)
 """The per-image mIoUs on the unseen layout's held-out frames the few-step table counts steps and seconds to (a
 protocol whose families all start above the lower one is told apart by the higher)."""
