@@ -9,6 +9,7 @@ from pathlib import Path
 
 import torch
 
+from gpnerf_core.cli import main as cli_main
 from gpnerf_core.model.build import build_components
 from gpnerf_core.config.compose import compose
 from gpnerf_core.runtime.distributed import Distributed
@@ -84,3 +85,12 @@ def child_pids(pid: int) -> list[int]:
             if int(fields[1]) == pid and fields[0] != "Z":
                 found.append(int(entry))
     return found
+
+
+def in_process(*argv: str) -> int:
+    """A command through the command line in this process (no interpreter start-up; a test can replace a writer the
+    command uses); its exit code."""
+    try:
+        return cli_main(list(argv))
+    except SystemExit as stop:  # a Hydra job exits through sys.exit
+        return int(stop.code)

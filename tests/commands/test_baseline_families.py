@@ -9,8 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from gpnerf_core.cli import main as cli_main
-from pipeline_check import TINY_CLI
+from pipeline_check import TINY_CLI, in_process
 
 FAMILIES = {
     "semantic_ray": ["model.fine_samples=4"],
@@ -26,14 +25,6 @@ FAMILIES = {
 }
 RAY_MARCHING = ("model.coarse_samples", "model.fine_samples", "field_aggregator.")
 """TINY_CLI keys of the ray-marching families' (a rasterizing family has no samples, and no GNT aggregator)."""
-
-
-def in_process(*argv: str) -> int:
-    """A command through the command line in this process (no interpreter start-up); its exit code."""
-    try:
-        return cli_main(list(argv))
-    except SystemExit as stop:  # a Hydra job exits through sys.exit
-        return int(stop.code)
 
 
 @pytest.fixture(scope="module")

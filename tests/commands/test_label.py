@@ -14,17 +14,10 @@ from capture_fixtures import write_capture
 from gpnerf_core.cli import main as cli_main
 from gpnerf_plugins.datasets.embedded import SceneSetParams, generate
 from gpnerf_plugins.datasets.embedded.dataset import EmbeddedScenes
-from pipeline_check import TINY_CLI
+from pipeline_check import TINY_CLI, in_process
 
 SPLATS = ["model.init_points=300", "model.feature_dim=4", "model.sh_degree=1", "train.steps=2", "threads=1",
           "eval.save_images=0"]
-
-
-def in_process(*argv: str) -> int:
-    try:
-        return cli_main(list(argv))
-    except SystemExit as stop:  # a Hydra job exits through sys.exit
-        return int(stop.code)
 
 
 @pytest.fixture(scope="module")

@@ -24,7 +24,7 @@ from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.commands import render
 from gpnerf_core.tools.sizing.options import check_eval_splits, parse_size_options
 from gpnerf_core.tools.stress.runner import models_from_paths
-from pipeline_check import TINY_CLI, child_pids
+from pipeline_check import TINY_CLI, child_pids, in_process
 from sfm_stage_hook import default_sigint, hold_stage, stage_started
 
 SIZE = ["+head=unet", "+loss=dgs", *TINY_CLI, "size.steps=1"]
@@ -78,14 +78,6 @@ def test_size_refuses_eval_splits_without_the_split_it_selects_on_before_anythin
 
 
 # ---- 3, 4: render ----------------------------------------------------------------------------------------------
-
-
-def in_process(*argv: str) -> int:
-    """A command through the command line in this process (so a test can replace a writer); its exit code."""
-    try:
-        return cli_main(list(argv))
-    except SystemExit as stop:  # a Hydra job exits through sys.exit
-        return int(stop.code)
 
 
 def render_in_process(checkpoint: Path, out: Path, *overrides: str) -> int:

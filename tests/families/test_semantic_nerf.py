@@ -16,7 +16,7 @@ from gpnerf_core.geometry import compositing_weights, rays_through_pixels
 from gpnerf_core.model.build import build_components
 from gpnerf_plugins.families.nerf_field import NeRFField, positional_encoding
 from gpnerf_plugins.families.semantic_nerf.model import SemanticNeRF
-from pipeline_check import TINY_CLI, TINY_SCENES
+from pipeline_check import TINY_CLI, TINY_SCENES, in_process
 
 SMALL = dict(num_classes=5, coarse_samples=8, fine_samples=4, width=16, depth=4, skip=1, position_scale=0.1,
              position_frequencies=3, direction_frequencies=2, density_noise=1.0, inverse_depth=False)
@@ -90,13 +90,6 @@ def fitted(tmp_path_factory):
             "train.steps=2", f"out_dir={out}"]
     assert cli_main(argv) == 0
     return out
-
-
-def in_process(*argv: str) -> int:
-    try:
-        return cli_main(list(argv))
-    except SystemExit as stop:  # a Hydra job exits through sys.exit
-        return int(stop.code)
 
 
 def test_run_fits_one_scene_and_scores_its_held_out_frames(fitted, capsys):
