@@ -31,16 +31,16 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     "gpnerf_core.interfaces.stress": ("ChooseSources",),
     "gpnerf_core.interfaces.head": ("Predicts",),
     "gpnerf_core.interfaces.model": (
-        "ModelFamily", "ModelParts", "SemanticMode", "SemanticOutput", "SourceEncoding", "TrainingBatch",
-        "one_pass_preview",
+        "Capabilities", "FamilyHooks", "ModelFamily", "ModelParts", "SemanticMode", "SemanticOutput", "SourceEncoding",
+        "TrainingBatch", "one_pass_preview", "parameter_counts",
     ),
     "gpnerf_core.interfaces.training": ("GroupOptions", "TrainingCallback", "TrainingPhase", "TrainingState"),
-    "gpnerf_core.training.resize": ("resize_parameter",),
+    "gpnerf_core.geometry.gaussians.rows": ("resize_parameter",),
     "gpnerf_core.config.schema": ("ModelConfig", "RayMarchingConfig"),
     # the records passed between stages
     "gpnerf_core.types": (
-        "FeatureMaps", "FieldBlockOutput", "Frame", "HeadOutput", "LossInputs", "Prediction", "ProjectedFeatures",
-        "RayBatch",
+        "FeatureMaps", "FieldBlockOutput", "Frame", "HeadOutput", "ImageLossInputs", "ImageOutput", "LossInputs",
+        "Prediction", "ProjectedFeatures", "RayBatch",
         "RayBlockOutput", "RayReadout", "RaySamples", "RenderedRays", "SampledMaps", "Scene", "ScenePoints", "SourceViews",
         "StepBatch", "StepOutput", "TargetCamera", "TargetView", "ViewOutput",
     ),
@@ -55,7 +55,7 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     "gpnerf_core.model.whole_view": ("render_whole_view",),
     "gpnerf_core.model.context_decoding": (
         "LabelsOrHead", "cells_of_pixels", "decode_checked", "decoded_view_output", "fuse_rendered", "gather_cells",
-        "labels_or_head_output",
+        "labels_or_head_output", "pixel_cells",
     ),
     "gpnerf_core.geometry.plane_sweep": (
         "PlaneSweep", "ReferenceFrustum", "plane_sweep", "points_in_views", "variance_over_views",
@@ -68,6 +68,15 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
         "colour_to_dc", "quaternion_product", "quaternions_of", "sh_coefficients", "sh_colours",
     ),
     "gpnerf_core.geometry.gaussians.scene": ("GaussianScene", "rotate_harmonics"),
+    # the public Gaussian strategy: parameters, where they start, density control
+    "gpnerf_core.geometry.gaussians.parameters": ("GaussianParameters", "rows_from_gaussians", "rows_from_points"),
+    "gpnerf_core.geometry.gaussians.initialisation": (
+        "depth_points", "neighbour_scales", "scene_extent", "starting_points",
+    ),
+    "gpnerf_core.geometry.gaussians.density": (
+        "BudgetedStrategy", "DefaultStrategy", "DensityStrategy", "ViewInfo", "append_rows", "keep_rows",
+        "reset_opacity", "rotation_matrices", "scaled_step", "split_rows",
+    ),
     "gpnerf_core.geometry.pose_sanity": ("check_poses",),
     "gpnerf_core.data.checks": (
         "ValueProblem", "check_scene_files", "check_validation_level", "depth_problem", "far_away_cameras",
@@ -159,6 +168,25 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
         sh_colours,
     )
     from gpnerf_core.geometry.gaussians.scene import GaussianScene, rotate_harmonics
+    from gpnerf_core.geometry.gaussians.parameters import GaussianParameters, rows_from_gaussians, rows_from_points
+    from gpnerf_core.geometry.gaussians.initialisation import (
+        depth_points,
+        neighbour_scales,
+        scene_extent,
+        starting_points,
+    )
+    from gpnerf_core.geometry.gaussians.density import (
+        BudgetedStrategy,
+        DefaultStrategy,
+        DensityStrategy,
+        ViewInfo,
+        append_rows,
+        keep_rows,
+        reset_opacity,
+        rotation_matrices,
+        scaled_step,
+        split_rows,
+    )
     from gpnerf_core.geometry.pose_sanity import check_poses
     from gpnerf_core.geometry.ray_depth import DepthBelief, feature_cost_belief, source_depth_belief
     from gpnerf_core.geometry.projection import project_points, world_to_camera
@@ -171,6 +199,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
         fuse_rendered,
         gather_cells,
         labels_or_head_output,
+        pixel_cells,
     )
     from gpnerf_core.data.dataset import SPLITS, SceneDataset
     from gpnerf_core.interfaces import (
@@ -187,6 +216,8 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
     )
     from gpnerf_core.interfaces.head import Predicts
     from gpnerf_core.interfaces.model import (
+        Capabilities,
+        FamilyHooks,
         ModelFamily,
         ModelParts,
         SemanticMode,
@@ -194,9 +225,10 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
         SourceEncoding,
         TrainingBatch,
         one_pass_preview,
+        parameter_counts,
     )
     from gpnerf_core.interfaces.training import GroupOptions, TrainingCallback, TrainingPhase, TrainingState
-    from gpnerf_core.training.resize import resize_parameter
+    from gpnerf_core.geometry.gaussians.rows import resize_parameter
     from gpnerf_core.interfaces.stress import ChooseSources
     from gpnerf_core.model.build import build_components
     from gpnerf_core.registry.components import get_registry
@@ -211,6 +243,8 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
         FieldBlockOutput,
         Frame,
         HeadOutput,
+        ImageLossInputs,
+        ImageOutput,
         LossInputs,
         Prediction,
         ProjectedFeatures,

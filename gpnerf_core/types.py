@@ -14,13 +14,13 @@ Conventions used by every record below:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Mapping
+from typing import Any, Callable, Mapping
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from gpnerf_core.errors import ConfigError, NonFiniteError
+from gpnerf_core.errors import NonFiniteError
 from gpnerf_core.runtime.finite import all_finite
 
 
@@ -193,13 +193,14 @@ class TargetView:
         labels: ``[H, W]`` int64 class ids or the dataset's ignore index.
         sources: the chosen source views (None for a per-scene model, which renders from its own parameters).
         instances: ``[H, W]`` int64 instance ids (``Frame.instance``), or None when the dataset has none.
-        pixels: ``[R, 2]`` the chosen target pixels ``(u, v)``; the rays are cast through them (the one copy).
+        pixels: ``[R, 2]`` the chosen target pixels ``(u, v)`` of a ray batch; the rays are cast through them (the one
+            copy). None in a whole-image batch (``whole_image``).
         render_seed: seeds this view's stochastic rendering (sample jitter, importance sampling), so a view
             renders the same on any rank and at any world size.
-        whole_image: ``pixels`` are every pixel of the image in row-major order (``u`` fastest), so any ``[R, C]``
-            output reshapes to ``[H, W, C]``: the batch of a family that trains on whole images
-            (``ModelFamily.trains_on``), e.g. one that rasterizes Gaussians. False: R pixels drawn at random.
-        valid: ``[H, W]`` bool, False where the capture's mask excludes the pixel (``Frame.valid``), on a whole-image
+        whole_image: the view is rendered whole (``Capabilities.trains_on`` is ``TrainingBatch.IMAGES``: a family that
+            rasterizes Gaussians): no pixels are drawn and the family returns an ``ImageOutput``. False: ``pixels``
+            holds R pixels drawn at random.
+        valid: ``[H, W]`` bool, False where the capture's mask excludes the pixel (``Frame.valid``), in a whole-image
             batch only (a ray batch draws its pixels inside the mask); None when every pixel counts.
     """
 
@@ -210,7 +211,7 @@ class TargetView:
     depth: Tensor
     labels: Tensor
     sources: SourceViews | None
-    pixels: Tensor
+    pixels: Tensor | None
     render_seed: int
     instances: Tensor | None = None
     whole_image: bool = False
@@ -218,6 +219,9 @@ class TargetView:
 
     @property
     def num_rays(self) -> int:
+        """Pixels rendered: the ray batch's R, or every pixel of a whole image."""
+        if self.pixels is None:
+            return self.camera.height * self.camera.width
         return int(self.pixels.shape[0])
 
 
@@ -428,7 +432,7 @@ class HeadOutput:
 
 @dataclass(frozen=True)
 class ViewOutput:
-    """What the model's forward pass produces for one target view (R rays), before any loss.
+    """What a ray family's forward pass produces for one target view (R rays), before any loss.
 
     Attributes:
         coarse, fine: the rendering passes (fine is None with no importance samples).
@@ -439,6 +443,8 @@ class ViewOutput:
         head_input: ``[1, C_sem, h, w]`` the map the head decoded: the fused map (rendered features written into
             the teacher map) or the teacher map alone, or None.
         logits: ``[1, K, H, W]`` head output at the target's size, or None.
+        extras: what the family's own hooks and loss terms read from this view (``TrainingState.outputs``); the core
+            never reads it.
     """
 
     coarse: RenderedRays
@@ -447,11 +453,46 @@ class ViewOutput:
     teacher_at_rays: Tensor | None = None
     head_input: Tensor | None = None
     logits: Tensor | None = None
+    extras: Mapping[str, Any] = field(default_factory=dict)
 
     @property
     def last(self) -> RenderedRays:
         """The pass that carries semantics: fine when present, else coarse."""
         return self.fine if self.fine is not None else self.coarse
+
+
+@dataclass(frozen=True)
+class ImageOutput:
+    """What the forward pass of a family that renders whole images (``TrainingBatch.IMAGES``) produces for one target
+    view: images, never its pixels as rays.
+
+    Attributes:
+        rgb: ``[H, W, 3]`` (unclamped).
+        depth: ``[H, W]`` metres (camera z), 0 where nothing was rendered.
+        alpha: ``[H, W]`` accumulated opacity in [0, 1], or None.
+        scores: ``[1, K, H, W]`` per-pixel scores rendered without a head (``SemanticMode.LABEL_RENDERING``: each
+            Gaussian's class or instance scores composited), or None.
+        semantic: ``[1, C_sem, h, w]`` the rendered semantic feature map (what a head decodes, and what the 2D
+            distillation compares with ``teacher_map``), or None.
+        teacher_map: ``[1, C_sem, h, w]`` the extractor's semantic map of the target image itself, NOT detached (the
+            loss set decides whether the gradient is blocked), or None.
+        logits: ``[1, K, H, W]`` the head's output on ``semantic``, or None.
+        extras: what the family's own hooks and loss terms read from this view (the rasterizer's projected centres
+            ``means2d`` and footprints ``radii``: ``TrainingState.outputs``); the core never reads it.
+    """
+
+    rgb: Tensor
+    depth: Tensor
+    alpha: Tensor | None = None
+    scores: Tensor | None = None
+    semantic: Tensor | None = None
+    teacher_map: Tensor | None = None
+    logits: Tensor | None = None
+    extras: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return int(self.rgb.shape[0]), int(self.rgb.shape[1])
 
 
 @dataclass(frozen=True)
@@ -489,14 +530,15 @@ class Prediction:
 
 @dataclass(frozen=True)
 class StepOutput:
-    """The model's forward pass over a ``StepBatch``: one ``ViewOutput`` per target view, in batch order."""
+    """The model's forward pass over a ``StepBatch``: one output per target view, in batch order: a ``ViewOutput``
+    (rays) or, from a family that trains on whole images, an ``ImageOutput``."""
 
-    views: tuple[ViewOutput, ...]
+    views: tuple[ViewOutput | ImageOutput, ...]
 
 
 @dataclass(frozen=True)
 class LossInputs:
-    """Everything a loss set may read for one training step (R rays of one target view).
+    """Everything a loss set may read for one target view of a ray family (R rays).
 
     Attributes:
         coarse, fine: the two rendering passes (fine is None with no importance samples).
@@ -511,11 +553,6 @@ class LossInputs:
             or None without labels.
         instances_at_rays: ``[R]`` the target instance ids at the rays' pixels (for per-ray instance scores), or None
             unless the loss set ``needs_instances`` and the model renders per-ray scores.
-        image_size: ``(H, W)`` when the rays are every pixel of the target in row-major order (a whole-image batch,
-            ``TargetView.whole_image``): ``as_image`` then gives any per-ray tensor as an image, for terms on whole
-            images (SSIM); None for R pixels drawn at random.
-        valid_at_rays: ``[R]`` bool, False at pixels the capture's mask excludes (a whole-image batch of a masked
-            frame: such pixels are rendered but no colour term may read them), or None when every ray counts.
     """
 
     coarse: RenderedRays
@@ -529,18 +566,31 @@ class LossInputs:
     instances: Tensor | None = None
     labels_at_rays: Tensor | None = None
     instances_at_rays: Tensor | None = None
-    image_size: tuple[int, int] | None = None
-    valid_at_rays: Tensor | None = None
 
     @property
     def last(self) -> RenderedRays:
         """The pass that carries semantics: fine when present, else coarse."""
         return self.fine if self.fine is not None else self.coarse
 
-    def as_image(self, values: Tensor) -> Tensor:
-        """``[R, C]`` per-ray values of a whole-image batch as ``[C, H, W]``; a ConfigError on a ray batch."""
-        if self.image_size is None:
-            raise ConfigError("a loss term on whole images needs a family that trains on whole images "
-                              "(ModelFamily.trains_on = TrainingBatch.IMAGES); this one trains on random rays")
-        height, width = self.image_size
-        return values.T.reshape(values.shape[1], height, width)
+
+@dataclass(frozen=True)
+class ImageLossInputs:
+    """Everything a loss set may read for one target view of a family that renders whole images.
+
+    Attributes:
+        output: what the family rendered (``ImageOutput``: images and maps).
+        target_rgb: ``[H, W, 3]`` in [0, 1]; target_depth: ``[H, W]`` metres, 0 = unknown.
+        labels: ``[H, W]`` int64 class ids with ``ignore_index``, or None when no term reads them.
+        ignore_index: label value excluded from CE and metrics.
+        instances: ``[H, W]`` int64 instance ids, or None unless the loss set ``needs_instances``.
+        valid: ``[H, W]`` bool, False at pixels a capture's mask excludes (rendered, but no term may read them), or
+            None when every pixel counts.
+    """
+
+    output: ImageOutput
+    target_rgb: Tensor
+    target_depth: Tensor
+    labels: Tensor | None
+    ignore_index: int
+    instances: Tensor | None = None
+    valid: Tensor | None = None

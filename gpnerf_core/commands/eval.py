@@ -8,6 +8,7 @@ from typing import Any
 
 from omegaconf import DictConfig
 
+from gpnerf_core.interfaces.model import parameter_counts
 from gpnerf_core.runtime.device import machine_info
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.runtime.io import atomic_write_json
@@ -48,7 +49,7 @@ def eval_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             "evaluated_weights": which,
             "config_sha256": record.config_sha256,
             "machine": machine_info(),
-            "parameters": components.model.parameter_counts(),
+            "parameters": parameter_counts(components.model),
             **evaluation,
         }
         if dist.is_main:

@@ -88,7 +88,7 @@ def export_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
         key = "export.stride" if int(settings.stride) else "eval.render_stride (export.stride=0 takes it)"
         raise ConfigError(f"{key}={stride}: scene {name!r} is {scene.height}x{scene.width}; expected a stride that "
                           "divides both sides")
-    owners = model.output_owners(component_names(cfg))
+    owners = model.hooks.output_owners(component_names(cfg))
     folder, _ = claim_run_folder(cfg, dist, resuming=False)
     with folder:
         for note in loaded.notes:
@@ -142,10 +142,10 @@ def scene_gaussians(model: Any, given: Any, scene: Any, owners: Any, name: str) 
     from gpnerf_core.errors import NonFiniteError
     from gpnerf_core.runtime.finite import all_finite
 
+    if not model.capabilities.gaussians:
+        return None
     with torch.no_grad():
         splats = model.scene_gaussians(given.sources, near=scene.near, far=scene.far, features=given.features)
-    if splats is None:
-        return None
     for field in ("means", "scales", "rotations", "opacities", "harmonics"):
         if not all_finite(getattr(splats, field)):
             raise NonFiniteError(f"export: scene {name!r}: the {owners.get('colour', 'model')} gave NaN or Inf in its "

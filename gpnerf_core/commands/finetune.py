@@ -48,7 +48,7 @@ def main(argv: list[str]) -> int:
 @job
 def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.evaluation.evaluator import check_splits_have_frames, evaluate, print_summary
-    from gpnerf_core.training.callbacks import CurvePoints
+    from gpnerf_core.training.callbacks import evaluate_at
     from gpnerf_core.training.trainer import Trainer
 
     trained, notes = checkpoint_config(cfg, "finetune")
@@ -96,7 +96,7 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
         curve = _curve_so_far(run_dir, trainer.step) if plan.resuming else []
         evaluation: dict[str, Any] = {}
 
-        def evaluate_point(trainer: Any) -> dict[str, Any]:
+        def evaluate_point() -> dict[str, Any]:
             nonlocal curve, evaluation
             evaluation = evaluate(cfg, components, trainer.frames, run_dir, dist)
             held_out = evaluation["eval"].get("train_heldout", {})
@@ -112,10 +112,10 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
         done = {entry["step"] for entry in curve}
         pending = [point for point in points if point >= trainer.step and (point not in done or point == total)]
         if trainer.step in pending and trainer.step < total:  # the start, or a point reached before an interruption
-            evaluate_point(trainer)
-        trainer.fit(progress=True, callbacks=[CurvePoints([p for p in pending if trainer.step < p < total],
+            evaluate_point()
+        trainer.fit(progress=True, callbacks=[evaluate_at([p for p in pending if trainer.step < p < total],
                                                           evaluate_point)])
-        evaluate_point(trainer)  # the last point: train.steps
+        evaluate_point()  # the last point: train.steps
         rays_per_step = int(cfg.train.rays) * int(cfg.train.targets_per_step)
         metrics = {
             "config_sha256": record.config_sha256,

@@ -72,7 +72,7 @@ def label_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     frames = FrameCache(components.dataset, dist.device)
     name = chosen_scene(components.dataset, "label.scene", str(cfg.label.scene), loaded.fitted)
     scene = frames.scene(name)
-    owners = model.output_owners(component_names(cfg))
+    owners = model.hooks.output_owners(component_names(cfg))
     classes = components.classes
     dtype = np.uint8 if classes.num_classes <= 255 else np.uint16
     folder, _ = claim_run_folder(cfg, dist, resuming=False)
@@ -95,7 +95,7 @@ def label_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             "scene": name, "frames": scene.num_frames, "size": [scene.height, scene.width],
             "classes": list(classes.names), "ignore_index": int(components.dataset.ignore_index),
             "checkpoint": str(loaded.trained.path), "model": str(cfg.model.name),
-            "source_views": int(cfg.model.num_source_views) if model.generalizable else 0,
+            "source_views": int(cfg.model.num_source_views) if model.capabilities.generalizable else 0,
             "seconds": round(time.perf_counter() - started, 3),
         }
         writes.append((LABELS_FILE, partial(atomic_write_json, obj=result)))

@@ -94,7 +94,7 @@ def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
                                 int(cfg.model.num_source_views), cache=feature_cache)
             prediction = model.predict(camera, given.sources, stride=int(cfg.eval.render_stride),
                                        chunk_rays=int(cfg.eval.chunk_rays), features=given.features)
-            prediction.check_finite(model.output_owners(component_names(cfg)), f"render frame {len(pictures)} of {name!r}")
+            prediction.check_finite(model.hooks.output_owners(component_names(cfg)), f"render frame {len(pictures)} of {name!r}")
             layers = prediction_layers(prediction, scene.near, scene.far, output, classes.num_classes, full_size=True)
             shown = [name for name in ("rgb", "depth", "semantic", "instances") if name in layers]
             pictures.append(vis.side_by_side([layers[name] for name in shown], shown))

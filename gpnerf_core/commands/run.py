@@ -16,6 +16,7 @@ from typing import Any
 
 from omegaconf import DictConfig
 
+from gpnerf_core.interfaces.model import parameter_counts
 from gpnerf_core.model.build import build_components
 from gpnerf_core.runtime.device import machine_info
 from gpnerf_core.runtime.distributed import Distributed
@@ -70,9 +71,9 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
         loggers = make_loggers(list(cfg.train.loggers), run_dir, trainer.resumed_step) if dist.is_main else []
         try:
             started = time.perf_counter()
-            points = _curve_points(cfg, components, trainer, run_dir, dist, loggers)
+            curve: list[dict[str, Any]] = []
+            points = _curve_points(cfg, components, trainer, run_dir, dist, loggers, curve)
             result = trainer.fit(progress=True, loggers=loggers, callbacks=[points] if points else ())
-            curve = points.entries if points else []
             if dist.is_main:
                 atomic_write_json(run_dir / "training_curves.json", result.history)
                 if result.history:
@@ -98,7 +99,7 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
                     "precision": str(cfg.train.precision),
                 },
                 "evaluated_weights": weights,
-                "parameters": components.model.parameter_counts(),
+                "parameters": parameter_counts(components.model),
                 **evaluation,
                 "wall_seconds": round(time.perf_counter() - started, 2),
             }
@@ -116,17 +117,18 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
 
 
 def _curve_points(cfg: DictConfig, components: Any, trainer: Any, run_dir: Path, dist: Distributed,
-                  loggers: list[Any]) -> Any:
-    """``CurvePoints`` with ``eval.every_steps`` (None without): evaluate at every multiple of it below ``train.steps`` (no pictures; a checkpoint at
-    each), while training. Evaluation draws no random numbers, so the training around it is the training without it."""
+                  loggers: list[Any], entries: list[dict[str, Any]]) -> Any:
+    """``evaluate_at`` with ``eval.every_steps`` (None without): evaluate at every multiple of it below
+    ``train.steps`` (no pictures; a checkpoint at each), while training, the entries appended to ``entries``.
+    Evaluation draws no random numbers, so the training around it is the training without it."""
     from gpnerf_core.evaluation.evaluator import evaluate
-    from gpnerf_core.training.callbacks import CurvePoints
+    from gpnerf_core.training.callbacks import evaluate_at
 
     every, total = int(cfg.eval.every_steps), int(cfg.train.steps)
     if not every:
         return None
 
-    def evaluate_point(trainer: Any) -> dict[str, Any]:
+    def evaluate_point() -> dict[str, Any]:
         with trainer.evaluation_weights():
             evaluation = evaluate(cfg, components, trainer.frames, run_dir, dist, pictures=False)
         if dist.is_main:
@@ -137,7 +139,7 @@ def _curve_points(cfg: DictConfig, components: Any, trainer: Any, run_dir: Path,
             print(f"eval at step {trainer.step}: {shown}", file=sys.stderr)
         return curve_entry(trainer.step, trainer.training_seconds, evaluation)
 
-    return CurvePoints([p for p in range(every, total, every) if p > trainer.step], evaluate_point)
+    return evaluate_at([p for p in range(every, total, every) if p > trainer.step], evaluate_point, entries)
 
 
 def _headline(values: dict[str, Any]) -> str:

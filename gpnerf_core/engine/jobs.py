@@ -728,9 +728,9 @@ def built_from_checkpoint(cfg: DictConfig, trained: TrainedModel, choice: str, *
 
 
 def fitted_scenes(cfg: DictConfig, components: Any, trained: TrainedModel) -> FittedScenes | None:
-    """The scenes a per-scene model (``ModelFamily.generalizable`` False) was fitted on, from its checkpoint; None for a
+    """The scenes a per-scene model (``Capabilities.generalizable`` False) was fitted on, from its checkpoint; None for a
     generalizable model, or a checkpoint that names none."""
-    if components.model.generalizable or not trained.scenes:
+    if components.model.capabilities.generalizable or not trained.scenes:
         return None
     scenes = trained.scenes
     shown = f"scene {scenes[0]!r}" if len(scenes) == 1 else f"scenes {', '.join(map(repr, scenes))}"

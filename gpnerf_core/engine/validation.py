@@ -191,7 +191,7 @@ def check_data(cfg: DictConfig, components: Components, *, training: bool = True
     _require_trained_head(cfg, components, training)
     _require_instances(cfg, components, scenes, training)
     views = int(cfg.model.num_source_views)
-    if components.model.generalizable and views < 1:
+    if components.model.capabilities.generalizable and views < 1:
         raise ConfigError(f"model.num_source_views={views}: expected an integer >= 1 (model={cfg.model.name} renders "
                           "from source views)")
     training_scenes = set(dataset.scenes("train")) if training else set()
@@ -204,7 +204,7 @@ def check_data(cfg: DictConfig, components: Components, *, training: bool = True
                               f"{name!r} ({scene.height}x{scene.width}); expected at most {pixels} rays per target view")
         train = set(scene.train_frames)
         offered = len(train) - 1 if name in training_scenes or train & set(scene.eval_frames) else len(train)
-        if components.model.generalizable and offered < views:
+        if components.model.capabilities.generalizable and offered < views:
             raise ConfigError(
                 f"model.num_source_views={views} but scene {name!r} offers {offered} source views per target "
                 f"({len(train)} training frames, never the target itself); expected model.num_source_views <= {offered}"
@@ -212,10 +212,10 @@ def check_data(cfg: DictConfig, components: Components, *, training: bool = True
 
 
 def _require_one_scene(cfg: DictConfig, components: Components, training: bool) -> None:
-    """A per-scene family (``ModelFamily.generalizable`` False) is fitted on one scene's frames and scores only that
+    """A per-scene family (``Capabilities.generalizable`` False) is fitted on one scene's frames and scores only that
     scene's held-out frames: training on several scenes would fit one field to all of them, and another scene is not
     its to render."""
-    if components.model.generalizable:
+    if components.model.capabilities.generalizable:
         return
     name = cfg.model.name
     if training:

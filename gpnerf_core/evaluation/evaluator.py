@@ -233,7 +233,7 @@ def _evaluate_view(
     target = frames.frame(scene, index)
     if sources_for is not None:
         sources = sources_for(scene, index)
-    elif model.generalizable:
+    elif model.capabilities.generalizable:
         sources = frames.source_views(
             scene, choose_sources(components.view_selector, scene, index, cfg.model.num_source_views, None)
         )
@@ -250,7 +250,7 @@ def _evaluate_view(
         )
     except NonFiniteError as exc:  # a component's output check (registry.guards) names the component, not the view
         raise NonFiniteError(f"{where}: {exc}; nothing was scored") from None
-    prediction.check_finite(model.output_owners(component_names(cfg)), where)
+    prediction.check_finite(model.hooks.output_owners(component_names(cfg)), where)
     instance_head = predicts(components) is Predicts.INSTANCES
     classes = None
     if prediction.logits is not None and not instance_head:

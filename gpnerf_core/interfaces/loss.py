@@ -7,7 +7,7 @@ from abc import ABC, abstractmethod
 from torch import Tensor, nn
 
 from gpnerf_core.interfaces.head import Predicts
-from gpnerf_core.types import LossInputs
+from gpnerf_core.types import ImageLossInputs, LossInputs
 
 
 class LossSet(nn.Module, ABC):
@@ -29,11 +29,13 @@ class LossSet(nn.Module, ABC):
     set says otherwise, so a loss set that never declared it is never trained silently on empty labels; a loss set
     whose terms need none (colour, distillation from the 2D teacher) sets it False."""
     needs_whole_images: bool = False
-    """Some term reads whole images (``LossInputs.as_image``, e.g. SSIM): only a family that trains on whole images
-    (``ModelFamily.trains_on``) can use it; another is refused when the run is built."""
+    """Some term reads whole images (``ImageLossInputs``, e.g. SSIM): only a family that trains on whole images
+    (``Capabilities.trains_on``) can use it; another is refused when the run is built."""
     head_predicts: Predicts | None = None
     """What the model's semantic scores must be for this loss set (``Predicts``), or None (none needed, or either)."""
 
     @abstractmethod
-    def forward(self, inputs: LossInputs) -> dict[str, Tensor]:
-        """Return scalar terms by name, each already multiplied by its weight; the total is their sum."""
+    def forward(self, inputs: LossInputs | ImageLossInputs) -> dict[str, Tensor]:
+        """Return scalar terms by name for one target view, each already multiplied by its weight; the total is their
+        sum. ``inputs`` is a ray family's ``LossInputs`` or, from a family that trains on whole images,
+        ``ImageLossInputs``; a term that cannot read the one it is given raises a ConfigError saying why."""

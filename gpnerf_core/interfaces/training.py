@@ -1,23 +1,27 @@
-"""What a model family may ask of the training loop: callbacks at fixed points of every step, which see the step, and
-how the optimizer treats the family's own learning-rate groups.
+"""The one callback protocol of the training loop, and how the optimizer treats a family's learning-rate groups.
 
-A family gives callbacks through ``ModelFamily.training_callbacks`` (nerfstudio's ``get_training_callbacks``): a
-schedule tied to the step (pixelSplat's opacity warm-up), or work between the backward pass and the optimizer step (a
-per-scene Gaussian family's densification statistics). The trainer runs them on every process, on the model itself
-(never its ``DistributedDataParallel`` wrapper), in the order given. ``ModelFamily.optimizer_options`` gives a group's
-own learning-rate schedule and Adam epsilon (3D Gaussian splatting decays its positions' rate on its own schedule, with
-an epsilon of 1e-15).
+``Trainer.fit(callbacks=...)`` and a model family's hooks (``FamilyHooks.callbacks``, nerfstudio's
+``get_training_callbacks``) give the same thing: ``TrainingCallback`` s that run at a fixed point of a step and are
+told the step (``TrainingState``), including what the step's forward pass returned (``outputs``: a rasterizer's
+projected centres and footprints reach a densification callback as an argument, gsplat's ``info``). A family's
+callbacks do its own work on the step's clock (a schedule tied to the step, densification statistics); a command's
+(``training.callbacks.CurvePoints``) run off the clock (``timed=False``: an evaluation). The trainer runs them on every
+process, on the model itself (never its ``DistributedDataParallel`` wrapper), in the order given.
+``FamilyHooks.optimizer_options`` gives a group's own learning-rate schedule and Adam epsilon (``GroupOptions``: 3D
+Gaussian splatting decays its positions' rate on its own schedule, with an epsilon of 1e-15).
 """
 
 from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 import torch
 
 from gpnerf_core.errors import ConfigError
+from gpnerf_core.types import StepBatch, StepOutput
 
 
 class TrainingPhase(str, enum.Enum):
@@ -25,6 +29,9 @@ class TrainingPhase(str, enum.Enum):
 
     BEFORE_STEP = "before_step"
     """Before the step's batch is rendered (the forward pass sees what it set)."""
+    BEFORE_BACKWARD = "before_backward"
+    """After the forward pass and the loss, before ``backward`` (gsplat's ``step_pre_backward``: keep the gradient of
+    an intermediate tensor of the step's outputs)."""
     AFTER_BACKWARD = "after_backward"
     """After the gradients are computed and before gradient clipping and the optimizer step."""
     AFTER_STEP = "after_step"
@@ -33,18 +40,34 @@ class TrainingPhase(str, enum.Enum):
 
 @dataclass(frozen=True)
 class TrainingState:
-    """What a callback is told.
+    """What a callback (and a family's loss terms) is told.
 
     Attributes:
         step: the step being trained, counted from 0 (the optimizer steps done before it; a resumed run continues the
-            count).
+            count). After the step, ``steps_done`` is ``step + 1``.
         total_steps: ``train.steps``.
         optimizer: the optimizer (its ``param_groups`` are named by ``"name"``, the family's group names).
+        batch: the step's target views (None before they are drawn: ``BEFORE_STEP``).
+        outputs: what the step's forward pass returned (``StepOutput``: one ``ViewOutput`` or ``ImageOutput`` per target
+            view, with the family's ``extras``; after ``backward`` their tensors hold the gradients retained at
+            ``BEFORE_BACKWARD``), or None before the forward pass (``BEFORE_STEP``).
+        seconds: training seconds so far (earlier runs of a resumed run included; off-the-clock callbacks excluded).
+        checkpoint: writes a checkpoint at this point and returns its path (rank 0; every process must call it), for a
+            command's callback whose work must survive an interruption; None where the loop offers none.
     """
 
     step: int
     total_steps: int
     optimizer: torch.optim.Optimizer
+    batch: StepBatch | None = None
+    outputs: StepOutput | None = None
+    seconds: float = 0.0
+    checkpoint: Callable[[], Path | None] | None = None
+
+    @property
+    def steps_done(self) -> int:
+        """Optimizer steps done once this step has stepped."""
+        return self.step + 1
 
 
 @dataclass(frozen=True)
@@ -53,11 +76,18 @@ class TrainingCallback:
 
     A callback must be deterministic given the step and the model's state: a run resumed from a checkpoint calls it at
     the same steps and must train the same.
+
+    Attributes:
+        timed: its time is training time (a family's own work: statistics, densification, a schedule). False: a
+            command's work that runs off the training clock, once the step is done and checkpointed (``AFTER_STEP``
+            only): a stop signal may cut it short in a single process, and the model is back in training mode after
+            it (an evaluation).
     """
 
     phase: TrainingPhase
     run: Callable[[TrainingState], None]
     every: int = 1
+    timed: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.phase, TrainingPhase):
@@ -66,6 +96,9 @@ class TrainingCallback:
             raise ConfigError(f"training callback every={self.every!r}: expected an integer >= 1")
         if not callable(self.run):
             raise ConfigError(f"training callback run={self.run!r}: expected a callable taking a TrainingState")
+        if not self.timed and self.phase is not TrainingPhase.AFTER_STEP:
+            raise ConfigError(f"training callback timed=False at {self.phase.value}: a callback off the training "
+                              "clock runs after the step (TrainingPhase.AFTER_STEP)")
 
     def due(self, step: int) -> bool:
         return step % self.every == 0

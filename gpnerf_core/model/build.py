@@ -186,7 +186,7 @@ def build_components(cfg: Any, registry: Registry | None = None, *, classes: Cla
 
 def check_loss_fits(cfg: Any, model: ModelFamily, loss: LossSet) -> None:
     """The loss set reads only what the model renders: semantic outputs, and scores of the kind it trains."""
-    if getattr(loss, "needs_whole_images", False) and model.trains_on is not TrainingBatch.IMAGES:
+    if getattr(loss, "needs_whole_images", False) and model.capabilities.trains_on is not TrainingBatch.IMAGES:
         raise ConfigError(f"loss {cfg.loss.name!r} reads whole images, and model {cfg.model.name!r} trains on random "
                           f"rays; use a loss set on rays (+loss=ce, +loss=dgs, ...) or a model that renders whole "
                           f"images (model=mvsplat)")

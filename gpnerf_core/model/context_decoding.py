@@ -7,14 +7,12 @@ scores without a head (label rendering) and features for a head with one.
 
 from __future__ import annotations
 
-from typing import Mapping
-
 import torch
 from torch import Tensor, nn
 
 from gpnerf_core.errors import PluginError
 from gpnerf_core.interfaces.head import PerceptionHead, Predicts
-from gpnerf_core.interfaces.model import ModelFamily, SemanticMode, SemanticOutput
+from gpnerf_core.interfaces.model import Capabilities, ModelFamily, SemanticMode, SemanticOutput
 from gpnerf_core.types import HeadOutput, RenderedRays, TargetView, ViewOutput
 
 
@@ -28,6 +26,15 @@ def cells_of_pixels(pixels: Tensor, image_size: tuple[int, int], map_size: tuple
     col = torch.div((pixels[:, 0] + 0.5) * map_w, width, rounding_mode="floor").long().clamp(0, map_w - 1)
     row = torch.div((pixels[:, 1] + 0.5) * map_h, height, rounding_mode="floor").long().clamp(0, map_h - 1)
     return row * map_w + col
+
+
+def pixel_cells(image_size: tuple[int, int], map_size: tuple[int, int], device: torch.device | None = None) -> Tensor:
+    """``[H * W]`` the flat map cell of every pixel of an ``image_size`` image, row-major (``cells_of_pixels`` of every
+    pixel): a map read at each pixel, e.g. a loss on whole images that compares two maps pixel by pixel."""
+    height, width = image_size
+    flat = torch.arange(height * width, device=device)
+    pixels = torch.stack([flat % width, flat // width], dim=-1).to(torch.float32)
+    return cells_of_pixels(pixels, image_size, map_size)
 
 
 def gather_cells(feature_map: Tensor, cells: Tensor) -> Tensor:
@@ -106,6 +113,8 @@ class LabelsOrHead(ModelFamily):
     ``extractor`` (a ``FeatureExtractor``), ``head`` (or None) and ``num_classes`` (K, 0 with a head or without labels).
     """
 
+    capabilities = Capabilities(teacher=True)
+
     extractor: nn.Module
     head: PerceptionHead | None
     num_classes: int
@@ -122,12 +131,6 @@ class LabelsOrHead(ModelFamily):
         if self.head is not None:
             groups["head"] = list(self.head.parameters())
         return groups
-
-    def output_owners(self, names: Mapping[str, str]) -> dict[str, str]:
-        owners = super().output_owners(names)
-        if self.head is not None:
-            owners["logits"] = f"head {names.get('head')!r}"
-        return owners
 
     @torch.inference_mode()
     def teacher_logits(self, image: Tensor) -> Tensor | None:

@@ -1,7 +1,7 @@
 """What a model computes from its source views, kept between renders of one scene: a trajectory (``render``), a
 moving camera (``view``), the held-out views of a scene (``export``).
 
-A family says what it can reuse (``ModelFamily.source_encoding``): encoded feature maps of each source frame, kept per
+A family says what it can reuse (``Capabilities.source_encoding``): encoded feature maps of each source frame, kept per
 (model state, scene, frame), so each source frame is encoded once (``PER_VIEW``); or what it computes from a whole set
 of source views together (a feed-forward Gaussian family's Gaussians), kept per (model state, scene, frame set)
 (``SOURCE_SET``). ``for_sources`` serves either.
@@ -67,7 +67,7 @@ class SourceFeatureCache:
         """What ``model.predict`` reuses for ``sources`` (frames ``frames`` of ``scene``, depth bounds ``near`` /
         ``far``): the frames' ``features`` for a ``PER_VIEW`` family, the set's ``source_set`` for a ``SOURCE_SET``
         one."""
-        if model.source_encoding is SourceEncoding.SOURCE_SET:
+        if model.capabilities.source_encoding is SourceEncoding.SOURCE_SET:
             return self.source_set(model, scene, frames, sources, near=near, far=far)
         return self.features(model, scene, frames, sources.rgb)
 

@@ -14,9 +14,9 @@ from typing import Any
 from torch import Tensor
 
 from gpnerf_core.errors import ConfigError, NonFiniteError, PluginError
-from gpnerf_core.interfaces.model import ModelFamily, SemanticMode
+from gpnerf_core.interfaces.model import ModelFamily, SemanticMode, TrainingBatch
 from gpnerf_core.runtime.finite import all_finite
-from gpnerf_core.types import RenderedRays, StepBatch, StepOutput, TargetView, ViewOutput
+from gpnerf_core.types import ImageOutput, RenderedRays, StepBatch, StepOutput, TargetView, ViewOutput
 
 
 def _shape(value: Any) -> str:
@@ -49,8 +49,44 @@ def _check_pass(name: str, rendered: Any, rays: int, classes: int | None, where:
             raise NonFiniteError(f"{where} rendered {name}.{field} that is not finite (NaN or Inf)")
 
 
+def check_image_output(model: ModelFamily, view: TargetView, output: Any, semantics: bool, where: str) -> None:
+    """One target view's ``ImageOutput`` (a family that trains on whole images) against the contract."""
+    if not isinstance(output, ImageOutput):
+        raise PluginError(f"{where} returned a {type(output).__name__} per view; a family that trains on whole images "
+                          "(Capabilities.trains_on = TrainingBatch.IMAGES) returns ImageOutput (forward)")
+    semantic = model.semantic_output
+    classes = semantic.num_outputs if semantic is not None else None
+    height, width = view.camera.image_size
+    _expect(output.rgb, [height, width, 3], "image rgb", where)
+    _expect(output.depth, [height, width], "image depth", where)
+    if output.alpha is not None:
+        _expect(output.alpha, [height, width], "image alpha", where)
+    for name in ("scores", "logits"):
+        if getattr(output, name) is not None:
+            _expect(getattr(output, name), [1, classes, height, width], f"image {name}", where)
+    for name in ("semantic", "teacher_map"):
+        if getattr(output, name) is not None:
+            _expect(getattr(output, name), [1, None, None, None], f"image {name}", where)
+    for name in ("rgb", "depth", "alpha", "scores", "semantic", "teacher_map", "logits"):
+        value = getattr(output, name)
+        if isinstance(value, Tensor) and value.is_floating_point() and not all_finite(value.detach()):
+            raise NonFiniteError(f"{where} rendered image {name} that is not finite (NaN or Inf)")
+    if not semantics or semantic is None:
+        return
+    if semantic.mode is SemanticMode.DECODED and output.logits is None:
+        raise ConfigError(f"{where} says its semantic output is decoded by a head (SemanticMode.DECODED) but its "
+                          "forward(semantics=True) gave no logits: it ignores its head")
+    if semantic.mode is SemanticMode.LABEL_RENDERING and output.scores is None:
+        raise ConfigError(f"{where} says it renders labels (SemanticMode.LABEL_RENDERING) but its "
+                          "forward(semantics=True) gave no per-pixel scores")
+
+
 def check_view_output(model: ModelFamily, view: TargetView, output: Any, semantics: bool, where: str) -> None:
-    """One target view's ``ViewOutput`` against the contract; ``where`` names the family and its plugin."""
+    """One target view's output against the contract: a ``ViewOutput`` of rays, or the ``ImageOutput`` of a family
+    that trains on whole images; ``where`` names the family and its plugin."""
+    if model.capabilities.trains_on is TrainingBatch.IMAGES:
+        check_image_output(model, view, output, semantics, where)
+        return
     if not isinstance(output, ViewOutput):
         raise PluginError(f"{where} returned a {type(output).__name__} per view; the ModelFamily contract is "
                           "ViewOutput (forward)")
@@ -78,6 +114,6 @@ def check_step_output(model: ModelFamily, batch: StepBatch, output: Any, semanti
     if not isinstance(output, StepOutput) or not isinstance(views, tuple) or len(views) != len(batch.views):
         found = f"{len(views)} views" if isinstance(views, tuple) else type(output).__name__
         raise PluginError(f"{where} returned {found} for a batch of {len(batch.views)} target views; the ModelFamily "
-                          "contract is a StepOutput with one ViewOutput per target view (forward)")
+                          "contract is a StepOutput with one output per target view (forward)")
     for view, view_output in zip(batch.views, views):
         check_view_output(model, view, view_output, semantics, where)

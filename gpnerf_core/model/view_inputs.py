@@ -19,7 +19,7 @@ from gpnerf_core.types import FeatureMaps, Scene, SourceViews
 @dataclass(frozen=True)
 class ViewInputs:
     """The sources of one view: frame indices, images and cameras, what the model reuses of them (its encoded maps, or
-    its source set's encoding; None: ``predict`` computes it). A per-scene model (``ModelFamily.generalizable`` False)
+    its source set's encoding; None: ``predict`` computes it). A per-scene model (``Capabilities.generalizable`` False)
     gets none."""
 
     indices: tuple[int, ...] = ()
@@ -40,7 +40,7 @@ def view_inputs(
 ) -> ViewInputs:
     """The sources the selector picks for a camera at ``c2w`` (never frame ``exclude``), what the model reuses of them
     from ``cache`` when one is kept (``SourceFeatureCache.for_sources``); nothing for a per-scene model."""
-    if not model.generalizable:
+    if not model.capabilities.generalizable:
         return ViewInputs()
     indices = sources_at_pose(selector, scene, c2w, num_views, exclude)
     sources = frames.source_views(scene, indices)

@@ -48,8 +48,8 @@ def load_weights(
             one line.
         ConfigError: a differently shaped tensor when ``explain`` is given (the model config differs).
     """
-    if isinstance(module, ModelFamily):
-        module.resize_to(weights, source)  # a family that changes size takes the weights' sizes first
+    if isinstance(module, ModelFamily) and module.capabilities.changes_size:
+        module.hooks.resize_to(weights, source)  # a family that changes size takes the weights' sizes first
     own = module.state_dict()
     missing = [key for key in own if key not in weights] if not partial else []
     unexpected = [key for key in weights if key not in own]

@@ -20,6 +20,7 @@ from typing import Any, Mapping
 
 from gpnerf_core.errors import ConfigError, GpnerfError, PluginError
 from gpnerf_core.interfaces import StressCase
+from gpnerf_core.interfaces.model import capability_problems
 from gpnerf_core.registry.kinds import KINDS
 from gpnerf_core.registry.plugins import (
     CORE_DISTRIBUTION, DISABLE_PLUGINS_ENV, LoadedPlugins, PluginInfo, PluginProblem, make_plugin_manager, one_line,
@@ -140,6 +141,10 @@ class Registry:
         interface = KINDS[kind].interface
         if not isinstance(component, interface):
             raise PluginError(f"{where} built a {type(component).__name__}, which does not implement {interface.__name__}")
+        if kind == "model":  # a factory whose class the registry could not see at registration
+            problems = capability_problems(type(component))
+            if problems:
+                raise PluginError(f"{where} built a model whose capabilities do not hold: {problems[0]}")
         return component
 
     def add(self, kind: str, spec: Any, plugin: PluginInfo) -> None:
@@ -204,10 +209,16 @@ class Registry:
             if inspect.isabstract(factory):
                 members = ", ".join(sorted(factory.__abstractmethods__))
                 raise PluginError(f"{factory.__name__} leaves abstract members unimplemented: {members}")
+            built_class: type | None = factory
         elif not callable(factory):
             raise PluginError(f"factory {factory!r} is not callable")
         else:
-            _check_returned_class(factory, KINDS[kind].interface)
+            built_class = _check_returned_class(factory, KINDS[kind].interface)
+        if kind == "model" and built_class is not None:
+            problems = capability_problems(built_class)
+            if problems:
+                raise PluginError(f"its capabilities do not hold: {problems[0]}"
+                                  + (f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""))
         withheld = KINDS[kind].withheld
         arguments = [n for n in fields if n not in withheld] + list(KINDS[kind].runtime_arguments)
         try:
@@ -223,15 +234,16 @@ class Registry:
             ) from None
 
 
-def _check_returned_class(factory: Any, interface: type) -> None:
+def _check_returned_class(factory: Any, interface: type) -> type | None:
     """A factory function whose return annotation is a class (``def build(...) -> MyFamily``, the docs' pattern):
-    that class must implement ``interface`` and leave no abstract member (it would fail only when first built)."""
+    that class must implement ``interface`` and leave no abstract member (it would fail only when first built).
+    Returns the class (None: no class annotation; checked when built)."""
     try:
         returned = typing.get_type_hints(factory).get("return")
     except Exception:  # an annotation that does not resolve here: checked when built
-        return
+        return None
     if not inspect.isclass(returned):
-        return
+        return None
     name = getattr(factory, "__name__", repr(factory))
     if not issubclass(returned, interface):
         raise PluginError(f"factory {name!r} returns {returned.__name__}, which does not subclass "
@@ -240,6 +252,7 @@ def _check_returned_class(factory: Any, interface: type) -> None:
         members = ", ".join(sorted(returned.__abstractmethods__))
         raise PluginError(f"factory {name!r} returns {returned.__name__}, which leaves abstract members "
                           f"unimplemented: {members}")
+    return returned
 
 
 def _plain(value: Any) -> Any:

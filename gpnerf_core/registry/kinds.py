@@ -51,7 +51,7 @@ KINDS: dict[str, ComponentKind] = {
     kind.name: kind
     for kind in (
         ComponentKind("model", "gpnerf_register_models", ModelFamily, ("parts",), defines_model=True,
-                      core_fields=("num_source_views", "init", "init_strict"), core_options=("lr",)),
+                      core_fields=("num_source_views", "init", "init_strict"), core_options=("lr", "loss_weights")),
         ComponentKind("feature_extractor", "gpnerf_register_feature_extractors", I.FeatureExtractor,
                       defines_model=True),
         ComponentKind("field_aggregator", "gpnerf_register_field_aggregators", I.FieldAggregator, ("in_dim",),

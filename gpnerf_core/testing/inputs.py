@@ -15,6 +15,8 @@ from torch import Tensor
 from gpnerf_core.geometry import points_along_rays, rays_through_pixels, stratified_inverse_depths
 from gpnerf_core.types import (
     Frame,
+    ImageLossInputs,
+    ImageOutput,
     LossInputs,
     ProjectedFeatures,
     RayBatch,
@@ -144,7 +146,7 @@ def loss_inputs(
     instance_ids: int = 3,
     seed: int = 0,
     whole_image: bool = False,
-) -> LossInputs:
+) -> LossInputs | ImageLossInputs:
     """What the trainer passes a loss set for one target view, shaped by the loss set's ``needs_*`` flags.
 
     Without ``semantics`` the logits, labels and teacher are None and the passes carry no semantic features, as
@@ -152,12 +154,15 @@ def loss_inputs(
     pixel with the ignore index. ``instances`` adds target instance ids (``instance_ids`` of them; ``zeros``: one), for
     a loss set that ``needs_instances``; its logits then have ``classes`` = slots + 1 channels. With ``semantics`` each
     pass also carries per-ray scores of ``classes`` channels, and the labels (and instance ids) at the rays, for the
-    loss sets of label-rendering families. ``whole_image``: the rays are every pixel of the 6 x 7 target in row-major
-    order (``LossInputs.image_size``), for a loss set that ``needs_whole_images``.
+    loss sets of label-rendering families. ``whole_image``: ``ImageLossInputs`` of a 6 x 7 target instead
+    (``image_loss_inputs``), for a loss set that ``needs_whole_images``.
     """
+    if whole_image:
+        return image_loss_inputs(semantics=semantics, classes=classes, zeros=zeros, ignore_all=ignore_all,
+                                 instances=instances, instance_ids=instance_ids, seed=seed)
     g = generator(seed + 1)
     height, width = 6, 7
-    rays = height * width if whole_image else LOSS_RAYS
+    rays = LOSS_RAYS
     passes = dict(rays=rays, semantic=semantics, sample_semantic=sample_semantics, zeros=zeros,
                   scores=classes if semantics else 0)
     labels = torch.randint(0, classes, (1, height, width), generator=g)
@@ -179,12 +184,52 @@ def loss_inputs(
         labels_at_rays=labels.reshape(-1)[:rays] if semantics else None,
         instances_at_rays=(torch.zeros(rays, dtype=torch.long) if zeros else torch.randint(
             0, instance_ids, (rays,), generator=g)) if instances and semantics else None,
-        image_size=(height, width) if whole_image else None,
     )
 
 
-def loss_leaves(inputs: LossInputs) -> dict[str, Tensor]:
-    """The tensors of ``inputs`` that require gradients, by a readable name (``fine.semantic``, ``logits``)."""
+def image_loss_inputs(*, semantics: bool, classes: int = 4, zeros: bool = False, ignore_all: bool = False,
+                      instances: bool = False, instance_ids: int = 3, seed: int = 0) -> ImageLossInputs:
+    """What the trainer passes a loss set for one target view of a family that renders whole images: a 6 x 7
+    ``ImageOutput`` whose float tensors require gradients (colour, depth, opacity; with ``semantics`` also per-pixel
+    scores and head logits of ``classes`` channels, a 3 x 4 semantic map and the target's own map), and the target
+    images. The options are ``loss_inputs``'s."""
+    g = generator(seed + 1)
+    height, width, map_size = 6, 7, (3, 4)
+
+    def leaf(*shape: int) -> Tensor:
+        value = torch.zeros(*shape) if zeros else torch.randn(*shape, generator=g)
+        return value.requires_grad_()
+
+    output = ImageOutput(
+        rgb=leaf(height, width, 3),
+        depth=torch.zeros(height, width) if zeros else torch.rand(height, width, generator=g) + 0.5,
+        alpha=torch.ones(height, width) if zeros else torch.rand(height, width, generator=g),
+        scores=leaf(1, classes, height, width) if semantics else None,
+        semantic=leaf(1, LOSS_CHANNELS, *map_size) if semantics else None,
+        teacher_map=leaf(1, LOSS_CHANNELS, *map_size) if semantics else None,
+        logits=leaf(1, classes, height, width) if semantics else None,
+    )
+    labels = torch.randint(0, classes, (height, width), generator=g)
+    if ignore_all:
+        labels.fill_(255)
+    ids = (torch.zeros if zeros else lambda *s: torch.randint(0, instance_ids, s, generator=g))(height, width).long()
+    return ImageLossInputs(
+        output=output,
+        target_rgb=torch.rand(height, width, 3, generator=g),
+        target_depth=torch.zeros(height, width) if zeros else torch.rand(height, width, generator=g) + 0.5,
+        labels=labels if semantics else None,
+        ignore_index=255,
+        instances=ids if instances and semantics else None,
+    )
+
+
+def loss_leaves(inputs: LossInputs | ImageLossInputs) -> dict[str, Tensor]:
+    """The tensors of ``inputs`` that require gradients, by a readable name (``fine.semantic``, ``logits``,
+    ``image.scores``)."""
+    if isinstance(inputs, ImageLossInputs):
+        leaves = {f"image.{name}": getattr(inputs.output, name)
+                  for name in ("rgb", "scores", "semantic", "teacher_map", "logits")}
+        return {name: t for name, t in leaves.items() if t is not None and t.requires_grad}
     leaves = {"logits": inputs.logits, "teacher_at_rays": inputs.teacher_at_rays}
     for name, rays in (("coarse", inputs.coarse), ("fine", inputs.fine)):
         if rays is not None:
@@ -271,19 +316,18 @@ def model_scene() -> Scene:
 
 
 def model_batch(*, sources: bool = True, views: int = 2, rays: int = 12, whole_images: bool = False) -> StepBatch:
-    """A step of ``views`` target views of the synthetic scene, ``rays`` pixels each (every pixel, row-major, with
-    ``whole_images``: ``TargetView.whole_image``), labels in ``[0, KIT_CLASSES)``."""
+    """A step of ``views`` target views of the synthetic scene, ``rays`` pixels each (no pixels with ``whole_images``:
+    ``TargetView.whole_image``), labels in ``[0, KIT_CLASSES)``."""
     targets = []
     for index in range(views):
         g = generator(100 + index)
         camera, source_views = model_view(sources=sources, seed=index)
         flat = torch.randperm(HEIGHT * WIDTH, generator=g)[:rays]
-        if whole_images:
-            flat = torch.arange(HEIGHT * WIDTH)
+        pixels = None if whole_images else torch.stack([flat % WIDTH, flat // WIDTH], -1).float()
         targets.append(TargetView(
             scene="kit", frame=index, camera=camera, image=images(1, HEIGHT, WIDTH, seed=10 + index)[0],
             depth=torch.rand(HEIGHT, WIDTH, generator=g) * 2 + 1, labels=torch.randint(KIT_CLASSES, (HEIGHT, WIDTH), generator=g),
-            sources=source_views, pixels=torch.stack([flat % WIDTH, flat // WIDTH], -1).float(), render_seed=7 + index,
+            sources=source_views, pixels=pixels, render_seed=7 + index,
             instances=torch.randint(3, (HEIGHT, WIDTH), generator=g), whole_image=whole_images,
         ))
     return StepBatch(tuple(targets))

@@ -41,8 +41,8 @@ class StepSampler:
         scene_names: the training scenes.
         num_source_views: V, source views per target; 0 for a per-scene model (``TargetView.sources`` None).
         rays_per_view: pixels drawn per target view (at most the image's pixel count).
-        whole_images: give every target view all its pixels in row-major order instead (``TargetView.whole_image``,
-            the batch of a family that trains on whole images); ``rays_per_view`` is then unused.
+        whole_images: draw no pixels: each target view is rendered whole (``TargetView.whole_image``, the batch of a
+            family that trains on whole images); ``rays_per_view`` is then unused.
         targets_per_step: the global batch of target views per step.
         seed: seed of the selection generator.
         rank, world_size: this process and the number of processes; ``world_size`` must divide
@@ -109,16 +109,15 @@ class StepSampler:
             sources = frames.source_views(scene, indices)
         frame = frames.frame(scene, frame_index)
         height, width = frame.height, frame.width
-        if self.whole_images:  # every pixel, row-major; a masked frame's excluded pixels are marked, not dropped
-            flat = torch.arange(height * width)
-        elif frame.valid is None:
-            flat = torch.randperm(height * width, generator=view_generator, device="cpu")
-        else:  # a masked frame: rays only through the pixels its mask keeps
-            kept = frame.valid.reshape(-1).nonzero().squeeze(1).cpu()
-            flat = kept[torch.randperm(kept.numel(), generator=view_generator, device="cpu")]
+        pixels = None  # a whole image: no pixels drawn; a masked frame's excluded pixels are marked (``valid``)
         if not self.whole_images:
+            if frame.valid is None:
+                flat = torch.randperm(height * width, generator=view_generator, device="cpu")
+            else:  # a masked frame: rays only through the pixels its mask keeps
+                kept = frame.valid.reshape(-1).nonzero().squeeze(1).cpu()
+                flat = kept[torch.randperm(kept.numel(), generator=view_generator, device="cpu")]
             flat = flat[: min(self.rays_per_view, flat.numel())]
-        pixels = torch.stack([flat % width, flat // width], dim=-1).to(torch.float32)
+            pixels = torch.stack([flat % width, flat // width], dim=-1).to(torch.float32)
         device = frames.device
         return TargetView(
             scene=scene.name,
@@ -128,7 +127,7 @@ class StepSampler:
             depth=frame.depth.to(device),
             labels=frame.semantic.to(device),
             sources=sources,
-            pixels=pixels.to(device),
+            pixels=pixels.to(device) if pixels is not None else None,
             render_seed=self._randint(view_generator, SEED_RANGE),
             instances=None if frame.instance is None else frame.instance.to(device),
             whole_image=self.whole_images,

@@ -7,6 +7,7 @@ alone writes checkpoints, curves and the progress bar.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 import sys
@@ -14,18 +15,18 @@ import time
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Protocol, Sequence
+from typing import Any, Iterator, Mapping, Sequence
 
 import torch
 from torch import Tensor
 from torch.nn.parallel import DistributedDataParallel
 
-from gpnerf_core.interfaces.model import TrainingBatch
-from gpnerf_core.interfaces.training import TrainingPhase, TrainingState
+from gpnerf_core.interfaces.model import ModelFamily, TrainingBatch
+from gpnerf_core.interfaces.training import TrainingCallback, TrainingPhase, TrainingState
 from gpnerf_core.model.build import Components
 from gpnerf_core.runtime.device import autocast, check_precision, peak_memory_mb
 from gpnerf_core.runtime.distributed import Distributed
-from gpnerf_core.errors import ConfigError, NonFiniteError
+from gpnerf_core.errors import ConfigError, NonFiniteError, PluginError
 from gpnerf_core.data.frames import FrameCache
 from gpnerf_core.runtime.profiling import stage
 from gpnerf_core.model.output_checks import check_step_output
@@ -39,7 +40,9 @@ from gpnerf_core.training.sampler import StepSampler
 from gpnerf_core.training.optimizer import learning_rates, make_optimizer, make_scheduler
 from gpnerf_core.training.schedule import lr_factor
 from gpnerf_core.training.weight_average import WeightAverage
-from gpnerf_core.types import LossInputs, StepBatch, StepOutput, TargetView, ViewOutput
+from gpnerf_core.types import (
+    ImageLossInputs, ImageOutput, LossInputs, RenderedRays, StepBatch, StepOutput, TargetView, ViewOutput,
+)
 from gpnerf_core.runtime.finite import all_finite
 
 
@@ -64,11 +67,22 @@ class TrainResult:
     checkpoint: Path | None = None
 
 
-def loss_inputs(view: TargetView, output: ViewOutput, ignore_index: int) -> LossInputs:
-    """What a loss set reads for one target view: its outputs and the ground truth at its rays (every pixel of a
-    whole-image batch, which the loss may also read as images)."""
+def loss_inputs(view: TargetView, output: ViewOutput | ImageOutput, ignore_index: int) -> LossInputs | ImageLossInputs:
+    """What a loss set reads for one target view: a ray family's outputs with the ground truth at its rays
+    (``LossInputs``), or the images of a family that renders whole images with the target images
+    (``ImageLossInputs``)."""
+    if isinstance(output, ImageOutput):
+        semantic_outputs = output.logits is not None or output.scores is not None
+        return ImageLossInputs(
+            output=output,
+            target_rgb=view.image.permute(1, 2, 0),
+            target_depth=view.depth,
+            labels=view.labels if semantic_outputs else None,
+            ignore_index=ignore_index,
+            instances=view.instances if semantic_outputs else None,
+            valid=view.valid,
+        )
     rows, cols = view.pixels[:, 1].long(), view.pixels[:, 0].long()
-    whole = view.whole_image
     return LossInputs(
         coarse=output.coarse,
         fine=output.fine,
@@ -82,9 +96,30 @@ def loss_inputs(view: TargetView, output: ViewOutput, ignore_index: int) -> Loss
         labels_at_rays=view.labels[rows, cols] if output.last.logits is not None else None,
         instances_at_rays=(view.instances[rows, cols]
                            if output.last.logits is not None and view.instances is not None else None),
-        image_size=view.camera.image_size if whole else None,
-        valid_at_rays=view.valid[rows, cols] if whole and view.valid is not None else None,
     )
+
+
+def family_term_weights(family: str, model: ModelFamily, weights: Mapping[str, Any] | None) -> dict[str, float]:
+    """The weight of each of the family's own loss terms (``Capabilities.loss_terms``) from ``model.loss_weights``:
+    a ConfigError naming the family and the key when a term has no weight, a weight names no term of the family, or a
+    weight is not a finite number >= 0. Terms weighted 0 are left out."""
+    declared = model.capabilities.loss_terms
+    given = dict(weights or {})
+    for name in declared:
+        if name not in given:
+            raise ConfigError(f"model={family} has its own loss term {name!r} but its config gives no weight for it: "
+                              f"expected model.loss_weights.{name} (a number >= 0)")
+    result = {}
+    for name, value in given.items():
+        if name not in declared:
+            known = ", ".join(declared) or "none"
+            raise ConfigError(f"model.loss_weights.{name}: model={family} has no loss term {name!r} (its terms: "
+                              f"{known})")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+            raise ConfigError(f"model.loss_weights.{name}={value!r}: expected a finite weight >= 0")
+        if value > 0:
+            result[str(name)] = float(value)
+    return result
 
 
 def _views(batch: StepBatch) -> str:
@@ -93,7 +128,7 @@ def _views(batch: StepBatch) -> str:
 
 
 def _check_size_changes(family: str, ema_decay: float, world_size: int) -> None:
-    """A family whose parameters change size while training (``ModelFamily.changes_size``) cannot keep a weight
+    """A family whose parameters change size while training (``Capabilities.changes_size``) cannot keep a weight
     average of fixed-size copies, nor run under DistributedDataParallel (which registers the parameters once)."""
     if ema_decay > 0:
         raise ConfigError(f"model={family} adds and removes parameters while it trains (densification), so no weight "
@@ -130,13 +165,6 @@ class _Clock:
             self.paused_at = None
 
 
-class Callback(Protocol):
-    """Something ``Trainer.fit`` runs after every step (``training.callbacks.CurvePoints``)."""
-
-    def after_step(self, trainer: Trainer) -> None:
-        """Called after every training step, on every process."""
-
-
 class Trainer:
     """Trains ``components.model`` with ``components.loss`` on the dataset's training scenes.
 
@@ -170,12 +198,13 @@ class Trainer:
         self.loss = components.loss.to(self.device)
         self.ignore_index = components.dataset.ignore_index
         self.frames = FrameCache(components.dataset, self.device)
-        self.whole_images = self.model.trains_on is TrainingBatch.IMAGES
+        capabilities = self.model.capabilities
+        self.whole_images = capabilities.trains_on is TrainingBatch.IMAGES
         self.sampler = StepSampler(
             self.frames,
             components.view_selector,
             scene_names=components.dataset.scenes("train"),
-            num_source_views=int(cfg.model.num_source_views) if self.model.generalizable else 0,
+            num_source_views=int(cfg.model.num_source_views) if capabilities.generalizable else 0,
             rays_per_view=int(cfg.train.rays),
             targets_per_step=int(cfg.train.targets_per_step),
             seed=int(cfg.seed),
@@ -184,13 +213,14 @@ class Trainer:
             whole_images=self.whole_images,
         )
         decay = float(cfg.train.ema_decay)
-        if self.model.changes_size:
+        if capabilities.changes_size:
             _check_size_changes(cfg.model.name, decay, dist.world_size)
-        if not self.model.generalizable and not cfg.train.resume:
+        self.term_weights = family_term_weights(str(cfg.model.name), self.model, cfg.model.get("loss_weights"))
+        if not capabilities.generalizable and not cfg.train.resume:
             with stage("model initialisation"):
-                self.model.initialise(self.frames.scene(self.sampler.scene_names[0]))
+                self.model.hooks.initialise(self.frames.scene(self.sampler.scene_names[0]))
         self.optimizer, self.scheduler = self._optimizer()
-        self.callbacks = {phase: [c for c in self.model.training_callbacks() if c.phase is phase]
+        self.callbacks = {phase: [c for c in self.model.hooks.callbacks() if c.phase is phase]
                           for phase in TrainingPhase}
         self.average = WeightAverage(self.model, decay) if decay > 0 else None
         self.last_grad_norm = 0.0
@@ -218,10 +248,10 @@ class Trainer:
             )
 
     def _optimizer(self) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LambdaLR]:
-        """Adam over the model's learning-rate groups and the rate schedule of each (``ModelFamily.optimizer_options``
+        """Adam over the model's learning-rate groups and the rate schedule of each (``FamilyHooks.optimizer_options``
         where the family gives its own)."""
         cfg = self.cfg
-        options = self.model.optimizer_options(int(cfg.train.steps))
+        options = self.model.hooks.optimizer_options(int(cfg.train.steps))
         optimizer = make_optimizer(self.model, learning_rates(cfg.train.lr, cfg.model.get("lr")), options)
         shared = lr_factor(
             str(cfg.train.lr_schedule),
@@ -244,7 +274,8 @@ class Trainer:
             output = self.model(
                 batch, semantics=self.loss.needs_semantics, sample_semantics=self.loss.needs_sample_semantics
             )
-            total = sum(self._loss_terms(batch, output).values())
+            terms = self._loss_terms(batch, output) | self._family_terms(self._state(batch, output))
+            total = sum(terms.values())
         total.backward()
         unused = [name for name, p in self.model.named_parameters() if p.requires_grad and p.grad is None]
         self.optimizer.zero_grad(set_to_none=True)
@@ -258,12 +289,13 @@ class Trainer:
         """Sample, forward, loss, backward, step.
 
         Returns:
-            ``(terms, rays, stop_signal)``: the weighted loss terms of this process (detached), the rays it
-            rendered, and the signal every process agreed to stop on (None: go on).
+            ``(terms, rays, stop_signal)``: the weighted loss terms of this process (the loss set's and the family's
+            own, detached), the rays (or pixels) it rendered, and the signal every process agreed to stop on (None:
+            go on).
         """
         with stage("sample batch"):
             batch = self.sampler.next_batch()
-        self._run_family_callbacks(TrainingPhase.BEFORE_STEP)
+        self._run_family_callbacks(TrainingPhase.BEFORE_STEP, self._state(batch, None))
         try:
             with autocast(self.device, self.cfg.train.precision):
                 output = self.wrapped(
@@ -272,13 +304,17 @@ class Trainer:
                 check_step_output(self.model, batch, output, self.loss.needs_semantics, self._where("model"))
                 with stage("loss"):
                     terms = self._loss_terms(batch, output)
+                    family_terms = self._family_terms(self._state(batch, output))
         except NonFiniteError as exc:  # a component's output (registry.guards), named where it was made
             self._stop_everywhere(f"{exc} ({_views(batch)})")
-        stop_signal = self._check_and_agree(terms, batch, stop, output)
+        stop_signal = self._check_and_agree(terms, family_terms, batch, stop, output)
+        terms = terms | family_terms
         total: Tensor = sum(terms.values())
+        state = self._state(batch, output)
+        self._run_family_callbacks(TrainingPhase.BEFORE_BACKWARD, state)
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
-        self._run_family_callbacks(TrainingPhase.AFTER_BACKWARD)
+        self._run_family_callbacks(TrainingPhase.AFTER_BACKWARD, state)
         with stage("optimizer"):
             clip = self.cfg.train.grad_clip
             grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), clip if clip > 0 else math.inf)
@@ -288,17 +324,22 @@ class Trainer:
             self.scheduler.step()
             if self.average is not None:
                 self.average.update(self.model)
-        self._run_family_callbacks(TrainingPhase.AFTER_STEP)
+        self._run_family_callbacks(TrainingPhase.AFTER_STEP, state)
         self.last_grad_norm = grad_norm.detach()
         detached = {name: value.detach() for name, value in terms.items()} | {"loss": total.detach()}
         return detached, batch.num_rays, stop_signal
 
-    def _run_family_callbacks(self, phase: TrainingPhase) -> None:
-        """The model family's callbacks of ``phase`` that are due at this step (``ModelFamily.training_callbacks``)."""
+    def _state(self, batch: StepBatch | None, output: StepOutput | None) -> TrainingState:
+        """What a callback or a family term is told at this point of the step."""
+        return TrainingState(step=self.step, total_steps=int(self.cfg.train.steps), optimizer=self.optimizer,
+                             batch=batch, outputs=output, seconds=self.training_seconds, checkpoint=self.checkpoint)
+
+    def _run_family_callbacks(self, phase: TrainingPhase, state: TrainingState) -> None:
+        """The callbacks of ``phase`` that are due at this step and count as training time: the family's
+        (``FamilyHooks.callbacks``) and the command's timed ones, in that order."""
         due = [c for c in self.callbacks[phase] if c.due(self.step)]
         if not due:
             return
-        state = TrainingState(step=self.step, total_steps=int(self.cfg.train.steps), optimizer=self.optimizer)
         with stage(f"model callbacks ({phase.value})"):
             for callback in due:
                 callback.run(state)
@@ -310,19 +351,51 @@ class Trainer:
         ]
         return {name: sum(terms[name].float() for terms in per_view) / len(per_view) for name in per_view[0]}
 
+    def _family_terms(self, state: TrainingState) -> dict[str, Tensor]:
+        """The family's own loss terms of this step (``FamilyHooks.loss_terms``), each times its
+        ``model.loss_weights`` weight; a term missing, undeclared or not a scalar stops the run naming the family."""
+        if not self.term_weights:
+            return {}
+        family = self._where("model")
+        found = self.model.hooks.loss_terms(state, frozenset(self.term_weights))
+        if not isinstance(found, Mapping):
+            raise PluginError(f"{family}: hooks.loss_terms returned {type(found).__name__}, expected a mapping of "
+                              "term name to scalar tensor")
+        missing = [name for name in self.term_weights if name not in found]
+        if missing:
+            raise PluginError(f"{family}: hooks.loss_terms gave no term {missing[0]!r}, which its capabilities "
+                              "declare and model.loss_weights weighs")
+        weighted = {}
+        for name, weight in self.term_weights.items():
+            value = found[name]
+            if not isinstance(value, Tensor) or value.numel() != 1:
+                shown = list(value.shape) if isinstance(value, Tensor) else type(value).__name__
+                raise PluginError(f"{family}: its loss term {name!r} is {shown}, expected a scalar tensor")
+            weighted[name] = weight * value.reshape(()).float()
+        return weighted
+
     def _check_and_agree(
-        self, terms: dict[str, Tensor], batch: StepBatch, stop: StopRequest | None, output: StepOutput
+        self, terms: dict[str, Tensor], family_terms: dict[str, Tensor], batch: StepBatch, stop: StopRequest | None,
+        output: StepOutput,
     ) -> int | None:
         """Stop every process on a non-finite term anywhere, and agree on a stop signal, before backward."""
         bad = next((name for name, value in terms.items() if not all_finite(value)), None)
+        bad_family = next((name for name, value in family_terms.items() if not all_finite(value)), None)
         flags = torch.tensor(
-            [float(bad is not None), float(stop.signum or 0) if stop is not None else 0.0], device=self.device
+            [float(bad is not None or bad_family is not None), float(stop.signum or 0) if stop is not None else 0.0],
+            device=self.device,
         )
         self.dist.all_reduce(flags, op="max")
         if bad is not None:
             raise NonFiniteError(
                 f"step {self.step}: loss term {bad!r} is {terms[bad].item()} ({_views(batch)}) in "
                 f"{self._loss_where()}; {self._non_finite_inputs(batch, output)}; training stopped"
+            )
+        if bad_family is not None:
+            raise NonFiniteError(
+                f"step {self.step}: the {self._where('model')}'s own loss term {bad_family!r} is "
+                f"{family_terms[bad_family].item()} ({_views(batch)}); the family made it (hooks.loss_terms); "
+                "training stopped"
             )
         if flags[0] > 0:
             raise NonFiniteError(f"step {self.step}: a loss term or a component's output is not finite on another "
@@ -346,16 +419,20 @@ class Trainer:
         return f"{kind} {name!r} (plugin {used.get('provider', 'unknown')} {used.get('version', 'unknown')})"
 
     def _non_finite_inputs(self, batch: StepBatch, output: StepOutput) -> str:
-        """Which ``LossInputs`` fields were not finite (looked at only once a term is): the model's fault, not the
-        loss set's, when any is."""
+        """Which of the model's outputs the loss set read were not finite (looked at only once a term is): the model's
+        fault, not the loss set's, when any is."""
         fields = []
         for view, out in zip(batch.views, output.views):
             inputs = loss_inputs(view, out, self.ignore_index)
-            named = {"logits": inputs.logits, "teacher_at_rays": inputs.teacher_at_rays}
-            for rays_name, rays in (("coarse", inputs.coarse), ("fine", inputs.fine)):
-                if rays is not None:
-                    named |= {f"{rays_name}.{f}": getattr(rays, f, None)
-                              for f in ("rgb", "depth", "semantic", "sample_semantic", "logits")}
+            if isinstance(inputs, ImageLossInputs):
+                named = {f"image.{f}": getattr(inputs.output, f) for f in (
+                    "rgb", "depth", "alpha", "scores", "semantic", "teacher_map", "logits")}
+            else:
+                named = {"logits": inputs.logits, "teacher_at_rays": inputs.teacher_at_rays}
+                for rays_name, rays in (("coarse", inputs.coarse), ("fine", inputs.fine)):
+                    if isinstance(rays, RenderedRays):
+                        named |= {f"{rays_name}.{f}": getattr(rays, f, None)
+                                  for f in ("rgb", "depth", "semantic", "sample_semantic", "logits")}
             fields += [name for name, value in named.items() if isinstance(value, Tensor) and value.is_floating_point()
                        and not all_finite(value.detach()) and name not in fields]
         if not fields:
@@ -371,14 +448,15 @@ class Trainer:
         *,
         progress: bool = True,
         loggers: Sequence[ScalarLogger] = (),
-        callbacks: Sequence[Callback] = (),
+        callbacks: Sequence[TrainingCallback] = (),
     ) -> TrainResult:
         """Train to step ``until`` (``train.steps`` when None), checkpointing every ``train.checkpoint_every`` steps
         and at the end.
 
         Args:
-            callbacks: each one's ``after_step(trainer)`` runs after every step (``CurvePoints`` evaluates there); the
-                time they take is not training time, and the model is back in training mode after them.
+            callbacks: the command's ``TrainingCallback`` s, the same protocol as the family's: timed ones run at their
+                phase after the family's; those with ``timed=False`` (``CurvePoints``: an evaluation) after the step and
+                its checkpoint, off the training clock, with the model back in training mode after them.
 
         Raises:
             TrainingInterrupted: on SIGINT/SIGTERM, after a checkpoint at the current step.
@@ -389,6 +467,10 @@ class Trainer:
         self.model.train()
         rays_done = 0
         self._clock = _Clock()
+        untimed = [c for c in callbacks if not c.timed]
+        family = self.callbacks
+        self.callbacks = {phase: [*family[phase], *(c for c in callbacks if c.timed and c.phase is phase)]
+                          for phase in TrainingPhase}
         try:
             with StopRequest() as stop:
                 while self.step < total_steps:
@@ -408,9 +490,10 @@ class Trainer:
                         raise TrainingInterrupted(stop_signal, self.step, path)
                     if cfg.checkpoint_every and self.step % int(cfg.checkpoint_every) == 0 and self.step < total_steps:
                         self._checkpoint(self.training_seconds)
-                    if callbacks:
-                        self._run_callbacks(callbacks, stop)
+                    if untimed:
+                        self._run_callbacks(untimed, stop)
         finally:
+            self.callbacks = family
             if bar is not None:
                 bar.close()
         seconds = self._run_seconds()
@@ -448,15 +531,21 @@ class Trainer:
     def _run_seconds(self) -> float:
         return self._clock.seconds()
 
-    def _run_callbacks(self, callbacks: Sequence[Callback], stop: StopRequest) -> None:
-        """Run ``callbacks`` off the training clock. In a single process a stop signal ends them at once (an
-        evaluation can take minutes) and the checkpoint holds the step they followed; with several processes they run
-        to their end (each process would stop at a different collective), and the stop comes after the next step."""
+    def _run_callbacks(self, callbacks: Sequence[TrainingCallback], stop: StopRequest) -> None:
+        """Run the untimed ``callbacks`` due at the step just done, off the training clock. In a single process a stop
+        signal ends them at once (an evaluation can take minutes) and the checkpoint holds the step they followed;
+        with several processes they run to their end (each process would stop at a different collective), and the
+        stop comes after the next step."""
+        done = self.step - 1
+        due = [c for c in callbacks if c.due(done)]
+        if not due:
+            return
         with self._clock.paused():
+            state = dataclasses.replace(self._state(None, None), step=done)
             try:
                 with stop.raising() if self.dist.world_size == 1 else nullcontext():
-                    for callback in callbacks:
-                        callback.after_step(self)
+                    for callback in due:
+                        callback.run(state)
             except StopNow as now:
                 raise TrainingInterrupted(now.signum, self.step, self._checkpoint(self.training_seconds)) from None
         self.model.train()
@@ -550,7 +639,7 @@ class Trainer:
         self.notes += check_resume_config(path, state["config"], self.record.config_yaml, self.cfg.train.resume_strict,
                                           checkpoint_sections(state))
         load_weights(self.model, state["model"], f"checkpoint {path}")
-        if self.model.changes_size:  # its parameters took the checkpoint's sizes: new tensors for the optimizer
+        if self.model.capabilities.changes_size:  # its parameters took the checkpoint's sizes: new tensors
             self.optimizer, self.scheduler = self._optimizer()
         try:
             self.optimizer.load_state_dict(state["optimizer"])

@@ -69,14 +69,13 @@ class Subject:
 
     @property
     def takes_head(self) -> bool:
-        """A model family that decodes with a head (``ModelFamily.accepts_head``, read from the family built without
-        one); other kinds: True."""
+        """A model family that decodes with a head (``Capabilities.accepts_head``); other kinds: True."""
         if self.kind != "model":
             return True
         from gpnerf_core.testing.inputs import kit_parts
 
         model = self.build(parts=kit_parts(self.registry, self.name, head=False))
-        return bool(getattr(model, "accepts_head", True))
+        return bool(model.capabilities.accepts_head)
 
     def build(self, node: Mapping[str, Any] | None = None, **runtime: Any) -> Any:
         """Build through the registry with ``runtime`` replacing the kit's runtime arguments.

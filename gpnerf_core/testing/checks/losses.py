@@ -1,4 +1,5 @@
-"""Checks of loss sets: ``loss(LossInputs) -> {term: weighted scalar}``, with ``needs_*`` flags that tell the truth."""
+"""Checks of loss sets: ``loss(LossInputs | ImageLossInputs) -> {term: weighted scalar}``, with ``needs_*`` flags that
+tell the truth."""
 
 from __future__ import annotations
 
@@ -21,9 +22,9 @@ from gpnerf_core.testing.checks.common import (
     shape,
 )
 from gpnerf_core.testing.inputs import loss_inputs, loss_leaves
-from gpnerf_core.types import LossInputs
+from gpnerf_core.types import ImageLossInputs, LossInputs
 
-SEMANTIC_LEAVES = ("logits", "semantic", "sample_semantic")
+SEMANTIC_LEAVES = ("logits", "semantic", "sample_semantic", "scores")
 
 
 def flags(loss: Any) -> tuple[bool, bool]:
@@ -33,7 +34,7 @@ def flags(loss: Any) -> tuple[bool, bool]:
     return semantics, samples
 
 
-def inputs_for(loss: Any, **options: Any) -> LossInputs:
+def inputs_for(loss: Any, **options: Any) -> LossInputs | ImageLossInputs:
     """The inputs the pipeline would give this loss set: semantic ones only where its flags ask for them."""
     semantics, samples = flags(loss)
     instances = bool(getattr(loss, "needs_instances", False))
@@ -46,13 +47,16 @@ def inputs_for(loss: Any, **options: Any) -> LossInputs:
                        **options)
 
 
-def terms(loss: Any, inputs: LossInputs, when: str = "") -> Outputs:
+def terms(loss: Any, inputs: LossInputs | ImageLossInputs, when: str = "") -> Outputs:
     """The loss set's terms, each a finite float scalar."""
-    absent = [n for n in ("logits", "teacher_at_rays") if getattr(inputs, n) is None]
-    if inputs.coarse.semantic is None:
-        absent.append("semantic")
-    if inputs.coarse.sample_semantic is None:
-        absent.append("sample_semantic")
+    if isinstance(inputs, ImageLossInputs):
+        absent = [n for n in ("scores", "semantic", "teacher_map", "logits") if getattr(inputs.output, n) is None]
+    else:
+        absent = [n for n in ("logits", "teacher_at_rays") if getattr(inputs, n) is None]
+        if inputs.coarse.semantic is None:
+            absent.append("semantic")
+        if inputs.coarse.sample_semantic is None:
+            absent.append("sample_semantic")
     what = "loss(inputs" + (f" without {', '.join(absent)}" if absent else "") + (f", {when}" if when else "") + ")"
     result = call(what, loss, inputs)
     expect(isinstance(result, dict) and result, f"{what} returned {result!r:.60}, expected a non-empty dict of terms")
@@ -117,7 +121,7 @@ def check_labels(subject: Subject) -> None:
                f"{float(other):.6g}); a loss set that reads labels must set needs_labels = True")
 
 
-def reached_leaves(result: Outputs, inputs: LossInputs) -> list[str]:
+def reached_leaves(result: Outputs, inputs: LossInputs | ImageLossInputs) -> list[str]:
     """The input tensors some term's gradient reaches."""
     leaves = loss_leaves(inputs)
     total = sum(result.values())

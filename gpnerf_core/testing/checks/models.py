@@ -1,5 +1,7 @@
 """Checks of model families: ``forward(StepBatch) -> StepOutput`` in training, ``predict(camera, sources) ->
-Prediction`` on a whole view, and what they say about themselves (``semantic_output``, ``parameter_groups``).
+Prediction`` on a whole view, what they say about themselves (``capabilities``, ``semantic_output``,
+``parameter_groups``), and their hooks in a few training steps (callbacks, their own loss terms, an optimizer that
+follows a change of size).
 
 The kit builds a family with small built-in parts (``inputs.KIT_PARTS``: ``resunet_fpn``, ``gnt_view``, ``gnt_ray`` and
 the ``unet`` head, at 3 classes) and renders a synthetic 32 x 48 scene seen from two source views (a per-scene family
@@ -14,7 +16,8 @@ import torch
 from torch import Tensor, nn
 
 from gpnerf_core.interfaces.head import Predicts
-from gpnerf_core.interfaces.model import ModelFamily, SemanticMode, SemanticOutput, TrainingBatch
+from gpnerf_core.interfaces.model import ModelFamily, SemanticMode, SemanticOutput, TrainingBatch, capability_problems
+from gpnerf_core.interfaces.training import TrainingPhase, TrainingState
 from gpnerf_core.testing.checks.common import (
     CheckFailed,
     Subject,
@@ -27,7 +30,12 @@ from gpnerf_core.testing.checks.common import (
     total,
 )
 from gpnerf_core.testing.inputs import KIT_CLASSES, kit_parts, model_batch, model_scene, model_view
-from gpnerf_core.types import Prediction, RenderedRays, StepOutput, ViewOutput
+from gpnerf_core.training.optimizer import make_optimizer
+from gpnerf_core.types import ImageOutput, Prediction, RenderedRays, StepOutput, ViewOutput
+
+KIT_STEPS = 8
+"""Training steps of the hooks check, and its ``train.steps``: a schedule the family scales to the run (3D Gaussian
+splatting's densification) acts within them."""
 
 
 def build(subject: Subject, *, head: bool) -> ModelFamily:
@@ -39,7 +47,7 @@ def built(subject: Subject, *, head: bool) -> tuple[ModelFamily, set[int]]:
     parts = kit_parts(subject.registry, subject.name, head=head)
     model = subject.build(parts=parts)
     expect(isinstance(model, ModelFamily), f"built a {type(model).__name__}, expected a ModelFamily")
-    if not model.generalizable:  # as the trainer does before a per-scene family's first step
+    if not model.capabilities.generalizable:  # as the trainer does before a per-scene family's first step
         call("initialise(the synthetic scene)", model.initialise, model_scene())
     return model, {id(p) for part in parts.built if isinstance(part, nn.Module) for p in part.parameters()}
 
@@ -170,6 +178,34 @@ def _view_outputs(view: ViewOutput, rays: int, image: tuple[int, int], output: S
     return out
 
 
+def _image_outputs(view: ImageOutput, image: tuple[int, int], output: SemanticOutput | None) -> dict[str, Tensor]:
+    expect(isinstance(view, ImageOutput), f"forward gave a {type(view).__name__} per view; a family that trains on "
+                                          "whole images (capabilities.trains_on IMAGES) returns ImageOutput")
+    classes = output.num_outputs if output is not None else None
+    out = {"image.rgb": expect_tensor(view.rgb, "image.rgb", [*image, 3]),
+           "image.depth": expect_tensor(view.depth, "image.depth", list(image))}
+    if view.alpha is not None:
+        out["image.alpha"] = expect_tensor(view.alpha, "image.alpha", list(image))
+    for name in ("scores", "logits"):
+        value = getattr(view, name)
+        if value is not None:
+            expect(classes is not None, f"image.{name} {shape(value)} from a model without semantic_output")
+            out[f"image.{name}"] = expect_tensor(value, f"image.{name}", [1, classes, *image])
+    for name in ("semantic", "teacher_map"):
+        value = getattr(view, name)
+        if value is not None:
+            expect(isinstance(value, Tensor) and value.dim() == 4 and value.shape[0] == 1,
+                   f"image.{name} is {shape(value)}, expected [1, C, h, w]")
+            out[f"image.{name}"] = value
+    if output is not None:
+        if output.mode is SemanticMode.DECODED:
+            expect(view.logits is not None, "semantic_output.mode is DECODED but forward(semantics=True) gave no logits")
+        else:
+            expect(view.scores is not None,
+                   "semantic_output.mode is LABEL_RENDERING but forward(semantics=True) gave no per-pixel scores")
+    return out
+
+
 def check_forward(subject: Subject) -> None:
     """Training: one ``ViewOutput`` per target view, every pass's colour ``[R, 3]``, weights ``[R, S]``, depth ``[R]``,
     the semantic scores its ``semantic_output`` promises, finite gradients, and (with a head configured) a gradient to
@@ -178,17 +214,19 @@ def check_forward(subject: Subject) -> None:
         model, part_parameters = built(subject, head=head)
         model.train()
         output = semantic_output(model)
-        batch = model_batch(sources=model.generalizable, whole_images=model.trains_on is TrainingBatch.IMAGES)
+        whole = model.capabilities.trains_on is TrainingBatch.IMAGES
+        batch = model_batch(sources=model.capabilities.generalizable, whole_images=whole)
         result = call("forward(batch of 2 views, semantics=True, sample_semantics=True)", model, batch,
                       semantics=output is not None, sample_semantics=output is not None)
         expect(isinstance(result, StepOutput) and len(result.views) == len(batch.views),
                f"forward returned {type(result).__name__}, expected a StepOutput with {len(batch.views)} views")
         outputs: dict[str, Tensor] = {}
         for index, (view, target) in enumerate(zip(result.views, batch.views)):
-            found = _view_outputs(view, target.num_rays, target.camera.image_size, output)
+            found = (_image_outputs(view, target.camera.image_size, output) if whole
+                     else _view_outputs(view, target.num_rays, target.camera.image_size, output))
             outputs |= {f"view {index} {name}": tensor for name, tensor in found.items()}
         expect_finite(outputs, "in training mode")
-        differentiable = {k: v for k, v in outputs.items() if not k.endswith(".depth")}
+        differentiable = {k: v for k, v in outputs.items() if not k.endswith((".depth", ".alpha"))}
         scalar = total(differentiable)
         expect(isinstance(scalar, Tensor) and scalar.requires_grad, "no output of forward requires grad")
         call("backward of the sum of the outputs", scalar.backward)
@@ -204,7 +242,7 @@ def check_forward(subject: Subject) -> None:
 
 
 def _prediction(model: ModelFamily, stride: int) -> Prediction:
-    camera, sources = model_view(sources=model.generalizable)
+    camera, sources = model_view(sources=model.capabilities.generalizable)
     what = f"predict(camera {camera.height}x{camera.width}, {'2 source views' if sources else 'no sources'}, stride={stride})"
     prediction = call(what, model.predict, camera, sources, stride=stride, chunk_rays=97)
     expect(isinstance(prediction, Prediction), f"{what} returned {type(prediction).__name__}, expected Prediction")
@@ -236,10 +274,95 @@ def check_predict(subject: Subject) -> None:
                     raise CheckFailed(f"predict gave different {name} twice in eval mode: it must be deterministic")
 
 
+def check_capabilities(subject: Subject) -> None:
+    """The family's ``capabilities`` record holds (``capability_problems``): every capability it declares is
+    implemented, every optional member it implements is declared. The registry refuses such a family already when it
+    can see its class (a factory that is the class, or annotated with it); this is the check of the class built."""
+    model = build(subject, head=False)
+    problems = capability_problems(type(model))
+    expect(not problems, "; ".join(problems))
+
+
+def _optimizer_follows(model: ModelFamily, optimizer: torch.optim.Optimizer, step: int) -> None:
+    """Every trainable parameter is in the optimizer once, the optimizer holds nothing else, and its moments have the
+    parameters' shapes."""
+    held = [p for group in optimizer.param_groups for p in group["params"]]
+    names = {id(p): n for n, p in model.named_parameters()}
+    trainable = [p for p in model.parameters() if p.requires_grad]
+    stale = [p for p in held if id(p) not in names]
+    expect(not stale, f"after step {step} the optimizer steps {len(stale)} tensor(s) the model no longer has (shapes "
+                      f"{', '.join(shape(p) for p in stale[:3])}): parameters were replaced without the optimizer; "
+                      "resize them with gpnerf_core.resize_parameter (GaussianParameters.set_rows with the optimizer)")
+    missing = [names[id(p)] for p in trainable if not any(p is q for q in held)]
+    expect(not missing, f"after step {step} the model's parameter {missing[0] if missing else ''!r} is in no optimizer "
+                        "group: it would never train")
+    for p in held:
+        moments = optimizer.state.get(p, {})
+        for key in ("exp_avg", "exp_avg_sq"):
+            if key in moments:
+                expect(moments[key].shape == p.shape, f"after step {step} the optimizer's {key} of "
+                                                      f"{names.get(id(p), '?')!r} is {shape(moments[key])} for a "
+                                                      f"parameter {shape(p)}: the moments did not follow its rows")
+
+
+def check_training_hooks(subject: Subject) -> None:
+    """``KIT_STEPS`` training steps through the family's hooks as the trainer runs them (``train.steps`` =
+    ``KIT_STEPS``): its callbacks at their phases, told the step and its outputs; its own loss terms (every name of
+    ``capabilities.loss_terms``, a finite scalar each step, its gradient reaching the model); and after every step an
+    optimizer that steps exactly the model's parameters with moments of their shapes (a densification that replaced
+    parameters without the optimizer fails here)."""
+    model = build(subject, head=subject.takes_head).train()
+    capabilities = model.capabilities
+    groups = call("parameter_groups()", model.parameter_groups)
+    options = call(f"hooks.optimizer_options({KIT_STEPS})", model.hooks.optimizer_options, KIT_STEPS)
+    optimizer = call("building Adam over its groups", make_optimizer, model, dict.fromkeys(groups, 1e-3), options)
+    callbacks = call("hooks.callbacks()", lambda: tuple(model.hooks.callbacks()))
+    wanted = frozenset(capabilities.loss_terms)
+    output_kind = semantic_output(model)
+    whole = capabilities.trains_on is TrainingBatch.IMAGES
+
+    def run(phase: TrainingPhase, state: TrainingState) -> None:
+        for callback in callbacks:
+            if callback.phase is phase and callback.due(state.step):
+                call(f"its {phase.value} callback at step {state.step}", callback.run, state)
+
+    for step in range(KIT_STEPS):
+        batch = model_batch(sources=capabilities.generalizable, whole_images=whole, views=1)
+        state = TrainingState(step=step, total_steps=KIT_STEPS, optimizer=optimizer, batch=batch)
+        run(TrainingPhase.BEFORE_STEP, state)
+        result = call(f"forward at step {step}", model, batch, semantics=output_kind is not None)
+        state = TrainingState(step=step, total_steps=KIT_STEPS, optimizer=optimizer, batch=batch, outputs=result)
+        view = result.views[0]
+        rendered = view.rgb if isinstance(view, ImageOutput) else view.last.rgb
+        total = rendered.float().square().mean()
+        if wanted:
+            terms = call(f"hooks.loss_terms at step {step}", model.hooks.loss_terms, state, wanted)
+            expect(isinstance(terms, dict) and set(wanted) <= set(terms),
+                   f"hooks.loss_terms at step {step} gave {sorted(terms) if isinstance(terms, dict) else terms!r}; "
+                   f"expected every term capabilities.loss_terms declares ({', '.join(sorted(wanted))})")
+            for name in sorted(wanted):
+                value = terms[name]
+                expect(isinstance(value, Tensor) and value.numel() == 1,
+                       f"loss term {name!r} at step {step} is {shape(value)}, expected a scalar tensor")
+                expect(bool(torch.isfinite(value.detach()).all()),
+                       f"loss term {name!r} is {float(value.detach())} at step {step}: the family's own term is not "
+                       "finite (the trainer stops the run on it)")
+                total = total + value.reshape(()).float()
+        run(TrainingPhase.BEFORE_BACKWARD, state)
+        optimizer.zero_grad(set_to_none=True)
+        call(f"backward at step {step}", total.backward)
+        run(TrainingPhase.AFTER_BACKWARD, state)
+        optimizer.step()
+        run(TrainingPhase.AFTER_STEP, state)
+        _optimizer_follows(model, optimizer, step)
+
+
 CHECKS = {
     "build": check_build,
+    "capabilities": check_capabilities,
     "parameter groups": check_parameter_groups,
     "forward": check_forward,
+    "training hooks": check_training_hooks,
     "predict": check_predict,
     "config round trip": check_round_trip,
 }

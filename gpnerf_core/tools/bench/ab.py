@@ -51,7 +51,7 @@ def channels_last_variants() -> dict[str, Variant]:
 
 def compile_variants(backend: str = "inductor") -> dict[str, Variant]:
     def use(on: bool) -> Variant:
-        return lambda trainer: trainer.model.use_compiled(backend if on else None)
+        return lambda trainer: trainer.model.hooks.use_compiled(backend if on else None)
 
     return {"eager": use(False), f"compiled ({backend})": use(True)}
 

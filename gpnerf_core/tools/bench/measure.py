@@ -20,6 +20,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 import torch
+
+from gpnerf_core.interfaces.model import parameter_counts
 from torch.utils.flop_counter import FlopCounterMode
 
 from gpnerf_core.model.build import build_components
@@ -102,7 +104,7 @@ def measure(spec: dict[str, Any]) -> dict[str, Any]:
         result: dict[str, Any] = {
             "device": str(device),
             "torch_threads": torch.get_num_threads(),
-            "parameters": {name: n for name, n in model.parameter_counts().items() if name != "total"},
+            "parameters": {name: n for name, n in parameter_counts(model).items() if name != "total"},
             "samples_per_ray": (int(cfg.model.coarse_samples) + int(cfg.model.fine_samples)
                                 if "coarse_samples" in cfg.model else None),  # None: a family without samples
         }
@@ -134,7 +136,7 @@ def view_renderer(cfg: Any, model: Any, frames: FrameCache, selector: Any, scene
     scene = frames.scene(scene_name)
     index = scene.eval_frames[0] if scene.eval_frames else scene.train_frames[0]
     sources = None
-    if model.generalizable:
+    if model.capabilities.generalizable:
         chosen = choose_sources(selector, scene, index, int(cfg.model.num_source_views), None)
         sources = frames.source_views(scene, chosen)
     camera = frames.camera(scene, frames.frame(scene, index))

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
+
+from gpnerf_core.interfaces.model import parameter_counts
 from torch.utils.flop_counter import FlopCounterMode
 
 from gpnerf_core.tools.bench.measure import view_renderer
@@ -36,4 +38,4 @@ def static_cost(cfg: Any, scene_name: str) -> StaticCost:
         prediction = render()
     flops = int(counter.get_total_flops())
     rays = int(prediction.rgb.shape[0] * prediction.rgb.shape[1])
-    return StaticCost(parameters=int(model.parameter_counts()["total"]), flops_per_ray=flops / rays, rays=rays)
+    return StaticCost(parameters=int(parameter_counts(model)["total"]), flops_per_ray=flops / rays, rays=rays)

@@ -218,7 +218,7 @@ class _Evaluator:
             return choose_sources(components.view_selector, scene, target, count, None)
 
         def sources_for(scene, target: int):
-            if not components.model.generalizable:
+            if not components.model.capabilities.generalizable:
                 return None  # a per-scene model renders from its own parameters
             if case is None:
                 return frames.source_views(scene, choose(scene, target, trained_views))
@@ -303,7 +303,7 @@ def changes_sources(case: StressCase) -> bool:
 def _unavailable(case: StressCase, level: float, evaluator: _Evaluator) -> str | None:
     """Why the level cannot run: the model has no source views to change, a dataset option its variant needs is
     missing, or the case's own reason."""
-    per_scene = not evaluator.components.model.generalizable
+    per_scene = not evaluator.components.model.capabilities.generalizable
     if changes_sources(case) and per_scene:
         return (f"model {evaluator.cfg.model.name!r} renders from its own parameters (per-scene): it has no source "
                 "views to change")

@@ -197,8 +197,8 @@ class SceneRenderer:
 
     @property
     def draws_gaussians(self) -> bool:
-        """The model renders from 3D Gaussians the viewer can draw (``ModelFamily.scene_gaussians``)."""
-        return type(self.model).scene_gaussians is not ModelFamily.scene_gaussians
+        """The model renders from 3D Gaussians the viewer can draw (``Capabilities.gaussians``)."""
+        return self.model.capabilities.gaussians
 
     def gaussians(self, scene_name: str, sources: tuple[int, ...]) -> GaussianScene | None:
         """The model's Gaussians of ``scene_name`` for the source frames ``sources`` (a per-scene family's own for

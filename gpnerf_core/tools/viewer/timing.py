@@ -20,6 +20,8 @@ import time
 
 import torch
 
+from gpnerf_core.interfaces.model import parameter_counts
+
 
 def measure(overrides: list[str], repeats: int = 3) -> dict[str, object]:
     from gpnerf_core.model.build import build_components
@@ -67,7 +69,7 @@ def measure(overrides: list[str], repeats: int = 3) -> dict[str, object]:
                                  "preview_samples": int(cfg.view.preview_samples),
                                  "preview_depth_source": str(cfg.view.preview_depth_source),
                                  "threads": torch.get_num_threads(), "device": "cpu",
-                                 "parameters": model.parameter_counts()["total"]}
+                                 "parameters": parameter_counts(model)["total"]}
     usage = resource.getrusage(resource.RUSAGE_SELF)
     for stage, stride in (("preview", request.preview_stride), ("full", request.stride)):
         cold = []

@@ -14,7 +14,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from gpnerf_core import (
+    Capabilities,
     ConfigError,
+    FamilyHooks,
     FeatureMaps,
     ModelFamily,
     Prediction,
@@ -152,6 +154,14 @@ def density_weights(raw: Tensor, depths: Tensor, norms: Tensor, noise: float,
     return compositing_weights(density_opacity(F.relu(raw) * norms[:, None], depths))
 
 
+class PerSceneNeRFHooks(FamilyHooks):
+    """A per-scene NeRF's outputs are its coarse and fine fields' (for the message naming a NaN's maker)."""
+
+    def output_owners(self, names: Mapping[str, str]) -> dict[str, str]:
+        field = f"model {names.get('model', type(self.family).__name__)!r} (its coarse and fine fields)"
+        return {"colour": field, "depth": field, "logits": field}
+
+
 class PerSceneNeRF(ModelFamily):
     """A per-scene NeRF family's shared body: coarse and fine ``NeRFField`` s of one scene, a branch per field (a
     family's scores), samples uniform in depth (or 1/depth) plus importance samples, and the unchanged training and
@@ -170,8 +180,7 @@ class PerSceneNeRF(ModelFamily):
         detach_branch: the branch reads the trunk features detached (its loss never shapes the geometry).
     """
 
-    generalizable = False
-    accepts_head = False
+    capabilities = Capabilities(generalizable=False, accepts_head=False, source_encoding=None, hooks=PerSceneNeRFHooks)
 
     def __init__(self, *, coarse_samples: int, fine_samples: int, width: int, depth: int, skip: int,
                  position_scale: float, position_frequencies: int, direction_frequencies: int, density_noise: float,
@@ -221,13 +230,6 @@ class PerSceneNeRF(ModelFamily):
             return {"field": list(self.parameters())}
         tables = [table for field in (self.coarse, self.fine) if field is not None for table in field.grid_parameters()]
         return {"field": [p for p in self.parameters() if all(p is not table for table in tables)], "grid": tables}
-
-    def output_owners(self, names: Mapping[str, str]) -> dict[str, str]:
-        field = f"model {names.get('model', type(self).__name__)!r} (its coarse and fine fields)"
-        return {"colour": field, "depth": field, "logits": field}
-
-    def encode(self, images: Tensor) -> FeatureMaps:
-        raise ConfigError(f"{type(self).__name__} is a per-scene model: it encodes no source views")
 
     # ---- rendering ---------------------------------------------------------------------------------------------------
 

@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from gpnerf_core import ConfigError, LossInputs, LossSet, Predicts, RenderedRays
+from gpnerf_core import ConfigError, ImageLossInputs, LossInputs, LossSet, Predicts, RenderedRays
 from gpnerf_plugins.losses.instance import matched_instance_loss
 from gpnerf_plugins.losses.terms import rgb_mse
 
@@ -111,7 +111,10 @@ class DMNeRFLossSet(LossSet):
     def _passes(inputs: LossInputs) -> list[RenderedRays]:
         return [p for p in (inputs.coarse, inputs.fine) if p is not None]
 
-    def forward(self, inputs: LossInputs) -> dict[str, Tensor]:
+    def forward(self, inputs: LossInputs | ImageLossInputs) -> dict[str, Tensor]:
+        if isinstance(inputs, ImageLossInputs):
+            raise ConfigError("the dm_nerf loss set composites object logits along rays and penalises samples, and the "
+                              "model renders whole images; use a loss set on images (+loss=image, +loss=instance)")
         terms = {"rgb": self._rgb, "object": self._object, "empty": self._empty}
         return {term: weight * terms[term](inputs) for term, weight in self.weights.items()}
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from gpnerf_core import ConfigError, LossInputs, Predicts, hungarian, instance_masks
+from gpnerf_core import ConfigError, ImageLossInputs, LossInputs, Predicts, hungarian, instance_masks
 from gpnerf_plugins.losses.sets import LossSetConfig, WeightedLossSet
 
 LOG_ONE_MINUS_FLOOR = 1e-7
@@ -128,10 +128,13 @@ class InstanceLossSet(WeightedLossSet):
         self.head_predicts = Predicts.INSTANCES
 
     @staticmethod
-    def _instance(inputs: LossInputs) -> Tensor:
-        if inputs.logits is None:
+    def _instance(inputs: LossInputs | ImageLossInputs) -> Tensor:
+        """On the head's logits of the whole target (a ray family's decoded map, or an image family's)."""
+        whole = isinstance(inputs, ImageLossInputs)
+        logits = inputs.output.logits if whole else inputs.logits
+        if logits is None:
             raise ConfigError("loss term 'instance' needs head logits; select an instance head (+head=instance)")
         if inputs.instances is None:
             raise ConfigError("loss term 'instance' needs the target's instance ids; the pipeline gave none")
-        parts = hungarian_instance_loss(inputs.logits[0], inputs.instances[0])
+        parts = hungarian_instance_loss(logits[0], inputs.instances if whole else inputs.instances[0])
         return parts["bce"] + parts["unmatched"] + parts["iou"]

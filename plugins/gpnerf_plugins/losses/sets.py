@@ -25,7 +25,7 @@ from typing import Mapping
 
 from torch import Tensor
 
-from gpnerf_core import ConfigError, LossInputs, LossSet, Predicts
+from gpnerf_core import ConfigError, ImageLossInputs, LossInputs, LossSet, Predicts, gather_cells, pixel_cells
 from gpnerf_plugins.losses.terms import (
     centre_from_depth,
     centre_from_weights,
@@ -182,44 +182,65 @@ class WeightedLossSet(LossSet):
         # rgb, sd and dgs read colours, the teacher and (gt_depth centre) depth; only the cross-entropy reads labels.
         self.needs_labels = "ce" in self.weights
 
-    def forward(self, inputs: LossInputs) -> dict[str, Tensor]:
-        """Weighted scalar terms by name for one step; the total is their sum."""
+    def forward(self, inputs: LossInputs | ImageLossInputs) -> dict[str, Tensor]:
+        """Weighted scalar terms by name for one target view, of rays (``LossInputs``) or whole images
+        (``ImageLossInputs``); the total is their sum."""
         return {term: weight * getattr(self, f"_{term}")(inputs) for term, weight in self.weights.items()}
 
-    def _teacher(self, inputs: LossInputs, term: str) -> Tensor:
-        if inputs.teacher_at_rays is None:
-            raise ConfigError(f"loss term {term!r} needs the teacher features at the rays; the pipeline gave none")
-        return inputs.teacher_at_rays.detach() if self.teacher_stop_grad else inputs.teacher_at_rays
+    def _teacher(self, teacher: Tensor | None, term: str) -> Tensor:
+        if teacher is None:
+            raise ConfigError(f"loss term {term!r} needs the teacher features of the target view; the model gave none")
+        return teacher.detach() if self.teacher_stop_grad else teacher
 
     @staticmethod
-    def _rgb(inputs: LossInputs) -> Tensor:
-        """Per pass; on a whole-image batch of a masked frame, at the pixels its mask keeps."""
-        valid = inputs.valid_at_rays
-        target = inputs.target_rgb if valid is None else inputs.target_rgb[valid]
-        loss = rgb_mse(inputs.coarse.rgb if valid is None else inputs.coarse.rgb[valid], target)
+    def _rgb(inputs: LossInputs | ImageLossInputs) -> Tensor:
+        """Per pass; on whole images of a masked frame, at the pixels its mask keeps."""
+        if isinstance(inputs, ImageLossInputs):
+            return rgb_mse(*kept_pixels(inputs.output.rgb, inputs.target_rgb, inputs.valid))
+        loss = rgb_mse(inputs.coarse.rgb, inputs.target_rgb)
         if inputs.fine is not None:
-            loss = loss + rgb_mse(inputs.fine.rgb if valid is None else inputs.fine.rgb[valid], target)
+            loss = loss + rgb_mse(inputs.fine.rgb, inputs.target_rgb)
         return loss
 
     @staticmethod
-    def _ce(inputs: LossInputs) -> Tensor:
-        """On the head's map; for a label-rendering model on each pass's per-ray scores (coarse + fine, as
-        Semantic-NeRF)."""
-        if inputs.logits is not None and inputs.labels is not None:
+    def _ce(inputs: LossInputs | ImageLossInputs) -> Tensor:
+        """On the head's map; for a label-rendering model on its per-pixel scores (whole images) or on each pass's
+        per-ray scores (coarse + fine, as Semantic-NeRF)."""
+        if isinstance(inputs, ImageLossInputs):
+            output = inputs.output
+            scores = output.logits if output.logits is not None else output.scores
+            if scores is not None and inputs.labels is not None:
+                return cross_entropy(scores, inputs.labels[None], inputs.ignore_index)
+        elif inputs.logits is not None and inputs.labels is not None:
             return cross_entropy(inputs.logits, inputs.labels, inputs.ignore_index)
-        passes = [p for p in (inputs.coarse, inputs.fine) if p is not None and p.logits is not None]
-        if passes and inputs.labels_at_rays is not None:
-            labels = inputs.labels_at_rays[None, :, None]  # [1, R, 1]: the rays as a one-pixel-wide image
-            return sum(cross_entropy(p.logits.T[None, :, :, None], labels, inputs.ignore_index) for p in passes)
+        else:
+            passes = [p for p in (inputs.coarse, inputs.fine) if p is not None and p.logits is not None]
+            if passes and inputs.labels_at_rays is not None:
+                labels = inputs.labels_at_rays[None, :, None]  # [1, R, 1]: the rays as a one-pixel-wide image
+                return sum(cross_entropy(p.logits.T[None, :, :, None], labels, inputs.ignore_index) for p in passes)
         raise ConfigError("loss term 'ce' needs semantic scores and labels; select a head (+head=<name>) or a model "
                           "that renders labels")
 
-    def _sd(self, inputs: LossInputs) -> Tensor:
+    def _sd(self, inputs: LossInputs | ImageLossInputs) -> Tensor:
+        """Rendered features against the teacher's: at the rays, or at every pixel of whole images (each map read at
+        the pixel's cell)."""
+        if isinstance(inputs, ImageLossInputs):
+            output = inputs.output
+            if output.semantic is None:
+                raise ConfigError("loss term 'sd' needs a rendered semantic map; the model gave none")
+            teacher = self._teacher(output.teacher_map, "sd")
+            size = tuple(inputs.target_rgb.shape[:2])
+            device = output.semantic.device
+            student = gather_cells(output.semantic, pixel_cells(size, tuple(output.semantic.shape[-2:]), device))
+            return cosine_distance(student, gather_cells(teacher, pixel_cells(size, tuple(teacher.shape[-2:]), device)))
         if inputs.last.semantic is None:
             raise ConfigError("loss term 'sd' needs rendered semantic features; the semantic field is off")
-        return cosine_distance(inputs.last.semantic, self._teacher(inputs, "sd"))
+        return cosine_distance(inputs.last.semantic, self._teacher(inputs.teacher_at_rays, "sd"))
 
-    def _dgs(self, inputs: LossInputs) -> Tensor:
+    def _dgs(self, inputs: LossInputs | ImageLossInputs) -> Tensor:
+        if isinstance(inputs, ImageLossInputs):
+            raise ConfigError("loss term 'dgs' distils per-sample features along rays, and the model renders whole "
+                              "images without samples; set loss.dgs_weight=0")
         last = inputs.last
         if last.sample_semantic is None:
             raise ConfigError("loss term 'dgs' needs per-sample semantic features; the semantic field is off")
@@ -228,7 +249,13 @@ class WeightedLossSet(LossSet):
         else:
             centre = centre_from_weights(last.weights)
         window = sample_window(centre, last.sample_semantic.shape[1], self.dgs_window)
-        return depth_guided_distance(last.sample_semantic, self._teacher(inputs, "dgs"), window, self.dgs_push_away)
+        return depth_guided_distance(last.sample_semantic, self._teacher(inputs.teacher_at_rays, "dgs"), window,
+                                     self.dgs_push_away)
+
+
+def kept_pixels(rendered: Tensor, target: Tensor, valid: Tensor | None) -> tuple[Tensor, Tensor]:
+    """``[H, W, C]`` images as they are, or ``[N, C]`` at the ``valid`` ``[H, W]`` pixels of a masked frame."""
+    return (rendered, target) if valid is None else (rendered[valid], target[valid])
 
 
 class LabelFreeLossSet(WeightedLossSet):
@@ -255,7 +282,7 @@ RGB_ERRORS = ("mse", "l1")
 
 class ImageLossSet(WeightedLossSet):
     """``WeightedLossSet``'s terms and ``ssim``: ``1 - SSIM`` of the rendered image against the target, which needs a
-    whole-image batch (``LossInputs.as_image``; a ray batch is refused in one line). Args: the fields of
+    family that renders whole images (``ImageLossInputs``; rays are refused in one line). Args: the fields of
     ``ImageLossConfig`` except ``name``."""
 
     def __init__(self, *, ssim_weight: float = ImageLossConfig.ssim_weight, rgb_error: str = ImageLossConfig.rgb_error,
@@ -267,17 +294,19 @@ class ImageLossSet(WeightedLossSet):
         self.needs_semantics = any(term not in ("rgb", "ssim") for term in self.weights)
         self.needs_whole_images = "ssim" in self.weights
 
-    def _rgb(self, inputs: LossInputs) -> Tensor:
+    def _rgb(self, inputs: LossInputs | ImageLossInputs) -> Tensor:
         """``WeightedLossSet``'s MSE, or the mean absolute error per pass (``rgb_error=l1``)."""
         if self.rgb_error == "mse":
             return WeightedLossSet._rgb(inputs)
-        valid = inputs.valid_at_rays
-        target = inputs.target_rgb if valid is None else inputs.target_rgb[valid]
-        passes = [p for p in (inputs.coarse, inputs.fine) if p is not None]
-        return sum(rgb_l1(p.rgb if valid is None else p.rgb[valid], target) for p in passes)
+        if isinstance(inputs, ImageLossInputs):
+            return rgb_l1(*kept_pixels(inputs.output.rgb, inputs.target_rgb, inputs.valid))
+        return sum(rgb_l1(p.rgb, inputs.target_rgb) for p in (inputs.coarse, inputs.fine) if p is not None)
 
     @staticmethod
-    def _ssim(inputs: LossInputs) -> Tensor:
-        """On the last pass, at the pixels a masked frame's mask keeps."""
-        valid = None if inputs.valid_at_rays is None else inputs.as_image(inputs.valid_at_rays[:, None])[0]
-        return structural_dissimilarity(inputs.as_image(inputs.last.rgb), inputs.as_image(inputs.target_rgb), valid)
+    def _ssim(inputs: LossInputs | ImageLossInputs) -> Tensor:
+        """On the rendered image, at the pixels a masked frame's mask keeps."""
+        if not isinstance(inputs, ImageLossInputs):
+            raise ConfigError("loss term 'ssim' compares whole images, and the model renders random rays; use a model "
+                              "that renders whole images (Capabilities.trains_on = TrainingBatch.IMAGES)")
+        return structural_dissimilarity(inputs.output.rgb.permute(2, 0, 1).contiguous(),
+                                        inputs.target_rgb.permute(2, 0, 1).contiguous(), inputs.valid)

@@ -20,7 +20,9 @@ from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint as activation_checkpoint
 
 from gpnerf_core import (
+    Capabilities,
     ConfigError,
+    FamilyHooks,
     FeatureExtractor,
     FeatureMaps,
     FieldAggregator,
@@ -75,6 +77,18 @@ def compiled_block_pair(backend: str, num_blocks: int):
     return torch.compile(GeneralizableNeRF._block_pair, backend=backend)
 
 
+class GNTHooks(FamilyHooks):
+    """GNT's compiled path, and its outputs named by the stage that made them."""
+
+    def output_owners(self, names: Mapping[str, str]) -> dict[str, str]:
+        rendering = f"field aggregator {names.get('field_aggregator')!r} / ray aggregator {names.get('ray_aggregator')!r}"
+        return {"colour": rendering, "depth": rendering,
+                "semantic map": f"semantic field (the attention of the {rendering})", "logits": f"head {names.get('head')!r}"}
+
+    def use_compiled(self, backend: str | None) -> None:
+        self.family.compile_with(backend)
+
+
 class GeneralizableNeRF(ModelFamily):
     """Extractor -> projector -> field aggregator <-> ray aggregator -> semantic field -> fused map -> head.
 
@@ -99,6 +113,8 @@ class GeneralizableNeRF(ModelFamily):
         compile_backend: ``torch.compile`` the block pairs and the semantic attention sums with this backend
             (None: eager). Compiled on first use, again for each new shape (coarse and fine passes, last chunk).
     """
+
+    capabilities = Capabilities(teacher=True, preview=True, compiled=True, foreign_weights=True, hooks=GNTHooks)
 
     def __init__(
         self,
@@ -147,7 +163,7 @@ class GeneralizableNeRF(ModelFamily):
         self.checkpoint_blocks = checkpoint_blocks
         self.channels_last_maps = channels_last_maps
         self.projector = Projector()
-        self.use_compiled(compile_backend)
+        self.compile_with(compile_backend)
 
     @property
     def has_semantics(self) -> bool:
@@ -162,11 +178,6 @@ class GeneralizableNeRF(ModelFamily):
         slots = getattr(self.head, "slots", None) if predicts is Predicts.INSTANCES else None
         return SemanticOutput(predicts, SemanticMode.DECODED, int(self.head.num_outputs), slots)
 
-    def output_owners(self, names: Mapping[str, str]) -> dict[str, str]:
-        rendering = f"field aggregator {names.get('field_aggregator')!r} / ray aggregator {names.get('ray_aggregator')!r}"
-        return {"colour": rendering, "depth": rendering,
-                "semantic map": f"semantic field (the attention of the {rendering})", "logits": f"head {names.get('head')!r}"}
-
     def check_image_size(self, height: int, width: int) -> None:
         """The extractor's limits (its strides)."""
         self.extractor.check_image_size(height, width)
@@ -175,16 +186,6 @@ class GeneralizableNeRF(ModelFamily):
         """An official GNT checkpoint (``net_coarse`` + ``feature_net``): each stage maps its share, and the semantic
         adaptor GP-NeRF's code adds to ``net_coarse``."""
         return read_gnt_checkpoint(self, checkpoint)
-
-    def parameter_counts(self) -> dict[str, int]:
-        """Parameters per stage (``extractor``, ``field``, ``ray``, ``semantic``, ``head``; absent stages left out)
-        and their ``total``."""
-        counts = {
-            name: sum(p.numel() for p in module.parameters())
-            for name in ("extractor", "field", "ray", "semantic", "head")
-            if (module := getattr(self, name)) is not None
-        }
-        return {**counts, "total": sum(counts.values())}
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """Parameters by learning-rate group: ``feature_extractor``, ``transformer``, ``head``."""
@@ -453,8 +454,9 @@ class GeneralizableNeRF(ModelFamily):
             sample_semantic=sample_semantic,
         )
 
-    def use_compiled(self, backend: str | None) -> None:
-        """Run the block pairs and the semantic attention sums ``torch.compile`` d with ``backend`` (None: eager)."""
+    def compile_with(self, backend: str | None) -> None:
+        """Run the block pairs and the semantic attention sums ``torch.compile`` d with ``backend`` (None: eager;
+        ``hooks.use_compiled``)."""
         self.compile_backend = backend
         # Unbound (called with self), so a copy of the module never runs the original's blocks.
         self._pair = type(self)._block_pair if backend is None else compiled_block_pair(backend, self.field.num_blocks)

@@ -80,6 +80,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from gpnerf_core import (
+    Capabilities,
     LabelsOrHead,
     ConfigError,
     DepthSource,
@@ -160,6 +161,8 @@ class MVSNeRF(LabelsOrHead):
         sampling, depth_source: with a depth source (``model.sampler=depth``), one pass on ``fine_samples`` samples
             around its depth of each ray instead of the stratified ones.
     """
+
+    capabilities = Capabilities(teacher=True, preview=True)
 
     def __init__(self, *, extractor: FeatureExtractor, num_classes: int, coarse_samples: int, fine_samples: int,
                  volume_views: int, num_planes: int, inverse_depth: bool, pad: tuple[int, int], width: int,

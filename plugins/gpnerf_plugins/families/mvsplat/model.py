@@ -25,8 +25,9 @@ harmonics seen from the target, depth, and the semantics, both ways:
   input as it is (every cell is rendered: nothing of the teacher is fused in), and the S.D loss compares it with the
   target image's own map at every pixel.
 
-Training renders whole target images (``TrainingBatch.IMAGES``): MVSplat's loss is on images (MSE + 0.05 LPIPS; LPIPS
-needs weights that cannot be downloaded here, so the ``image`` loss set takes SSIM in its place).
+Training renders whole target images (``TrainingBatch.IMAGES``: one ``ImageOutput`` per target view): MVSplat's loss is
+on images (MSE + 0.05 LPIPS; LPIPS needs weights that cannot be downloaded here, so the ``image`` loss set takes SSIM
+in its place).
 """
 
 from __future__ import annotations
@@ -38,14 +39,15 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from gpnerf_core import (
+    Capabilities,
     ConfigError,
     FeatureExtractor,
     GaussianScene,
     Gaussians,
+    ImageOutput,
     LabelsOrHead,
     PerceptionHead,
     Prediction,
-    RenderedRays,
     SourceEncoding,
     SourceViews,
     StepBatch,
@@ -53,10 +55,7 @@ from gpnerf_core import (
     TargetCamera,
     TargetView,
     TrainingBatch,
-    ViewOutput,
-    cells_of_pixels,
     decode_checked,
-    gather_cells,
     rasterize_gaussians,
     rotate_harmonics,
     sh_coefficients,
@@ -98,8 +97,8 @@ class MVSplat(LabelsOrHead):
         rasterizer: the rasterizer backend (``gpnerf_core.rasterize_gaussians``).
     """
 
-    trains_on = TrainingBatch.IMAGES
-    source_encoding = SourceEncoding.SOURCE_SET
+    capabilities = Capabilities(trains_on=TrainingBatch.IMAGES, source_encoding=SourceEncoding.SOURCE_SET, gaussians=True,
+                                teacher=True)
 
     def __init__(self, *, extractor: FeatureExtractor, head: PerceptionHead | None, num_classes: int, feature_dim: int,
                  transformer_layers: int, attention_splits: int, depth_candidates: int, cost_unet_dim: int,
@@ -195,27 +194,24 @@ class MVSplat(LabelsOrHead):
     def forward(self, batch: StepBatch, *, semantics: bool, sample_semantics: bool = False) -> StepOutput:
         return StepOutput(tuple(self._forward_view(view, semantics) for view in batch.views))
 
-    def _forward_view(self, target: TargetView, semantics: bool) -> ViewOutput:
-        """The whole target rendered; its pixels (every pixel, in a whole-image batch) read from the images."""
+    def _forward_view(self, target: TargetView, semantics: bool) -> ImageOutput:
+        """The whole target rendered: colour, depth, opacity, and the class scores (label rendering) or the semantic
+        map with the head's logits and the target's own map (decoded)."""
         if target.sources is None:
             raise ConfigError("mvsplat renders from source views; the target view has none")
         camera = target.camera
         gaussians = self.encode_sources(target.sources, near=camera.near, far=camera.far)
         labels = semantics and self.head is None and self.num_classes > 0
         image = self.render_image(gaussians, camera, 1, scores=labels)
-        rows, cols = target.pixels[:, 1].long(), target.pixels[:, 0].long()
-        rendered = RenderedRays(rgb=image.rgb[rows, cols], depth=image.depth[rows, cols],
-                                logits=image.scores[rows, cols] if labels else None)
+        scores = image.scores.permute(2, 0, 1)[None] if labels else None
         if self.head is None or not semantics:
-            return ViewOutput(coarse=rendered, fine=None)
+            return ImageOutput(rgb=image.rgb, depth=image.depth, alpha=image.alpha, scores=scores)
         teacher = self.extractor(target.image[None]).semantic  # [1, C, h, w], not detached: the loss set decides
         stride = camera.height // int(teacher.shape[-2])
         semantic_map = self.render_semantic(gaussians, camera, stride)
-        cells = cells_of_pixels(target.pixels, camera.image_size, tuple(teacher.shape[-2:]))
-        rendered = RenderedRays(rgb=rendered.rgb, depth=rendered.depth, semantic=gather_cells(semantic_map, cells))
         logits = decode_checked(self.head, semantic_map, camera.image_size).logits
-        return ViewOutput(coarse=rendered, fine=None, teacher_map=teacher, teacher_at_rays=gather_cells(teacher, cells),
-                          head_input=semantic_map, logits=logits)
+        return ImageOutput(rgb=image.rgb, depth=image.depth, alpha=image.alpha, semantic=semantic_map,
+                           teacher_map=teacher, logits=logits)
 
     @torch.inference_mode()
     def predict(self, camera: TargetCamera, sources: SourceViews | None, *, stride: int, chunk_rays: int,

@@ -53,6 +53,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from gpnerf_core import (
+    Capabilities,
     LabelsOrHead,
     ConfigError,
     DepthSource,
@@ -118,6 +119,8 @@ class VisibilityAwareRenderer(LabelsOrHead):
         visibility_dim: channels of the visibility maps G.
         cross_reprojection: Semantic-Ray's Cross-Reprojection Attention.
     """
+
+    capabilities = Capabilities(teacher=True, preview=True)
 
     def __init__(self, *, extractor: nn.Module, num_classes: int, head: PerceptionHead | None, coarse_samples: int,
                  fine_samples: int, visibility_dim: int, cross_reprojection: bool,

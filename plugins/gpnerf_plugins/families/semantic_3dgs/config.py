@@ -56,7 +56,12 @@ class Semantic3DGSConfig(ModelConfig):
     init_opacity: float = 0.1
     """Opacity of every starting Gaussian (3DGS: 0.1)."""
     max_gaussians: int = 200000
-    """Densification stops adding Gaussians at this count (said once in the run's log)."""
+    """Densification stops adding Gaussians at this count (said once in the run's log); with ``density=budgeted`` the
+    budget the count never exceeds."""
+    density: str = "default"
+    """Density control (``gpnerf_core.geometry.gaussians.density``): ``default`` (3DGS's official schedule,
+    ``DefaultStrategy``) or ``budgeted`` (``BudgetedStrategy``: the same schedule, the count rising linearly to
+    ``max_gaussians`` and never past it, the largest gradients growing first)."""
     schedule_steps: int = 30000
     """Length of the official schedule the step numbers below belong to (3DGS: 30k iterations); each is scaled by
     ``train.steps / schedule_steps`` (set ``schedule_steps`` to ``train.steps`` to run them as written)."""

@@ -2,10 +2,11 @@
 
 The points are the scene's sparse points where it has them (a capture's structure from motion, as the official code
 starts from COLMAP's), else its training frames' depth back-projected (datasets with depth: the embedded scenes,
-Replica, ScanNet); a random subset of at most ``init_points``. Each point becomes a Gaussian with its colour as the
-degree-0 harmonic, an isotropic scale of the root mean squared distance to its three nearest neighbours, no rotation
-and opacity 0.1. The extent is 3DGS's ``getNerfppNorm`` radius: 1.1 x the largest distance of a training camera from
-their mean centre.
+Replica, ScanNet); a random subset of at most a limit. Each point becomes a Gaussian (``parameters.rows_from_points``)
+with its colour as the degree-0 harmonic, an isotropic scale of the root mean squared distance to its three nearest
+neighbours (``neighbour_scales``), no rotation and the family's starting opacity (3DGS: 0.1). The extent is 3DGS's
+``getNerfppNorm`` radius: 1.1 x the largest distance of a training camera from their mean centre. Another model's
+Gaussians start a scene through ``parameters.rows_from_gaussians``.
 """
 
 from __future__ import annotations
@@ -13,7 +14,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from gpnerf_core import DataError, Scene, ScenePoints
+from gpnerf_core.errors import DataError
+from gpnerf_core.types import Scene, ScenePoints
 
 NEIGHBOURS = 3
 """Nearest neighbours whose mean squared distance sets a starting scale (3DGS's ``distCUDA2``)."""
@@ -44,7 +46,7 @@ def starting_points(scene: Scene, limit: int, depth_stride: int) -> tuple[SceneP
     if points is None:
         raise DataError(f"scene {scene.name!r} has no sparse points (a capture's ply_file_path, which `data "
                         "prepare-capture` and `data import-colmap` write) and no depth in its training frames; "
-                        "model=semantic_3dgs starts its Gaussians from one of them")
+                        "a per-scene Gaussian model starts its Gaussians from one of them")
     if points.count > limit:
         chosen = torch.randperm(points.count)[:limit].sort().values
         points = ScenePoints(xyz=points.xyz[chosen], rgb=points.rgb[chosen])

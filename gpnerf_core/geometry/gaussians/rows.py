@@ -4,7 +4,7 @@
 a row of every per-Gaussian parameter. The official code swaps each parameter in the optimizer and cuts or extends its
 Adam moments to match (``GaussianModel.cat_tensors_to_optimizer``, ``_prune_optimizer``,
 ``replace_tensor_to_optimizer``); ``resize_parameter`` is that one operation for any parameter of any family
-(``ModelFamily.changes_size``).
+(``Capabilities.changes_size``), and the public Gaussian parameters and density strategies are built on it.
 """
 
 from __future__ import annotations
