@@ -25,6 +25,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from gpnerf_core import (
+    Capabilities,
     ComponentSpec,
     ConfigError,
     FeatureMaps,
@@ -84,7 +85,7 @@ class PooledViews(ModelFamily):
         hidden: MLP width.
     """
 
-    accepts_head = False  # label rendering: a configured head is refused by the build
+    capabilities = Capabilities(accepts_head=False)  # label rendering: a configured head is refused by the build
 
     def __init__(self, *, extractor: nn.Module, num_classes: int, coarse_samples: int, fine_samples: int,
                  hidden: int) -> None:

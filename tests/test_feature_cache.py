@@ -93,10 +93,10 @@ class SetEncoder(torch.nn.Module):
         self.calls = 0
 
     @property
-    def source_encoding(self):
-        from gpnerf_core.interfaces.model import SourceEncoding
+    def capabilities(self):
+        from gpnerf_core.interfaces.model import Capabilities, SourceEncoding
 
-        return SourceEncoding.SOURCE_SET
+        return Capabilities(source_encoding=SourceEncoding.SOURCE_SET)
 
     def encode_sources(self, sources, *, near, far):
         self.calls += 1

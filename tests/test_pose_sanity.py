@@ -13,6 +13,7 @@ import torch
 from omegaconf import OmegaConf
 
 from gpnerf_core.data.checks import pose_warnings
+from gpnerf_core.interfaces.model import Capabilities
 from gpnerf_core.errors import DataError
 from gpnerf_core.geometry.pose_sanity import ISOLATED, LOOKING_AWAY, OUTLIER, SCALE, check_poses
 from gpnerf_core.engine.validation import check_data
@@ -23,7 +24,8 @@ from gpnerf_plugins.datasets.replica.dataset import ReplicaScenes
 H, W = 48, 64
 NEAR, FAR = 0.2, 6.5
 FOCAL = W / (2 * math.tan(math.radians(35)))  # 70 degrees horizontally
-COLOUR_ONLY = SimpleNamespace(semantic_output=None, generalizable=True, check_image_size=lambda height, width: None)
+COLOUR_ONLY = SimpleNamespace(semantic_output=None, capabilities=Capabilities(),
+                              check_image_size=lambda height, width: None)
 """What ``check_data`` reads of a model that renders colour and depth only."""
 K = torch.tensor([[FOCAL, 0.0, (W - 1) / 2], [0.0, FOCAL, (H - 1) / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
 

@@ -119,7 +119,7 @@ def test_with_a_head_it_renders_features_the_head_decodes_and_without_semantic_m
 
 def test_the_kit_fails_a_family_that_says_it_takes_no_head_but_ignores_one():
     class IgnoresHead(model_family.PooledViews):
-        accepts_head = False
+        capabilities = dataclasses.replace(model_family.PooledViews.capabilities, accepts_head=False)
 
     def build(*, parts, coarse_samples=8, fine_samples=0, **options):
         return IgnoresHead(extractor=parts.build("feature_extractor"), num_classes=parts.num_classes,

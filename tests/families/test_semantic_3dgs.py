@@ -13,21 +13,25 @@ import numpy as np
 import pytest
 import torch
 
-from gpnerf_core import DataError, NonFiniteError, Scene, ScenePoints, TrainingState, resize_parameter
+from gpnerf_core import (
+    DataError, DefaultStrategy, NonFiniteError, ScenePoints, TrainingState, neighbour_scales, reset_opacity,
+    resize_parameter, scene_extent, starting_points,
+)
 from gpnerf_core.cli import main as cli_main
 from gpnerf_core.config.compose import compose
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.model.build import build_components
 from gpnerf_core.model.weights import load_weights
 from gpnerf_core.registry.components import get_registry
-from gpnerf_core.testing.inputs import kit_parts, model_scene, model_view
+from gpnerf_core.testing.inputs import kit_parts, model_scene
 from gpnerf_core.training.optimizer import make_optimizer
-from gpnerf_plugins.families.semantic_3dgs.densify import DensityControl, densify_and_prune, reset_opacity
-from gpnerf_plugins.families.semantic_3dgs.initial import neighbour_scales, scene_extent, starting_points
 from pipeline_check import TINY_SCENES, make_trainer
 from ply_reader import read_ply
 
-SMALL = {"name": "semantic_3dgs", "init_points": 300, "feature_dim": 4, "sh_degree": 1}
+SMALL = {"name": "semantic_3dgs", "init_points": 300, "feature_dim": 4, "sh_degree": 1, "schedule_steps": 2000}
+"""A small model whose schedule, scaled to the contract kit's 8 training steps, densifies from the third step on and
+resets no opacity (the kit's synthetic scene has cameras 0.1 m apart: 3DGS's world-size pruning at 0.1 x that extent
+would remove every Gaussian after a reset)."""
 TINY = [*TINY_SCENES, "dataset.scenes=[layout_00]", "model.init_points=400", "model.feature_dim=4",
         "model.sh_degree=1", "model.schedule_steps=6", "model.densify_from=1", "model.densify_every=2",
         "model.densify_until=5", "model.opacity_reset_every=4", "model.sh_degree_every=2", "train.log_every=1",
@@ -78,7 +82,7 @@ def test_the_gaussians_start_from_sparse_points_else_from_depth_else_the_scene_i
 
     bare = dataclasses.replace(scene, load_frame=without_depth)
     with pytest.raises(DataError, match=r"scene 'kit' has no sparse points .* and no depth in its training frames; "
-                                        r"model=semantic_3dgs starts"):
+                                        r"a per-scene Gaussian model starts"):
         starting_points(bare, 100, 1)
 
 
@@ -92,10 +96,10 @@ def test_a_starting_scale_is_the_rms_distance_to_the_three_nearest_neighbours():
 
 def _fitted_field():
     model = small_model()
-    model.initialise(model_scene())
+    model.hooks.initialise(model_scene())
     optimizer = make_optimizer(model, {"means": 1.0, "harmonics": 1.0, "harmonics_rest": 1.0, "opacities": 1.0,
                                        "scales": 1.0, "rotations": 1.0, "features": 1.0, "head": 1.0},
-                               model.optimizer_options(10))
+                               model.hooks.optimizer_options(10))
     for p in model.parameters():
         p.grad = torch.ones_like(p)
     optimizer.step()
@@ -115,9 +119,9 @@ def test_densification_clones_small_splits_large_prunes_transparent_and_the_mome
     field.gradient_count[:] = 1
     means_before = field.means.detach().clone()
     moments = optimizer.state[field.means]["exp_avg"].clone()
-    control = DensityControl(grad_threshold=0.5, percent_dense=0.01, prune_opacity=0.005, prune_screen_radius=20.0,
-                             prune_world_scale=100.0, max_gaussians=10_000)
-    added, removed = densify_and_prune(field, optimizer, control, prune_large=False, warned=[False])
+    strategy = DefaultStrategy(grad_threshold=0.5, percent_dense=0.01, prune_opacity=0.005, prune_screen_radius=20.0,
+                               prune_world_scale=100.0, max_gaussians=10_000)
+    added, removed = strategy.densify_and_prune(field, optimizer, 1, prune_large=False)
     assert field.size == count + 1 + 1 - 1 and (added, removed) == (2, 1)  # +clone, +2 -1 split, -1 pruned
     assert torch.equal(field.means[0], means_before[0]) and torch.equal(field.means[count - 2], means_before[0])
     halves = field.log_scales[-2:].exp()
@@ -141,17 +145,16 @@ def test_the_size_cap_stops_growth_and_is_said_once(caplog):
     field = model.gaussians
     field.gradient_sum[:] = 1.0
     field.gradient_count[:] = 1
-    control = DensityControl(grad_threshold=0.5, percent_dense=1.0, prune_opacity=0.0, prune_screen_radius=1e9,
-                             prune_world_scale=1e9, max_gaussians=field.size + 5)
-    warned = [False]
+    strategy = DefaultStrategy(grad_threshold=0.5, percent_dense=1.0, prune_opacity=0.0, prune_screen_radius=1e9,
+                               prune_world_scale=1e9, max_gaussians=field.size + 5)
     with caplog.at_level(logging.WARNING):
-        densify_and_prune(field, optimizer, control, prune_large=False, warned=warned)
+        strategy.densify_and_prune(field, optimizer, 1, prune_large=False)
         field.gradient_sum[:] = 1.0
         field.gradient_count[:] = 1
-        densify_and_prune(field, optimizer, control, prune_large=False, warned=warned)
-    assert field.size == control.max_gaussians
+        strategy.densify_and_prune(field, optimizer, 2, prune_large=False)
+    assert field.size == strategy.max_gaussians
     assert [r.getMessage() for r in caplog.records].count(
-        f"model.max_gaussians={control.max_gaussians} reached: densification adds no more Gaussians") == 1
+        f"model.max_gaussians={strategy.max_gaussians} reached: densification adds no more Gaussians") == 1
 
 
 def test_nan_in_a_gaussian_parameter_stops_training_naming_it_and_the_step():
@@ -161,12 +164,12 @@ def test_nan_in_a_gaussian_parameter_stops_training_naming_it_and_the_step():
     state = TrainingState(step=7, total_steps=10, optimizer=optimizer)
     with pytest.raises(NonFiniteError, match=r"^step 7: model 'semantic_3dgs' Gaussian parameter 'log_scales' holds "
                                              r"NaN or Inf \(1 of \d+ Gaussians\); training stopped$"):
-        model._check_finite(state)
+        model.hooks._check_finite(state)
 
 
 def test_a_checkpoint_whose_count_differs_from_its_tensors_is_refused():
     model = small_model()
-    model.initialise(model_scene())
+    model.hooks.initialise(model_scene())
     weights = {k: v.clone() for k, v in model.state_dict().items()}
     fresh = small_model()
     load_weights(fresh, weights, "checkpoint x.pt")  # built empty, it takes the checkpoint's size

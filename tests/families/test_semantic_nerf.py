@@ -80,7 +80,7 @@ def test_per_scene_refusals(tmp_path):
         build_components(compose([*common, "+head=unet"]))
     with pytest.raises(ConfigError, match=r"^model.skip=3: expected in \[0, model.depth - 1\) = \[0, 3\)$"):
         build_components(compose([*common, "model.depth=4", "model.skip=3"]))
-    assert build_components(compose(common)).model.generalizable is False
+    assert build_components(compose(common)).model.capabilities.generalizable is False
 
 
 @pytest.fixture(scope="module")

@@ -342,9 +342,9 @@ def test_the_image_set_adds_d_ssim_on_whole_images_and_is_zero_for_a_perfect_ren
     inputs = loss_inputs(semantics=True, sample_semantics=False, fine=False, whole_image=True)
     terms = loss_set(inputs)
     assert set(terms) == {"rgb", "ce", "ssim"} and float(terms["ssim"].detach()) > 0
-    perfect = dataclasses.replace(inputs, coarse=dataclasses.replace(inputs.coarse, rgb=inputs.target_rgb.clone()))
+    perfect = dataclasses.replace(inputs, output=dataclasses.replace(inputs.output, rgb=inputs.target_rgb.clone()))
     assert float(loss_set(perfect)["ssim"].detach()) == pytest.approx(0.0, abs=1e-6)
     colour_only = registry.build("loss", {"name": "image", "ce_weight": 0.0})
     assert not colour_only.needs_semantics and not colour_only.needs_labels
-    with pytest.raises(ConfigError, match="trains on random rays"):
+    with pytest.raises(ConfigError, match="the model renders random rays"):
         loss_set(loss_inputs(semantics=True, sample_semantics=False))

@@ -13,6 +13,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from gpnerf_core import (
+    Capabilities,
     ComponentSpec,
     DepthBelief,
     DepthSource,
@@ -703,7 +704,7 @@ def test_a_family_that_silently_ignores_a_configured_head_fails_its_build_check(
         name: str = "ignores_head"
 
     class IgnoresHead(model_family.PooledViews):
-        accepts_head = True  # says it decodes with a head, and never builds one
+        capabilities = Capabilities(accepts_head=True)  # says it decodes with a head, and never builds one
 
     def build(*, parts, coarse_samples=8, fine_samples=0, hidden=8, label_rendering=True):
         return IgnoresHead(extractor=parts.build("feature_extractor"), num_classes=parts.num_classes,

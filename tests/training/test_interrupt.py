@@ -10,6 +10,8 @@ import time
 
 import pytest
 
+from gpnerf_core.interfaces.training import TrainingCallback, TrainingPhase
+
 TINY = [
     "+head=unet", "+loss=dgs", "dataset.num_train_scenes=1", "dataset.num_unseen_scenes=1",
     "dataset.frames_per_scene=6", "dataset.eval_every=3", "dataset.height=32", "dataset.width=48",
@@ -104,18 +106,18 @@ def test_a_signal_during_an_evaluation_between_steps_stops_at_once_with_the_step
         def __init__(self):
             self.finished = []
 
-        def after_step(self, trainer):
-            if trainer.step == 2:
+        def __call__(self, state):
+            if state.steps_done == 2:
                 os.kill(os.getpid(), signal.SIGTERM)  # arrives while "evaluating"
                 time.sleep(5)
-            self.finished.append(trainer.step)
+            self.finished.append(state.steps_done)
 
     cfg = compose(["+head=unet", "+loss=dgs", *TINY_MODEL, *TINY_SCENES, f"dataset.root={tmp_path / 'scenes'}",
                    "train.steps=5"])
     trainer, evaluation = make_trainer(cfg, tmp_path / "run"), SlowEvaluation()
     handler = signal.getsignal(signal.SIGTERM)
     with pytest.raises(TrainingInterrupted) as stopped:
-        trainer.fit(progress=False, callbacks=[evaluation])
+        trainer.fit(progress=False, callbacks=[TrainingCallback(TrainingPhase.AFTER_STEP, evaluation, timed=False)])
     assert evaluation.finished == [1]  # step 2's evaluation was cut short, and no step ran after it
     assert stopped.value.signum == signal.SIGTERM and stopped.value.step == 2 and trainer.step == 2
     assert stopped.value.checkpoint.name == "step_0000002.pt" and stopped.value.checkpoint.exists()

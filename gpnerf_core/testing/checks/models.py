@@ -48,7 +48,7 @@ def built(subject: Subject, *, head: bool) -> tuple[ModelFamily, set[int]]:
     model = subject.build(parts=parts)
     expect(isinstance(model, ModelFamily), f"built a {type(model).__name__}, expected a ModelFamily")
     if not model.capabilities.generalizable:  # as the trainer does before a per-scene family's first step
-        call("initialise(the synthetic scene)", model.initialise, model_scene())
+        call("hooks.initialise(the synthetic scene)", model.hooks.initialise, model_scene())
     return model, {id(p) for part in parts.built if isinstance(part, nn.Module) for p in part.parameters()}
 
 
