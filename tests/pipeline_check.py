@@ -29,13 +29,15 @@ TINY_SCENES = [
 ]
 
 
-def make_trainer(cfg, run_dir: Path, dist: Distributed | None = None, components=None) -> Trainer:
-    """A Trainer on ``cfg`` writing to ``run_dir`` (single CPU process unless ``dist`` is given)."""
+def make_trainer(cfg, run_dir: Path, dist: Distributed | None = None, components=None, resume_from=None) -> Trainer:
+    """A Trainer on ``cfg`` writing to ``run_dir`` (single CPU process unless ``dist`` is given; ``resume_from``: the
+    checkpoint ``train.resume`` names, read already)."""
     from omegaconf import OmegaConf
 
     record = RunRecord(config_yaml=OmegaConf.to_yaml(cfg, resolve=True), overrides=(), components={})
     components = components or build_components(cfg)
-    return Trainer(cfg, components, dist=dist or Distributed.single(), run_dir=run_dir, record=record)
+    return Trainer(cfg, components, dist=dist or Distributed.single(), run_dir=run_dir, record=record,
+                   resume_from=resume_from)
 
 
 def train_and_evaluate(dataset_overrides: list[str], run_dir: Path) -> dict:

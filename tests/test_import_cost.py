@@ -12,7 +12,7 @@ DEFERRED = ("scipy.optimize", "scipy.ndimage", "scipy.stats", "skimage.metrics",
 LOADED_BY_A_COMMAND = """
 import json, sys
 import gpnerf_core.cli
-import gpnerf_core.engine.jobs, gpnerf_core.evaluation.evaluator  # what `run` imports when it starts its job
+import gpnerf_core.engine.launching, gpnerf_core.engine.opening, gpnerf_core.evaluation.evaluator  # what `run` imports
 from gpnerf_core.commands import eval, export, finetune, render, run, view
 from gpnerf_core.registry.components import get_registry
 get_registry()  # every built-in plugin imported, as a command does before it builds anything

@@ -73,7 +73,7 @@ def test_a_command_importing_another_command_or_the_model_importing_a_command_is
 @pytest.mark.parametrize("module,layer", [
     ("gpnerf_core.types", "foundation"), ("gpnerf_core.runtime.io", "foundation"), ("gpnerf_core.data.frames", "data"),
     ("gpnerf_core.training.trainer", "training"), ("gpnerf_plugins.heads.unet", "plugins"),
-    ("gpnerf_core.tools.stress.runner", "tools"), ("gpnerf_core.engine.jobs", "engine"),
+    ("gpnerf_core.tools.stress.runner", "tools"), ("gpnerf_core.engine.launching", "engine"),
     ("gpnerf_core.commands.run", "commands"), ("gpnerf_core.cli", "cli"), ("gpnerf_core", "api"),
 ])
 def test_layer_of(module, layer):

@@ -9,9 +9,8 @@ from omegaconf import OmegaConf, open_dict
 from gpnerf_core.model.build import build_components
 from gpnerf_core.model.classes import ClassList
 from gpnerf_core.config.compose import compose
-from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_core.engine.jobs import model_from_checkpoint
+from gpnerf_core.engine.opening import open_trained
 from gpnerf_core.registry.plugins import BUILTIN_PLUGINS, make_plugin_manager
 from gpnerf_core.registry.components import collect
 from gpnerf_core.model.checkpoint import read_checkpoint
@@ -23,7 +22,7 @@ from pipeline_check import TINY_MODEL, TINY_SCENES, make_trainer
 CHECKPOINT_CLASSES = ClassList(("wall", "floor", "chair"), 255, "checkpoint old.pt", from_checkpoint=True)
 
 
-pytestmark = pytest.mark.usefixtures("one_thread")  # the configs' threads=1 (model_from_checkpoint sets it too)
+pytestmark = pytest.mark.usefixtures("one_thread")  # the configs' threads=1 (open_trained sets it too)
 
 
 @pytest.fixture(scope="module")
@@ -102,7 +101,7 @@ def test_checkpoints_store_their_classes_and_older_ones_still_load(root, tmp_pat
     assert stored_classes(read_checkpoint(old), old) is None
     with open_dict(cfg):
         cfg.checkpoint = str(old)
-    loaded = model_from_checkpoint(cfg, Distributed.single(), "eval", check_scenes=False)
+    loaded = open_trained(None, cfg=cfg, command="eval")  # reads cfg.checkpoint, as a job the launcher did not reach
     assert loaded.components.classes.names == CLASS_NAMES and not loaded.components.classes.from_checkpoint
     assert all(torch.equal(v, state["model"][k]) for k, v in loaded.components.model.state_dict().items())
     assert not any("class list" in note for note in loaded.notes)

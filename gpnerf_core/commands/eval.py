@@ -13,7 +13,10 @@ from gpnerf_core.runtime.device import machine_info
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.runtime.io import atomic_write_json
 from gpnerf_core.config.overrides import foreign_dataset_note
-from gpnerf_core.engine.jobs import claim_run_folder, job, launch_from_checkpoint, model_from_checkpoint, task_overrides
+from gpnerf_core.engine.guarding import job
+from gpnerf_core.engine.launching import Handover, launch_from_checkpoint
+from gpnerf_core.engine.opening import open_trained
+from gpnerf_core.engine.runs import claim_run_folder, task_overrides
 from gpnerf_core.model.checkpoint import config_differences, format_differences
 
 
@@ -22,12 +25,13 @@ def main(argv: list[str]) -> int:
 
 
 @job
-def eval_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
+def eval_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handover()) -> dict[str, Any]:
     from gpnerf_core.evaluation.evaluator import check_splits_have_frames, evaluate, print_summary
     from gpnerf_core.data.frames import FrameCache
 
-    loaded = model_from_checkpoint(cfg, dist, "eval", check_scenes=True)
-    trained, notes, components, which = loaded.trained, loaded.notes, loaded.components, loaded.weights
+    opened = open_trained(handover.trained, cfg=cfg, command="eval", validated=handover.validated, device=dist.device,
+                          check_scenes=True)
+    trained, notes, components, which = opened.trained, opened.notes, opened.components, opened.weights
     notes = [*notes, *check_splits_have_frames(cfg, components)]  # refused here: before the run folder is claimed
     dataset_note = foreign_dataset_note(trained.overrides, list(task_overrides()))
     notes = [dataset_note, *notes] if dataset_note else notes

@@ -28,7 +28,10 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from gpnerf_core.engine.jobs import claim_run_folder, job, launch_from_checkpoint, model_from_checkpoint
+from gpnerf_core.engine.guarding import job
+from gpnerf_core.engine.launching import Handover, launch_from_checkpoint
+from gpnerf_core.engine.opening import open_trained
+from gpnerf_core.engine.runs import claim_run_folder
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.runtime.staging import Write, write_staged
@@ -65,7 +68,7 @@ def checked_min_views(min_views: int, frames: int) -> int:
 
 
 @job
-def export_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
+def export_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handover()) -> dict[str, Any]:
     from tqdm import tqdm
 
     from gpnerf_core.data.dataset import chosen_scene
@@ -75,7 +78,8 @@ def export_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.model.view_inputs import view_inputs
 
     settings = cfg.export
-    loaded = model_from_checkpoint(cfg, dist, "export", check_scenes=False)
+    loaded = open_trained(handover.trained, cfg=cfg, command="export", validated=handover.validated,
+                          device=dist.device)
     components = loaded.components
     model = components.model.eval()
     frames = FrameCache(components.dataset, dist.device)

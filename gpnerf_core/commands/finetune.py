@@ -26,18 +26,11 @@ from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.evaluation.curves import CURVE_KEYS, curve_points
 from gpnerf_core.runtime.io import atomic_write_json
 from gpnerf_core.config.overrides import foreign_dataset_note
-from gpnerf_core.engine.jobs import (
-    built_from_checkpoint,
-    checkpoint_config,
-    claim_run_folder,
-    job,
-    launch_from_checkpoint,
-    plan_resume,
-    run_record,
-    shared_run_dir,
-    start,
-    task_overrides,
-)
+from gpnerf_core.engine.guarding import job
+from gpnerf_core.engine.launching import Handover, launch_from_checkpoint
+from gpnerf_core.engine.opening import open_trained
+from gpnerf_core.engine.resuming import plan_resume
+from gpnerf_core.engine.runs import claim_run_folder, run_record, shared_run_dir, task_overrides
 from gpnerf_core.engine.validation import check_data
 
 
@@ -46,36 +39,34 @@ def main(argv: list[str]) -> int:
 
 
 @job
-def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
+def finetune_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handover()) -> dict[str, Any]:
     from gpnerf_core.evaluation.evaluator import check_splits_have_frames, evaluate, print_summary
     from gpnerf_core.training.callbacks import evaluate_at
     from gpnerf_core.training.trainer import Trainer
 
-    trained, notes = checkpoint_config(cfg, "finetune")
-    checkpoint = trained.path
     scenes = list(cfg.dataset.get("scenes") or [])
     if not scenes:
         raise ConfigError(
             "finetune needs dataset.scenes=[<scene>, ...]: the scenes to fine-tune on (their held-out frames are "
             "evaluated, never trained on)"
         )
-    plan = plan_resume(cfg, dist)  # train.resume: an interrupted fine-tuning's own checkpoint (or auto)
     total = int(cfg.train.steps)
     points = curve_points(total, int(cfg.finetune.points))
     with open_dict(cfg):
         cfg.eval.splits = ["train"]  # the chosen scenes' held-out frames
-    start(cfg)
-    built = built_from_checkpoint(cfg, trained, str(cfg.eval.weights), new_classes=True,
-                                  source=f"finetune checkpoint={checkpoint}")
-    components, which, reinitialised = built.components, built.weights, built.reinitialised
-    notes += built.notes
+    opened = open_trained(handover.trained, cfg=cfg, command="finetune", validated=handover.validated,
+                          device=dist.device, new_classes=True, source="finetune checkpoint={path}")
+    trained, components, which, reinitialised = opened.trained, opened.components, opened.weights, opened.reinitialised
+    checkpoint, notes = trained.path, opened.notes
+    plan = plan_resume(cfg, dist)  # train.resume: an interrupted fine-tuning's own checkpoint (or auto)
     check_data(cfg, components, training=True)
     check_splits_have_frames(cfg, components)  # the chosen scenes' held-out frames: a curve of no image is refused
     dataset_note = foreign_dataset_note(trained.overrides, list(task_overrides()))
     notes = [dataset_note, *notes] if dataset_note else notes
     record = run_record(cfg, components.model_sections)
     run_dir = shared_run_dir(cfg, dist)
-    trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record)  # resumes: refused before the claim
+    trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record,  # resumes: refused before the claim
+                      resume_from=plan.take_read())
     folder, record = claim_run_folder(
         cfg, dist, resuming=plan.resuming, replace_leftovers=plan.replace_leftovers, record=record
     )
@@ -86,7 +77,7 @@ def finetune_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             if reinitialised:
                 print(
                     f"note: {components.classes.num_classes} classes instead of the checkpoint's "
-                    f"{built.checkpoint_classes}: "
+                    f"{opened.checkpoint_classes}: "
                     f"re-initialised {', '.join(reinitialised)} (the head's last layer); every other tensor loaded",
                     file=sys.stderr,
                 )

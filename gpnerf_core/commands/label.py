@@ -22,7 +22,10 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from gpnerf_core.engine.jobs import claim_run_folder, job, launch_from_checkpoint, model_from_checkpoint
+from gpnerf_core.engine.guarding import job
+from gpnerf_core.engine.launching import Handover, launch_from_checkpoint
+from gpnerf_core.engine.opening import open_trained
+from gpnerf_core.engine.runs import claim_run_folder
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.runtime.staging import Write, write_staged
@@ -49,7 +52,7 @@ def _write_png(path: Any, labels: np.ndarray) -> None:
 
 
 @job
-def label_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
+def label_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handover()) -> dict[str, Any]:
     from functools import partial
 
     from tqdm import tqdm
@@ -61,7 +64,8 @@ def label_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.model.view_inputs import view_inputs
     from gpnerf_core.runtime.io import atomic_write_json
 
-    loaded = model_from_checkpoint(cfg, dist, "label", check_scenes=False)
+    loaded = open_trained(handover.trained, cfg=cfg, command="label", validated=handover.validated,
+                          device=dist.device)
     components = loaded.components
     model = components.model.eval()
     output = model.semantic_output

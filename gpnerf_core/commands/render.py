@@ -31,7 +31,10 @@ from gpnerf_core.errors import ConfigError, GpnerfError
 from gpnerf_core.model.feature_cache import SourceFeatureCache
 from gpnerf_core.model.view_inputs import view_inputs
 from gpnerf_core.geometry.trajectories import trajectory
-from gpnerf_core.engine.jobs import claim_run_folder, job, launch_from_checkpoint, model_from_checkpoint
+from gpnerf_core.engine.guarding import job
+from gpnerf_core.engine.launching import Handover, launch_from_checkpoint
+from gpnerf_core.engine.opening import open_trained
+from gpnerf_core.engine.runs import claim_run_folder
 from gpnerf_core.runtime.staging import Write, write_staged
 
 
@@ -55,7 +58,7 @@ def checked_fps(value: Any) -> int:
 
 
 @job
-def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
+def render_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handover()) -> dict[str, Any]:
     from tqdm import tqdm
 
     from gpnerf_core.evaluation import visualize as vis
@@ -69,7 +72,8 @@ def render_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     budget = float(cfg.render.feature_cache_mb)
     if budget < 0:
         raise ConfigError(f"render.feature_cache_mb={budget}: expected megabytes >= 0 (0 = no cache)")
-    loaded = model_from_checkpoint(cfg, dist, "render", check_scenes=False)
+    loaded = open_trained(handover.trained, cfg=cfg, command="render", validated=handover.validated,
+                          device=dist.device)
     checkpoint, notes, components = loaded.trained.path, loaded.notes, loaded.components
     model = components.model.eval()
     classes = components.classes

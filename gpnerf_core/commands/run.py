@@ -2,7 +2,7 @@
 unseen scenes, and write the run folder (the main job; ``-m`` sweeps).
 
 Runs as one process or as N under torchrun. Rank 0 alone writes the run folder, which it first locks
-(``jobs.claim_run_folder``); every other process learns the folder from rank 0. Everything that can refuse the run
+(``runs.claim_run_folder``); every other process learns the folder from rank 0. Everything that can refuse the run
 (the config, the data, every check of the checkpoint it resumes from) happens before that claim: a refused command
 leaves the folder as it was.
 """
@@ -22,7 +22,11 @@ from gpnerf_core.runtime.device import machine_info
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.evaluation.curves import curve_entry, eval_scalars
 from gpnerf_core.runtime.io import atomic_write_json
-from gpnerf_core.engine.jobs import claim_run_folder, job, launch, plan_resume, run_record, shared_run_dir, start
+from gpnerf_core.engine.guarding import job
+from gpnerf_core.engine.launching import Handover, launch
+from gpnerf_core.engine.resuming import plan_resume
+from gpnerf_core.engine.runs import claim_run_folder, run_record, shared_run_dir
+from gpnerf_core.engine.setup import start
 from gpnerf_core.engine.validation import check_data
 
 
@@ -31,7 +35,7 @@ def main(argv: list[str]) -> int:
 
 
 @job
-def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
+def run_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handover()) -> dict[str, Any]:
     from gpnerf_core.evaluation.evaluator import check_splits_have_frames, evaluate, print_summary
     from gpnerf_core.evaluation.visualize import plot_training_curves
     from gpnerf_core.model.weights import init_weights
@@ -39,7 +43,7 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
     from gpnerf_core.training.sampler import check_global_batch
     from gpnerf_core.training.trainer import Trainer
 
-    start(cfg)
+    start(cfg, validated=handover.validated)
     check_global_batch(int(cfg.train.targets_per_step), dist.world_size)
     plan = plan_resume(cfg, dist)
     resuming = plan.resuming
@@ -53,7 +57,8 @@ def run_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
             print(report, file=sys.stderr)
     record = run_record(cfg, components.model_sections)
     run_dir = shared_run_dir(cfg, dist)
-    trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record)  # resumes: its checks refuse here
+    trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record,  # resumes: its checks refuse here
+                      resume_from=plan.take_read())
     folder, record = claim_run_folder(
         cfg, dist, resuming=resuming, replace_leftovers=plan.replace_leftovers, record=record
     )

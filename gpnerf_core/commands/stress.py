@@ -135,8 +135,6 @@ def main(argv: list[str]) -> int:
         raise ConfigError(f"--views-per-scene {views}: expected an integer >= 0 (0 = all)")
     if args.threads < 0:
         raise ConfigError(f"--threads {args.threads}: expected an integer >= 0")
-    if args.threads:
-        torch.set_num_threads(args.threads)
     started = time.perf_counter()
     if args.merge:
         outcomes, models = merged_outcomes(args.paths)
@@ -149,7 +147,7 @@ def main(argv: list[str]) -> int:
         outcomes = []
         try:
             run_suite(models, cases, quick=args.quick, views_per_scene=views, scratch=scratch, device=device,
-                      outcomes=outcomes)
+                      threads=args.threads, outcomes=outcomes)
         except BaseException as exc:
             stop = interrupted_by(exc)
             if stop is not None and outcomes:  # keep what finished: a rerun of the same suite reads it with --merge

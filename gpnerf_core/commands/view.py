@@ -21,7 +21,10 @@ from omegaconf import DictConfig
 
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import GpnerfError
-from gpnerf_core.engine.jobs import job, launch_from_checkpoint, model_from_checkpoint, run_dir
+from gpnerf_core.engine.guarding import job
+from gpnerf_core.engine.launching import Handover, launch_from_checkpoint
+from gpnerf_core.engine.opening import open_trained
+from gpnerf_core.engine.runs import run_dir
 from gpnerf_core.interfaces.head import Predicts
 from gpnerf_core.runtime.signals import Terminated
 
@@ -31,9 +34,9 @@ def main(argv: list[str]) -> int:
 
 
 @job
-def view_task(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
+def view_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handover()) -> dict[str, Any]:
     with _stopped_by_signals():
-        return _serve(cfg, dist)
+        return _serve(cfg, dist, handover)
 
 
 @contextlib.contextmanager
@@ -57,7 +60,7 @@ def _raise_terminated(signum: int, frame: Any) -> None:
     raise Terminated()
 
 
-def _serve(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
+def _serve(cfg: DictConfig, dist: Distributed, handover: Handover) -> dict[str, Any]:
     from gpnerf_core.model.feature_cache import SourceFeatureCache
     from gpnerf_core.data.dataset import chosen_scene, shown_scenes
     from gpnerf_core.data.frames import FrameCache
@@ -69,7 +72,8 @@ def _serve(cfg: DictConfig, dist: Distributed) -> dict[str, Any]:
         host, port = str(cfg.view.host), int(cfg.view.port)
         check_port_free(host, port)  # before loading the model: a port in use is refused at once
         preview = preview_of(cfg.view)
-        loaded = model_from_checkpoint(cfg, dist, "view", check_scenes=False)
+        loaded = open_trained(handover.trained, cfg=cfg, command="view", validated=handover.validated,
+                              device=dist.device)
         components = loaded.components
         for note in loaded.notes:
             print(f"note: {note}", file=sys.stderr)

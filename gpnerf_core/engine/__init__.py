@@ -1,2 +1,4 @@
-"""The lifecycle every command shares: compose and validate before anything is written, claim the run folder, set up
-the process, and refuse what cannot run before any work."""
+"""The lifecycle every command shares, one module per concern: ``launching`` (compose and validate before anything is
+written, then Hydra), ``guarding`` (one line and an exit code per error), ``sweeps`` (a ``-m`` sweep's failed jobs),
+``setup`` (validate once, set up the process), ``resuming`` (``train.resume``), ``runs`` (the run folder and its
+records) and ``opening`` (a trained model opened one way)."""

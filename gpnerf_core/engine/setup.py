@@ -1,8 +1,11 @@
 """What a process does with a config before any work, the one way every command and tool does it: compose and
 validate it (``compose_checked``), then set torch's threads and seed and choose the device (``setup_process``).
 
-``run``, ``eval``, ``finetune``, ``render`` and ``view`` go through it in ``jobs.start``; ``bench`` (and its
-``measure``, ``profile``, ``ab``), ``size``, ``stress`` and the viewer's timing call it directly.
+A config is validated once per command and process: before Hydra (``launching.precheck``), or in the job that was not
+prechecked (``start``); ``size`` and ``bench`` validate what they compose (``compose_checked``). Hydra jobs set up
+their process in ``start`` (``run``; ``eval``, ``finetune``, ``render``, ``view``, ``export``, ``label``, ``stress`` and
+the viewer's timing through ``opening.open_trained``); ``bench`` (its ``measure``, ``profile``, ``ab``) and ``size``
+call ``setup_process`` themselves.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import InterpolationResolutionError
 
 from gpnerf_core.config.compose import compose
+from gpnerf_core.engine.sweeps import refuse_shared_out_dir
 from gpnerf_core.engine.validation import validate_config
 from gpnerf_core.errors import ConfigError, GpnerfError
 from gpnerf_core.registry.components import get_registry
@@ -25,18 +29,25 @@ from gpnerf_core.runtime.host_memory import keep_freed_memory
 
 
 def compose_checked(overrides: list[str]) -> DictConfig:
-    """The config ``overrides`` compose, validated; an unknown component, an override Hydra cannot apply and a value
-    the schema refuses are each one ``GpnerfError`` (for ``precheck`` and the commands that are not Hydra jobs)."""
+    """The config ``overrides`` compose (``compose_overrides``), validated (``check_config``): an unknown component,
+    an override Hydra cannot apply and a value the schema refuses are each one ``GpnerfError`` (for the commands that
+    are not Hydra jobs)."""
+    cfg = compose_overrides(overrides)
+    check_config(cfg)
+    return cfg
+
+
+def compose_overrides(overrides: list[str]) -> DictConfig:
+    """The config ``overrides`` compose, not validated yet; an unknown component and an override Hydra cannot apply
+    are each one ``GpnerfError``."""
     check_component_choices(overrides, get_registry())
     check_override_grammar(overrides)
     try:
-        cfg = compose(overrides)
+        return compose(overrides)
     except GpnerfError:
         raise
     except Exception as exc:
         raise ConfigError(hydra_message(exc)) from None
-    check_config(cfg)
-    return cfg
 
 
 def check_config(cfg: DictConfig) -> None:
@@ -129,11 +140,22 @@ def hydra_message(exc: BaseException) -> str:
     return "; ".join(parts) or "invalid overrides"
 
 
-def setup_process(cfg: DictConfig) -> torch.device:
-    """Validate ``cfg`` (``validate_config``), give torch ``cfg.threads`` threads (0: its default), keep freed host
-    memory in the process when ``cfg.keep_freed_memory`` (``runtime.host_memory``) and seed torch with ``cfg.seed``
-    (which fixes every model's initialisation); returns the device ``cfg.device`` resolves to."""
-    check_config(cfg)
+def start(cfg: DictConfig, *, validated: bool = False) -> torch.device:
+    """A job's start, before any work: validate ``cfg`` unless it was (``validated``: before Hydra, ``precheck``),
+    refuse one fixed ``out_dir`` for a whole ``-m`` sweep, then ``setup_process``; returns its device."""
+    if not validated:
+        check_config(cfg)
+    refuse_shared_out_dir(cfg)
+    return setup_process(cfg, validated=True)
+
+
+def setup_process(cfg: DictConfig, *, validated: bool = False) -> torch.device:
+    """Validate ``cfg`` (``check_config``) unless the caller did (``validated``), give torch ``cfg.threads`` threads
+    (0: its default), keep freed host memory in the process when ``cfg.keep_freed_memory`` (``runtime.host_memory``)
+    and seed torch with ``cfg.seed`` (which fixes every model's initialisation); returns the device ``cfg.device``
+    resolves to."""
+    if not validated:
+        check_config(cfg)
     if cfg.keep_freed_memory:
         keep_freed_memory()
     if cfg.threads:

@@ -1,11 +1,11 @@
 """A trained model read back: one reader for every command that starts from a checkpoint.
 
-``load_trained(path)`` reads a checkpoint once (and checks its content hash once), whoever asks: the launcher that
-composes ``eval``'s config from the checkpoint's overrides and the task that then evaluates it, ``plan_resume`` and the
-trainer it hands over to, ``stress``, ``finetune``, ``render``, ``view`` and ``model.init``. The config of a trained
-model is rebuilt one way, ``TrainedModel.config``: the checkpoint's overrides, then the command's, composed; then
-the checkpoint's model settings restored wherever the command did not set them (a default that changed since must
-not change a trained model). A Hydra command composes the same overrides itself and calls ``restore_model_settings``.
+``load_trained(path)`` reads a checkpoint and checks its content hash. Whoever reads it hands the read on, so that a
+command reads its file once: the launcher that composes ``eval``'s config from the checkpoint's overrides hands it to
+the job (``engine.launching.Handover``), ``plan_resume`` to the trainer (``ResumePlan.take_read``). Nothing here keeps a
+read: its tensors go when its last holder lets go of it. A trained model is opened one way, ``engine.opening
+.open_trained``, which restores the checkpoint's model settings into the command's config (``restore_model_settings``:
+a default that changed since must not change a trained model).
 """
 
 from __future__ import annotations
@@ -18,8 +18,6 @@ import torch
 import yaml
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from gpnerf_core.config.compose import compose
-from gpnerf_core.config.overrides import merge_overrides, override_key
 from gpnerf_core.errors import DataError
 from gpnerf_core.model.checkpoint import (
     ABSENT, checkpoint_sections, evaluation_weights, model_differences, read_checkpoint,
@@ -81,20 +79,15 @@ class TrainedModel:
         """The model weights to evaluate or start from: ``(state dict, "average" | "trained")`` (``eval.weights``)."""
         return evaluation_weights(self.state, choice)
 
-    def config(self, overrides: list[str] | tuple[str, ...] = ()) -> DictConfig:
-        """The trained model's config with ``overrides`` on top: composed from the checkpoint's overrides and then
-        ``overrides``, the model settings restored (``restore_model_settings``)."""
-        cfg = compose(merge_overrides(self.overrides, list(overrides)))
-        restore_model_settings(cfg, self, [override_key(o) for o in overrides])
-        return cfg
-
-
-_LAST: tuple[tuple[Any, ...], TrainedModel] | None = None
-"""The last checkpoint read, by file identity: the launcher's read serves the task, ``plan_resume``'s the trainer."""
+    @property
+    def family(self) -> str:
+        """The model family it trained (``model.name``; ``gnt`` for a checkpoint written before there were others)."""
+        return str(((yaml.safe_load(self.config_yaml) or {}).get("model") or {}).get("name") or "gnt")
 
 
 def load_trained(path: str | Path, key: str = "checkpoint") -> TrainedModel:
-    """The trained model in ``path``, read and verified once per file (the same file read again is not read).
+    """The trained model in ``path``, read and verified (its content hash); each call reads the file, so a caller
+    hands its read on instead of asking again.
 
     Args:
         key: the option that named ``path`` (``checkpoint``, ``train.resume``), for the error lines.
@@ -102,14 +95,8 @@ def load_trained(path: str | Path, key: str = "checkpoint") -> TrainedModel:
     Raises:
         DataError: empty, missing, a folder, unreadable, of another format version, or damaged (content hash).
     """
-    global _LAST
     path = checked_checkpoint_path(path, key)
-    identity = _identity(path)
-    if _LAST is not None and identity is not None and _LAST[0] == identity:
-        return _LAST[1]
-    trained = TrainedModel(path, read_checkpoint(path))
-    _LAST = (identity, trained) if identity is not None else None
-    return trained
+    return TrainedModel(path, read_checkpoint(path))
 
 
 def checked_checkpoint_path(value: str | Path, key: str = "checkpoint") -> Path:
@@ -135,20 +122,6 @@ def newest_checkpoint_file(folder: Path) -> Path | None:
     found = [p for where in (folder, folder / "checkpoints") for p in where.glob("step_*.pt") if p.is_file()]
     steps = [(int(p.stem[5:]), p) for p in found if p.stem[5:].isdigit()]
     return max(steps)[1] if steps else None
-
-
-def release_trained() -> None:
-    """Forget the last checkpoint read (its tensors), once its weights are in a model."""
-    global _LAST
-    _LAST = None
-
-
-def _identity(path: Path) -> tuple[Any, ...] | None:
-    try:
-        stat = path.stat()
-    except OSError:
-        return None
-    return (str(path.resolve()), stat.st_ino, stat.st_size, stat.st_mtime_ns)
 
 
 def restore_model_settings(cfg: DictConfig, trained: TrainedModel, typed: list[str]) -> list[str]:

@@ -31,7 +31,7 @@ from gpnerf_core.data.frames import FrameCache
 from gpnerf_core.runtime.profiling import stage
 from gpnerf_core.model.output_checks import check_step_output
 from gpnerf_core.model.checkpoint import RunRecord, check_resume_config, checkpoint_sections, save_checkpoint
-from gpnerf_core.model.trained import load_trained, release_trained
+from gpnerf_core.model.trained import TrainedModel, load_trained
 from gpnerf_core.model.weights import load_weights
 from gpnerf_core.training.interrupt import StopNow, StopRequest, TrainingInterrupted
 from gpnerf_core.training.loggers import ScalarLogger
@@ -174,6 +174,7 @@ class Trainer:
         dist: this process's place in the job (single process by default).
         run_dir: where rank 0 writes checkpoints.
         record: what the run was made from, written into every checkpoint.
+        resume_from: ``cfg.train.resume`` as read already (``ResumePlan.take_read``); None: read here.
     """
 
     def __init__(
@@ -184,6 +185,7 @@ class Trainer:
         dist: Distributed,
         run_dir: Path,
         record: RunRecord,
+        resume_from: TrainedModel | None = None,
     ) -> None:
         if components.loss is None:
             raise ConfigError("training needs a loss set: add +loss=<name> (e.g. +loss=dgs)")
@@ -235,7 +237,7 @@ class Trainer:
         if dist.enabled:
             torch.manual_seed(process_seed(int(cfg.seed), dist.rank))
         if cfg.train.resume:
-            self._resume(Path(cfg.train.resume))
+            self._resume(Path(cfg.train.resume), resume_from)
         self.wrapped: torch.nn.Module = self.model
         if dist.enabled:
             # A loss set may leave whole modules without gradient (rgb alone: no head, no FPN); DDP must then search
@@ -632,10 +634,12 @@ class Trainer:
         prune_checkpoints(self.run_dir, int(self.cfg.train.keep_checkpoints))
         return path
 
-    def _resume(self, path: Path) -> None:
+    def _resume(self, path: Path, read: TrainedModel | None = None) -> None:
         """Continue from the checkpoint ``path``; every refusal (another model or loss, weights or optimizer state that
-        do not fit, no weight average) is raised here, in the constructor, before ``run`` claims its folder."""
-        state = load_trained(path, "train.resume").state  # plan_resume read it already: not read again
+        do not fit, no weight average) is raised here, in the constructor, before ``run`` claims its folder.
+
+        ``read``: ``path`` as read already (``plan_resume``'s, handed over as ``resume_from``): not read again."""
+        state = (read or load_trained(path, "train.resume")).state
         self.notes += check_resume_config(path, state["config"], self.record.config_yaml, self.cfg.train.resume_strict,
                                           checkpoint_sections(state))
         load_weights(self.model, state["model"], f"checkpoint {path}")
@@ -666,4 +670,3 @@ class Trainer:
                 f"the checkpoint was written by {len(rng)} processes and this run has {self.dist.world_size}: "
                 "target views, pixels and samples resume exactly, dropout draws do not"
             )
-        release_trained()

@@ -21,7 +21,7 @@ from gpnerf_core import ComponentSpec
 from gpnerf_core.commands.run import run_task
 from gpnerf_core.config.compose import compose
 from gpnerf_core.config.overrides import quoted_for_hydra
-from gpnerf_core.engine.jobs import record_sweep_failure
+from gpnerf_core.engine.sweeps import record_sweep_failure
 from gpnerf_core.engine.setup import compose_checked
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.model.trained import checked_checkpoint_path, load_trained

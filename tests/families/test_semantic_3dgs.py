@@ -257,16 +257,15 @@ def test_stress_skips_what_a_per_scene_model_cannot_be_asked(fitted, tmp_path):
 
 
 def test_the_viewer_draws_the_fitted_gaussians_themselves(fitted):
-    from gpnerf_core.config.overrides import merge_overrides
     from gpnerf_core.data.frames import FrameCache
-    from gpnerf_core.engine.jobs import built_from_checkpoint
+    from gpnerf_core.engine.opening import open_trained
     from gpnerf_core.model.feature_cache import SourceFeatureCache
     from gpnerf_core.model.trained import load_trained
     from gpnerf_core.tools.viewer.renderer import SceneRenderer
     from gpnerf_core.tools.viewer.splats import splat_arrays
 
     trained = load_trained(fitted / "checkpoints" / "step_0000006.pt")
-    components = built_from_checkpoint(compose(merge_overrides(trained.overrides, [])), trained, "trained").components
+    components = open_trained(trained, command="view", weights="trained", device=torch.device("cpu")).components
     renderer = SceneRenderer(components.model.eval(), FrameCache(components.dataset, torch.device("cpu")),
                              components.view_selector, num_classes=components.classes.num_classes, chunk_rays=256,
                              default_source_views=0, feature_cache=SourceFeatureCache(16))

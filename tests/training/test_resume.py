@@ -10,7 +10,7 @@ from omegaconf import open_dict
 from gpnerf_core.config.compose import compose
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_core.engine.jobs import plan_resume
+from gpnerf_core.engine.resuming import plan_resume
 from gpnerf_core.model.checkpoint import content_digest, read_checkpoint
 from gpnerf_core.training.resume import newest_intact_checkpoint, run_checkpoints
 from pipeline_check import TINY_MODEL, TINY_SCENES, make_trainer

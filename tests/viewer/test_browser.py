@@ -76,16 +76,13 @@ def trained_renderer(checkpoint: str):
     its class names and the source-view count it was trained with."""
     import torch
 
-    from gpnerf_core.config.compose import compose
-    from gpnerf_core.config.overrides import merge_overrides
     from gpnerf_core.data.frames import FrameCache
-    from gpnerf_core.engine.jobs import built_from_checkpoint
+    from gpnerf_core.engine.opening import open_trained
     from gpnerf_core.model.trained import load_trained
     from gpnerf_core.tools.viewer.renderer import SceneRenderer
 
-    trained = load_trained(checkpoint)
-    cfg = compose(merge_overrides(trained.overrides, []))
-    components = built_from_checkpoint(cfg, trained, "trained").components
+    opened = open_trained(load_trained(checkpoint), command="view", weights="trained", device=torch.device("cpu"))
+    cfg, components = opened.cfg, opened.components
     renderer = SceneRenderer(components.model.eval(), FrameCache(components.dataset, torch.device("cpu")),
                              components.view_selector, num_classes=components.classes.num_classes,
                              chunk_rays=int(cfg.eval.chunk_rays), default_source_views=int(cfg.model.num_source_views))

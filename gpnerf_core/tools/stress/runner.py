@@ -18,7 +18,7 @@ from typing import Any, Sequence
 
 import torch
 import yaml
-from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf import DictConfig, open_dict
 
 from gpnerf_core.errors import ConfigError, DataError, NonFiniteError, PluginError
 from gpnerf_core.interfaces import StressCase
@@ -32,13 +32,22 @@ QUICK_VIEWS_PER_SCENE = 1
 
 @dataclass(frozen=True)
 class ModelUnderTest:
-    """A trained model to stress: its checkpoint, composed config, method key and label."""
+    """A trained model to stress: its checkpoint, composed config, method key and label.
+
+    ``read``: the checkpoint as ``models_from_paths`` read it (a ``.pt`` given, the first model stressed), until the
+    suite opens it (``take_read``): the file is not read twice, and nothing keeps its tensors afterwards.
+    """
 
     checkpoint: Path
     config: dict[str, Any]
     method: str
     seed: Any
     name: str
+    read: list[Any] = field(default_factory=list, repr=False, compare=False)
+
+    def take_read(self) -> Any:
+        """The checkpoint read (``TrainedModel``), handed over once; None when it was not kept."""
+        return self.read.pop() if self.read else None
 
 
 @dataclass
@@ -71,10 +80,13 @@ def models_from_paths(paths: Sequence[Path]) -> list[ModelUnderTest]:
     rows: list[RunRow] = []
     checkpoints: dict[Path, Path] = {}
     skipped: list[str] = []
+    last = None  # the last checkpoint read: kept for the suite if it is the first model stressed
     for path in paths:
         if path.is_file():
+            last = None  # one checkpoint's tensors at a time
+            last = load_trained(path)
             row = RunRow(path.parent.parent if path.parent.name == "checkpoints" else path.parent,
-                         yaml.safe_load(load_trained(path).config_yaml) or {}, {})
+                         yaml.safe_load(last.config_yaml) or {}, {})
             rows.append(row)
             checkpoints[row.folder] = path
             continue
@@ -98,6 +110,8 @@ def models_from_paths(paths: Sequence[Path]) -> list[ModelUnderTest]:
         for row in group.runs:
             models.append(ModelUnderTest(checkpoints[row.folder], row.config, label, row.config.get("seed"),
                                          row.folder.name))
+    if last is not None and models[0].checkpoint == last.path:
+        models[0].read.append(last)
     return models
 
 
@@ -158,7 +172,7 @@ def choose_cases(names: Sequence[str] | None) -> list[StressCase]:
 
 
 def _config(trained_config: DictConfig, views_per_scene: int, dataset_overrides: dict[str, Any]) -> DictConfig:
-    """The trained model's config (``TrainedModel.config``) for evaluation, with the dataset overrides."""
+    """The trained model's config (``open_trained``'s) for evaluation, with the dataset overrides."""
     cfg = copy.deepcopy(trained_config)
     with open_dict(cfg):
         cfg.eval.max_views_per_scene = views_per_scene
@@ -171,19 +185,20 @@ def _config(trained_config: DictConfig, views_per_scene: int, dataset_overrides:
 class _Evaluator:
     """One model, its weights loaded once; datasets (and frame caches) per dataset variant."""
 
-    def __init__(self, model: ModelUnderTest, views_per_scene: int, device: torch.device) -> None:
-        from gpnerf_core.engine.jobs import built_from_checkpoint
-        from gpnerf_core.model.trained import load_trained, release_trained
+    def __init__(self, model: ModelUnderTest, views_per_scene: int, device: torch.device, threads: int) -> None:
+        from gpnerf_core.engine.opening import open_trained
+        from gpnerf_core.model.trained import load_trained
 
         self.model = model
         self.views_per_scene = views_per_scene
         self.device = device
-        trained = load_trained(model.checkpoint)
-        self.trained_config = trained.config()
+        opened = open_trained(model.take_read() or load_trained(model.checkpoint),
+                              [f"device={device.type}", f"threads={threads}"], command="stress", weights="average",
+                              device=device)
+        self.trained_config = opened.cfg
         self.cfg = _config(self.trained_config, views_per_scene, {})
-        self.components = built_from_checkpoint(self.cfg, trained, "average").components
-        release_trained()
-        self.components.model.to(device).eval()
+        self.components = opened.components
+        self.components.model.eval()
         self._variants: dict[str, tuple[DictConfig, Any, Any]] = {}
 
     def variant(self, overrides: dict[str, Any]) -> tuple[DictConfig, Any, Any]:
@@ -248,17 +263,18 @@ def _seed(*parts: Any) -> int:
 
 def run_suite(
     models: list[ModelUnderTest], cases: list[StressCase], *, quick: bool, views_per_scene: int, scratch: Path,
-    device: torch.device, outcomes: list[Outcome] | None = None,
+    device: torch.device, threads: int = 0, outcomes: list[Outcome] | None = None,
 ) -> list[Outcome]:
     """Every model under the clean condition and every chosen level of every case, with progress on stderr.
 
     Args:
+        device, threads: where and with how many torch threads (0: torch's default) every model is evaluated.
         outcomes: the list each finished evaluation is appended to as it ends (so an interrupted suite's caller still
             holds them); a new one when None.
     """
     outcomes = [] if outcomes is None else outcomes
     for model in models:
-        evaluator = _Evaluator(model, views_per_scene, device)
+        evaluator = _Evaluator(model, views_per_scene, device, threads)
         started = time.perf_counter()
         clean = evaluator.evaluate(None, None, scratch)
         outcomes.append(Outcome(model.name, model.method, model.seed, "clean", None, "clean", clean,

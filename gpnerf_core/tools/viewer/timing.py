@@ -1,12 +1,13 @@
 """How long the viewer takes for one camera: ``python -m gpnerf_core.tools.viewer.timing [--repeats=3] [overrides]``.
 
 Builds the model of the given config (its weights do not change the time of a fixed-size model), or with
-``checkpoint=<pt>`` the checkpoint's model with its weights (its config, the overrides after it: the size of a model
-that grows while it trains, per-scene Gaussians, is its checkpoint's), then, for a camera at a training frame of the
-first scene (a per-scene model's own), times what the viewer does when a camera stops: the preview at
-``view.preview_stride`` (``view.preview_samples`` per ray around ``view.preview_depth_source``'s depth; 0 = as the full
-frame) and the full frame at ``view.stride``, each for a camera whose sources are not encoded yet
-(cold) and again with the feature cache holding them (warm, as while the camera moves among the same sources).
+``checkpoint=<pt>`` the checkpoint's model with its weights, opened as ``view`` opens it (``open_trained``: its config,
+the overrides after it, its model settings restored: the size of a model that grows while it trains, per-scene
+Gaussians, is its checkpoint's), then, for a camera at a training frame of the first scene (a per-scene model's own),
+times what the viewer does when a camera stops: the preview at ``view.preview_stride`` (``view.preview_samples`` per
+ray around ``view.preview_depth_source``'s depth; 0 = as the full frame) and the full frame at ``view.stride``, each for
+a camera whose sources are not encoded yet (cold) and again with the feature cache holding them (warm, as while the
+camera moves among the same sources).
 Prints one JSON object (seconds, the image size, threads and device, and the process's CPU user and system seconds
 and minor page faults over the timed renders: ``keep_freed_memory=false`` shows what glibc's defaults cost)."""
 
@@ -35,16 +36,13 @@ def measure(overrides: list[str], repeats: int = 3) -> dict[str, object]:
 
     given = [o for o in overrides if o.startswith("checkpoint=")]
     fitted = None
-    if given:
-        from gpnerf_core.config.overrides import merge_overrides
-        from gpnerf_core.engine.jobs import built_from_checkpoint, fitted_scenes
+    if given:  # the trained model as `view` opens it: its settings restored, its (trained) weights, on the CPU
+        from gpnerf_core.engine.opening import open_trained
         from gpnerf_core.model.trained import load_trained
 
-        trained = load_trained(given[-1].split("=", 1)[1])
-        cfg = compose(merge_overrides(trained.overrides, [o for o in overrides if o not in given]))
-        setup_process(cfg)
-        components = built_from_checkpoint(cfg, trained, "trained").components
-        fitted = fitted_scenes(cfg, components, trained)
+        opened = open_trained(load_trained(given[-1].split("=", 1)[1]), [o for o in overrides if o not in given],
+                              command="timing", weights="trained", device=torch.device("cpu"))
+        cfg, components, fitted = opened.cfg, opened.components, opened.fitted
     else:
         cfg = compose(overrides)
         setup_process(cfg)
