@@ -51,6 +51,7 @@ from gpnerf_core import (
     density_opacity,
     hookimpl,
     importance_depths,
+    part,
     points_along_rays,
     rays_through_pixels,
     render_whole_view,
@@ -66,6 +67,8 @@ class PooledViewsConfig(RayMarchingConfig):
 
     name: str = "pooled_views"
     """Registry name of this model family."""
+    feature_extractor: Any = part("resunet_fpn")
+    """Encodes the source views (the built-in extractor)."""
     hidden: int = 32
     """Width of the per-view and density MLPs."""
     label_rendering: bool = True

@@ -18,8 +18,10 @@ class ModelConfig:
 
     The core reads ``num_source_views``, ``init`` and ``init_strict`` itself, and a family's own learning rates where
     its config has them (an ``lr`` section of its own dataclass, ``model.lr.<group>``: see
-    ``ModelFamily.parameter_groups``); the family's factory gets the others. A ray-marching family's config subclasses
-    ``RayMarchingConfig`` (its sample counts).
+    ``ModelFamily.parameter_groups``); the family's factory gets the others. The parts a family builds are fields of its
+    config declared with ``gpnerf_core.part`` (``feature_extractor: Any = part("resunet_fpn")``): the core mounts their
+    config groups under ``model`` and keeps them from the factory, which builds them through ``ModelParts``. A
+    ray-marching family's config subclasses ``RayMarchingConfig`` (its sample counts).
     """
 
     name: str = ""
@@ -214,10 +216,8 @@ class ViewConfig:
 @dataclass
 class RootConfig:
     model: Any = MISSING
-    """The model family (``model=<name>``; ``ModelConfig`` and the family's own options)."""
-    feature_extractor: Any = MISSING
-    field_aggregator: Any = MISSING
-    ray_aggregator: Any = MISSING
+    """The model family (``model=<name>``; ``ModelConfig`` and the family's own options), with the parts it builds
+    mounted under it (``model.feature_extractor``, ``model.field_aggregator``, ...: ``model/<kind>=<name>``)."""
     dataset: Any = MISSING
     view_selector: Any = MISSING
     head: Any = None

@@ -19,7 +19,7 @@ from gpnerf_core.config.compose import compose
 from gpnerf_core.engine.validation import validate_config
 from gpnerf_core.errors import ConfigError, GpnerfError
 from gpnerf_core.registry.components import get_registry
-from gpnerf_core.registry.kinds import KINDS
+from gpnerf_core.registry.kinds import GROUPS
 from gpnerf_core.runtime.device import resolve_device
 from gpnerf_core.runtime.host_memory import keep_freed_memory
 
@@ -99,12 +99,12 @@ def check_component_choices(argv: list[str], registry: Any) -> None:
     for argument in argv:
         key, sep, value = argument.partition("=")
         group = key.lstrip("+~")
-        if not sep or group not in KINDS or "${" in value:
+        if not sep or group not in GROUPS or "${" in value:
             continue
         for name in value.split(","):  # a -m sweep over options
             name = name.strip()
             if name and name != "null" and not any(c in name for c in "*?[("):
-                registry.get(group, name)
+                registry.get(GROUPS[group], name)
 
 
 MULTIPLE_VALUES = re.compile(r"Multiple values for (\w+)\. To override a value use 'override \w+: (\S+)'")

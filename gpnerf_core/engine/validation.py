@@ -149,9 +149,9 @@ def _refuse_unknown_keys(node: DictConfig, schema: type, prefix: str, component:
             continue
         hint = hints.get(key)
         child = node.get(key)
-        if key in KINDS:
-            # A component's options: its registered config (an unknown top-level option is also refused when it is
-            # built, naming the options; here nested ones are too, before any work).
+        if key in KINDS and (not component or KINDS[key].part):
+            # A component's options (a part's under the model's): its registered config (an unknown top-level option
+            # is also refused when it is built, naming the options; here nested ones are too, before any work).
             hint = _component_config(key, child)
             if hint is None or not isinstance(child, DictConfig):
                 continue

@@ -87,8 +87,9 @@ class ModelParts(ABC):
     """What the core hands a model family's factory (its ``parts`` argument) besides the family's own options.
 
     A family builds the other components it is made of (an extractor, aggregators, a head) from the config through
-    this, so each stays a plugin of its own kind, chosen on the command line (``feature_extractor=...``,
-    ``+head=...``), and is never a copy inside the family.
+    this, so each stays a plugin of its own kind, chosen on the command line (its parts under the model,
+    ``model/feature_extractor=...``; the add-ons ``+head=...``), and is never a copy inside the family. The parts it
+    builds are those its config declares (``gpnerf_core.part``); ``build`` reads their sections under ``model``.
     """
 
     @property
@@ -122,9 +123,9 @@ class ModelParts(ABC):
             return None
         if not extractor.semantic_dim:
             raise ConfigError(f"+head={self.name('head')} with model={family} decodes {decodes} in the semantic maps' "
-                              f"space of the feature extractor, and feature_extractor "
-                              f"{self.name('feature_extractor')!r} makes none (feature_extractor.semantic=true, or "
-                              "another extractor such as feature_extractor=resunet_fpn)")
+                              f"space of the feature extractor, and model/feature_extractor="
+                              f"{self.name('feature_extractor')} makes none (model.feature_extractor.semantic=true, or "
+                              "another extractor that makes semantic maps)")
         return self.head(in_dim=extractor.semantic_dim, in_levels=extractor.semantic_levels)
 
     def depth_source(self, sampler: str) -> DepthSource | None:

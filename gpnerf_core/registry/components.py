@@ -20,7 +20,8 @@ from typing import Any, Mapping
 
 from gpnerf_core.errors import ConfigError, GpnerfError, PluginError
 from gpnerf_core.interfaces import StressCase
-from gpnerf_core.registry.kinds import KINDS
+from gpnerf_core.registry.declarations import declared_parts
+from gpnerf_core.registry.kinds import KINDS, PART_KINDS
 from gpnerf_core.registry.plugins import (
     CORE_DISTRIBUTION, DISABLE_PLUGINS_ENV, LoadedPlugins, PluginInfo, PluginProblem, make_plugin_manager, one_line,
 )
@@ -117,7 +118,7 @@ class Registry:
         if "name" not in node:
             raise ConfigError(f"config group {kind!r} has no 'name' key; known names: {', '.join(self.names(kind))}")
         entry = self.get(kind, str(node["name"]))
-        withheld = KINDS[kind].withheld
+        withheld = withheld_fields(kind, entry.spec.config)
         given = {k: _plain(v) for k, v in node.items() if k not in withheld}
         expected = {f.name for f in dataclasses.fields(entry.spec.config)} - withheld
         unknown = set(given) - expected
@@ -188,6 +189,11 @@ class Registry:
         default_name = fields["name"].default if "name" in fields else None
         if default_name != spec.name:
             raise PluginError(f"config {spec.config.__name__}.name defaults to {default_name!r}; expected {spec.name!r}")
+        parts = declared_parts(spec.config)
+        strange = [name for name in parts if kind != "model" or name not in PART_KINDS]
+        if strange:
+            raise PluginError(f"config {spec.config.__name__}.{strange[0]} is declared a part (part(...)); only a model "
+                              f"family's config declares parts, each named after its kind: {', '.join(PART_KINDS)}")
         lacking = [name for name in KINDS[kind].core_fields if name not in fields]
         if lacking:
             raise PluginError(f"config {spec.config.__name__} has no field {lacking[0]!r}; the config of a {kind} "
@@ -208,7 +214,7 @@ class Registry:
             raise PluginError(f"factory {factory!r} is not callable")
         else:
             _check_returned_class(factory, KINDS[kind].interface)
-        withheld = KINDS[kind].withheld
+        withheld = withheld_fields(kind, spec.config)
         arguments = [n for n in fields if n not in withheld] + list(KINDS[kind].runtime_arguments)
         try:
             signature = inspect.signature(factory)
@@ -221,6 +227,12 @@ class Registry:
                 f"factory {getattr(factory, '__name__', factory)!r} cannot be called with the config fields and the "
                 f"pipeline's arguments ({', '.join(arguments) or 'none'}): {exc}"
             ) from None
+
+
+def withheld_fields(kind: str, config: type) -> frozenset[str]:
+    """The fields of a ``kind`` config the core keeps from the factory: the kind's (``ComponentKind.withheld``) and the
+    parts a model family declares (it builds them through ``ModelParts``)."""
+    return KINDS[kind].withheld | frozenset(declared_parts(config))
 
 
 def _check_returned_class(factory: Any, interface: type) -> None:
@@ -328,9 +340,13 @@ def stress_case_problem(case: Any) -> str | None:
 
 
 def register_config_options(registry: Registry) -> None:
-    """Make every registered component an option of its Hydra config group (``+head=<name>``).
+    """Make every registered component an option of its Hydra config group (``+head=<name>``, a part's under
+    ``model``: ``model/feature_extractor=<name>``).
 
-    A config dataclass OmegaConf cannot represent (a field of an unsupported type) rejects its component.
+    A model family's option carries a defaults list choosing the parts it declares (``declarations.part``) and no
+    option for the part kinds it does not build, so ``model=<name>`` brings its own parts; the family's own keys come
+    first (``_self_``), its parts merge into their fields. A config dataclass OmegaConf cannot represent (a field of an
+    unsupported type) rejects its component.
     """
     from hydra.core.config_store import ConfigStore
 
@@ -338,12 +354,25 @@ def register_config_options(registry: Registry) -> None:
     for kind, entries in registry.components.items():
         for name, entry in list(entries.items()):
             try:
-                cs.store(group=kind, name=name, node=entry.spec.config, provider=entry.provider)
+                node = family_node(entry.spec.config) if kind == "model" else entry.spec.config
+                cs.store(group=KINDS[kind].group, name=name, node=node, provider=entry.provider)
             except Exception as exc:
                 del entries[name]
                 info = registry.plugins.get(entry.provider, PluginInfo(entry.provider))
                 reason = f"config {entry.spec.config.__name__} is not a valid Hydra schema: {one_line(exc)}"
                 registry.problems.append(PluginProblem(info, reason, f"{kind}/{name}"))
+
+
+def family_node(config: type) -> Any:
+    """A model family's config as a Hydra option: its dataclass with a defaults list choosing its declared parts (and
+    none of the part kinds it does not declare, so that every part's choice exists to interpolate)."""
+    from omegaconf import OmegaConf, open_dict
+
+    parts = declared_parts(config)
+    node = OmegaConf.structured(config)
+    with open_dict(node):
+        node["defaults"] = ["_self_", *({kind: parts.get(kind)} for kind in PART_KINDS)]
+    return node
 
 
 @functools.cache

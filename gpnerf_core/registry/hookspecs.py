@@ -44,7 +44,8 @@ def gpnerf_register_feature_extractors() -> list[ComponentSpec]:
     as keyword arguments.
 
     Returns:
-        Specs whose names become options of the Hydra group ``feature_extractor``.
+        Specs whose names become options of the Hydra group ``model/feature_extractor`` (a part a model family
+        builds, mounted under the model: ``model.feature_extractor.<option>``).
     """
 
 
@@ -55,7 +56,7 @@ def gpnerf_register_field_aggregators() -> list[ComponentSpec]:
     The factory also receives ``in_dim`` (3 + the extractor's radiance width) from the pipeline.
 
     Returns:
-        Specs for the Hydra group ``field_aggregator``.
+        Specs for the Hydra group ``model/field_aggregator`` (a part, under the model).
     """
 
 
@@ -66,7 +67,7 @@ def gpnerf_register_ray_aggregators() -> list[ComponentSpec]:
     The factory also receives ``in_dim`` (the field aggregator's token width).
 
     Returns:
-        Specs for the Hydra group ``ray_aggregator``.
+        Specs for the Hydra group ``model/ray_aggregator`` (a part, under the model).
     """
 
 

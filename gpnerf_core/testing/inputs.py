@@ -214,7 +214,6 @@ KIT_PARTS = {
     "feature_extractor": {"name": "resunet_fpn", "widths": [8, 8, 8, 16], "fpn_channels": 4},
     "field_aggregator": {"name": "gnt_view", "width": 16, "num_blocks": 2},
     "ray_aggregator": {"name": "gnt_ray"},
-    "view_selector": {"name": "nearest"},
 }
 """The small built-in parts a model family is built with (``kit_parts``)."""
 KIT_HEAD = {"name": "unet", "channels": 16, "norm_groups": 4}
@@ -228,7 +227,7 @@ def kit_parts(registry: Any, model: str, *, head: bool) -> Any:
 
     from gpnerf_core.model.build import ConfiguredParts
 
-    cfg = OmegaConf.create({"model": {"name": model}, **KIT_PARTS, "head": dict(KIT_HEAD) if head else None})
+    cfg = OmegaConf.create({"model": {"name": model, **KIT_PARTS}, "head": dict(KIT_HEAD) if head else None})
     return ConfiguredParts(cfg, KIT_CLASSES, registry)
 
 

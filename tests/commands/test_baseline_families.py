@@ -15,7 +15,7 @@ FAMILIES = {
     "semantic_ray": ["model.fine_samples=4"],
     "mvsnerf": ["model.num_planes=8", "model.coarse_samples=8", "model.fine_samples=0"],  # its own extractor
     "semantic_ray_unet": ["model.fine_samples=4"],  # GP-NeRF's decoding on Semantic-Ray's field
-    # GP-NeRF's decoding on MVSNeRF's field: resunet_fpn (TINY_CLI's feature_extractor.* apply), one pass
+    # GP-NeRF's decoding on MVSNeRF's field: resunet_fpn (TINY_CLI's model.feature_extractor.* apply), one pass
     "mvsnerf_unet": ["model.num_planes=8", "model.coarse_samples=8", "model.fine_samples=0"],
     # MVSplat's Gaussians, label rendering and GP-NeRF's decoding: whole images, a tiny cost volume
     "mvsplat": ["model.feature_dim=8", "model.transformer_layers=1", "model.depth_candidates=4",
@@ -23,17 +23,21 @@ FAMILIES = {
     "mvsplat_unet": ["model.feature_dim=8", "model.transformer_layers=1", "model.depth_candidates=4",
                      "model.cost_unet_dim=4", "model.depth_unet_dim=4", "model.unet_levels=2", "model.sh_degree=1"],
 }
-RAY_MARCHING = ("model.coarse_samples", "model.fine_samples", "field_aggregator.")
-"""TINY_CLI keys of the ray-marching families' (a rasterizing family has no samples, and no GNT aggregator)."""
+RAY_MARCHING = ("model.coarse_samples", "model.fine_samples")
+"""TINY_CLI keys of the ray-marching families' (a rasterizing family has no samples)."""
+GNT_PARTS = ("model.field_aggregator.",)
+"""TINY_CLI keys of GNT's aggregators, parts no other family builds (so none has them under its model)."""
 
 
 @pytest.fixture(scope="module")
 def trained(request, tmp_path_factory):
     """The family trained 2 steps by ``run``: (name, run folder)."""
     name, out = request.param, tmp_path_factory.mktemp(request.param) / "run"
-    tiny = [o for o in TINY_CLI if not o.startswith("feature_extractor.")] if name == "mvsnerf" else TINY_CLI
+    tiny = [o for o in TINY_CLI if not o.startswith(GNT_PARTS)]
+    if name == "mvsnerf":  # its own extractor (mvsnet), which has no resunet_fpn options
+        tiny = [o for o in tiny if not o.startswith("model.feature_extractor.")]
     if name.startswith("mvsplat"):
-        tiny = [o for o in TINY_CLI if not o.startswith(RAY_MARCHING)]
+        tiny = [o for o in tiny if not o.startswith(RAY_MARCHING)]
     assert in_process("run", f"+experiment=baselines/{name}", *tiny, *FAMILIES[name], "train.steps=2",
                       f"out_dir={out}") == 0
     return name, out

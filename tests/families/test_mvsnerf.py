@@ -190,8 +190,8 @@ def test_with_a_head_it_renders_features_the_head_decodes_and_without_semantic_m
     assert prediction.logits.shape == (1, model.head.num_outputs, camera.height, camera.width)
     assert bool(torch.isfinite(prediction.logits).all())
     parts = kit_parts(registry, "mvsnerf", head=True)
-    parts._cfg.feature_extractor = {"name": "mvsnet"}
-    with pytest.raises(ConfigError, match=r"\+head=unet .*'mvsnet' makes none \(feature_extractor.semantic=true, "
+    parts._cfg.model.feature_extractor = {"name": "mvsnet"}
+    with pytest.raises(ConfigError, match=r"\+head=unet .*'mvsnet' makes none \(model.feature_extractor.semantic=true, "
                                           r"or another extractor") as refused:
         registry.build("model", node, parts=parts)
     assert "\n" not in str(refused.value)

@@ -112,8 +112,8 @@ def test_with_a_head_it_renders_features_the_head_decodes_and_without_semantic_m
     assert prediction.stride == 2 and prediction.semantic.shape[0] == channels  # the semantic maps' grid, decoded
     assert prediction.logits.shape[-2:] == (camera.height, camera.width)
     parts = kit_parts(registry, name, head=True)
-    parts._cfg.feature_extractor.semantic = False
-    with pytest.raises(Exception, match=r"makes none \(feature_extractor.semantic=true, or "):
+    parts._cfg.model.feature_extractor.semantic = False
+    with pytest.raises(Exception, match=r"makes none \(model.feature_extractor.semantic=true, or "):
         registry.build("model", node, parts=parts)
 
 

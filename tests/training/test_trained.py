@@ -127,3 +127,52 @@ def test_an_old_checkpoint_evaluates_with_todays_keys(trained, tmp_path):
     with open_dict(cfg):
         cfg.checkpoint = str(old)
     assert OmegaConf.select(cfg, "model.fuse_rendered") is True and cfg.model.name == "gnt"
+
+
+OLD_PART_OVERRIDES = ["model/feature_extractor=resunet_fpn", "model.feature_extractor.widths=[8,8,8,16]",
+                      "model.feature_extractor.fpn_channels=4", "model.field_aggregator.width=16",
+                      "model.field_aggregator.num_blocks=2"]
+"""TINY_MODEL's part options as today's keys (``old_layout`` writes them as a checkpoint before the move did)."""
+
+
+def old_layout(state):
+    """``state`` as a checkpoint written before the parts moved under ``model``: the parts at the top of its config,
+    its overrides and its recorded model sections."""
+    config = yaml.safe_load(state["config"])
+    for kind in ("feature_extractor", "field_aggregator", "ray_aggregator"):
+        config[kind] = config["model"].pop(kind)
+    state["config"] = yaml.safe_dump(config, sort_keys=False)
+    state["overrides"] = [*state["overrides"], *(o.replace("model/", "").replace("model.", "", 1)
+                                                 for o in OLD_PART_OVERRIDES)]
+    state["model_sections"] = ["model", "feature_extractor", "field_aggregator", "ray_aggregator", "head", "loss"]
+    state["content_sha256"] = checkpoint_module.content_digest(state)
+    return state
+
+
+def test_a_checkpoint_written_before_the_parts_moved_under_the_model_reads_as_todays(trained, tmp_path):
+    _, checkpoint = trained
+    state = torch.load(checkpoint, weights_only=True)
+    today = yaml.safe_load(state["config"])
+    old = tmp_path / "old.pt"
+    torch.save(old_layout(state), old)
+    release_trained()
+    restored = load_trained(old)
+    assert yaml.safe_load(restored.config_yaml) == today  # the parts under the model again
+    assert restored.model_sections == ("model", "head", "loss")
+    assert all(o in restored.overrides for o in OLD_PART_OVERRIDES)
+    cfg = restored.config()
+    assert cfg.model.field_aggregator.width == 16 and list(cfg.model.feature_extractor.widths) == [8, 8, 8, 16]
+    assert "feature_extractor" not in cfg
+
+
+def test_an_old_config_keeps_only_the_parts_its_family_builds():
+    old = yaml.safe_dump({"model": {"name": "semantic_nerf"}, "feature_extractor": {"name": "resunet_fpn"},
+                          "field_aggregator": {"name": "gnt_view"}, "ray_aggregator": {"name": "gnt_ray"}})
+    assert yaml.safe_load(upgrade_config_yaml(old)) == {"model": {"name": "semantic_nerf"}}
+    old = yaml.safe_dump({"model": {"name": "mvsnerf"}, "feature_extractor": {"name": "mvsnet"},
+                          "field_aggregator": {"name": "gnt_view", "width": 8}})
+    assert yaml.safe_load(upgrade_config_yaml(old)) == {"model": {"name": "mvsnerf",
+                                                                  "feature_extractor": {"name": "mvsnet"}}}
+    assert upgrade_overrides(["feature_extractor=mvsnet", "+feature_extractor.x=1", "field_aggregator.width=8",
+                              "model.num_planes=8"], "mvsnerf") == [
+        "model/feature_extractor=mvsnet", "+model.feature_extractor.x=1", "model.num_planes=8"]

@@ -166,7 +166,7 @@ def test_resume_with_another_model_config_is_refused_naming_the_keys(tmp_path):
 def test_checkpoint_of_another_model_size_names_the_first_tensor(tmp_path):
     trainer = make_trainer(tiny_cfg(tmp_path, "train.steps=1"), tmp_path / "run")
     checkpoint = trainer.fit(progress=False).checkpoint
-    wider = tiny_cfg(tmp_path, f"train.resume={checkpoint}", "feature_extractor.widths=[8,8,8,24]", "train.resume_strict=false")
+    wider = tiny_cfg(tmp_path, f"train.resume={checkpoint}", "model.feature_extractor.widths=[8,8,8,24]", "train.resume_strict=false")
     with pytest.raises(DataError) as error:
         make_trainer(wider, tmp_path / "run2")
     message = str(error.value)

@@ -37,7 +37,7 @@ class Size:
     semantic: tuple[str, ...]
 
 
-GNT_ONLY = ("+loss=rgb", "model.semantic_field.enabled=false", "feature_extractor.semantic=false")
+GNT_ONLY = ("+loss=rgb", "model.semantic_field.enabled=false", "model.feature_extractor.semantic=false")
 """The anchor: the same backbone, rays and samples with no FPN, no semantic field, no head, colour loss only."""
 
 PAPER_LOSS = ("+loss=dgs", "loss.rgb_weight=0.75", "loss.ce_weight=1.5", "loss.sd_weight=0.25", "loss.dgs_weight=0.25")
@@ -118,11 +118,6 @@ def checked_families(value: str) -> list[str]:
     return names
 
 
-def _sets_own_scale(family: str) -> bool:
-    """The experiment ``baselines/<family>`` drops the ``scale`` preset (``override /scale: null``)."""
-    return "override /scale:" in _experiment_text(family)
-
-
 def variant_overrides(size: Size, variant: str, overrides: list[str]) -> list[str]:
     """The overrides of ``variant`` at ``size``, the user's last (they win): ``gpnerf``, ``gnt_only``, a baseline
     family (its ``+experiment=baselines/<variant>`` on the size's common overrides: the same images, views and rays), or
@@ -130,11 +125,8 @@ def variant_overrides(size: Size, variant: str, overrides: list[str]) -> list[st
     if variant in VARIANTS:
         extra = size.semantic if variant == "gpnerf" else GNT_ONLY
         return [*size.common, *extra, *overrides]
-    if variant in baseline_families():
-        common = list(size.common)
-        if _sets_own_scale(variant):  # e.g. mvsnerf: scale's keys are another extractor's; its sizes are its own
-            common = [o for o in common if not o.startswith("scale=")]
-        return [*common, f"+experiment=baselines/{variant}", *overrides]
+    if variant in baseline_families():  # the size's scale sizes the family as it sizes its own (scale/<scale>/<model>)
+        return [*size.common, f"+experiment=baselines/{variant}", *overrides]
     common = [*size.common, f"model={variant}"]
     return [*common, f"+loss={family_loss(tuple(common), variant)}", *overrides]
 

@@ -178,26 +178,33 @@ def _registry_for(config: dict[str, Any]) -> Any:
     """The built-in registry where it has every component ``config`` names, else the full one: reading runs of the
     built-in components imports no third-party plugin (one that is slow to import costs every ``report``)."""
     from gpnerf_core.registry.components import get_registry
-    from gpnerf_core.registry.kinds import KINDS
+    from gpnerf_core.registry.kinds import KINDS, section
 
     builtin = _builtin_registry()
-    named = [(kind, str(config[kind].get("name"))) for kind in KINDS if isinstance(config.get(kind), dict)]
+    nodes = {kind: section(config, kind) for kind in KINDS}
+    named = [(kind, str(node.get("name"))) for kind, node in nodes.items() if isinstance(node, dict)]
     return builtin if all(name in builtin.components[kind] for kind, name in named) else get_registry()
 
 
 def _component_defaults(config: dict[str, Any]) -> dict[str, Any]:
-    """The defaults of each component section's registered config (``model``, ``head``, ...), by the name it holds."""
+    """The defaults of each component section's registered config (``model``, ``head``, ...), by the name it holds; a
+    part's inside the model's (``model.feature_extractor``)."""
     import dataclasses
 
-    from gpnerf_core.registry.kinds import KINDS
+    from gpnerf_core.registry.kinds import KINDS, section
 
     registry = _registry_for(config)
-    defaults = {}
+    defaults: dict[str, Any] = {}
     for kind in KINDS:
-        section = config.get(kind)
-        entry = registry.components[kind].get(str(section.get("name"))) if isinstance(section, dict) else None
-        if entry is not None:
-            defaults[kind] = _plain(dataclasses.asdict(entry.spec.config()))
+        node = section(config, kind)
+        entry = registry.components[kind].get(str(node.get("name"))) if isinstance(node, dict) else None
+        if entry is None:
+            continue
+        values = _plain(dataclasses.asdict(entry.spec.config()))
+        if KINDS[kind].part:  # after the model's own (KINDS lists the model first)
+            defaults.setdefault("model", {})[kind] = values
+        else:
+            defaults[kind] = values
     return defaults
 
 
@@ -513,7 +520,7 @@ def sampling_label(config: dict[str, Any]) -> str:
 
 def distinguishing_values(group: RowGroup, twins: list[RowGroup], most: int = 4) -> str:
     """``key=value`` of ``group`` for the config keys whose values differ among ``twins`` (keys by their last part,
-    so ``field_aggregator.num_blocks=2`` reads ``num_blocks=2``; the model's size first), at most ``most`` of them,
+    so ``model.field_aggregator.num_blocks=2`` reads ``num_blocks=2``; the model's size first), at most ``most`` of them,
     then ``+N more``."""
     defaults = _flatten(_without_empty(_schema_defaults()))  # sections a run's config lacks read as the defaults
     flat = [{**defaults, **_flatten(json.loads(twin.runs[0].method_key()))} for twin in twins]
@@ -533,7 +540,7 @@ def distinguishing_values(group: RowGroup, twins: list[RowGroup], most: int = 4)
 
 
 _SIZE_ORDER = {section: rank for rank, section in enumerate(
-    ("model", "field_aggregator", "ray_aggregator", "feature_extractor", "dataset", "train", "loss", "head"))}
+    ("model", "dataset", "train", "loss", "head"))}
 """Sections named first in a label: the model's size before the data, the recipe and the rest."""
 
 

@@ -51,9 +51,9 @@ KNOBS: tuple[Knob, ...] = (
     Knob("model.coarse_samples", "coarse samples", _fractions(2, 4, 0.75, 0.5)),
     Knob("model.fine_samples", "fine samples", lambda r: sorted({v for v in (r // 2, 0) if v < r}, reverse=True)),
     Knob("model.num_source_views", "source views", _fewer(1, 2)),
-    Knob("field_aggregator.width", "transformer width", _fractions(8, 8, 0.75, 0.5)),
-    Knob("field_aggregator.num_blocks", "transformer blocks", lambda r: sorted({v for v in (r - 1, r // 2) if 1 <= v < r}, reverse=True)),
-    Knob("feature_extractor.fpn_channels", "semantic width", _fractions(4, 4, 0.75, 0.5)),
+    Knob("model.field_aggregator.width", "transformer width", _fractions(8, 8, 0.75, 0.5)),
+    Knob("model.field_aggregator.num_blocks", "transformer blocks", lambda r: sorted({v for v in (r - 1, r // 2) if 1 <= v < r}, reverse=True)),
+    Knob("model.feature_extractor.fpn_channels", "semantic width", _fractions(4, 4, 0.75, 0.5)),
     Knob("model.depth_candidates", "depth candidates", _fractions(2, 4, 0.75, 0.5)),
     Knob("model.feature_dim", "matching width", _fractions(2, 4, 0.75, 0.5)),
 )
@@ -83,7 +83,7 @@ def knob_levels(cfg: Any, min_source_views: int, model_sections: tuple[str, ...]
         if value is None:
             notes.append(f"{knob.key}: not an option of the configured component; not sized")
             continue
-        if knob.key == "feature_extractor.fpn_channels" and cfg.get("head") is None:
+        if knob.key == "model.feature_extractor.fpn_channels" and cfg.get("head") is None:
             notes.append(f"{knob.key}: no head, so no semantic branch to size")
             continue
         smaller = knob.levels(int(value))

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Any, ClassVar
 
-from gpnerf_core import ModelConfig, RayMarchingConfig
+from gpnerf_core import ModelConfig, RayMarchingConfig, part
 
 
 @dataclass
@@ -25,6 +25,12 @@ class GNTModelConfig(RayMarchingConfig):
 
     name: str = "gnt"
     """Registry name of this model family."""
+    feature_extractor: Any = part("resunet_fpn")
+    """Encodes source and target images: radiance maps for the transformers, semantic maps for the field and head."""
+    field_aggregator: Any = part("gnt_view")
+    """GNT's view transformer: attention over the source views per sample (FAT)."""
+    ray_aggregator: Any = part("gnt_ray")
+    """GNT's ray transformer: attention over a ray's samples (RAT)."""
     sampler: str = "uniform"
     """Samples of the fine pass: ``uniform`` (the coarse samples plus ``fine_samples`` drawn from the coarse weights,
     GNT's) or ``depth`` (only ``fine_samples`` samples, around the coarse pass's depth, or drawn from the coarse

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Any, ClassVar
 
-from gpnerf_core import ModelConfig, RayMarchingConfig
+from gpnerf_core import ModelConfig, RayMarchingConfig, part
 
 
 @dataclass
@@ -16,6 +16,9 @@ class MVSNeRFConfig(RayMarchingConfig):
 
     name: str = "mvsnerf"
     """Registry name of this model family."""
+    feature_extractor: Any = part("mvsnet")
+    """Encodes the source views: MVSNeRF's FeatureNet (``mvsnet``); with a ``+head``, an extractor that makes semantic
+    maps (``model/feature_extractor=resunet_fpn``, ``+experiment=baselines/mvsnerf_unet``)."""
     coarse_samples: int = 48
     """Stratified samples per ray, uniform in depth (MVSNeRF: 128)."""
     fine_samples: int = 0

@@ -4,9 +4,9 @@ docstring; ``model.py`` says why each differs)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Any, ClassVar
 
-from gpnerf_core import ModelConfig
+from gpnerf_core import ModelConfig, part
 
 
 @dataclass
@@ -25,6 +25,9 @@ class MVSplatConfig(ModelConfig):
 
     name: str = "mvsplat"
     """Registry name of this model family."""
+    feature_extractor: Any = part("resunet_fpn")
+    """Encodes each source view: its 1/4 radiance map is MVSplat's CNN features, its semantic maps what each Gaussian
+    carries for a ``+head``."""
     num_source_views: int = 2
     """Source views whose pixels become Gaussians (MVSplat: 2 context views; any count >= 2 works)."""
     feature_dim: int = 64

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
-from gpnerf_core import ModelConfig, RayMarchingConfig
+from gpnerf_core import ModelConfig, RayMarchingConfig, part
 
 
 @dataclass
@@ -15,6 +15,8 @@ class NeuRayConfig(RayMarchingConfig):
 
     name: str = "neuray"
     """Registry name of this model family."""
+    feature_extractor: Any = part("resunet_fpn")
+    """Encodes the source views: image features (its radiance maps) and, for a ``+head``, semantic maps."""
     fine_samples: int = 24
     """Samples of the fine pass, drawn from the coarse pass's weights in normalised inverse depth; the fine pass
     renders only these (NeuRay and Semantic-Ray do not merge them with the coarse samples). 0 = coarse pass only."""
