@@ -65,6 +65,16 @@ TINY_CLI = [
 ]
 """A tiny run through the command line: one 32x48 layout, a small model (the subprocess tests' overrides)."""
 
+PART_OPTIONS = {"feature_extractor": "model.feature_extractor.", "field_aggregator": "model.field_aggregator."}
+"""The options TINY_MODEL and TINY_CLI give the parts GNT builds (mounted under the model)."""
+
+
+def for_parts(overrides: list[str], *parts: str) -> list[str]:
+    """``overrides`` without the options of the parts a family does not build (``parts``: the kinds it builds), which
+    have no place under its model."""
+    dropped = tuple(prefix for kind, prefix in PART_OPTIONS.items() if kind not in parts)
+    return [o for o in overrides if not o.startswith(dropped)]
+
 
 def gpnerf(*args, cwd):
     """``python -m gpnerf_core <args>`` in ``cwd``, with its own scene cache and no entry-point plugins."""

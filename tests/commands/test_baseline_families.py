@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline_check import TINY_CLI, in_process
+from pipeline_check import TINY_CLI, for_parts, in_process
 
 FAMILIES = {
     "semantic_ray": ["model.fine_samples=4"],
@@ -25,17 +25,15 @@ FAMILIES = {
 }
 RAY_MARCHING = ("model.coarse_samples", "model.fine_samples")
 """TINY_CLI keys of the ray-marching families' (a rasterizing family has no samples)."""
-GNT_PARTS = ("model.field_aggregator.",)
-"""TINY_CLI keys of GNT's aggregators, parts no other family builds (so none has them under its model)."""
 
 
 @pytest.fixture(scope="module")
 def trained(request, tmp_path_factory):
     """The family trained 2 steps by ``run``: (name, run folder)."""
     name, out = request.param, tmp_path_factory.mktemp(request.param) / "run"
-    tiny = [o for o in TINY_CLI if not o.startswith(GNT_PARTS)]
+    tiny = for_parts(TINY_CLI, "feature_extractor")  # GNT's aggregators are no other family's parts
     if name == "mvsnerf":  # its own extractor (mvsnet), which has no resunet_fpn options
-        tiny = [o for o in tiny if not o.startswith("model.feature_extractor.")]
+        tiny = for_parts(TINY_CLI)
     if name.startswith("mvsplat"):
         tiny = [o for o in tiny if not o.startswith(RAY_MARCHING)]
     assert in_process("run", f"+experiment=baselines/{name}", *tiny, *FAMILIES[name], "train.steps=2",
@@ -90,7 +88,7 @@ def test_another_family_for_its_checkpoint_is_refused_naming_the_trained_one(tra
 
 
 def test_mvsplat_with_the_instance_head_trains_and_is_scored_by_instance_ap(tmp_path):
-    tiny = [o for o in TINY_CLI if not o.startswith(RAY_MARCHING)]
+    tiny = [o for o in for_parts(TINY_CLI, "feature_extractor") if not o.startswith(RAY_MARCHING)]
     assert in_process("run", "model=mvsplat", "+head=instance", "+loss=instance", *tiny, *FAMILIES["mvsplat"],
                       "train.steps=2", f"out_dir={tmp_path / 'run'}") == 0
     held_out = json.loads((tmp_path / "run" / "metrics.json").read_text())["eval"]["train_heldout"]

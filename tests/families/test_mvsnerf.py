@@ -191,7 +191,7 @@ def test_with_a_head_it_renders_features_the_head_decodes_and_without_semantic_m
     assert bool(torch.isfinite(prediction.logits).all())
     parts = kit_parts(registry, "mvsnerf", head=True)
     parts._cfg.model.feature_extractor = {"name": "mvsnet"}
-    with pytest.raises(ConfigError, match=r"\+head=unet .*'mvsnet' makes none \(model.feature_extractor.semantic=true, "
+    with pytest.raises(ConfigError, match=r"\+head=unet .*=mvsnet makes none \(model.feature_extractor.semantic=true, "
                                           r"or another extractor") as refused:
         registry.build("model", node, parts=parts)
     assert "\n" not in str(refused.value)

@@ -126,9 +126,37 @@ def variant_overrides(size: Size, variant: str, overrides: list[str]) -> list[st
         extra = size.semantic if variant == "gpnerf" else GNT_ONLY
         return [*size.common, *extra, *overrides]
     if variant in baseline_families():  # the size's scale sizes the family as it sizes its own (scale/<scale>/<model>)
-        return [*size.common, f"+experiment=baselines/{variant}", *overrides]
+        common = [*size.common, f"+experiment=baselines/{variant}"]
+        return [*common, *own_parts(tuple(common), overrides)]
     common = [*size.common, f"model={variant}"]
-    return [*common, f"+loss={family_loss(tuple(common), variant)}", *overrides]
+    return [*common, f"+loss={family_loss(tuple(common), variant)}", *own_parts(tuple(common), overrides)]
+
+
+def own_parts(common: tuple[str, ...], overrides: list[str]) -> list[str]:
+    """``overrides`` without those of parts the family ``common`` composes does not build (``model.<kind>.*``,
+    ``model/<kind>=``): options given for GP-NeRF's parts apply to another family where it has those parts."""
+    from gpnerf_core.config.overrides import override_key
+    from gpnerf_core.registry.kinds import GROUPS, PART_KINDS
+
+    def part(override: str) -> str | None:
+        key = override_key(override)
+        kind = GROUPS.get(key) or (key.split(".")[1] if key.startswith("model.") and "." in key[6:] else None)
+        return kind if kind in PART_KINDS else None
+
+    if not any(part(o) for o in overrides):
+        return list(overrides)
+    built = family_parts(common)
+    return [o for o in overrides if part(o) is None or part(o) in built]
+
+
+@functools.cache
+def family_parts(common: tuple[str, ...]) -> frozenset[str]:
+    """The part kinds under the model ``common`` composes."""
+    from gpnerf_core.config.compose import compose
+    from gpnerf_core.registry.kinds import PART_KINDS
+
+    model = compose(list(common)).model
+    return frozenset(kind for kind in PART_KINDS if kind in model)
 
 
 @functools.cache
