@@ -16,7 +16,7 @@ subprocesses of the command tests as an installed plugin (``install(root)``; put
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -62,6 +62,15 @@ DISTRIBUTION = "gpnerf-test-family"
 
 
 @dataclass
+class PooledViewsRates:
+    """Its learning-rate groups (``model.lr.<group>``)."""
+
+    feature_extractor: float = 1e-3
+    transformer: float = 5e-4
+    """Its own MLPs."""
+
+
+@dataclass
 class PooledViewsConfig(RayMarchingConfig):
     """Options of the ``pooled_views`` family."""
 
@@ -73,6 +82,7 @@ class PooledViewsConfig(RayMarchingConfig):
     """Width of the per-view and density MLPs."""
     label_rendering: bool = True
     """Render class scores (off: colour and depth only)."""
+    lr: PooledViewsRates = field(default_factory=PooledViewsRates)
 
     runtime_keys: ClassVar[tuple[str, ...]] = ModelConfig.runtime_keys
 

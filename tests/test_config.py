@@ -42,7 +42,7 @@ def test_paper_scale_restores_paper_sizes(registry):
     assert cfg.model.feature_extractor.fpn_channels * 4 == 512
     assert cfg.model.field_aggregator.width == 64 and cfg.model.field_aggregator.num_blocks == 8
     assert (cfg.model.coarse_samples, cfg.model.fine_samples, cfg.model.num_source_views) == (48, 16, 10)
-    assert cfg.train.rays == 512 and cfg.train.lr.transformer == 1e-5
+    assert cfg.train.rays == 512 and cfg.model.lr.transformer == 1e-5
 
 
 @pytest.mark.parametrize("kind", list(KINDS))

@@ -2,13 +2,14 @@
 back (a checkpoint's config, overrides and model sections; a run folder's config for ``report``).
 
 Keys move as the framework grows (``train.fuse_rendered`` became an option of the ``gnt`` model family when models
-became families; the parts a family builds moved under ``model`` when families came to own their config subtree); a
-checkpoint keeps the keys it was written with. Reading it maps them, so it still evaluates, renders, fine-tunes and
+became families; the parts a family builds moved under ``model``, and ``train.lr.<group>`` became ``model.lr.<group>``,
+when families came to own their config subtree); a checkpoint keeps the keys it was written with. Reading it maps them, so it still evaluates, renders, fine-tunes and
 resumes, and its config compares with today's.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, Iterable
 
 import yaml
@@ -18,27 +19,46 @@ from gpnerf_core.registry.kinds import KINDS, PART_KINDS
 
 MOVED_KEYS = {"train.fuse_rendered": "model.fuse_rendered"}
 """Old dotted key -> today's."""
+OLD_RATES = "train.lr."
+"""Where the learning rates were, beside a family's own ``model.lr``: now ``model.lr.<group>`` only."""
 DEFAULT_MODEL = "gnt"
 """The model family of a config written before ``model`` named one (there was only GNT's)."""
+
+
+def _family_config(model: str | None) -> type | None:
+    from gpnerf_core.registry.components import get_registry
+
+    entry = get_registry().components["model"].get(str(model or DEFAULT_MODEL))
+    return None if entry is None else entry.spec.config
 
 
 def family_parts(model: str | None) -> tuple[str, ...]:
     """The part kinds the model family ``model`` declares (``declarations.part``); every part kind for a family this
     installation does not register (its sections are kept, so nothing it may have built is lost)."""
-    from gpnerf_core.registry.components import get_registry
     from gpnerf_core.registry.declarations import declared_parts
 
-    entry = get_registry().components["model"].get(str(model or DEFAULT_MODEL))
-    return PART_KINDS if entry is None else tuple(declared_parts(entry.spec.config))
+    config = _family_config(model)
+    return PART_KINDS if config is None else tuple(declared_parts(config))
+
+
+def family_rate_groups(model: str | None) -> tuple[str, ...] | None:
+    """The learning-rate groups the model family ``model`` declares (its config's ``lr`` section); None for a family
+    this installation does not register (every old rate is kept)."""
+    config = _family_config(model)
+    if config is None:
+        return None
+    lr = getattr(config(), "lr", None)
+    return tuple(dataclasses.asdict(lr) if dataclasses.is_dataclass(lr) else dict(lr or {}))
 
 
 def upgrade_overrides(overrides: list[str], model: str | None = None) -> list[str]:
     """Stored Hydra overrides with moved keys renamed (``train.fuse_rendered=false`` -> ``model.fuse_rendered=false``;
     a part's ``feature_extractor=mvsnet`` -> ``model/feature_extractor=mvsnet`` and ``feature_extractor.widths=[..]``
-    -> ``model.feature_extractor.widths=[..]``). A part the run's model family ``model`` (the stored config's) does not
-    build is dropped: it never reached the model."""
+    -> ``model.feature_extractor.widths=[..]``; ``train.lr.head=..`` -> ``model.lr.head=..``). A part or a rate the
+    run's model family ``model`` (the stored config's) does not have is dropped: it never reached the model."""
     upgraded = []
     parts: tuple[str, ...] | None = None
+    groups: tuple[str, ...] | None = ()
     for override in overrides:
         key = override_key(override)
         prefix = override[: len(override) - len(override.lstrip("+~"))]
@@ -46,6 +66,11 @@ def upgrade_overrides(overrides: list[str], model: str | None = None) -> list[st
         kind = key.split(".")[0]
         if key in MOVED_KEYS:
             override = f"{prefix}{MOVED_KEYS[key]}{rest}"
+        elif key.startswith(OLD_RATES):
+            groups = family_rate_groups(model) if groups == () else groups
+            if groups is not None and key[len(OLD_RATES):] not in groups:
+                continue
+            override = f"{prefix}model.lr.{key[len(OLD_RATES):]}{rest}"
         elif kind in PART_KINDS:
             parts = family_parts(model) if parts is None else parts
             if kind not in parts:
@@ -79,6 +104,13 @@ def upgrade_config(config: dict[str, Any]) -> bool:
             value = config.pop(kind, _MISSING)
             if value is not _MISSING and kind in parts:
                 model[kind] = value
+        changed = True
+    rates = _pop(config, OLD_RATES.rstrip("."))
+    if isinstance(model, dict) and isinstance(rates, dict):
+        groups = family_rate_groups(model.get("name"))
+        own = model.get("lr") if isinstance(model.get("lr"), dict) else {}
+        kept = {g: v for g, v in rates.items() if groups is None or g in groups}
+        model["lr"] = {**kept, **own}  # the family's own rate won over train.lr's, as it did then
         changed = True
     return changed
 

@@ -16,9 +16,10 @@ from omegaconf import MISSING
 class ModelConfig:
     """The options every model family has: its config (``model=<name>``) subclasses this one.
 
-    The core reads ``num_source_views``, ``init`` and ``init_strict`` itself, and a family's own learning rates where
-    its config has them (an ``lr`` section of its own dataclass, ``model.lr.<group>``: see
-    ``ModelFamily.parameter_groups``); the family's factory gets the others. The parts a family builds are fields of its
+    The core reads ``num_source_views``, ``init`` and ``init_strict`` itself, and the family's learning rates: the one
+    home of every rate a run trains with is the family's ``lr`` section (a dataclass field ``lr`` whose fields are the
+    groups its ``parameter_groups()`` names, the shared parts' ``feature_extractor`` and ``head`` included, with their
+    defaults; ``model.lr.<group>=...``); the family's factory gets the others. The parts a family builds are fields of its
     config declared with ``gpnerf_core.part`` (``feature_extractor: Any = part("resunet_fpn")``): the core mounts their
     config groups under ``model`` and keeps them from the factory, which builds them through ``ModelParts``. A
     ray-marching family's config subclasses ``RayMarchingConfig`` (its sample counts).
@@ -35,9 +36,9 @@ class ModelConfig:
     init_strict: bool = True
     """Refuse an init checkpoint holding keys no component maps (False: load the rest and list them)."""
 
-    runtime_keys: ClassVar[tuple[str, ...]] = ("init", "init_strict")
-    """Fields that change how weights start, or how time and memory are spent, not the model: resuming or evaluating
-    with other values is allowed (a family's config adds its own)."""
+    runtime_keys: ClassVar[tuple[str, ...]] = ("init", "init_strict", "lr")
+    """Fields that change how weights start or train, or how time and memory are spent, not the model: resuming or
+    evaluating with other values is allowed (a family's config adds its own)."""
 
 
 @dataclass
@@ -52,20 +53,6 @@ class RayMarchingConfig(ModelConfig):
 
 
 @dataclass
-class LearningRates:
-    feature_extractor: float = 5e-3
-    """Encoder, radiance decoder and FPN (paper: 5e-3)."""
-    transformer: float = 1e-5
-    """Field and ray aggregators and the semantic adaptor (paper: 1e-5, fine-tuning GNT weights)."""
-    head: float = 5e-5
-    """Perception head (paper: 5e-5)."""
-    field: float = 5e-4
-    """A per-scene model family's own field (a NeRF MLP, a grid's small networks; Semantic-NeRF: 5e-4)."""
-    grid: float = 1e-2
-    """A per-scene field's hash tables (``model.field=grid``; Instant-NGP: 1e-2)."""
-
-
-@dataclass
 class TrainConfig:
     steps: int = 200_000
     """Optimizer steps (one target view each)."""
@@ -74,7 +61,6 @@ class TrainConfig:
     targets_per_step: int = 1
     """Target views per step over all processes (the global batch; the paper: 1 per GPU). Under torchrun the
     world size must divide it; each process takes its share."""
-    lr: LearningRates = field(default_factory=LearningRates)
     lr_schedule: str = "exponential"
     """After the warm-up: ``exponential`` (multiplied by ``lr_decay_rate`` every ``lr_decay_steps`` steps, per step)
     or ``cosine`` (half a cosine from the full rate down to 0 at ``train.steps``)."""

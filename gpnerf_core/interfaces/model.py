@@ -210,9 +210,8 @@ class ModelFamily(ImportsWeights, nn.Module, ABC):
     @abstractmethod
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """Parameters by learning-rate group; every trainable parameter in exactly one group (checked when the
-        optimizer is built). A group's rate is the family's own ``model.lr.<group>`` where its config has an ``lr``
-        section naming the group, else ``train.lr.<group>`` (``feature_extractor``, ``transformer``, ``head``, and
-        ``field`` / ``grid`` for a per-scene family's own field)."""
+        optimizer is built). A group's rate is ``model.lr.<group>``: the family's config has an ``lr`` section that
+        declares every group named here with its default, the shared parts' (``feature_extractor``, ``head``) too."""
 
     def training_callbacks(self) -> Sequence[TrainingCallback]:
         """Work the training loop runs at fixed points of each step, told the step (``TrainingCallback``): a schedule

@@ -99,8 +99,9 @@ class ImageLoss(LossSet):
 def trainer_with(tmp_path, model, *extra):
     cfg = compose(["+experiment=baselines/semantic_nerf", *TINY_SCENES, "dataset.scenes=[layout_00]",
                    f"dataset.root={tmp_path / 'scenes'}", "train.steps=3", "train.log_every=1", "threads=1", *extra])
-    with open_dict(cfg):  # a family's own groups are an ``lr`` section of its config
-        cfg.model = OmegaConf.create({**OmegaConf.to_container(cfg.model), "lr": {"colour": 0.05}})
+    with open_dict(cfg):  # a family's groups are the ``lr`` section of its config (semantic_nerf's has ``field``)
+        section = OmegaConf.to_container(cfg.model)
+        cfg.model = OmegaConf.create({**section, "lr": {**section["lr"], "colour": 0.05}})
     components = build_components(cfg)
     components.model, components.loss = model, ImageLoss()
     return make_trainer(cfg, tmp_path / "run", components=components)
@@ -127,9 +128,19 @@ def test_callbacks_see_each_step_and_the_gradients_before_the_optimizer(tmp_path
 
 
 def test_a_family_names_its_own_learning_rate_groups(tmp_path):
-    trainer = trainer_with(tmp_path, FlatImage(), "train.lr.field=0.003")
+    trainer = trainer_with(tmp_path, FlatImage(), "model.lr.field=0.003")
     rates = {group["name"]: group["lr"] for group in trainer.optimizer.param_groups}
     assert rates == {"colour": 0.05, "field": 0.003}
+
+
+def test_a_group_without_a_rate_is_refused_naming_it(tmp_path):
+    class Unrated(FlatImage):
+        def parameter_groups(self):
+            return {"colour": [self.colour], "depth": [self.distance]}
+
+    with pytest.raises(ConfigError, match=r"model Unrated trains a parameter group 'depth' that model.lr has no rate "
+                                          r"for; model.lr has: field, grid, colour"):
+        trainer_with(tmp_path, Unrated())
 
 
 def test_a_parameter_in_no_group_is_refused_naming_it(tmp_path):

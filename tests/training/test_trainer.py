@@ -45,7 +45,7 @@ def test_nan_loss_stops_training_naming_step_term_and_view(tmp_path):
 
 
 def test_learning_rate_groups(tmp_path):
-    cfg = tiny_cfg(tmp_path, "train.lr.feature_extractor=0.1", "train.lr.transformer=0.2", "train.lr.head=0.3")
+    cfg = tiny_cfg(tmp_path, "model.lr.feature_extractor=0.1", "model.lr.transformer=0.2", "model.lr.head=0.3")
     trainer = make_trainer(cfg, tmp_path / "run")
     rates = {group["name"]: group["lr"] for group in trainer.optimizer.param_groups}
     assert rates == {"feature_extractor": 0.1, "transformer": 0.2, "head": 0.3}

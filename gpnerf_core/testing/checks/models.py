@@ -27,6 +27,7 @@ from gpnerf_core.testing.checks.common import (
     total,
 )
 from gpnerf_core.testing.inputs import KIT_CLASSES, kit_parts, model_batch, model_scene, model_view
+from gpnerf_core.training.optimizer import check_parameter_groups as check_groups, learning_rates
 from gpnerf_core.types import Prediction, RenderedRays, StepOutput, ViewOutput
 
 
@@ -93,36 +94,23 @@ def check_build(subject: Subject) -> None:
                                                       f"{KIT_CLASSES}-class dataset, expected {KIT_CLASSES}")
 
 
-def family_rates(subject: Subject) -> set[str]:
-    """The learning-rate groups a family's config names itself (its ``lr`` section's fields, ``model.lr.<group>``)."""
-    lr = next((f for f in dataclasses.fields(subject.entry.spec.config) if f.name == "lr"), None)
-    if lr is None:
-        return set()
-    default = lr.default_factory() if lr.default_factory is not dataclasses.MISSING else lr.default
-    if dataclasses.is_dataclass(default):
-        return {f.name for f in dataclasses.fields(default)}
-    return set(default) if isinstance(default, dict) else set()
+def family_rates(subject: Subject) -> dict[str, float]:
+    """The family's learning rates as the optimizer takes them: its config's ``lr`` section (``model.lr.<group>``), with
+    the kit's config on top."""
+    lr = getattr(subject.entry.spec.config(), "lr", None)
+    rates = dataclasses.asdict(lr) if dataclasses.is_dataclass(lr) else dict(lr or {})
+    return learning_rates({**rates, **dict(subject.node().get("lr") or {})})
 
 
 def check_parameter_groups(subject: Subject) -> None:
-    """Every trainable parameter is in exactly one learning-rate group, named by a ``train.lr`` key or a key of the
-    family's own ``model.lr``."""
-    from gpnerf_core.config.schema import LearningRates
-
+    """``parameter_groups()`` keeps the optimizer's rule (``training.optimizer.check_parameter_groups``, the same
+    check): every trainable parameter in exactly one learning-rate group, and every group a rate in the family's
+    ``model.lr``."""
     model = build(subject, head=subject.takes_head)
     groups = call("parameter_groups()", model.parameter_groups)
     expect(isinstance(groups, dict), f"parameter_groups() returned {type(groups).__name__}, expected a dict")
-    known = set(LearningRates.__dataclass_fields__) | family_rates(subject)
-    unknown = [name for name in groups if name not in known]
-    expect(not unknown, f"parameter group {unknown[0] if unknown else ''!r} is not a key of train.lr or of the "
-                        f"family's model.lr ({', '.join(sorted(known))})")
-    seen: dict[int, str] = {}
-    for name, params in groups.items():
-        for p in params:
-            expect(id(p) not in seen, f"a parameter is in both groups {seen.get(id(p))!r} and {name!r}")
-            seen[id(p)] = name
-    missing = [n for n, p in model.named_parameters() if p.requires_grad and id(p) not in seen]
-    expect(not missing, f"{len(missing)} trainable parameters are in no group (first: {missing[0] if missing else ''})")
+    rates = call("reading the family's learning rates (its config's lr section)", family_rates, subject)
+    call("the optimizer's check of parameter_groups()", check_groups, model, groups, rates)
 
 
 def _pass_outputs(name: str, rendered: RenderedRays, rays: int, classes: int | None) -> dict[str, Tensor]:

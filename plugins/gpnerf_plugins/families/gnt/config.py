@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 from gpnerf_core import ModelConfig, RayMarchingConfig, part
+from gpnerf_plugins.families.rates import SourceViewRates
 
 
 @dataclass
@@ -58,6 +59,9 @@ class GNTModelConfig(RayMarchingConfig):
     """``torch.compile`` the transformer block pairs and the semantic attention sums (compiled on first use)."""
     compile_backend: str = "inductor"
     """The ``torch.compile`` backend when ``compile`` is true (inductor: C++ on CPU, Triton on CUDA)."""
+    lr: SourceViewRates = field(default_factory=SourceViewRates)
+    """Learning rates (``model.lr.<group>``): ``feature_extractor``, ``transformer`` (the aggregators and the semantic
+    adaptor), ``head``."""
 
     runtime_keys: ClassVar[tuple[str, ...]] = (
         *ModelConfig.runtime_keys, "checkpoint_blocks", "channels_last_maps", "compile", "compile_backend",

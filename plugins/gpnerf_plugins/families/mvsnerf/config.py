@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 from gpnerf_core import ModelConfig, RayMarchingConfig, part
+from gpnerf_plugins.families.rates import SourceViewRates
 
 
 @dataclass
@@ -53,5 +54,8 @@ class MVSNeRFConfig(RayMarchingConfig):
     label_rendering: bool = True
     """Render class scores with the semantic branch (off: colour and depth only, MVSNeRF itself); with a ``+head`` the
     branch renders the head's input features whatever this is."""
+    lr: SourceViewRates = field(default_factory=SourceViewRates)
+    """Learning rates (``model.lr.<group>``): ``feature_extractor``, ``transformer`` (the 3D U-Net and the MLP),
+    ``head``."""
 
     runtime_keys: ClassVar[tuple[str, ...]] = ModelConfig.runtime_keys

@@ -11,10 +11,14 @@ from gpnerf_core import ModelConfig, part
 
 @dataclass
 class MVSplatLearningRates:
-    """The family's own learning-rate group (``model.lr.<group>``); the extractor and the head take ``train.lr``'s."""
+    """The family's learning-rate groups (``model.lr.<group>``)."""
 
+    feature_extractor: float = 5e-3
+    """The extractor (``model.feature_extractor``; GP-NeRF's rate for it)."""
     mvsplat: float = 2.0e-4
     """The multi-view transformer, the cost-volume and depth networks and the Gaussian head (MVSplat: Adam 2e-4)."""
+    head: float = 5e-5
+    """The ``+head`` (GP-NeRF's rate for it)."""
 
 
 @dataclass
@@ -62,6 +66,6 @@ class MVSplatConfig(ModelConfig):
     """Rasterizer backend: ``auto`` (gsplat on CUDA where installed, numba on CPU, else torch), ``numba``, ``torch``
     or ``gsplat`` (docs/rasterizer.md)."""
     lr: MVSplatLearningRates = field(default_factory=MVSplatLearningRates)
-    """The family's own learning rates (``model.lr.mvsplat``)."""
+    """Learning rates (``model.lr.<group>``): ``feature_extractor``, ``mvsplat``, ``head``."""
 
-    runtime_keys: ClassVar[tuple[str, ...]] = (*ModelConfig.runtime_keys, "rasterizer", "lr")
+    runtime_keys: ClassVar[tuple[str, ...]] = (*ModelConfig.runtime_keys, "rasterizer")

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 from gpnerf_core import ModelConfig, RayMarchingConfig, part
+from gpnerf_plugins.families.rates import SourceViewRates
 
 
 @dataclass
@@ -31,6 +32,9 @@ class NeuRayConfig(RayMarchingConfig):
     surface_uncertainty: float = 0.2
     """``sampler=depth``: a ray whose belief's standard deviation exceeds this fraction of its depth gets its samples
     drawn from the belief."""
+    lr: SourceViewRates = field(default_factory=SourceViewRates)
+    """Learning rates (``model.lr.<group>``): ``feature_extractor``, ``transformer`` (the visibility decoder, the
+    aggregation and density networks), ``head``."""
 
     runtime_keys: ClassVar[tuple[str, ...]] = ModelConfig.runtime_keys
 
