@@ -65,6 +65,13 @@ TINY_CLI = [
 ]
 """A tiny run through the command line: one 32x48 layout, a small model (the subprocess tests' overrides)."""
 
+KIT_PARTS = {
+    "feature_extractor": {"name": "resunet_fpn", "widths": [8, 8, 8, 16], "fpn_channels": 4},
+    "field_aggregator": {"name": "gnt_view", "width": 16, "num_blocks": 2},
+}
+"""Small parts for a family built with the contract kit's ``kit_parts`` (``parts=KIT_PARTS``): each family takes those it
+declares, resunet_fpn as its extractor."""
+
 PART_OPTIONS = {"feature_extractor": "model.feature_extractor.", "field_aggregator": "model.field_aggregator."}
 """The options TINY_MODEL and TINY_CLI give the parts GNT builds (mounted under the model)."""
 

@@ -1,7 +1,7 @@
 """Configs written by earlier versions, brought to today's keys: one table, applied wherever a stored config is read
 back (a checkpoint's config, overrides and model sections; a run folder's config for ``report``).
 
-Keys move as the framework grows (``train.fuse_rendered`` became an option of the ``gnt`` model family when models
+Keys move as the framework grows (``train.fuse_rendered`` became an option of GP-NeRF's model family when models
 became families; the parts a family builds moved under ``model``, and ``train.lr.<group>`` became ``model.lr.<group>``,
 when families came to own their config subtree); a checkpoint keeps the keys it was written with. Reading it maps them, so it still evaluates, renders, fine-tunes and
 resumes, and its config compares with today's.
@@ -53,7 +53,7 @@ def family_rate_groups(model: str | None) -> tuple[str, ...] | None:
 
 def upgrade_overrides(overrides: list[str], model: str | None = None) -> list[str]:
     """Stored Hydra overrides with moved keys renamed (``train.fuse_rendered=false`` -> ``model.fuse_rendered=false``;
-    a part's ``feature_extractor=mvsnet`` -> ``model/feature_extractor=mvsnet`` and ``feature_extractor.widths=[..]``
+    a part's ``feature_extractor=<name>`` -> ``model/feature_extractor=<name>`` and ``feature_extractor.widths=[..]``
     -> ``model.feature_extractor.widths=[..]``; ``train.lr.head=..`` -> ``model.lr.head=..``). A part or a rate the
     run's model family ``model`` (the stored config's) does not have is dropped: it never reached the model."""
     upgraded = []

@@ -11,6 +11,8 @@ from typing import Any, ClassVar, Optional
 
 from omegaconf import MISSING
 
+from gpnerf_core.registry.declarations import fewer, fractions, halved_or_none, size_knob
+
 
 @dataclass
 class ModelConfig:
@@ -19,19 +21,20 @@ class ModelConfig:
     The core reads ``num_source_views``, ``init`` and ``init_strict`` itself, and the family's learning rates: the one
     home of every rate a run trains with is the family's ``lr`` section (a dataclass field ``lr`` whose fields are the
     groups its ``parameter_groups()`` names, the shared parts' ``feature_extractor`` and ``head`` included, with their
-    defaults; ``model.lr.<group>=...``); the family's factory gets the others. The parts a family builds are fields of its
-    config declared with ``gpnerf_core.part`` (``feature_extractor: Any = part("resunet_fpn")``): the core mounts their
-    config groups under ``model`` and keeps them from the factory, which builds them through ``ModelParts``. A
-    ray-marching family's config subclasses ``RayMarchingConfig`` (its sample counts).
+    defaults; ``model.lr.<group>=...``); the family's factory gets the others. The parts a family builds are fields of
+    its config declared with ``gpnerf_core.part`` (``feature_extractor: Any = part("<default option>")``): the core
+    mounts their config groups under ``model`` and keeps them from the factory, which builds them through
+    ``ModelParts``. A ray-marching family's config subclasses ``RayMarchingConfig`` (its sample counts). Fields ``size``
+    may turn down are declared with ``gpnerf_core.size_knob``.
     """
 
     name: str = ""
     """Registry name of the model family (each subclass defaults it to its own)."""
-    num_source_views: int = 10
+    num_source_views: int = size_knob(10, "source views", fewer(1, 2))
     """Source views per target (a generalizable family's; a per-scene family has none)."""
     init: Optional[str] = None
     """Start from these weights: a gpnerf-core checkpoint (its model weights only: the weight average where the run
-    kept one) or another code base's checkpoint the family reads (an official GNT one for ``gnt``). Ignored when
+    kept one) or another code base's checkpoint the family reads (an official GNT one for GP-NeRF's family). Ignored when
     resuming."""
     init_strict: bool = True
     """Refuse an init checkpoint holding keys no component maps (False: load the rest and list them)."""
@@ -46,9 +49,9 @@ class RayMarchingConfig(ModelConfig):
     """The options of a family that samples points along rays (GNT, NeuRay, MVSNeRF, Semantic-NeRF, ...): its sample
     counts, which the core validates, ``size`` tries and ``bench`` reports for such a family only."""
 
-    coarse_samples: int = 48
+    coarse_samples: int = size_knob(48, "coarse samples", fractions(2, 4, 0.75, 0.5))
     """Stratified samples per ray (inverse-depth spacing)."""
-    fine_samples: int = 16
+    fine_samples: int = size_knob(16, "fine samples", halved_or_none)
     """Importance samples added for the fine pass (0 = single pass)."""
 
 

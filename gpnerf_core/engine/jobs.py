@@ -760,7 +760,9 @@ def checkpoint_config(cfg: DictConfig, command: str) -> tuple[TrainedModel, list
         raise ConfigError(f"{command} needs checkpoint=<path to a .pt file written by run>")
     trained = load_trained(str(cfg.checkpoint))
     typed = [override_key(o) for o in task_overrides() if o not in trained.overrides]
-    family = str(((yaml.safe_load(trained.config_yaml) or {}).get("model") or {}).get("name") or "gnt")
+    from gpnerf_core.config.legacy import DEFAULT_MODEL  # a config read back always names its family (legacy)
+
+    family = str(((yaml.safe_load(trained.config_yaml) or {}).get("model") or {}).get("name") or DEFAULT_MODEL)
     if "model" in typed and str(cfg.model.name) != family:
         raise ConfigError(f"model={cfg.model.name}: checkpoint {trained.path} holds a trained model {family!r}; "
                           f"{command} takes its model family from the checkpoint: drop model=...")

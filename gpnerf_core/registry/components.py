@@ -183,6 +183,8 @@ class Registry:
                 f"{kind}={spec.name} is refused until all but one of them are disabled "
                 f"({DISABLE_PLUGINS_ENV}={disable_name(plugin)} keeps {existing.provider}'s)"
             )
+        if not isinstance(spec.display_name, str) and not callable(spec.display_name):
+            raise PluginError(f"display_name {spec.display_name!r} is neither a name nor a function of a run's config")
         if not dataclasses.is_dataclass(spec.config) or not isinstance(spec.config, type):
             raise PluginError(f"config {spec.config!r} is not a dataclass type")
         fields = {f.name: f for f in dataclasses.fields(spec.config)}

@@ -94,7 +94,7 @@ def test_knob_levels_shrink_from_the_reference_and_respect_the_coverage_floor():
     assert levels["model.field_aggregator.width"] == (32, [24, 16])
     assert levels["model.field_aggregator.num_blocks"] == (4, [3, 2])
     assert levels["model.feature_extractor.fpn_channels"] == (16, [12, 8])
-    assert [n.split(":")[0] for n in notes] == ["model.depth_candidates", "model.feature_dim"]  # MVSplat's knobs
+    assert [n.split(":")[0] for n in notes] == ["model.feature_dim", "model.depth_candidates"]  # MVSplat's knobs
     without_head, notes = knob_levels(compose(["scale=cpu"]), min_source_views=4)
     assert "model.feature_extractor.fpn_channels" not in without_head and "model.num_source_views" not in without_head
     assert any("no head" in n for n in notes) and any("needs all 4" in n for n in notes)
@@ -102,13 +102,22 @@ def test_knob_levels_shrink_from_the_reference_and_respect_the_coverage_floor():
 
 def test_only_knobs_of_components_the_family_builds_are_sized():
     cfg = compose(["+experiment=baselines/neuray"])
-    sections = build_components(cfg).model_sections
-    levels, notes = knob_levels(cfg, min_source_views=1, model_sections=sections)
+    levels, notes = knob_levels(cfg, min_source_views=1)
     assert not any(key.startswith("model.field_aggregator.") for key in levels)  # NeuRay builds no GNT aggregator
     assert "model.field_aggregator.width: model 'neuray' builds no field_aggregator; not sized" in notes
     splat = compose(["+experiment=baselines/mvsplat"])
-    levels, _ = knob_levels(splat, min_source_views=1, model_sections=build_components(splat).model_sections)
+    levels, _ = knob_levels(splat, min_source_views=1)
     assert set(levels) == {"model.num_source_views", "model.depth_candidates", "model.feature_dim"}
+
+
+def test_knobs_are_the_declared_fields_never_an_option_by_its_name():
+    """``feature_dim`` is a knob of MVSplat's (its matching width), not of 3D Gaussian splatting's (the semantic feature
+    each Gaussian carries): a knob is declared on the field it sizes (``gpnerf_core.size_knob``)."""
+    from gpnerf_core.tools.sizing.knobs import configured_knobs
+
+    assert "model.feature_dim" in {k.key for k in configured_knobs(compose(["model=mvsplat"]))}
+    gaussians = compose(["+experiment=baselines/semantic_3dgs", "dataset.scenes=[layout_00]"])
+    assert {k.key for k in configured_knobs(gaussians)} == {"model.num_source_views"}
 
 
 def _cost(changes):

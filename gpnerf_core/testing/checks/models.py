@@ -1,8 +1,9 @@
 """Checks of model families: ``forward(StepBatch) -> StepOutput`` in training, ``predict(camera, sources) ->
 Prediction`` on a whole view, and what they say about themselves (``semantic_output``, ``parameter_groups``).
 
-The kit builds a family with small built-in parts (``inputs.KIT_PARTS``: ``resunet_fpn``, ``gnt_view``, ``gnt_ray`` and
-the ``unet`` head, at 3 classes) and renders a synthetic 32 x 48 scene seen from two source views (a per-scene family
+The kit builds a family with the parts its config declares (``gpnerf_core.part``; their options from the family's
+config under check and the kit's ``configs``, else their defaults) and the kit's head (``inputs.KIT_HEAD``), at 3
+classes, and renders a synthetic 32 x 48 scene seen from two source views (a per-scene family
 is first ``initialise``d with that scene, ``inputs.model_scene``).
 """
 
@@ -26,7 +27,7 @@ from gpnerf_core.testing.checks.common import (
     shape,
     total,
 )
-from gpnerf_core.testing.inputs import KIT_CLASSES, kit_parts, model_batch, model_scene, model_view
+from gpnerf_core.testing.inputs import KIT_CLASSES, model_batch, model_scene, model_view
 from gpnerf_core.training.optimizer import check_parameter_groups as check_groups, learning_rates
 from gpnerf_core.types import Prediction, RenderedRays, StepOutput, ViewOutput
 
@@ -37,7 +38,7 @@ def build(subject: Subject, *, head: bool) -> ModelFamily:
 
 def built(subject: Subject, *, head: bool) -> tuple[ModelFamily, set[int]]:
     """The family, and the ids of its parts' parameters (the parts are checked as components of their own kinds)."""
-    parts = kit_parts(subject.registry, subject.name, head=head)
+    parts = subject.kit_parts(head=head)
     model = subject.build(parts=parts)
     expect(isinstance(model, ModelFamily), f"built a {type(model).__name__}, expected a ModelFamily")
     if not model.generalizable:  # as the trainer does before a per-scene family's first step
@@ -76,7 +77,7 @@ def check_build(subject: Subject) -> None:
             raise CheckFailed("accepts_head is False but the family built with a configured head (it would be "
                               "silently ignored): raise a ConfigError naming +head")
     if subject.takes_head:  # a configured head is used, not silently ignored
-        parts = kit_parts(subject.registry, subject.name, head=True)
+        parts = subject.kit_parts(head=True)
         with_head = subject.build(parts=parts)
         expect("head" in parts.built_kinds,
                "a head was configured (+head=unet) but the family built none, so it would be silently ignored: build "

@@ -79,7 +79,7 @@ VARIANTS = ("gpnerf", "gnt_only")
 
 def _experiment_text(family: str) -> str:
     """The text of ``conf/experiment/baselines/<family>.yaml`` and of the baseline experiments its defaults include
-    (``- /experiment/baselines/<other>``: e.g. ``semantic_nerf_grid`` is ``semantic_nerf`` with its grid option)."""
+    (``- /experiment/baselines/<other>``: a variant of another baseline's family)."""
     import re
 
     from gpnerf_core.config.compose import config_dir
@@ -100,10 +100,13 @@ def baseline_families() -> list[str]:
 
 
 def registered_families() -> list[str]:
-    """Every model family a plugin registers (third parties' too), GP-NeRF's own (``gnt``) aside."""
+    """Every model family a plugin registers (third parties' too), the default one aside (``conf/config.yaml``'s
+    ``model``: GP-NeRF's, which the ``gpnerf`` and ``gnt_only`` variants measure)."""
+    from gpnerf_core.config.overrides import default_choice
     from gpnerf_core.registry.components import get_registry
 
-    return [name for name in get_registry().names("model") if name != "gnt"]
+    default = default_choice("model")
+    return [name for name in get_registry().names("model") if name != default]
 
 
 def checked_families(value: str) -> list[str]:

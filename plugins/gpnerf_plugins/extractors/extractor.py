@@ -8,7 +8,7 @@ from typing import Any, Mapping, Sequence
 import torch.nn.functional as F
 from torch import Tensor
 
-from gpnerf_core import ConfigError, FeatureExtractor, FeatureMaps, ImportedWeights
+from gpnerf_core import ConfigError, FeatureExtractor, FeatureMaps, ImportedWeights, fractions, size_knob
 from gpnerf_plugins.extractors.fpn import FPN, concat_levels
 from gpnerf_plugins.extractors.resunet import ResUNet
 
@@ -33,8 +33,9 @@ class ResUNetFPNConfig:
     """Feed x3 detached into the radiance decoder, so rendering never trains layer3 (GP-NeRF: True, GNT: False)."""
     semantic: bool = True
     """Build the FPN semantic branch; False gives a GNT-only extractor (no semantic map)."""
-    fpn_channels: int = 128
-    """Channels of each of the 4 FPN levels; the semantic map has 4 times this many (GP-NeRF: 128)."""
+    fpn_channels: int = size_knob(128, "semantic width", fractions(4, 4, 0.75, 0.5), needs="head")
+    """Channels of each of the 4 FPN levels; the semantic map has 4 times this many (GP-NeRF: 128); a size knob only
+    with a ``+head``, the one reader of the semantic map."""
 
 
 def _check_positive_list(key: str, values: Sequence[int], length: int) -> list[int]:

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
-from gpnerf_core import ModelConfig, part
+from gpnerf_core import ModelConfig, fractions, part, size_knob
 
 
 @dataclass
@@ -34,14 +34,14 @@ class MVSplatConfig(ModelConfig):
     carries for a ``+head``."""
     num_source_views: int = 2
     """Source views whose pixels become Gaussians (MVSplat: 2 context views; any count >= 2 works)."""
-    feature_dim: int = 64
+    feature_dim: int = size_knob(64, "matching width", fractions(2, 4, 0.75, 0.5))
     """Channels of the multi-view transformer and the cost volume's features (MVSplat: ``d_feature`` 128)."""
     transformer_layers: int = 2
     """Blocks of self- then cross-view attention over the 1/4 maps (MVSplat: 6)."""
     attention_splits: int = 2
     """Each 1/4 map is cut into splits x splits windows for attention, shifted by half a window every other block
     (MVSplat: ``multiview_trans_attn_split`` 2)."""
-    depth_candidates: int = 32
+    depth_candidates: int = size_knob(32, "depth candidates", fractions(2, 4, 0.75, 0.5))
     """Depths of the cost volume, uniform in inverse depth between near and far (MVSplat: ``num_depth_candidates``
     32; 128 for RE10K)."""
     cost_unet_dim: int = 32
