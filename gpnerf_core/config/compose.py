@@ -38,9 +38,10 @@ def compose(overrides: list[str] | tuple[str, ...] = ()) -> Any:
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
+    from gpnerf_core.config.presets import check_presets
     from gpnerf_core.registry.components import get_registry
 
-    get_registry()
+    check_presets(get_registry())  # a plugin's preset that shadows another is refused, never composed
     register_schema()
     with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
         return hydra_compose(config_name="config", overrides=list(overrides))

@@ -16,6 +16,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import InterpolationResolutionError
 
 from gpnerf_core.config.compose import compose
+from gpnerf_core.config.presets import check_presets
 from gpnerf_core.engine.validation import validate_config
 from gpnerf_core.errors import ConfigError, GpnerfError
 from gpnerf_core.registry.components import get_registry
@@ -95,7 +96,9 @@ def check_override_grammar(overrides: list[str]) -> None:
 
 def check_component_choices(argv: list[str], registry: Any) -> None:
     """Refuse ``[+]head=<name>`` (and every other component group) naming no registered component, in one line that
-    lists the known names and any plugin that failed to load, before Hydra says only "could not find"."""
+    lists the known names and any plugin that failed to load, before Hydra says only "could not find"; and a plugin's
+    config preset that shadows a built-in one (``config.presets.check_presets``)."""
+    check_presets(registry)
     for argument in argv:
         key, sep, value = argument.partition("=")
         group = key.lstrip("+~")

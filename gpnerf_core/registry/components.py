@@ -16,7 +16,7 @@ import os
 import re
 import typing
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any, Iterator, Mapping
 
 from gpnerf_core.errors import ConfigError, GpnerfError, PluginError
 from gpnerf_core.interfaces import StressCase
@@ -81,6 +81,9 @@ class Registry:
     """``name -> (StressCase, plugin name)``."""
     clashes: dict[str, list[PluginInfo]] = field(default_factory=dict)
     """``kind/name -> the plugins that each register it`` (first registered first); choosing one is refused."""
+    config_searchpaths: list[tuple[str, str]] = field(default_factory=list)
+    """``(Hydra search path, plugin name)`` of the config folders plugins ship (``gpnerf_config_searchpaths``), in
+    registration order."""
 
     def names(self, kind: str) -> list[str]:
         return sorted(self.components[kind])
@@ -301,18 +304,40 @@ def collect(loaded: LoadedPlugins) -> Registry:
             else:
                 registry.data_tools[tool.name] = (tool, impl.plugin_name)
     _collect_stress_cases(loaded, registry)
+    _collect_searchpaths(loaded, registry)
     return registry
 
 
-def _collect_stress_cases(loaded: LoadedPlugins, registry: Registry) -> None:
-    hook = "gpnerf_register_stress_cases"
+SEARCHPATH_SCHEMES = ("pkg://", "file://")
+
+
+def _returned(loaded: LoadedPlugins, registry: Registry, hook: str) -> Iterator[tuple[PluginInfo, str, Any]]:
+    """``(plugin info, plugin name, what it returned)`` of each implementation of ``hook``; one that raises is recorded
+    as a problem and left out."""
     for impl in getattr(loaded.manager.hook, hook).get_hookimpls():
         info = loaded.plugins.get(impl.plugin_name, PluginInfo(impl.plugin_name))
         try:
-            cases = impl.function()
+            returned = impl.function()
         except Exception as exc:
             registry.problems.append(PluginProblem(info, f"{hook} raised {type(exc).__name__}: {one_line(exc)}"))
             continue
+        yield info, impl.plugin_name, returned
+
+
+def _collect_searchpaths(loaded: LoadedPlugins, registry: Registry) -> None:
+    hook = "gpnerf_config_searchpaths"
+    for info, plugin_name, paths in _returned(loaded, registry, hook):
+        for path in paths or ():
+            if not isinstance(path, str) or not path.startswith(SEARCHPATH_SCHEMES) or not path.split("://", 1)[1]:
+                registry.problems.append(PluginProblem(
+                    info, f"{hook} returned {path!r}; expected a search path pkg://<package>.<folder> or "
+                          "file://<absolute folder>", "config"))
+            else:
+                registry.config_searchpaths.append((path, plugin_name))
+
+
+def _collect_stress_cases(loaded: LoadedPlugins, registry: Registry) -> None:
+    for info, plugin_name, cases in _returned(loaded, registry, "gpnerf_register_stress_cases"):
         for case in cases or ():
             problem = stress_case_problem(case)
             name = getattr(case, "name", "?")
@@ -322,7 +347,7 @@ def _collect_stress_cases(loaded: LoadedPlugins, registry: Registry) -> None:
             if problem is not None:
                 registry.problems.append(PluginProblem(info, problem, f"stress/{name}"))
             else:
-                registry.stress_cases[name] = (case, impl.plugin_name)
+                registry.stress_cases[name] = (case, plugin_name)
 
 
 def stress_case_problem(case: Any) -> str | None:

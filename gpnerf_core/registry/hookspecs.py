@@ -144,3 +144,26 @@ def gpnerf_register_stress_cases() -> list[StressCase]:
         ``StressCase`` instances (``gpnerf_core.interfaces.StressCase``); a name registered twice is an error
         naming both providers.
     """
+
+
+@hookspec
+def gpnerf_config_searchpaths() -> list[str]:
+    """Folders of Hydra configs the plugin ships beside its components: presets, found as if they were in gpnerf-core's
+    own ``conf/``.
+
+    Called once per registry build; gpnerf-core's one Hydra ``SearchPathPlugin`` (``hydra_plugins/
+    gpnerf_core_searchpath``) appends each folder to the config search path after ``conf/``, for every command that
+    composes a config. What a folder holds is used by path:
+
+    - ``experiment/<name>.yaml``: ``+experiment=<name>`` (``# @package _global_``, as the built-in experiments);
+    - ``scale/<scale>/<model>.yaml``: the plugin's family's sizes at that scale (``scale=cpu`` picks it for
+      ``model=<model>``); ``scale/<scale>/<kind>/<name>.yaml``: a part's (``model.<kind>``).
+
+    A file whose path is also a built-in config's, or another plugin's, is refused naming both (presets add to the
+    built-in ones, never replace them): every command that composes a config then stops with one line, and
+    ``python -m gpnerf_core plugins`` lists it as a problem.
+
+    Returns:
+        Hydra search paths: ``pkg://<package>.<folder>`` (a package folder with an ``__init__.py``, installed with the
+        plugin: ``pkg://gpnerf_fancy.conf``) or ``file://<absolute folder>``.
+    """

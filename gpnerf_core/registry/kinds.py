@@ -97,5 +97,5 @@ def section(config: Any, kind: str) -> Any:
         node = node.get(key) if node is not None and hasattr(node, "get") else None
     return node
 
-OTHER_HOOKS = ("gpnerf_register_data_tools", "gpnerf_register_stress_cases")
+OTHER_HOOKS = ("gpnerf_register_data_tools", "gpnerf_register_stress_cases", "gpnerf_config_searchpaths")
 """Hooks whose records are not Hydra config options."""
