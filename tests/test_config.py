@@ -151,3 +151,17 @@ def test_a_hydra_glob_sweep_finds_the_five_table4_rows():
     with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
         options = GlobalHydra.instance().config_loader().get_group_options("experiment")
     assert Glob(include=["table4_*"]).filter(options) == [f"table4_id{i}" for i in range(1, 6)]
+
+
+def test_the_primary_config_picks_a_size_preset_for_every_part_kind_and_the_family():
+    """``conf/config.yaml`` lists one optional ``scale`` entry per part kind (``model.<kind>``) and one for the family:
+    a part kind added to ``registry/kinds.py`` needs its entry there."""
+    import yaml
+
+    from gpnerf_core.registry.kinds import PART_KINDS
+
+    defaults = yaml.safe_load((Path(config_dir()) / "config.yaml").read_text())["defaults"]
+    entries = [e for e in defaults if not isinstance(e, str)]
+    presets = {key: value for entry in entries for key, value in entry.items() if key.startswith("optional scale@")}
+    assert presets == {**{f"optional scale@model.{kind}": f"${{scale}}/{kind}/${{model/{kind}}}" for kind in PART_KINDS},
+                       "optional scale@_global_": "${scale}/${model}"}

@@ -127,7 +127,7 @@ class Registry:
         unknown = set(given) - expected
         if unknown:
             raise ConfigError(
-                f"{kind}.{sorted(unknown)[0]} is not an option of {kind} {entry.spec.name!r}; "
+                f"{KINDS[kind].config_key}.{sorted(unknown)[0]} is not an option of {kind} {entry.spec.name!r}; "
                 f"expected one of: {', '.join(sorted(expected))}"
             )
         defaults = entry.spec.config()

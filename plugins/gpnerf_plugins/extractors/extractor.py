@@ -41,7 +41,7 @@ class ResUNetFPNConfig:
 def _check_positive_list(key: str, values: Sequence[int], length: int) -> list[int]:
     values = [int(v) for v in values]
     if len(values) != length or any(v < 1 for v in values):
-        raise ConfigError(f"feature_extractor.{key}={values}: expected {length} positive integers")
+        raise ConfigError(f"model.feature_extractor.{key}={values}: expected {length} positive integers")
     return values
 
 
@@ -68,9 +68,9 @@ class ResUNetFPN(FeatureExtractor):
         widths = _check_positive_list("widths", widths, 4)
         blocks = _check_positive_list("blocks", blocks, 3)
         if radiance_dim < 1:
-            raise ConfigError(f"feature_extractor.radiance_dim={radiance_dim}: expected a positive integer")
+            raise ConfigError(f"model.feature_extractor.radiance_dim={radiance_dim}: expected a positive integer")
         if semantic and fpn_channels < 1:
-            raise ConfigError(f"feature_extractor.fpn_channels={fpn_channels}: expected a positive integer")
+            raise ConfigError(f"model.feature_extractor.fpn_channels={fpn_channels}: expected a positive integer")
         self.backbone = ResUNet(widths, blocks, radiance_dim)
         self.fpn = FPN(widths, fpn_channels) if semantic else None
         self.detach_deep_for_radiance = bool(detach_deep_for_radiance)
