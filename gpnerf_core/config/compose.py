@@ -3,17 +3,12 @@ the run-folder resolver)."""
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
+from gpnerf_core.config.folder import config_dir
 from gpnerf_core.config.schema import RootConfig
 
-
-def config_dir() -> str:
-    """The folder of the primary config (``conf/``, installed as the package ``gpnerf_conf``)."""
-    import gpnerf_conf
-
-    return str(Path(gpnerf_conf.__file__).resolve().parent)
+__all__ = ["compose", "config_dir", "register_schema", "run_dir_resolver"]
 
 
 def run_dir_resolver(out_dir: str, default: str) -> str:

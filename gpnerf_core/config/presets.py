@@ -51,7 +51,7 @@ def _yaml_below(folder: Any, prefix: str) -> Iterable[str]:
 
 def preset_clashes(registry: Any = None) -> list[str]:
     """One line per config file a plugin's search path shares with gpnerf-core's ``conf/`` or an earlier plugin's."""
-    from gpnerf_core.config.compose import config_dir
+    from gpnerf_core.config.folder import config_dir
     from gpnerf_core.registry.components import disable_name, get_registry
     from gpnerf_core.registry.plugins import DISABLE_PLUGINS_ENV, PluginInfo
 

@@ -31,6 +31,6 @@ def _is_gpnerf_conf(path: str | None) -> bool:
         return path[len("pkg://"):].strip("/").replace("/", ".") == "gpnerf_conf"
     from pathlib import Path
 
-    from gpnerf_core.config.compose import config_dir
+    from gpnerf_core.config.folder import config_dir
 
     return Path(path.removeprefix("file://")).resolve() == Path(config_dir()).resolve()
