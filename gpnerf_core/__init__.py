@@ -18,6 +18,9 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     # registering plugins
     "gpnerf_core.registry.hookspecs": ("hookimpl",),
     "gpnerf_core.registry.specs": ("ComponentSpec", "DataTool"),
+    "gpnerf_core.registry.declarations": (
+        "SizeKnob", "fewer", "fractions", "halved_or_none", "one_fewer_or_halved", "part", "size_knob",
+    ),
     "gpnerf_core.registry.components": ("get_registry",),
     # the interfaces a component implements
     "gpnerf_core.data.dataset": ("SPLITS", "SceneDataset"),
@@ -233,6 +236,15 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
     from gpnerf_core.model.build import build_components
     from gpnerf_core.registry.components import get_registry
     from gpnerf_core.registry.hookspecs import hookimpl
+    from gpnerf_core.registry.declarations import (
+        SizeKnob,
+        fewer,
+        fractions,
+        halved_or_none,
+        one_fewer_or_halved,
+        part,
+        size_knob,
+    )
     from gpnerf_core.registry.specs import ComponentSpec, DataTool
     from gpnerf_core.runtime.device import checked_compile_backend
     from gpnerf_core.runtime.io import atomic_write_json

@@ -18,8 +18,8 @@ REPO = Path(__file__).resolve().parents[1]
 DRY = bool(os.environ.get("GPU_CHECK_DRY_RUN"))
 DEVICE = "cpu" if DRY else "cuda"
 TINY = ["dataset.num_train_scenes=1", "dataset.num_unseen_scenes=1", "dataset.frames_per_scene=6", "dataset.eval_every=3",
-        "dataset.height=32", "dataset.width=48", "feature_extractor.widths=[8,8,8,16]", "feature_extractor.fpn_channels=4",
-        "field_aggregator.width=16", "field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2",
+        "dataset.height=32", "dataset.width=48", "model.feature_extractor.widths=[8,8,8,16]", "model.feature_extractor.fpn_channels=4",
+        "model.field_aggregator.width=16", "model.field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2",
         "model.num_source_views=2", "train.rays=16", "train.steps=2", "eval.save_images=0"]
 PAPER_BENCH_DATA = ["scale=paper", "dataset.height=240", "dataset.width=320", "dataset.num_train_scenes=1",
                     "dataset.num_unseen_scenes=1", "dataset.frames_per_scene=16"]

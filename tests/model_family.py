@@ -16,7 +16,7 @@ subprocesses of the command tests as an installed plugin (``install(root)``; put
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -52,6 +52,7 @@ from gpnerf_core import (
     density_opacity,
     hookimpl,
     importance_depths,
+    part,
     points_along_rays,
     rays_through_pixels,
     render_whole_view,
@@ -62,15 +63,27 @@ DISTRIBUTION = "gpnerf-test-family"
 
 
 @dataclass
+class PooledViewsRates:
+    """Its learning-rate groups (``model.lr.<group>``)."""
+
+    feature_extractor: float = 1e-3
+    transformer: float = 5e-4
+    """Its own MLPs."""
+
+
+@dataclass
 class PooledViewsConfig(RayMarchingConfig):
     """Options of the ``pooled_views`` family."""
 
     name: str = "pooled_views"
     """Registry name of this model family."""
+    feature_extractor: Any = part("resunet_fpn")
+    """Encodes the source views (the built-in extractor)."""
     hidden: int = 32
     """Width of the per-view and density MLPs."""
     label_rendering: bool = True
     """Render class scores (off: colour and depth only)."""
+    lr: PooledViewsRates = field(default_factory=PooledViewsRates)
 
     runtime_keys: ClassVar[tuple[str, ...]] = ModelConfig.runtime_keys
 

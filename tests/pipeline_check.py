@@ -18,8 +18,8 @@ from gpnerf_core.model.checkpoint import RunRecord
 from gpnerf_core.training.trainer import Trainer
 
 TINY_MODEL = [
-    "feature_extractor.widths=[8,8,8,16]", "feature_extractor.fpn_channels=4", "field_aggregator.width=16",
-    "field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2", "model.num_source_views=2",
+    "model.feature_extractor.widths=[8,8,8,16]", "model.feature_extractor.fpn_channels=4", "model.field_aggregator.width=16",
+    "model.field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2", "model.num_source_views=2",
     "train.rays=16", "train.steps=2", "train.log_every=1", "eval.chunk_rays=256", "eval.save_images=1", "threads=1",
 ]
 
@@ -61,11 +61,28 @@ def assert_both_splits_scored(metrics: dict, num_classes: int) -> None:
 
 TINY_CLI = [
     "dataset.height=32", "dataset.width=48", "dataset.frames_per_scene=6", "dataset.eval_every=3",
-    "dataset.num_train_scenes=1", "feature_extractor.widths=[8,8,8,16]", "feature_extractor.fpn_channels=4",
-    "field_aggregator.width=16", "field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2",
+    "dataset.num_train_scenes=1", "model.feature_extractor.widths=[8,8,8,16]", "model.feature_extractor.fpn_channels=4",
+    "model.field_aggregator.width=16", "model.field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2",
     "model.num_source_views=2", "train.rays=16", "threads=1", "eval.save_images=0",
 ]
 """A tiny run through the command line: one 32x48 layout, a small model (the subprocess tests' overrides)."""
+
+KIT_PARTS = {
+    "feature_extractor": {"name": "resunet_fpn", "widths": [8, 8, 8, 16], "fpn_channels": 4},
+    "field_aggregator": {"name": "gnt_view", "width": 16, "num_blocks": 2},
+}
+"""Small parts for a family built with the contract kit's ``kit_parts`` (``parts=KIT_PARTS``): each family takes those it
+declares, resunet_fpn as its extractor."""
+
+PART_OPTIONS = {"feature_extractor": "model.feature_extractor.", "field_aggregator": "model.field_aggregator."}
+"""The options TINY_MODEL and TINY_CLI give the parts GNT builds (mounted under the model)."""
+
+
+def for_parts(overrides: list[str], *parts: str) -> list[str]:
+    """``overrides`` without the options of the parts a family does not build (``parts``: the kinds it builds), which
+    have no place under its model."""
+    dropped = tuple(prefix for kind, prefix in PART_OPTIONS.items() if kind not in parts)
+    return [o for o in overrides if not o.startswith(dropped)]
 
 
 def gpnerf(*args, cwd):

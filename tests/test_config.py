@@ -8,7 +8,7 @@ from omegaconf.errors import ConfigKeyError
 from gpnerf_core.config.compose import config_dir
 from gpnerf_core.config.compose import register_schema
 from gpnerf_core.registry.components import get_registry
-from gpnerf_core.registry.kinds import KINDS
+from gpnerf_core.registry.kinds import KINDS, section
 
 EXPERIMENTS = sorted(
     str(p.relative_to(Path(config_dir()) / "experiment").with_suffix(""))
@@ -31,17 +31,18 @@ def compose_with(overrides):
 def test_default_config_composes_with_cpu_scale(registry):
     cfg = compose_with(["+head=unet", "+loss=dgs"])
     assert cfg.head.name == "unet" and cfg.loss.name == "dgs"
-    assert cfg.feature_extractor.name == "resunet_fpn" and cfg.field_aggregator.width == 32
+    assert cfg.model.feature_extractor.name == "resunet_fpn" and cfg.model.field_aggregator.width == 32
     assert cfg.model.coarse_samples == 24
+    assert "feature_extractor" not in cfg and "field_aggregator" not in cfg  # the family's parts sit under model
 
 
 def test_paper_scale_restores_paper_sizes(registry):
     cfg = compose_with(["scale=paper", "+head=unet", "+loss=dgs"])
-    assert list(cfg.feature_extractor.widths) == [64, 64, 128, 256]
-    assert cfg.feature_extractor.fpn_channels * 4 == 512
-    assert cfg.field_aggregator.width == 64 and cfg.field_aggregator.num_blocks == 8
+    assert list(cfg.model.feature_extractor.widths) == [64, 64, 128, 256]
+    assert cfg.model.feature_extractor.fpn_channels * 4 == 512
+    assert cfg.model.field_aggregator.width == 64 and cfg.model.field_aggregator.num_blocks == 8
     assert (cfg.model.coarse_samples, cfg.model.fine_samples, cfg.model.num_source_views) == (48, 16, 10)
-    assert cfg.train.rays == 512 and cfg.train.lr.transformer == 1e-5
+    assert cfg.train.rays == 512 and cfg.model.lr.transformer == 1e-5
 
 
 @pytest.mark.parametrize("kind", list(KINDS))
@@ -50,11 +51,29 @@ def test_every_registered_option_composes(registry, kind):
         add_on = KINDS[kind].add_on
         prefix = "+" if add_on else ""
         extra = [] if kind in ("head", "loss") else ["+head=unet", "+loss=dgs"]
-        # CPU scale sets keys of the default components; other options compose with scale=paper
-        scale = [] if name in ("resunet_fpn", "gnt_view", "gnt_ray") or kind not in (
-            "feature_extractor", "field_aggregator", "ray_aggregator") else ["scale=paper"]
-        cfg = compose_with([f"{prefix}{kind}={name}", *extra, *scale])
-        assert cfg[kind].name == name
+        for scale in ("cpu", "paper"):  # each component's size preset is its own, so any option composes with both
+            cfg = compose_with([f"{prefix}{KINDS[kind].group}={name}", *extra, f"scale={scale}"])
+            assert section(cfg, kind).name == name
+
+
+def test_each_family_brings_the_parts_it_declares(registry):
+    """``model=<name>`` chooses the family's own parts (its config's ``part`` fields) and no other part kind."""
+    from gpnerf_core.registry.declarations import declared_parts
+
+    for name in registry.names("model"):
+        cfg = compose_with([f"model={name}"])
+        declared = declared_parts(registry.get("model", name).spec.config)
+        assert {kind: cfg.model[kind].name for kind in declared} == declared
+        assert all(kind in declared or kind not in cfg.model for kind in ("feature_extractor", "field_aggregator",
+                                                                           "ray_aggregator"))
+
+
+def test_a_part_is_chosen_and_sized_under_the_model(registry):
+    cfg = compose_with(["model=mvsnerf", "model/feature_extractor=resunet_fpn", "model.feature_extractor.fpn_channels=8"])
+    assert cfg.model.feature_extractor.name == "resunet_fpn" and cfg.model.feature_extractor.fpn_channels == 8
+    assert list(cfg.model.feature_extractor.widths) == [32, 32, 64, 96]  # scale=cpu's resunet_fpn, under any family
+    with pytest.raises(ConfigCompositionException):  # a part the family does not build has no place under it
+        compose_with(["model=semantic_nerf", "model/feature_extractor=resunet_fpn"])
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
@@ -132,3 +151,17 @@ def test_a_hydra_glob_sweep_finds_the_five_table4_rows():
     with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
         options = GlobalHydra.instance().config_loader().get_group_options("experiment")
     assert Glob(include=["table4_*"]).filter(options) == [f"table4_id{i}" for i in range(1, 6)]
+
+
+def test_the_primary_config_picks_a_size_preset_for_every_part_kind_and_the_family():
+    """``conf/config.yaml`` lists one optional ``scale`` entry per part kind (``model.<kind>``) and one for the family:
+    a part kind added to ``registry/kinds.py`` needs its entry there."""
+    import yaml
+
+    from gpnerf_core.registry.kinds import PART_KINDS
+
+    defaults = yaml.safe_load((Path(config_dir()) / "config.yaml").read_text())["defaults"]
+    entries = [e for e in defaults if not isinstance(e, str)]
+    presets = {key: value for entry in entries for key, value in entry.items() if key.startswith("optional scale@")}
+    assert presets == {**{f"optional scale@model.{kind}": f"${{scale}}/{kind}/${{model/{kind}}}" for kind in PART_KINDS},
+                       "optional scale@_global_": "${scale}/${model}"}

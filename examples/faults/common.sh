@@ -6,8 +6,8 @@ WORK=${1:-${WORK:-/tmp/gpnerf-faults}}
 mkdir -p "$WORK"
 export GPNERF_DISABLE_PLUGIN_AUTOLOAD=1 OMP_NUM_THREADS=1
 TINY=(+head=unet +loss=dgs dataset.num_train_scenes=2 dataset.num_unseen_scenes=1 dataset.frames_per_scene=6
-      dataset.eval_every=3 dataset.height=32 dataset.width=48 'feature_extractor.widths=[8,8,8,16]'
-      feature_extractor.fpn_channels=4 field_aggregator.width=16 field_aggregator.num_blocks=2 model.coarse_samples=6
+      dataset.eval_every=3 dataset.height=32 dataset.width=48 'model.feature_extractor.widths=[8,8,8,16]'
+      model.feature_extractor.fpn_channels=4 model.field_aggregator.width=16 model.field_aggregator.num_blocks=2 model.coarse_samples=6
       model.fine_samples=2 model.num_source_views=2 train.rays=16 train.log_every=1 train.steps=3
       train.targets_per_step=2 eval.max_views_per_scene=2 eval.save_images=1 train.grad_clip=0)
 now() { date +%s.%N; }

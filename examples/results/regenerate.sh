@@ -78,7 +78,7 @@ export OMP_NUM_THREADS=1
 } >> "$WORK/provenance.txt"
 
 CKPT=checkpoints/step_0000600.pt
-SIZED=(+head=unet +loss=dgs dataset.near=0.59 dataset.far=5.696 field_aggregator.num_blocks=2 model.fine_samples=0
+SIZED=(+head=unet +loss=dgs dataset.near=0.59 dataset.far=5.696 model.field_aggregator.num_blocks=2 model.fine_samples=0
        model.num_source_views=3)  # the configuration `size` chose for the embedded scenes (docs/results_detail.md, Sizing)
 
 # One queued job per line: "<name>\t<needed jobs, comma-separated, or ->\t<gpnerf_core arguments>".

@@ -3,15 +3,17 @@ plugins and the problems of plugins that failed; exit code 1 when there are prob
 
 from __future__ import annotations
 
+from gpnerf_core.config.presets import preset_clashes
 from gpnerf_core.errors import GpnerfError
 from gpnerf_core.registry.components import get_registry
 
 
 USAGE = """usage: python -m gpnerf_core plugins
 
-Lists every registered component (kind, name, provider, version, description) and stress case, the plugins disabled
-by GPNERF_DISABLE_PLUGINS / GPNERF_DISABLE_PLUGIN_AUTOLOAD, and the problems of plugins that failed to load or whose
-components were rejected (a name two plugins register is one: choosing it is refused until all but one are disabled).
+Lists every registered component (kind, name, provider, version, description) and stress case, the config folders
+plugins ship (their presets), the plugins disabled by GPNERF_DISABLE_PLUGINS / GPNERF_DISABLE_PLUGIN_AUTOLOAD, and the
+problems of plugins that failed to load or whose components were rejected (a name two plugins register is one: choosing
+it is refused until all but one are disabled; so is a plugin's preset with the path of a built-in or another plugin's).
 Exit code 0, or 1 when there are problems."""
 
 
@@ -33,13 +35,18 @@ def main(argv: list[str]) -> int:
     widths = [max(len(row[i]) for row in rows) for i in range(4)]
     for row in rows:
         print("  ".join(cell.ljust(widths[i]) for i, cell in enumerate(row[:4])) + "  " + row[4])
+    if registry.config_searchpaths:
+        print("\nconfig search paths:")
+        for path, plugin in registry.config_searchpaths:
+            print(f"  {path}  ({plugin})")
     if registry.disabled:
         print("\ndisabled:")
         for name in registry.disabled:
             print(f"  {name}")
-    if registry.problems:
+    problems = [str(problem) for problem in registry.problems] + preset_clashes(registry)
+    if problems:
         print("\nproblems:")
-        for problem in registry.problems:
+        for problem in problems:
             print(f"  {problem}")
         return 1
     return 0

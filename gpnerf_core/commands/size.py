@@ -124,7 +124,7 @@ def _size(cfg: Any, overrides: list[str], options: SizeOptions, metric: str, tol
         notes.append(f"no source-view count up to {fewest} shows {options.min_coverage:.0%} of a target's pixels to two "
                      "sources: source views not sized")
     reference_cfg = compose(base)
-    levels, knob_notes = knob_levels(reference_cfg, fewest, components.model_sections)
+    levels, knob_notes = knob_levels(reference_cfg, fewest)
     notes += knob_notes
     if options.knobs:
         missing = [knob for knob in options.knobs if knob not in levels]

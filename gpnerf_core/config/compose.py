@@ -3,17 +3,12 @@ the run-folder resolver)."""
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
+from gpnerf_core.config.folder import config_dir
 from gpnerf_core.config.schema import RootConfig
 
-
-def config_dir() -> str:
-    """The folder of the primary config (``conf/``, installed as the package ``gpnerf_conf``)."""
-    import gpnerf_conf
-
-    return str(Path(gpnerf_conf.__file__).resolve().parent)
+__all__ = ["compose", "config_dir", "register_schema", "run_dir_resolver"]
 
 
 def run_dir_resolver(out_dir: str, default: str) -> str:
@@ -38,9 +33,10 @@ def compose(overrides: list[str] | tuple[str, ...] = ()) -> Any:
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
+    from gpnerf_core.config.presets import check_presets
     from gpnerf_core.registry.components import get_registry
 
-    get_registry()
+    check_presets(get_registry())  # a plugin's preset that shadows another is refused, never composed
     register_schema()
     with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
         return hydra_compose(config_name="config", overrides=list(overrides))

@@ -55,14 +55,20 @@ def dataset_choice(overrides: list[str]) -> str | None:
     return chosen
 
 
-def default_dataset() -> str:
-    """The dataset of the primary config's defaults list (``conf/config.yaml``)."""
+def default_choice(group: str) -> str:
+    """The option of ``group`` the primary config's defaults list chooses (``conf/config.yaml``: ``model``,
+    ``dataset``, ...): where the built-in defaults are declared, so no tool names them."""
     from omegaconf import OmegaConf
 
     from gpnerf_core.config.compose import config_dir
 
     defaults = OmegaConf.load(f"{config_dir()}/config.yaml").defaults
-    return next(str(entry["dataset"]) for entry in defaults if not isinstance(entry, str) and "dataset" in entry)
+    return next(str(entry[group]) for entry in defaults if not isinstance(entry, str) and group in entry)
+
+
+def default_dataset() -> str:
+    """The dataset of the primary config's defaults list (``conf/config.yaml``)."""
+    return default_choice("dataset")
 
 
 def foreign_dataset_options(stored: list[str], given: list[str]) -> list[str]:

@@ -11,31 +11,37 @@ from typing import Any, ClassVar, Optional
 
 from omegaconf import MISSING
 
+from gpnerf_core.registry.declarations import fewer, fractions, halved_or_none, size_knob
+
 
 @dataclass
 class ModelConfig:
     """The options every model family has: its config (``model=<name>``) subclasses this one.
 
-    The core reads ``num_source_views``, ``init`` and ``init_strict`` itself, and a family's own learning rates where
-    its config has them (an ``lr`` section of its own dataclass, ``model.lr.<group>``: see
-    ``ModelFamily.parameter_groups``); the family's factory gets the others. A ray-marching family's config subclasses
-    ``RayMarchingConfig`` (its sample counts).
+    The core reads ``num_source_views``, ``init`` and ``init_strict`` itself, and the family's learning rates: the one
+    home of every rate a run trains with is the family's ``lr`` section (a dataclass field ``lr`` whose fields are the
+    groups its ``parameter_groups()`` names, the shared parts' ``feature_extractor`` and ``head`` included, with their
+    defaults; ``model.lr.<group>=...``); the family's factory gets the others. The parts a family builds are fields of
+    its config declared with ``gpnerf_core.part`` (``feature_extractor: Any = part("<default option>")``): the core
+    mounts their config groups under ``model`` and keeps them from the factory, which builds them through
+    ``ModelParts``. A ray-marching family's config subclasses ``RayMarchingConfig`` (its sample counts). Fields ``size``
+    may turn down are declared with ``gpnerf_core.size_knob``.
     """
 
     name: str = ""
     """Registry name of the model family (each subclass defaults it to its own)."""
-    num_source_views: int = 10
+    num_source_views: int = size_knob(10, "source views", fewer(1, 2))
     """Source views per target (a generalizable family's; a per-scene family has none)."""
     init: Optional[str] = None
     """Start from these weights: a gpnerf-core checkpoint (its model weights only: the weight average where the run
-    kept one) or another code base's checkpoint the family reads (an official GNT one for ``gnt``). Ignored when
+    kept one) or another code base's checkpoint the family reads (an official GNT one for GP-NeRF's family). Ignored when
     resuming."""
     init_strict: bool = True
     """Refuse an init checkpoint holding keys no component maps (False: load the rest and list them)."""
 
-    runtime_keys: ClassVar[tuple[str, ...]] = ("init", "init_strict")
-    """Fields that change how weights start, or how time and memory are spent, not the model: resuming or evaluating
-    with other values is allowed (a family's config adds its own)."""
+    runtime_keys: ClassVar[tuple[str, ...]] = ("init", "init_strict", "lr", "loss_weights")
+    """Fields that change how weights start or train, or how time and memory are spent, not the model: resuming or
+    evaluating with other values is allowed (a family's config adds its own)."""
 
 
 @dataclass
@@ -43,24 +49,10 @@ class RayMarchingConfig(ModelConfig):
     """The options of a family that samples points along rays (GNT, NeuRay, MVSNeRF, Semantic-NeRF, ...): its sample
     counts, which the core validates, ``size`` tries and ``bench`` reports for such a family only."""
 
-    coarse_samples: int = 48
+    coarse_samples: int = size_knob(48, "coarse samples", fractions(2, 4, 0.75, 0.5))
     """Stratified samples per ray (inverse-depth spacing)."""
-    fine_samples: int = 16
+    fine_samples: int = size_knob(16, "fine samples", halved_or_none)
     """Importance samples added for the fine pass (0 = single pass)."""
-
-
-@dataclass
-class LearningRates:
-    feature_extractor: float = 5e-3
-    """Encoder, radiance decoder and FPN (paper: 5e-3)."""
-    transformer: float = 1e-5
-    """Field and ray aggregators and the semantic adaptor (paper: 1e-5, fine-tuning GNT weights)."""
-    head: float = 5e-5
-    """Perception head (paper: 5e-5)."""
-    field: float = 5e-4
-    """A per-scene model family's own field (a NeRF MLP, a grid's small networks; Semantic-NeRF: 5e-4)."""
-    grid: float = 1e-2
-    """A per-scene field's hash tables (``model.field=grid``; Instant-NGP: 1e-2)."""
 
 
 @dataclass
@@ -72,7 +64,6 @@ class TrainConfig:
     targets_per_step: int = 1
     """Target views per step over all processes (the global batch; the paper: 1 per GPU). Under torchrun the
     world size must divide it; each process takes its share."""
-    lr: LearningRates = field(default_factory=LearningRates)
     lr_schedule: str = "exponential"
     """After the warm-up: ``exponential`` (multiplied by ``lr_decay_rate`` every ``lr_decay_steps`` steps, per step)
     or ``cosine`` (half a cosine from the full rate down to 0 at ``train.steps``)."""
@@ -214,10 +205,8 @@ class ViewConfig:
 @dataclass
 class RootConfig:
     model: Any = MISSING
-    """The model family (``model=<name>``; ``ModelConfig`` and the family's own options)."""
-    feature_extractor: Any = MISSING
-    field_aggregator: Any = MISSING
-    ray_aggregator: Any = MISSING
+    """The model family (``model=<name>``; ``ModelConfig`` and the family's own options), with the parts it builds
+    mounted under it (``model.feature_extractor``, ``model.field_aggregator``, ...: ``model/<kind>=<name>``)."""
     dataset: Any = MISSING
     view_selector: Any = MISSING
     head: Any = None

@@ -116,12 +116,12 @@ def run_record(cfg: DictConfig, model_sections: tuple[str, ...] | None = None) -
 def components_of(cfg: DictConfig) -> dict[str, Any]:
     """``kind -> RegisteredComponent`` of the components ``cfg`` selects."""
     from gpnerf_core.registry.components import get_registry
-    from gpnerf_core.registry.kinds import KINDS
+    from gpnerf_core.registry.kinds import KINDS, section
 
     registry = get_registry()
     found = {}
     for kind in KINDS:
-        node = cfg.get(kind)
+        node = section(cfg, kind)
         if node is not None and "name" in node and str(node.name) in registry.components[kind]:
             found[kind] = registry.components[kind][str(node.name)]
     return found

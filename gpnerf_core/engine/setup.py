@@ -19,11 +19,12 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import InterpolationResolutionError
 
 from gpnerf_core.config.compose import compose
+from gpnerf_core.config.presets import check_presets
 from gpnerf_core.engine.sweeps import refuse_shared_out_dir
 from gpnerf_core.engine.validation import validate_config
 from gpnerf_core.errors import ConfigError, GpnerfError
 from gpnerf_core.registry.components import get_registry
-from gpnerf_core.registry.kinds import KINDS
+from gpnerf_core.registry.kinds import GROUPS
 from gpnerf_core.runtime.device import resolve_device
 from gpnerf_core.runtime.host_memory import keep_freed_memory
 
@@ -106,16 +107,18 @@ def check_override_grammar(overrides: list[str]) -> None:
 
 def check_component_choices(argv: list[str], registry: Any) -> None:
     """Refuse ``[+]head=<name>`` (and every other component group) naming no registered component, in one line that
-    lists the known names and any plugin that failed to load, before Hydra says only "could not find"."""
+    lists the known names and any plugin that failed to load, before Hydra says only "could not find"; and a plugin's
+    config preset that shadows a built-in one (``config.presets.check_presets``)."""
+    check_presets(registry)
     for argument in argv:
         key, sep, value = argument.partition("=")
         group = key.lstrip("+~")
-        if not sep or group not in KINDS or "${" in value:
+        if not sep or group not in GROUPS or "${" in value:
             continue
         for name in value.split(","):  # a -m sweep over options
             name = name.strip()
             if name and name != "null" and not any(c in name for c in "*?[("):
-                registry.get(group, name)
+                registry.get(GROUPS[group], name)
 
 
 MULTIPLE_VALUES = re.compile(r"Multiple values for (\w+)\. To override a value use 'override \w+: (\S+)'")

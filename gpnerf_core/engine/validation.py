@@ -23,6 +23,7 @@ from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.interfaces.head import Predicts
 from gpnerf_core.registry.components import get_registry
 from gpnerf_core.registry.kinds import KINDS
+from gpnerf_core.training.optimizer import learning_rates
 from gpnerf_core.training.schedule import LR_SCHEDULES
 from gpnerf_core.model.checkpoint import WEIGHT_CHOICES
 from gpnerf_core.training.loggers import check_loggers
@@ -66,11 +67,6 @@ RULES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("train.steps", _count(1), COUNT),
     ("train.rays", _count(1), COUNT),
     ("train.targets_per_step", _count(1), COUNT),
-    ("train.lr.feature_extractor", _positive, "a finite learning rate > 0"),
-    ("train.lr.transformer", _positive, "a finite learning rate > 0"),
-    ("train.lr.head", _positive, "a finite learning rate > 0"),
-    ("train.lr.field", _positive, "a finite learning rate > 0"),
-    ("train.lr.grid", _positive, "a finite learning rate > 0"),
     ("train.lr_decay_rate", _fraction, "a factor in (0, 1]"),
     ("train.lr_decay_steps", _count(1), COUNT),
     ("train.warmup_steps", _count(0), f"{COUNT0} (0 = no warm-up)"),
@@ -121,6 +117,7 @@ def validate_config(cfg: DictConfig) -> None:
         raise ConfigError(f"eval.weights={cfg.eval.weights!r}: expected one of {', '.join(WEIGHT_CHOICES)}")
     if cfg.train.precision not in PRECISIONS:
         raise ConfigError(f"train.precision={cfg.train.precision!r}: expected one of {', '.join(PRECISIONS)}")
+    learning_rates(cfg.model.get("lr"))  # every model.lr.<group>: a finite rate > 0
     family = _component_config("model", cfg.model)
     if cfg.model.num_source_views == 0 and family is not None and family().num_source_views > 0:
         raise ConfigError(f"model.num_source_views=0: model {cfg.model.name!r} renders from source views; expected an "
@@ -149,9 +146,9 @@ def _refuse_unknown_keys(node: DictConfig, schema: type, prefix: str, component:
             continue
         hint = hints.get(key)
         child = node.get(key)
-        if key in KINDS:
-            # A component's options: its registered config (an unknown top-level option is also refused when it is
-            # built, naming the options; here nested ones are too, before any work).
+        if key in KINDS and (not component or KINDS[key].part):
+            # A component's options (a part's under the model's): its registered config (an unknown top-level option
+            # is also refused when it is built, naming the options; here nested ones are too, before any work).
             hint = _component_config(key, child)
             if hint is None or not isinstance(child, DictConfig):
                 continue

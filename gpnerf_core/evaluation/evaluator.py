@@ -31,7 +31,7 @@ from gpnerf_core.evaluation import metrics as M
 from gpnerf_core.evaluation import pictures as P
 from gpnerf_core.evaluation import visualize as vis
 from gpnerf_core.data.frames import FrameCache, choose_sources
-from gpnerf_core.registry.kinds import KINDS
+from gpnerf_core.registry.kinds import KINDS, section
 from gpnerf_core.runtime.io import atomic_save_png
 from gpnerf_core.interfaces.head import Predicts
 from gpnerf_core.types import Frame, Prediction, Scene, SourceViews
@@ -521,4 +521,5 @@ def _fmt(value: Any, digits: int = 3) -> str:
 
 def component_names(cfg: Any) -> dict[str, str]:
     """The configured name of each component kind present in ``cfg`` (for messages: ``ModelFamily.output_owners``)."""
-    return {kind: str(cfg[kind].name) for kind in KINDS if cfg.get(kind) is not None and "name" in cfg[kind]}
+    nodes = {kind: section(cfg, kind) for kind in KINDS}
+    return {kind: str(node.name) for kind, node in nodes.items() if node is not None and "name" in node}

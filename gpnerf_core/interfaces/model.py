@@ -89,8 +89,9 @@ class ModelParts(ABC):
     """What the core hands a model family's factory (its ``parts`` argument) besides the family's own options.
 
     A family builds the other components it is made of (an extractor, aggregators, a head) from the config through
-    this, so each stays a plugin of its own kind, chosen on the command line (``feature_extractor=...``,
-    ``+head=...``), and is never a copy inside the family.
+    this, so each stays a plugin of its own kind, chosen on the command line (its parts under the model,
+    ``model/feature_extractor=...``; the add-ons ``+head=...``), and is never a copy inside the family. The parts it
+    builds are those its config declares (``gpnerf_core.part``); ``build`` reads their sections under ``model``.
     """
 
     @property
@@ -124,9 +125,9 @@ class ModelParts(ABC):
             return None
         if not extractor.semantic_dim:
             raise ConfigError(f"+head={self.name('head')} with model={family} decodes {decodes} in the semantic maps' "
-                              f"space of the feature extractor, and feature_extractor "
-                              f"{self.name('feature_extractor')!r} makes none (feature_extractor.semantic=true, or "
-                              "another extractor such as feature_extractor=resunet_fpn)")
+                              f"space of the feature extractor, and model/feature_extractor="
+                              f"{self.name('feature_extractor')} makes none (model.feature_extractor.semantic=true, or "
+                              "another extractor that makes semantic maps)")
         return self.head(in_dim=extractor.semantic_dim, in_levels=extractor.semantic_levels)
 
     def depth_source(self, sampler: str) -> DepthSource | None:
@@ -313,9 +314,8 @@ class ModelFamily(nn.Module, ABC):
     @abstractmethod
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """Parameters by learning-rate group; every trainable parameter in exactly one group (checked when the
-        optimizer is built). A group's rate is the family's own ``model.lr.<group>`` where its config has an ``lr``
-        section naming the group, else ``train.lr.<group>`` (``feature_extractor``, ``transformer``, ``head``, and
-        ``field`` / ``grid`` for a per-scene family's own field)."""
+        optimizer is built). A group's rate is ``model.lr.<group>``: the family's config has an ``lr`` section that
+        declares every group named here with its default, the shared parts' (``feature_extractor``, ``head``) too."""
 
     def check_image_size(self, height: int, width: int) -> None:
         """Raise ``ConfigError`` (one line, naming the size and what is expected) when images of ``height`` x

@@ -15,7 +15,7 @@ from gpnerf_core.interfaces.model import ModelFamily, ModelParts, TrainingBatch
 from gpnerf_core.model.classes import ClassList
 from gpnerf_core.registry.components import Registry, get_registry
 from gpnerf_core.registry.guards import guard_outputs
-from gpnerf_core.registry.kinds import KINDS
+from gpnerf_core.registry.kinds import KINDS, section
 
 
 @dataclass
@@ -80,17 +80,17 @@ class ConfiguredParts(ModelParts):
     def configured(self, kind: str) -> bool:
         if kind not in KINDS:
             raise ConfigError(f"unknown component kind {kind!r}; known kinds: {', '.join(KINDS)}")
-        return self._cfg.get(kind) is not None
+        return section(self._cfg, kind) is not None
 
     def name(self, kind: str) -> str | None:
         """The configured component name of ``kind`` (None when the config selects none)."""
-        return str(self._cfg[kind].name) if self.configured(kind) else None
+        return str(section(self._cfg, kind).name) if self.configured(kind) else None
 
     def build(self, kind: str, **runtime: Any) -> Any:
         if not self.configured(kind):
-            raise ConfigError(f"model {self._cfg.model.name!r} needs a {kind}; the config selects none "
-                              f"(known: {', '.join(self._registry.names(kind))})")
-        component = self._registry.build(kind, self._cfg[kind], **runtime)
+            raise ConfigError(f"model {self._cfg.model.name!r} needs a {kind}; the config selects none: choose one "
+                              f"with {KINDS[kind].group}=<name> (known: {', '.join(self._registry.names(kind))})")
+        component = self._registry.build(kind, section(self._cfg, kind), **runtime)
         model = self._registry.components["model"].get(str(self._cfg.model.name))
         guard_outputs(kind, component, self._registry.get(kind, self.name(kind)).where,
                       upstream=model.where if model is not None else None)
@@ -133,9 +133,10 @@ def built_model(cfg: Any, num_classes: int, registry: Registry | None = None) ->
 
 
 def model_sections(built_kinds: set[str] | frozenset[str]) -> tuple[str, ...]:
-    """The config sections that define a model whose family built the parts ``built_kinds``: ``model``, ``loss``, and
-    each part's kind that defines a model (``ComponentKind.defines_model``), in ``KINDS`` order. A part the family
-    never built (GNT's aggregators under another family) is not the model's: changing its options is no model change."""
+    """The config sections that define a model whose family built the components ``built_kinds``: ``model`` (with the
+    parts mounted under it), ``loss``, and each add-on the family built that defines a model
+    (``ComponentKind.defines_model``: ``head``, ``depth_source``), in ``KINDS`` order. An add-on the family never
+    built is not the model's: changing its options is no model change."""
     return tuple(kind.name for kind in KINDS.values() if kind.defines_model
                  and (kind.name in ("model", "loss") or kind.name in built_kinds))
 

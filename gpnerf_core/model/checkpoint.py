@@ -23,7 +23,7 @@ from typing import Any, Iterable, Mapping
 import torch
 import yaml
 
-from gpnerf_core.config.legacy import upgrade_config_yaml, upgrade_overrides
+from gpnerf_core.config.legacy import upgrade_config_yaml, upgrade_overrides, upgrade_sections
 from gpnerf_core.config.schema import ModelConfig
 from gpnerf_core.errors import ConfigError, DataError, PluginError
 from gpnerf_core.model.classes import ClassList
@@ -37,8 +37,8 @@ FORMAT_VERSION = 2
 
 
 def model_sections() -> tuple[str, ...]:
-    """Config sections that define the model and its loss (``ComponentKind.defines_model``): resuming or fine-tuning
-    with other values is refused, ``eval`` restores the checkpoint's."""
+    """Config sections that define the model and its loss (``ComponentKind.defines_model``; the parts are inside
+    ``model``'s): resuming or fine-tuning with other values is refused, ``eval`` restores the checkpoint's."""
     return tuple(kind.name for kind in KINDS.values() if kind.defines_model)
 
 
@@ -217,7 +217,10 @@ def checked_state(state: Any, path: str | Path, label: str | None = None) -> dic
     if isinstance(state.get("config"), str):
         state["config"] = upgrade_config_yaml(state["config"])
     if isinstance(state.get("overrides"), list):
-        state["overrides"] = upgrade_overrides([str(o) for o in state["overrides"]])
+        model = ((yaml.safe_load(state.get("config") or "") or {}).get("model") or {}).get("name")
+        state["overrides"] = upgrade_overrides([str(o) for o in state["overrides"]], model)
+    if isinstance(state.get("model_sections"), list):
+        state["model_sections"] = list(upgrade_sections(str(s) for s in state["model_sections"]))
     return state
 
 

@@ -82,7 +82,9 @@ class TrainedModel:
     @property
     def family(self) -> str:
         """The model family it trained (``model.name``; ``gnt`` for a checkpoint written before there were others)."""
-        return str(((yaml.safe_load(self.config_yaml) or {}).get("model") or {}).get("name") or "gnt")
+        from gpnerf_core.config.legacy import DEFAULT_MODEL
+
+        return str(((yaml.safe_load(self.config_yaml) or {}).get("model") or {}).get("name") or DEFAULT_MODEL)
 
 
 def load_trained(path: str | Path, key: str = "checkpoint") -> TrainedModel:

@@ -16,12 +16,13 @@ import os
 import re
 import typing
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any, Iterator, Mapping
 
 from gpnerf_core.errors import ConfigError, GpnerfError, PluginError
 from gpnerf_core.interfaces import StressCase
 from gpnerf_core.interfaces.model import capability_problems
-from gpnerf_core.registry.kinds import KINDS
+from gpnerf_core.registry.declarations import declared_parts
+from gpnerf_core.registry.kinds import KINDS, PART_KINDS
 from gpnerf_core.registry.plugins import (
     CORE_DISTRIBUTION, DISABLE_PLUGINS_ENV, LoadedPlugins, PluginInfo, PluginProblem, make_plugin_manager, one_line,
 )
@@ -81,6 +82,9 @@ class Registry:
     """``name -> (StressCase, plugin name)``."""
     clashes: dict[str, list[PluginInfo]] = field(default_factory=dict)
     """``kind/name -> the plugins that each register it`` (first registered first); choosing one is refused."""
+    config_searchpaths: list[tuple[str, str]] = field(default_factory=list)
+    """``(Hydra search path, plugin name)`` of the config folders plugins ship (``gpnerf_config_searchpaths``), in
+    registration order."""
 
     def names(self, kind: str) -> list[str]:
         return sorted(self.components[kind])
@@ -118,13 +122,13 @@ class Registry:
         if "name" not in node:
             raise ConfigError(f"config group {kind!r} has no 'name' key; known names: {', '.join(self.names(kind))}")
         entry = self.get(kind, str(node["name"]))
-        withheld = KINDS[kind].withheld
+        withheld = withheld_fields(kind, entry.spec.config)
         given = {k: _plain(v) for k, v in node.items() if k not in withheld}
         expected = {f.name for f in dataclasses.fields(entry.spec.config)} - withheld
         unknown = set(given) - expected
         if unknown:
             raise ConfigError(
-                f"{kind}.{sorted(unknown)[0]} is not an option of {kind} {entry.spec.name!r}; "
+                f"{KINDS[kind].config_key}.{sorted(unknown)[0]} is not an option of {kind} {entry.spec.name!r}; "
                 f"expected one of: {', '.join(sorted(expected))}"
             )
         defaults = entry.spec.config()
@@ -187,12 +191,19 @@ class Registry:
                 f"{kind}={spec.name} is refused until all but one of them are disabled "
                 f"({DISABLE_PLUGINS_ENV}={disable_name(plugin)} keeps {existing.provider}'s)"
             )
+        if not isinstance(spec.display_name, str) and not callable(spec.display_name):
+            raise PluginError(f"display_name {spec.display_name!r} is neither a name nor a function of a run's config")
         if not dataclasses.is_dataclass(spec.config) or not isinstance(spec.config, type):
             raise PluginError(f"config {spec.config!r} is not a dataclass type")
         fields = {f.name: f for f in dataclasses.fields(spec.config)}
         default_name = fields["name"].default if "name" in fields else None
         if default_name != spec.name:
             raise PluginError(f"config {spec.config.__name__}.name defaults to {default_name!r}; expected {spec.name!r}")
+        parts = declared_parts(spec.config)
+        strange = [name for name in parts if kind != "model" or name not in PART_KINDS]
+        if strange:
+            raise PluginError(f"config {spec.config.__name__}.{strange[0]} is declared a part (part(...)); only a model "
+                              f"family's config declares parts, each named after its kind: {', '.join(PART_KINDS)}")
         lacking = [name for name in KINDS[kind].core_fields if name not in fields]
         if lacking:
             raise PluginError(f"config {spec.config.__name__} has no field {lacking[0]!r}; the config of a {kind} "
@@ -219,7 +230,7 @@ class Registry:
             if problems:
                 raise PluginError(f"its capabilities do not hold: {problems[0]}"
                                   + (f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""))
-        withheld = KINDS[kind].withheld
+        withheld = withheld_fields(kind, spec.config)
         arguments = [n for n in fields if n not in withheld] + list(KINDS[kind].runtime_arguments)
         try:
             signature = inspect.signature(factory)
@@ -232,6 +243,12 @@ class Registry:
                 f"factory {getattr(factory, '__name__', factory)!r} cannot be called with the config fields and the "
                 f"pipeline's arguments ({', '.join(arguments) or 'none'}): {exc}"
             ) from None
+
+
+def withheld_fields(kind: str, config: type) -> frozenset[str]:
+    """The fields of a ``kind`` config the core keeps from the factory: the kind's (``ComponentKind.withheld``) and the
+    parts a model family declares (it builds them through ``ModelParts``)."""
+    return KINDS[kind].withheld | frozenset(declared_parts(config))
 
 
 def _check_returned_class(factory: Any, interface: type) -> type | None:
@@ -300,18 +317,40 @@ def collect(loaded: LoadedPlugins) -> Registry:
             else:
                 registry.data_tools[tool.name] = (tool, impl.plugin_name)
     _collect_stress_cases(loaded, registry)
+    _collect_searchpaths(loaded, registry)
     return registry
 
 
-def _collect_stress_cases(loaded: LoadedPlugins, registry: Registry) -> None:
-    hook = "gpnerf_register_stress_cases"
+SEARCHPATH_SCHEMES = ("pkg://", "file://")
+
+
+def _returned(loaded: LoadedPlugins, registry: Registry, hook: str) -> Iterator[tuple[PluginInfo, str, Any]]:
+    """``(plugin info, plugin name, what it returned)`` of each implementation of ``hook``; one that raises is recorded
+    as a problem and left out."""
     for impl in getattr(loaded.manager.hook, hook).get_hookimpls():
         info = loaded.plugins.get(impl.plugin_name, PluginInfo(impl.plugin_name))
         try:
-            cases = impl.function()
+            returned = impl.function()
         except Exception as exc:
             registry.problems.append(PluginProblem(info, f"{hook} raised {type(exc).__name__}: {one_line(exc)}"))
             continue
+        yield info, impl.plugin_name, returned
+
+
+def _collect_searchpaths(loaded: LoadedPlugins, registry: Registry) -> None:
+    hook = "gpnerf_config_searchpaths"
+    for info, plugin_name, paths in _returned(loaded, registry, hook):
+        for path in paths or ():
+            if not isinstance(path, str) or not path.startswith(SEARCHPATH_SCHEMES) or not path.split("://", 1)[1]:
+                registry.problems.append(PluginProblem(
+                    info, f"{hook} returned {path!r}; expected a search path pkg://<package>.<folder> or "
+                          "file://<absolute folder>", "config"))
+            else:
+                registry.config_searchpaths.append((path, plugin_name))
+
+
+def _collect_stress_cases(loaded: LoadedPlugins, registry: Registry) -> None:
+    for info, plugin_name, cases in _returned(loaded, registry, "gpnerf_register_stress_cases"):
         for case in cases or ():
             problem = stress_case_problem(case)
             name = getattr(case, "name", "?")
@@ -321,7 +360,7 @@ def _collect_stress_cases(loaded: LoadedPlugins, registry: Registry) -> None:
             if problem is not None:
                 registry.problems.append(PluginProblem(info, problem, f"stress/{name}"))
             else:
-                registry.stress_cases[name] = (case, impl.plugin_name)
+                registry.stress_cases[name] = (case, plugin_name)
 
 
 def stress_case_problem(case: Any) -> str | None:
@@ -341,9 +380,13 @@ def stress_case_problem(case: Any) -> str | None:
 
 
 def register_config_options(registry: Registry) -> None:
-    """Make every registered component an option of its Hydra config group (``+head=<name>``).
+    """Make every registered component an option of its Hydra config group (``+head=<name>``, a part's under
+    ``model``: ``model/feature_extractor=<name>``).
 
-    A config dataclass OmegaConf cannot represent (a field of an unsupported type) rejects its component.
+    A model family's option carries a defaults list choosing the parts it declares (``declarations.part``) and no
+    option for the part kinds it does not build, so ``model=<name>`` brings its own parts; the family's own keys come
+    first (``_self_``), its parts merge into their fields. A config dataclass OmegaConf cannot represent (a field of an
+    unsupported type) rejects its component.
     """
     from hydra.core.config_store import ConfigStore
 
@@ -351,12 +394,25 @@ def register_config_options(registry: Registry) -> None:
     for kind, entries in registry.components.items():
         for name, entry in list(entries.items()):
             try:
-                cs.store(group=kind, name=name, node=entry.spec.config, provider=entry.provider)
+                node = family_node(entry.spec.config) if kind == "model" else entry.spec.config
+                cs.store(group=KINDS[kind].group, name=name, node=node, provider=entry.provider)
             except Exception as exc:
                 del entries[name]
                 info = registry.plugins.get(entry.provider, PluginInfo(entry.provider))
                 reason = f"config {entry.spec.config.__name__} is not a valid Hydra schema: {one_line(exc)}"
                 registry.problems.append(PluginProblem(info, reason, f"{kind}/{name}"))
+
+
+def family_node(config: type) -> Any:
+    """A model family's config as a Hydra option: its dataclass with a defaults list choosing its declared parts (and
+    none of the part kinds it does not declare, so that every part's choice exists to interpolate)."""
+    from omegaconf import OmegaConf, open_dict
+
+    parts = declared_parts(config)
+    node = OmegaConf.structured(config)
+    with open_dict(node):
+        node["defaults"] = ["_self_", *({kind: parts.get(kind)} for kind in PART_KINDS)]
+    return node
 
 
 @functools.cache

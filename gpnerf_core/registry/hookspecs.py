@@ -44,7 +44,8 @@ def gpnerf_register_feature_extractors() -> list[ComponentSpec]:
     as keyword arguments.
 
     Returns:
-        Specs whose names become options of the Hydra group ``feature_extractor``.
+        Specs whose names become options of the Hydra group ``model/feature_extractor`` (a part a model family
+        builds, mounted under the model: ``model.feature_extractor.<option>``).
     """
 
 
@@ -55,7 +56,7 @@ def gpnerf_register_field_aggregators() -> list[ComponentSpec]:
     The factory also receives ``in_dim`` (3 + the extractor's radiance width) from the pipeline.
 
     Returns:
-        Specs for the Hydra group ``field_aggregator``.
+        Specs for the Hydra group ``model/field_aggregator`` (a part, under the model).
     """
 
 
@@ -66,7 +67,7 @@ def gpnerf_register_ray_aggregators() -> list[ComponentSpec]:
     The factory also receives ``in_dim`` (the field aggregator's token width).
 
     Returns:
-        Specs for the Hydra group ``ray_aggregator``.
+        Specs for the Hydra group ``model/ray_aggregator`` (a part, under the model).
     """
 
 
@@ -142,4 +143,27 @@ def gpnerf_register_stress_cases() -> list[StressCase]:
     Returns:
         ``StressCase`` instances (``gpnerf_core.interfaces.StressCase``); a name registered twice is an error
         naming both providers.
+    """
+
+
+@hookspec
+def gpnerf_config_searchpaths() -> list[str]:
+    """Folders of Hydra configs the plugin ships beside its components: presets, found as if they were in gpnerf-core's
+    own ``conf/``.
+
+    Called once per registry build; gpnerf-core's one Hydra ``SearchPathPlugin`` (``hydra_plugins/
+    gpnerf_core_searchpath``) appends each folder to the config search path after ``conf/``, for every command that
+    composes a config. What a folder holds is used by path:
+
+    - ``experiment/<name>.yaml``: ``+experiment=<name>`` (``# @package _global_``, as the built-in experiments);
+    - ``scale/<scale>/<model>.yaml``: the plugin's family's sizes at that scale (``scale=cpu`` picks it for
+      ``model=<model>``); ``scale/<scale>/<kind>/<name>.yaml``: a part's (``model.<kind>``).
+
+    A file whose path is also a built-in config's, or another plugin's, is refused naming both (presets add to the
+    built-in ones, never replace them): every command that composes a config then stops with one line, and
+    ``python -m gpnerf_core plugins`` lists it as a problem.
+
+    Returns:
+        Hydra search paths: ``pkg://<package>.<folder>`` (a package folder with an ``__init__.py``, installed with the
+        plugin: ``pkg://gpnerf_fancy.conf``) or ``file://<absolute folder>``.
     """

@@ -7,7 +7,7 @@ size, or mixes up two axes of equal length, fails.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Mapping
 
 import torch
 from torch import Tensor
@@ -255,25 +255,36 @@ def cameras(count: int, *, radius: float = 2.0, seed: int = 0) -> Tensor:
 
 KIT_CLASSES = 3
 """Classes of the synthetic scene a model family is checked on."""
-KIT_PARTS = {
-    "feature_extractor": {"name": "resunet_fpn", "widths": [8, 8, 8, 16], "fpn_channels": 4},
-    "field_aggregator": {"name": "gnt_view", "width": 16, "num_blocks": 2},
-    "ray_aggregator": {"name": "gnt_ray"},
-    "view_selector": {"name": "nearest"},
-}
-"""The small built-in parts a model family is built with (``kit_parts``)."""
 KIT_HEAD = {"name": "unet", "channels": 16, "norm_groups": 4}
+"""The head a model family that decodes with one is checked with: the built-in U-Net, small."""
 KIT_SAMPLES = {"coarse_samples": 6, "fine_samples": 2}
 """Samples per ray of a model family under check."""
 
 
-def kit_parts(registry: Any, model: str, *, head: bool) -> Any:
-    """``ModelParts`` of the kit's parts (``KIT_PARTS``, with the ``unet`` head when ``head``) at ``KIT_CLASSES``."""
+def kit_parts(registry: Any, model: str, *, head: bool, parts: Mapping[str, Any] | None = None,
+              configs: Mapping[str, Mapping[str, Any]] | None = None) -> Any:
+    """``ModelParts`` of the family ``model`` at ``KIT_CLASSES``: the parts its config declares
+    (``gpnerf_core.part``), and ``KIT_HEAD`` when ``head``.
+
+    Args:
+        parts: ``{kind: options}`` the family's config under check gives its parts (``{"feature_extractor": {"name":
+            ..., "widths": ...}}``): another option than the declared default where it names one, and options.
+        configs: ``{"<kind>/<name>": options}`` the caller gives a part's component (the kit's ``configs``), under
+            ``parts``' own; a part without either is built with its defaults.
+    """
     from omegaconf import OmegaConf
 
     from gpnerf_core.model.build import ConfiguredParts
+    from gpnerf_core.registry.declarations import declared_parts
 
-    cfg = OmegaConf.create({"model": {"name": model}, **KIT_PARTS, "head": dict(KIT_HEAD) if head else None})
+    entry = registry.components["model"].get(model)
+    chosen = {}
+    for kind, default in (declared_parts(entry.spec.config) if entry is not None else {}).items():
+        own = dict((parts or {}).get(kind) or {})
+        name = own.pop("name", default)
+        if name is not None:
+            chosen[kind] = {"name": name, **dict((configs or {}).get(f"{kind}/{name}") or {}), **own}
+    cfg = OmegaConf.create({"model": {"name": model, **chosen}, "head": dict(KIT_HEAD) if head else None})
     return ConfiguredParts(cfg, KIT_CLASSES, registry)
 
 

@@ -6,6 +6,7 @@ import functools
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping, Sequence
 
+from gpnerf_core.registry.kinds import PART_KINDS
 from gpnerf_core.registry.plugins import PluginInfo, PluginProblem
 from gpnerf_core.testing.checks import CHECKS, RUNTIME, CheckFailed, CheckSkipped, Subject
 from gpnerf_core.testing.checks.common import component_label
@@ -88,7 +89,9 @@ def plugin_checks(
     Args:
         targets: an entry-point name, a distribution name, a plugin module or a module path, or a list of them.
         configs: ``{"kind/name": {field: value}}`` config fields that replace the dataclass defaults for the checks
-            (e.g. small widths); every key must name one of the targets' components (unless the targets had
+            (e.g. small widths; a model family's parts are built with the configs given here for them, and the family's
+            own config may choose and set its parts: ``{"model/mine": {"feature_extractor": {"name": ..., ...}}}``);
+            every key must name one of the targets' components (unless the targets had
             registration problems: then their failing "registration" checks are the report, not a KeyError).
     """
     loaded = load_targets(targets)
@@ -101,10 +104,12 @@ def plugin_checks(
     if unknown and not loaded.problems:  # with problems, their failing checks say why the component is missing
         raise KeyError(f"configs names {unknown[0]!r}, which is not a component of {', '.join(loaded.plugins)}; "
                        f"its components: {', '.join(sorted(keys)) or 'none'}")
+    part_configs = {key: value for key, value in configs.items() if key.split("/")[0] in PART_KINDS}
     for entry in loaded.components:
         key = f"{entry.kind}/{entry.spec.name}"
         subject = Subject(
-            entry.kind, entry.spec.name, entry, loaded.registry, configs.get(key, {}), RUNTIME[entry.kind]
+            entry.kind, entry.spec.name, entry, loaded.registry, configs.get(key, {}), RUNTIME[entry.kind],
+            part_configs if entry.kind == "model" else {},
         )
         plugin = f"{entry.provider} {entry.version}"
         for name, function in CHECKS[entry.kind].items():

@@ -1,9 +1,10 @@
 """The optimizer of a training run: Adam with one parameter group per learning-rate group a model family names.
 
-A group's rate is the family's own where its config has an ``lr`` section naming the group (``model.lr.<group>``: a
-family's own groups, e.g. a Gaussian family's means and opacities), else the shared ``train.lr.<group>``
-(``feature_extractor``, ``transformer``, ``head``, ``field``, ``grid``). Every trainable parameter must be in exactly
-one group: one left out would never be trained, one listed twice would be stepped twice.
+A group's rate has one home, the family's ``model.lr.<group>``: its config's ``lr`` section declares every group its
+``parameter_groups()`` names (the shared parts' ``feature_extractor`` and ``head`` too) with a default. Every trainable
+parameter must be in exactly one group, and every group that trains must have a rate: one left out would never be
+trained, one listed twice would be stepped twice (``check_parameter_groups``, the one check of that rule, which the
+contract kit runs too).
 """
 
 from __future__ import annotations
@@ -17,20 +18,22 @@ from gpnerf_core.errors import ConfigError
 from gpnerf_core.interfaces.training import GroupOptions
 
 
-def learning_rates(shared: Mapping[str, Any], family: Mapping[str, Any] | None) -> dict[str, float]:
-    """Rates by group name: ``train.lr`` (``shared``) overlaid with the family's ``model.lr`` (``family``; None when its
-    config has no such section). A family rate that is not a finite number > 0 is refused naming its key."""
-    rates = {str(name): float(value) for name, value in dict(shared).items()}
-    for name, value in dict(family or {}).items():
+def learning_rates(rates: Mapping[str, Any] | None) -> dict[str, float]:
+    """Rates by group name: the family's ``model.lr`` (None when its config has no such section: no rates). A rate that
+    is not a finite number > 0 is refused naming its key."""
+    checked = {}
+    for name, value in dict(rates or {}).items():
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
             raise ConfigError(f"model.lr.{name}={value!r}: expected a finite learning rate > 0")
-        rates[str(name)] = float(value)
-    return rates
+        checked[str(name)] = float(value)
+    return checked
 
 
-def check_parameter_groups(model: torch.nn.Module, groups: Mapping[str, list[torch.nn.Parameter]]) -> None:
-    """Every trainable parameter of ``model`` in exactly one group; a ConfigError naming the family and the first
-    parameter otherwise."""
+def check_parameter_groups(model: torch.nn.Module, groups: Mapping[str, list[torch.nn.Parameter]],
+                           rates: Mapping[str, float]) -> None:
+    """The rule of ``parameter_groups()``: every trainable parameter of ``model`` in exactly one group, and every group
+    with a trainable parameter a rate in ``rates`` (the family's ``model.lr``); a ConfigError naming the family and
+    the first parameter or group otherwise."""
     names = {id(p): n for n, p in model.named_parameters()}
     seen: dict[int, str] = {}
     family = type(model).__name__
@@ -45,15 +48,20 @@ def check_parameter_groups(model: torch.nn.Module, groups: Mapping[str, list[tor
         raise ConfigError(f"model {family}: {len(missing)} trainable parameter(s) are in no learning-rate group of "
                           f"parameter_groups() and would never be trained (first: {missing[0]!r}); put each in "
                           "exactly one group, or set requires_grad=False")
+    unrated = [name for name, params in groups.items() if name not in rates and any(p.requires_grad for p in params)]
+    if unrated:
+        raise ConfigError(f"model {family} trains a parameter group {unrated[0]!r} that model.lr has no rate for; "
+                          f"model.lr has: {', '.join(rates) or 'nothing'} (its config's lr section declares every "
+                          "group parameter_groups() names)")
 
 
 def make_optimizer(model: torch.nn.Module, rates: Mapping[str, float],
                    options: Mapping[str, GroupOptions] | None = None) -> torch.optim.Optimizer:
     """Adam with one parameter group per learning-rate group of ``model.parameter_groups()`` at its rate in
-    ``rates`` (``learning_rates``); each optimizer group carries its ``name``, and its ``eps`` where ``options`` (the
-    family's ``optimizer_options``) gives one."""
+    ``rates`` (``learning_rates`` of ``model.lr``); each optimizer group carries its ``name``, and its ``eps`` where
+    ``options`` (the family's ``optimizer_options``) gives one."""
     named = model.parameter_groups()
-    check_parameter_groups(model, named)
+    check_parameter_groups(model, named, rates)
     options = dict(options or {})
     unknown = [name for name in options if name not in named]
     if unknown:
@@ -64,9 +72,6 @@ def make_optimizer(model: torch.nn.Module, rates: Mapping[str, float],
         params = [p for p in params if p.requires_grad]
         if not params:
             continue
-        if name not in rates:
-            raise ConfigError(f"model {type(model).__name__} trains a parameter group {name!r} that neither train.lr "
-                              f"nor model.lr has a learning rate for; they have: {', '.join(rates)}")
         group = {"params": params, "lr": float(rates[name]), "name": name}
         if name in options and options[name].eps is not None:
             group["eps"] = float(options[name].eps)

@@ -254,7 +254,7 @@ class Trainer:
         where the family gives its own)."""
         cfg = self.cfg
         options = self.model.hooks.optimizer_options(int(cfg.train.steps))
-        optimizer = make_optimizer(self.model, learning_rates(cfg.train.lr, cfg.model.get("lr")), options)
+        optimizer = make_optimizer(self.model, learning_rates(cfg.model.get("lr")), options)
         shared = lr_factor(
             str(cfg.train.lr_schedule),
             steps=int(cfg.train.steps),

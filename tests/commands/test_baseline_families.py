@@ -9,13 +9,13 @@ from pathlib import Path
 
 import pytest
 
-from pipeline_check import TINY_CLI, in_process
+from pipeline_check import TINY_CLI, for_parts, in_process
 
 FAMILIES = {
     "semantic_ray": ["model.fine_samples=4"],
     "mvsnerf": ["model.num_planes=8", "model.coarse_samples=8", "model.fine_samples=0"],  # its own extractor
     "semantic_ray_unet": ["model.fine_samples=4"],  # GP-NeRF's decoding on Semantic-Ray's field
-    # GP-NeRF's decoding on MVSNeRF's field: resunet_fpn (TINY_CLI's feature_extractor.* apply), one pass
+    # GP-NeRF's decoding on MVSNeRF's field: resunet_fpn (TINY_CLI's model.feature_extractor.* apply), one pass
     "mvsnerf_unet": ["model.num_planes=8", "model.coarse_samples=8", "model.fine_samples=0"],
     # MVSplat's Gaussians, label rendering and GP-NeRF's decoding: whole images, a tiny cost volume
     "mvsplat": ["model.feature_dim=8", "model.transformer_layers=1", "model.depth_candidates=4",
@@ -23,17 +23,19 @@ FAMILIES = {
     "mvsplat_unet": ["model.feature_dim=8", "model.transformer_layers=1", "model.depth_candidates=4",
                      "model.cost_unet_dim=4", "model.depth_unet_dim=4", "model.unet_levels=2", "model.sh_degree=1"],
 }
-RAY_MARCHING = ("model.coarse_samples", "model.fine_samples", "field_aggregator.")
-"""TINY_CLI keys of the ray-marching families' (a rasterizing family has no samples, and no GNT aggregator)."""
+RAY_MARCHING = ("model.coarse_samples", "model.fine_samples")
+"""TINY_CLI keys of the ray-marching families' (a rasterizing family has no samples)."""
 
 
 @pytest.fixture(scope="module")
 def trained(request, tmp_path_factory):
     """The family trained 2 steps by ``run``: (name, run folder)."""
     name, out = request.param, tmp_path_factory.mktemp(request.param) / "run"
-    tiny = [o for o in TINY_CLI if not o.startswith("feature_extractor.")] if name == "mvsnerf" else TINY_CLI
+    tiny = for_parts(TINY_CLI, "feature_extractor")  # GNT's aggregators are no other family's parts
+    if name == "mvsnerf":  # its own extractor (mvsnet), which has no resunet_fpn options
+        tiny = for_parts(TINY_CLI)
     if name.startswith("mvsplat"):
-        tiny = [o for o in TINY_CLI if not o.startswith(RAY_MARCHING)]
+        tiny = [o for o in tiny if not o.startswith(RAY_MARCHING)]
     assert in_process("run", f"+experiment=baselines/{name}", *tiny, *FAMILIES[name], "train.steps=2",
                       f"out_dir={out}") == 0
     return name, out
@@ -86,7 +88,7 @@ def test_another_family_for_its_checkpoint_is_refused_naming_the_trained_one(tra
 
 
 def test_mvsplat_with_the_instance_head_trains_and_is_scored_by_instance_ap(tmp_path):
-    tiny = [o for o in TINY_CLI if not o.startswith(RAY_MARCHING)]
+    tiny = [o for o in for_parts(TINY_CLI, "feature_extractor") if not o.startswith(RAY_MARCHING)]
     assert in_process("run", "model=mvsplat", "+head=instance", "+loss=instance", *tiny, *FAMILIES["mvsplat"],
                       "train.steps=2", f"out_dir={tmp_path / 'run'}") == 0
     held_out = json.loads((tmp_path / "run" / "metrics.json").read_text())["eval"]["train_heldout"]

@@ -13,8 +13,8 @@ from gpnerf_core.errors import ConfigError
 
 TINY = [
     "dataset.height=32", "dataset.width=48", "dataset.frames_per_scene=6", "dataset.eval_every=3",
-    "feature_extractor.widths=[8,8,8,16]", "feature_extractor.fpn_channels=4", "field_aggregator.width=16",
-    "field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2", "model.num_source_views=2",
+    "model.feature_extractor.widths=[8,8,8,16]", "model.feature_extractor.fpn_channels=4", "model.field_aggregator.width=16",
+    "model.field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2", "model.num_source_views=2",
     "train.rays=16", "threads=1",
 ]
 
@@ -145,8 +145,8 @@ def test_an_unknown_sweep_lists_the_known_ones(tmp_path):
 
 
 def test_every_family_composes_at_every_size_with_its_images_and_rays():
-    """A family whose experiment drops the ``scale`` preset (mvsnerf: another extractor) composes at each size, on the
-    size's images, views and rays (was: ``bench size=demo families=mvsnerf`` refused by scale=cpu's keys)."""
+    """Every family composes at each size, on the size's images, views and rays: the size's scale sizes each family and
+    part by its own preset (was: ``bench size=demo families=mvsnerf`` refused by scale=cpu's resunet_fpn keys)."""
     from gpnerf_core.config.compose import compose
     from gpnerf_core.tools.bench.sizes import SIZES, baseline_families, variant_overrides
 

@@ -39,9 +39,9 @@ def test_a_new_class_count_reinitialises_only_the_heads_last_layer():
 
 def test_another_model_names_the_config_keys_that_differ():
     small = compose(["+head=unet", "+loss=dgs", *TINY])
-    wide = compose(["+head=unet", "+loss=dgs", *TINY, "field_aggregator.width=32", "feature_extractor.fpn_channels=8"])
+    wide = compose(["+head=unet", "+loss=dgs", *TINY, "model.field_aggregator.width=32", "model.feature_extractor.fpn_channels=8"])
     with pytest.raises(ConfigError, match=r"finetune checkpoint=old.pt: tensor .* differs from the checkpoint's: .*"
-                                          r"field_aggregator.width"):
+                                          r"model.field_aggregator.width"):
         load_weights(build_model(wide, 3), build_model(small, 3).state_dict(), "finetune checkpoint=old.pt",
                      new_classes=(3, 3), explain=lambda: format_differences(
                          model_differences(OmegaConf.to_yaml(small), OmegaConf.to_yaml(wide))))

@@ -15,7 +15,7 @@ import pytest
 
 import model_family
 from gpnerf_core.testing import check_plugin
-from pipeline_check import TINY_CLI
+from pipeline_check import TINY_CLI, for_parts
 
 TESTS = Path(__file__).resolve().parents[1]
 FAMILY = ["model=pooled_views", "+loss=ce", "model.hidden=16"]
@@ -37,7 +37,8 @@ def trained(tmp_path_factory):
     """The family trained 2 steps by ``run``: its folder."""
     root = tmp_path_factory.mktemp("family")
     model_family.install(root / "plugins")
-    result = gpnerf("run", *FAMILY, *TINY_CLI, "train.steps=2", f"out_dir={root / 'run'}", cwd=root)
+    result = gpnerf("run", *FAMILY, *for_parts(TINY_CLI, "feature_extractor"), "train.steps=2", f"out_dir={root / 'run'}",
+                    cwd=root)
     assert result.returncode == 0, result.stderr[-2000:]
     return root / "run"
 

@@ -133,8 +133,8 @@ def test_plugins_lists_every_problem_and_exits_1(plugin_path, tmp_path):
 
 def test_good_and_built_in_components_still_train_beside_broken_plugins(plugin_path, tmp_path):
     tiny = ["+loss=dgs", "dataset.num_train_scenes=1", "dataset.num_unseen_scenes=1", "dataset.frames_per_scene=6",
-            "dataset.eval_every=3", "dataset.height=32", "dataset.width=48", "feature_extractor.widths=[8,8,8,16]",
-            "feature_extractor.fpn_channels=4", "field_aggregator.width=16", "field_aggregator.num_blocks=2",
+            "dataset.eval_every=3", "dataset.height=32", "dataset.width=48", "model.feature_extractor.widths=[8,8,8,16]",
+            "model.feature_extractor.fpn_channels=4", "model.field_aggregator.width=16", "model.field_aggregator.num_blocks=2",
             "model.coarse_samples=6", "model.fine_samples=2", "model.num_source_views=2", "train.rays=16",
             "train.steps=1", "eval.max_views_per_scene=1", "eval.save_images=0", "threads=1"]
     result = gpnerf("run", "+head=good_head", *tiny, f"out_dir={tmp_path / 'good'}", plugin_path=plugin_path,

@@ -32,8 +32,8 @@ from gpnerf_plugins.heads.per_pixel import PerPixelHead
 
 TINY = [
     "dataset.num_train_scenes=1", "dataset.num_unseen_scenes=1", "dataset.frames_per_scene=6", "dataset.eval_every=3",
-    "dataset.height=32", "dataset.width=48", "feature_extractor.widths=[8,8,8,16]", "feature_extractor.fpn_channels=4",
-    "field_aggregator.width=16", "field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2",
+    "dataset.height=32", "dataset.width=48", "model.feature_extractor.widths=[8,8,8,16]", "model.feature_extractor.fpn_channels=4",
+    "model.field_aggregator.width=16", "model.field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2",
     "model.num_source_views=2", "train.rays=16", "train.steps=1", "eval.splits=[]", "threads=1",
 ]
 DGS = ["+head=unet", "+loss=dgs", *TINY]
@@ -75,8 +75,8 @@ def finished(scenes, tmp_path_factory):
 
 @pytest.mark.parametrize("loss, overrides, message", [
     ("ce", ["train.resume=auto"], "another model or loss config (loss.name: 'dgs' -> 'ce'"),
-    ("dgs", ["field_aggregator.num_blocks=1", "train.resume={checkpoint}"], "(field_aggregator.num_blocks: 2 -> 1)"),
-    ("dgs", ["field_aggregator.num_blocks=1", "train.resume=auto", "train.resume_strict=false"], "does not match"),
+    ("dgs", ["model.field_aggregator.num_blocks=1", "train.resume={checkpoint}"], "(model.field_aggregator.num_blocks: 2 -> 1)"),
+    ("dgs", ["model.field_aggregator.num_blocks=1", "train.resume=auto", "train.resume_strict=false"], "does not match"),
     ("dgs", ["train.ema_decay=0.9", "train.resume=auto"], "the checkpoint kept no weight average"),
 ])
 def test_a_refused_resume_leaves_every_byte_of_the_finished_run(finished, scenes, capsys, loss, overrides, message):

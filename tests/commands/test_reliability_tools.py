@@ -58,7 +58,7 @@ def trained(tmp_path_factory) -> Path:
 
 
 def test_an_empty_knob_list_is_refused_not_read_as_every_knob(tmp_path, capsys):
-    with pytest.raises(ConfigError, match=r"size.knobs='\[\]': expected at least one knob of model.coarse_samples"):
+    with pytest.raises(ConfigError, match=r"size.knobs='\[\]': expected at least one knob of model.num_source_views"):
         parse_size_options(["size.knobs=[]"])
     assert cli_main(["size", *SIZE, "size.knobs=[ ]", f"size.out={tmp_path / 'out'}"]) == 2
     assert "leave size.knobs out to size every knob" in one_error_line(capsys.readouterr().err)

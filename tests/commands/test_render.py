@@ -16,8 +16,8 @@ from gpnerf_core.errors import ConfigError
 
 TINY = [
     "dataset.height=32", "dataset.width=48", "dataset.frames_per_scene=6", "dataset.eval_every=3",
-    "dataset.num_train_scenes=1", "feature_extractor.widths=[8,8,8,16]", "feature_extractor.fpn_channels=4",
-    "field_aggregator.width=16", "field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2",
+    "dataset.num_train_scenes=1", "model.feature_extractor.widths=[8,8,8,16]", "model.feature_extractor.fpn_channels=4",
+    "model.field_aggregator.width=16", "model.field_aggregator.num_blocks=2", "model.coarse_samples=6", "model.fine_samples=2",
     "model.num_source_views=2", "train.rays=16", "threads=1", "eval.save_images=0",
 ]
 

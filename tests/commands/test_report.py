@@ -226,10 +226,10 @@ def test_chart_labels_name_the_size_first_and_stay_unique(tmp_path):
         (tmp_path / name / "config.yaml").write_text(yaml.safe_dump(config))
     groups = group_runs(find_runs([tmp_path]))
     labels = dict(zip((g.runs[0].folder.name for g in groups), method_labels(groups)))
-    assert labels["sized"] == ("GP-NeRF (unet + dgs, Table 4 ID 5) [fine_samples=0, num_source_views=3, num_blocks=2, "
-                               "near=0.59, lr_schedule=exponential, +1 more]")
+    assert labels["sized"] == ("GP-NeRF (unet + dgs, Table 4 ID 5) [num_blocks=2, fine_samples=0, num_source_views=3, "
+                               "near=0.59, lr_schedule=exponential, +1 more]")  # the model's keys (its parts') first
     assert labels["sized_lr"].endswith("near=0.59, lr_schedule=cosine, +1 more]")
-    assert labels["default"] == ("GP-NeRF (unet + dgs, Table 4 ID 5) [fine_samples=16, num_source_views=10, num_blocks=4, "
+    assert labels["default"] == ("GP-NeRF (unet + dgs, Table 4 ID 5) [num_blocks=4, fine_samples=16, num_source_views=10, "
                                  "near=0.2, +2 more]")
     assert len(set(labels.values())) == 3 and not any(name in label for name, label in labels.items())
 

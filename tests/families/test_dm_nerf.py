@@ -16,7 +16,7 @@ from gpnerf_core.geometry import rays_through_pixels
 from gpnerf_plugins.families.dm_nerf.model import DMNeRF
 from gpnerf_plugins.losses.dm_nerf import DMNeRFLossSet, emptiness_penalty, gaussian_weight
 from gpnerf_plugins.losses.instance import matched_instance_loss
-from pipeline_check import TINY_CLI
+from pipeline_check import TINY_CLI, for_parts
 
 SMALL = dict(slots=4, coarse_samples=8, fine_samples=4, width=16, depth=4, skip=1, position_scale=1.0,
              position_frequencies=3, direction_frequencies=2, density_noise=0.0, inverse_depth=False)
@@ -84,7 +84,7 @@ def test_the_emptiness_penalty_empties_the_front_and_fills_the_surface():
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
     out = tmp_path_factory.mktemp("dm_nerf") / "run"
-    argv = ["run", "+experiment=baselines/dm_nerf", *TINY_CLI, "model.width=16", "model.depth=3", "model.skip=1",
+    argv = ["run", "+experiment=baselines/dm_nerf", *for_parts(TINY_CLI), "model.width=16", "model.depth=3", "model.skip=1",
             "model.coarse_samples=4", "model.fine_samples=4", "train.rays=16", "dataset.scenes=[layout_00]",
             "train.steps=2", "eval.chunk_rays=512", f"out_dir={out}"]
     assert cli_main(argv) == 0

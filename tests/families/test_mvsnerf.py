@@ -11,8 +11,10 @@ from gpnerf_core import (
 from gpnerf_core.testing import plugin_checks
 from gpnerf_plugins.extractors.mvsnet import MVSNetFeatures
 from gpnerf_plugins.families.mvsnerf.model import MVSNeRF
+from pipeline_check import KIT_PARTS
 
-SMALL = {"model/mvsnerf": {"num_planes": 8, "width": 16}}
+SMALL = {"model/mvsnerf": {"num_planes": 8, "width": 16, "feature_extractor": KIT_PARTS["feature_extractor"]}}
+"""The kit's head decodes semantic maps, which its own extractor (mvsnet, checked on its own) does not make."""
 CHECKS = [check for check in plugin_checks(["gpnerf_plugins.families.plugin", "gpnerf_plugins.extractors.plugin"],
                                            configs=SMALL)
           if check.component in ("model/mvsnerf", "feature_extractor/mvsnet")]
@@ -171,7 +173,7 @@ def test_with_a_head_it_renders_features_the_head_decodes_and_without_semantic_m
 
     registry = get_registry()
     node = {"name": "mvsnerf", "coarse_samples": 6, "fine_samples": fine_samples, "num_planes": 8, "width": 16}
-    model = registry.build("model", node, parts=kit_parts(registry, "mvsnerf", head=True))
+    model = registry.build("model", node, parts=kit_parts(registry, "mvsnerf", head=True, parts=KIT_PARTS))
     channels = model.extractor.semantic_dim
     assert model.semantic_output.mode is SemanticMode.DECODED and model.mlp.semantic[-1].out_features == channels
     assert set(model.parameter_groups()) == {"feature_extractor", "transformer", "head"}
@@ -189,9 +191,9 @@ def test_with_a_head_it_renders_features_the_head_decodes_and_without_semantic_m
     assert prediction.stride == 2 and prediction.semantic.shape == (channels, 16, 24)  # the semantic maps' grid
     assert prediction.logits.shape == (1, model.head.num_outputs, camera.height, camera.width)
     assert bool(torch.isfinite(prediction.logits).all())
-    parts = kit_parts(registry, "mvsnerf", head=True)
-    parts._cfg.feature_extractor = {"name": "mvsnet"}
-    with pytest.raises(ConfigError, match=r"\+head=unet .*'mvsnet' makes none \(feature_extractor.semantic=true, "
+    parts = kit_parts(registry, "mvsnerf", head=True, parts=KIT_PARTS)
+    parts._cfg.model.feature_extractor = {"name": "mvsnet"}
+    with pytest.raises(ConfigError, match=r"\+head=unet .*=mvsnet makes none \(model.feature_extractor.semantic=true, "
                                           r"or another extractor") as refused:
         registry.build("model", node, parts=parts)
     assert "\n" not in str(refused.value)

@@ -20,6 +20,7 @@ from gpnerf_plugins.families.mvsplat.adapter import GEOMETRY_CHANNELS, pixel_gau
 from gpnerf_plugins.families.mvsplat.depth import candidate_depths, correlation_volume
 from gpnerf_plugins.families.mvsplat.transformer import MultiViewTransformer
 from ply_reader import read_ply
+from pipeline_check import KIT_PARTS
 
 HEIGHT, WIDTH = 32, 48
 
@@ -120,7 +121,7 @@ def test_a_whole_view_is_its_gaussians_rasterized_and_kept_gaussians_render_the_
     model = get_registry().build("model", {"name": "mvsplat", "feature_dim": 8, "transformer_layers": 1,
                                            "depth_candidates": 4, "cost_unet_dim": 4, "depth_unet_dim": 4,
                                            "unet_levels": 2, "sh_degree": 1},
-                                 parts=kit_parts(get_registry(), "mvsplat", head=True)).eval()
+                                 parts=kit_parts(get_registry(), "mvsplat", head=True, parts=KIT_PARTS)).eval()
     camera, views = model_view()
     kept = model.encode_sources(views, near=camera.near, far=camera.far)
     fresh, again = model.predict(camera, views, stride=0, chunk_rays=1), model.predict(camera, None, stride=0,
@@ -141,7 +142,7 @@ def test_the_exported_3dgs_ply_renders_what_the_model_renders():
     model = get_registry().build("model", {"name": "mvsplat", "feature_dim": 8, "transformer_layers": 1,
                                            "depth_candidates": 4, "cost_unet_dim": 4, "depth_unet_dim": 4,
                                            "unet_levels": 2, "sh_degree": 2},
-                                 parts=kit_parts(get_registry(), "mvsplat", head=False)).eval()
+                                 parts=kit_parts(get_registry(), "mvsplat", head=False, parts=KIT_PARTS)).eval()
     with torch.no_grad():  # view-dependent colour worth testing: the damped higher degrees made large
         model.depth.to_gaussians[-1].weight.mul_(30.0)
     camera, views = model_view()

@@ -20,6 +20,7 @@ from gpnerf_plugins.families.neuray.visibility import (
     consistency_features,
     normalized_inverse_depth,
 )
+from pipeline_check import KIT_PARTS
 
 HEIGHT, WIDTH, NEAR, FAR = 24, 32, 0.5, 6.0
 K = torch.tensor([[20.0, 0.0, 15.5], [0.0, 20.0, 11.5], [0.0, 0.0, 1.0]])
@@ -100,7 +101,7 @@ def test_with_a_head_it_renders_features_the_head_decodes_and_without_semantic_m
 
     registry = get_registry()
     node = {"name": name, "coarse_samples": 6, "fine_samples": 4}
-    model = registry.build("model", node, parts=kit_parts(registry, name, head=True))
+    model = registry.build("model", node, parts=kit_parts(registry, name, head=True, parts=KIT_PARTS))
     assert model.semantic_output.mode is SemanticMode.DECODED and model.coarse.aggregator.semantic_out is None
     batch = model_batch(sources=True)
     view = model(batch, semantics=True, sample_semantics=True).views[0]
@@ -111,9 +112,9 @@ def test_with_a_head_it_renders_features_the_head_decodes_and_without_semantic_m
     prediction = model.eval().predict(camera, sources, stride=0, chunk_rays=64)
     assert prediction.stride == 2 and prediction.semantic.shape[0] == channels  # the semantic maps' grid, decoded
     assert prediction.logits.shape[-2:] == (camera.height, camera.width)
-    parts = kit_parts(registry, name, head=True)
-    parts._cfg.feature_extractor.semantic = False
-    with pytest.raises(Exception, match=r"makes none \(feature_extractor.semantic=true, or "):
+    parts = kit_parts(registry, name, head=True, parts=KIT_PARTS)
+    parts._cfg.model.feature_extractor.semantic = False
+    with pytest.raises(Exception, match=r"makes none \(model.feature_extractor.semantic=true, or "):
         registry.build("model", node, parts=parts)
 
 
@@ -140,7 +141,7 @@ def test_without_source_depth_it_still_renders_finite_views():
 
     registry = get_registry()
     model = registry.build("model", {"name": "semantic_ray", "coarse_samples": 6, "fine_samples": 4},
-                           parts=kit_parts(registry, "semantic_ray", head=False)).eval()
+                           parts=kit_parts(registry, "semantic_ray", head=False, parts=KIT_PARTS)).eval()
     camera, sources = model_view(sources=True)
     prediction = model.predict(camera, dataclasses.replace(sources, depth=None), stride=4, chunk_rays=50)
     assert torch.isfinite(prediction.rgb).all() and torch.isfinite(prediction.logits).all()
@@ -154,7 +155,7 @@ def test_a_whole_view_skips_the_coarse_semantics_without_changing_the_last_pass(
 
     registry = get_registry()
     model = registry.build("model", {"name": "semantic_ray", "coarse_samples": 6, "fine_samples": 4},
-                           parts=kit_parts(registry, "semantic_ray", head=False)).eval()
+                           parts=kit_parts(registry, "semantic_ray", head=False, parts=KIT_PARTS)).eval()
     camera, sources = model_view(sources=True)
     rays = rays_through_pixels(torch.tensor([[3.0, 4.0], [20.0, 11.0]]), camera.intrinsics, camera.c2w, camera.near,
                                camera.far)

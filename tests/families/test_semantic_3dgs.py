@@ -25,7 +25,7 @@ from gpnerf_core.model.weights import load_weights
 from gpnerf_core.registry.components import get_registry
 from gpnerf_core.testing.inputs import kit_parts, model_scene
 from gpnerf_core.training.optimizer import make_optimizer
-from pipeline_check import TINY_SCENES, make_trainer
+from pipeline_check import KIT_PARTS, TINY_SCENES, make_trainer
 from ply_reader import read_ply
 
 SMALL = {"name": "semantic_3dgs", "init_points": 300, "feature_dim": 4, "sh_degree": 1, "schedule_steps": 2000}
@@ -40,7 +40,8 @@ TINY = [*TINY_SCENES, "dataset.scenes=[layout_00]", "model.init_points=400", "mo
 
 
 def small_model(head: bool = False):
-    return get_registry().build("model", dict(SMALL), parts=kit_parts(get_registry(), "semantic_3dgs", head=head))
+    return get_registry().build("model", dict(SMALL),
+                                parts=kit_parts(get_registry(), "semantic_3dgs", head=head, parts=KIT_PARTS))
 
 
 def test_resize_parameter_carries_the_moments_of_kept_rows_and_starts_new_ones_at_zero():

@@ -16,7 +16,7 @@ from gpnerf_core.geometry import compositing_weights, rays_through_pixels
 from gpnerf_core.model.build import build_components
 from gpnerf_plugins.families.nerf_field import NeRFField, positional_encoding
 from gpnerf_plugins.families.semantic_nerf.model import SemanticNeRF
-from pipeline_check import TINY_CLI, TINY_SCENES, in_process
+from pipeline_check import TINY_CLI, for_parts, TINY_SCENES, in_process
 
 SMALL = dict(num_classes=5, coarse_samples=8, fine_samples=4, width=16, depth=4, skip=1, position_scale=0.1,
              position_frequencies=3, direction_frequencies=2, density_noise=1.0, inverse_depth=False)
@@ -86,7 +86,7 @@ def test_per_scene_refusals(tmp_path):
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
     out = tmp_path_factory.mktemp("semantic_nerf") / "run"
-    argv = ["run", "+experiment=baselines/semantic_nerf", *TINY_CLI, *TINY, "dataset.scenes=[layout_00]",
+    argv = ["run", "+experiment=baselines/semantic_nerf", *for_parts(TINY_CLI), *TINY, "dataset.scenes=[layout_00]",
             "train.steps=2", f"out_dir={out}"]
     assert cli_main(argv) == 0
     return out
@@ -97,9 +97,9 @@ def test_run_fits_one_scene_and_scores_its_held_out_frames(fitted, capsys):
     assert set(metrics["eval"]) == {"train_heldout"}
     assert 0.0 <= metrics["eval"]["train_heldout"]["miou/image_mean_present"] <= 1.0
     assert json.loads((fitted / "plugins.json").read_text())["used"]["model"]["name"] == "semantic_nerf"
-    several = in_process(*["run", "+experiment=baselines/semantic_nerf", *TINY_CLI, *TINY, "dataset.num_train_scenes=2",
+    several = in_process(*["run", "+experiment=baselines/semantic_nerf", *for_parts(TINY_CLI), *TINY, "dataset.num_train_scenes=2",
                         "train.steps=1", f"out_dir={fitted.parent / 'two'}"])
-    unseen = in_process(*["run", "+experiment=baselines/semantic_nerf", *TINY_CLI, *TINY, "dataset.scenes=[layout_00]",
+    unseen = in_process(*["run", "+experiment=baselines/semantic_nerf", *for_parts(TINY_CLI), *TINY, "dataset.scenes=[layout_00]",
                        "eval.splits=[train,unseen]", "train.steps=1", f"out_dir={fitted.parent / 'unseen'}"])
     err = capsys.readouterr().err
     assert several == 2 and "model=semantic_nerf is fitted per scene: expected one training scene" in err
@@ -215,7 +215,7 @@ def test_grid_options_out_of_range_are_named(tmp_path):
 
 def test_the_grid_variant_fits_one_scene_renders_it_and_repeats_itself(tmp_path):
     def fit(out):
-        argv = ["run", "+experiment=baselines/semantic_nerf_grid", *TINY_CLI, *TINY, "model.grid_table_log2=10",
+        argv = ["run", "+experiment=baselines/semantic_nerf_grid", *for_parts(TINY_CLI), *TINY, "model.grid_table_log2=10",
                 "model.grid_levels=4", "dataset.scenes=[layout_00]", "train.steps=2", f"out_dir={out}"]
         assert cli_main(argv) == 0
         return json.loads((out / "metrics.json").read_text())

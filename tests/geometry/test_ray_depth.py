@@ -13,7 +13,7 @@ from gpnerf_core.geometry import pixel_grid, rays_through_pixels, surface_depths
 from gpnerf_core.geometry.ray_depth import feature_cost_belief, source_depth_belief
 from gpnerf_core.model.build import build_components
 from gpnerf_core.types import SourceViews
-from pipeline_check import TINY_MODEL, TINY_SCENES
+from pipeline_check import KIT_PARTS, TINY_MODEL, TINY_SCENES
 
 HEIGHT, WIDTH, FOCAL, WALL = 48, 64, 50.0, 2.0
 K = torch.tensor([[FOCAL, 0.0, WIDTH / 2 - 0.5], [0.0, FOCAL, HEIGHT / 2 - 0.5], [0.0, 0.0, 1.0]])
@@ -118,7 +118,7 @@ def test_the_compared_families_render_one_pass_around_a_depth_source(family):
     from gpnerf_core.testing.inputs import kit_parts, model_batch, model_view
 
     registry = get_registry()
-    parts = kit_parts(registry, family, head=False)
+    parts = kit_parts(registry, family, head=False, parts=KIT_PARTS)
     parts._cfg.depth_source = {"name": "cost_volume", "planes": 16}
     node = {"name": family, "coarse_samples": 6, "fine_samples": 3, "sampler": "depth"}
     model = registry.build("model", node, parts=parts)
@@ -130,7 +130,7 @@ def test_the_compared_families_render_one_pass_around_a_depth_source(family):
     assert torch.isfinite(prediction.rgb).all() and torch.isfinite(prediction.logits).all()
     with pytest.raises(ConfigError, match=rf"^model={family} model.sampler=depth renders one pass on "
                                           r"model.fine_samples samples around a \+depth_source's depth"):
-        registry.build("model", node, parts=kit_parts(registry, family, head=False))
+        registry.build("model", node, parts=kit_parts(registry, family, head=False, parts=KIT_PARTS))
 
 
 @pytest.mark.parametrize("family", ["neuray", "semantic_ray", "mvsnerf"])
@@ -144,7 +144,7 @@ def test_the_compared_families_preview_a_few_samples_around_a_depth_source_and_r
 
     registry = get_registry()
     model = registry.build("model", {"name": family, "coarse_samples": 6, "fine_samples": 4},
-                           parts=kit_parts(registry, family, head=True)).eval()
+                           parts=kit_parts(registry, family, head=True, parts=KIT_PARTS)).eval()
     camera, sources = model_view(sources=True)
     configured = (model.sampling, model.depth_source, model.fine_samples)
     full = model.predict(camera, sources, stride=4, chunk_rays=50)

@@ -14,6 +14,8 @@ SMALL = {
                                       "fpn_channels": 8},
     "field_aggregator/gnt_view": {"width": 16, "num_blocks": 2, "pos_frequencies": 2},
     "head/unet": {"channels": 16, "norm_groups": 4},
+    # MVSNeRF's own extractor (mvsnet) makes no semantic maps, which the kit's head decodes: the one with them
+    "model/mvsnerf": {"feature_extractor": {"name": "resunet_fpn"}},
     "head/per_pixel": {"hidden_dim": 16},
     # 3DGS's schedule scaled to the kit's 8 steps densifies from the third on and resets no opacity (the synthetic
     # scene's cameras are 0.1 m apart: world-size pruning at 0.1 x that extent after a reset would remove every Gaussian)

@@ -91,33 +91,42 @@ def test_knob_levels_shrink_from_the_reference_and_respect_the_coverage_floor():
     assert levels["model.coarse_samples"] == (24, [18, 12])
     assert levels["model.fine_samples"] == (8, [4, 0])
     assert levels["model.num_source_views"] == (4, [3])
-    assert levels["field_aggregator.width"] == (32, [24, 16])
-    assert levels["field_aggregator.num_blocks"] == (4, [3, 2])
-    assert levels["feature_extractor.fpn_channels"] == (16, [12, 8])
-    assert [n.split(":")[0] for n in notes] == ["model.depth_candidates", "model.feature_dim"]  # MVSplat's knobs
+    assert levels["model.field_aggregator.width"] == (32, [24, 16])
+    assert levels["model.field_aggregator.num_blocks"] == (4, [3, 2])
+    assert levels["model.feature_extractor.fpn_channels"] == (16, [12, 8])
+    assert [n.split(":")[0] for n in notes] == ["model.feature_dim", "model.depth_candidates"]  # MVSplat's knobs
     without_head, notes = knob_levels(compose(["scale=cpu"]), min_source_views=4)
-    assert "feature_extractor.fpn_channels" not in without_head and "model.num_source_views" not in without_head
+    assert "model.feature_extractor.fpn_channels" not in without_head and "model.num_source_views" not in without_head
     assert any("no head" in n for n in notes) and any("needs all 4" in n for n in notes)
 
 
 def test_only_knobs_of_components_the_family_builds_are_sized():
     cfg = compose(["+experiment=baselines/neuray"])
-    sections = build_components(cfg).model_sections
-    levels, notes = knob_levels(cfg, min_source_views=1, model_sections=sections)
-    assert not any(key.startswith("field_aggregator.") for key in levels)  # NeuRay builds no GNT aggregator
-    assert "field_aggregator.width: model 'neuray' builds no field_aggregator; not sized" in notes
+    levels, notes = knob_levels(cfg, min_source_views=1)
+    assert not any(key.startswith("model.field_aggregator.") for key in levels)  # NeuRay builds no GNT aggregator
+    assert "model.field_aggregator.width: model 'neuray' builds no field_aggregator; not sized" in notes
     splat = compose(["+experiment=baselines/mvsplat"])
-    levels, _ = knob_levels(splat, min_source_views=1, model_sections=build_components(splat).model_sections)
+    levels, _ = knob_levels(splat, min_source_views=1)
     assert set(levels) == {"model.num_source_views", "model.depth_candidates", "model.feature_dim"}
+
+
+def test_knobs_are_the_declared_fields_never_an_option_by_its_name():
+    """``feature_dim`` is a knob of MVSplat's (its matching width), not of 3D Gaussian splatting's (the semantic feature
+    each Gaussian carries): a knob is declared on the field it sizes (``gpnerf_core.size_knob``)."""
+    from gpnerf_core.tools.sizing.knobs import configured_knobs
+
+    assert "model.feature_dim" in {k.key for k in configured_knobs(compose(["model=mvsplat"]))}
+    gaussians = compose(["+experiment=baselines/semantic_3dgs", "dataset.scenes=[layout_00]"])
+    assert {k.key for k in configured_knobs(gaussians)} == {"model.num_source_views"}
 
 
 def _cost(changes):
     """FLOPs per ray and parameters that fall as knobs fall (a stand-in for building the model)."""
-    samples, width = changes.get("model.coarse_samples", 24), changes.get("field_aggregator.width", 32)
+    samples, width = changes.get("model.coarse_samples", 24), changes.get("model.field_aggregator.width", 32)
     return StaticCost(parameters=1000 * width, flops_per_ray=float(samples * width * width), rays=1)
 
 
-LEVELS = {"model.coarse_samples": (24, [18, 12]), "field_aggregator.width": (32, [24, 16])}
+LEVELS = {"model.coarse_samples": (24, [18, 12]), "model.field_aggregator.width": (32, [24, 16])}
 
 
 def _trainer(scores):
@@ -137,14 +146,14 @@ def test_the_descent_keeps_levels_within_tolerance_and_builds_on_them():
     scores = {"the reference": 0.70, "transformer width 24": 0.69, "transformer width 16": 0.60,
               "transformer width 24, coarse samples 18": 0.685, "transformer width 24, coarse samples 12": 0.675}
     order = knob_order(LEVELS, _cost)
-    assert order == ["field_aggregator.width", "model.coarse_samples"]  # width 24 saves more FLOPs than 18 samples
+    assert order == ["model.field_aggregator.width", "model.coarse_samples"]  # width 24 saves more FLOPs than 18 samples
     trials = descend(LEVELS, order, _cost, _trainer(scores), tolerance=0.02)
     assert [(t.name, t.kept) for t in trials] == [
         ("reference", True), ("transformer width 24", True), ("transformer width 16", False),
         ("coarse samples 18", True), ("coarse samples 12", False),
     ]
     chosen, failure = choose(trials, {})
-    assert failure is None and chosen.changes == {"field_aggregator.width": 24, "model.coarse_samples": 18}
+    assert failure is None and chosen.changes == {"model.field_aggregator.width": 24, "model.coarse_samples": 18}
 
 
 def test_a_failed_trial_ends_its_knob_and_a_failed_reference_raises():
@@ -159,9 +168,9 @@ def test_a_failed_trial_ends_its_knob_and_a_failed_reference_raises():
 
 def test_budgets_pick_the_cheapest_fitting_trial_or_name_the_constraint_that_failed():
     trials = [Trial("reference", {}, _cost({}), accuracy=0.7, kept=True),
-              Trial("w24", {"field_aggregator.width": 24}, _cost({"field_aggregator.width": 24}), accuracy=0.69,
+              Trial("w24", {"model.field_aggregator.width": 24}, _cost({"model.field_aggregator.width": 24}), accuracy=0.69,
                     kept=True),
-              Trial("w16", {"field_aggregator.width": 16}, _cost({"field_aggregator.width": 16}), accuracy=0.5)]
+              Trial("w16", {"model.field_aggregator.width": 16}, _cost({"model.field_aggregator.width": 16}), accuracy=0.5)]
     for trial in trials:
         trial.measured = {"seconds_per_frame": trial.cost.flops_per_ray / 1e4, "peak_memory_mb": 500.0}
     chosen, _ = choose(trials, {"max_parameters": 30_000})
@@ -192,7 +201,7 @@ def test_size_options_are_checked_one_line_each():
 # ---- the command ---------------------------------------------------------------------------------------------
 
 
-SIZE = ["+head=unet", "+loss=dgs", *TINY_CLI, "feature_extractor.fpn_channels=8", "size.steps=2"]
+SIZE = ["+head=unet", "+loss=dgs", *TINY_CLI, "model.feature_extractor.fpn_channels=8", "size.steps=2"]
 
 
 @pytest.fixture(scope="module")
@@ -236,11 +245,11 @@ def test_size_again_with_the_same_request_reuses_its_runs_and_refuses_another_re
 
 
 def test_a_knob_of_a_component_the_family_never_builds_is_refused_before_training(tmp_path):
-    tiny = [o for o in TINY_CLI if not o.startswith(("model.coarse", "model.fine", "field_aggregator."))]
+    tiny = [o for o in TINY_CLI if not o.startswith(("model.coarse", "model.fine", "model.field_aggregator."))]
     result = gpnerf("size", "+experiment=baselines/neuray", *tiny, "size.steps=2",
-                    "size.knobs=[field_aggregator.width]", f"size.out={tmp_path / 'out'}", cwd=tmp_path)
+                    "size.knobs=[model.field_aggregator.width]", f"size.out={tmp_path / 'out'}", cwd=tmp_path)
     assert result.returncode == 2, result.stderr[-2000:]
-    assert ("size.knobs names field_aggregator.width, which cannot be sized for model 'neuray': model 'neuray' builds "
+    assert ("size.knobs names model.field_aggregator.width, which cannot be sized for model 'neuray': model 'neuray' builds "
             "no field_aggregator; not sized") in result.stderr
     assert not (tmp_path / "out" / "runs").exists()
 
@@ -280,17 +289,17 @@ def test_sigterm_stops_the_sizing_and_the_trial_it_is_training(tmp_path):
 
 def test_a_level_that_cannot_be_built_is_passed_over_not_ending_its_knob():
     def cost_of(changes):
-        if changes.get("field_aggregator.width") == 24:
+        if changes.get("model.field_aggregator.width") == 24:
             raise ConfigError("semantic width 64 is not a multiple of the view attention's 24 channels")
         return _cost(changes)
 
     scores = {"the reference": 0.70, "transformer width 16": 0.69, "transformer width 16, coarse samples 18": 0.60}
     order = knob_order(LEVELS, cost_of)
-    assert order == ["field_aggregator.width", "model.coarse_samples"]  # ranked by width 16, its first buildable level
+    assert order == ["model.field_aggregator.width", "model.coarse_samples"]  # ranked by width 16, its first buildable level
     trials = descend(LEVELS, order, cost_of, _trainer(scores), tolerance=0.02)
     assert [(t.name, t.kept) for t in trials] == [
         ("reference", True), ("transformer width 24", False), ("transformer width 16", True),
         ("coarse samples 18", False),
     ]
     assert trials[1].error.startswith("cannot be built: semantic width 64") and trials[1].accuracy is None
-    assert choose(trials, {})[0].changes == {"field_aggregator.width": 16}
+    assert choose(trials, {})[0].changes == {"model.field_aggregator.width": 16}

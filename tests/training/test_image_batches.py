@@ -118,8 +118,9 @@ def trainer_with(tmp_path, model, *extra):
     composed = [item for item in extra if not item.startswith("model.loss_weights")]
     cfg = compose(["+experiment=baselines/semantic_nerf", *TINY_SCENES, "dataset.scenes=[layout_00]",
                    f"dataset.root={tmp_path / 'scenes'}", "train.steps=3", "train.log_every=1", "threads=1", *composed])
-    with open_dict(cfg):  # a family's own groups and terms are ``lr`` and ``loss_weights`` sections of its config
-        cfg.model = OmegaConf.create({**OmegaConf.to_container(cfg.model), "lr": {"colour": 0.05},
+    with open_dict(cfg):  # a family's groups and terms are the ``lr`` and ``loss_weights`` sections of its config
+        section = OmegaConf.to_container(cfg.model)  # semantic_nerf's lr has ``field``
+        cfg.model = OmegaConf.create({**section, "lr": {**section["lr"], "colour": 0.05},
                                       "loss_weights": {"brightness": 0.5}})
         for item in extra:  # the family's own keys, set after its sections exist
             if item.startswith("model.loss_weights"):
@@ -173,9 +174,19 @@ def test_a_family_term_without_a_weight_or_a_weight_for_no_term_is_refused_namin
 
 
 def test_a_family_names_its_own_learning_rate_groups(tmp_path):
-    trainer = trainer_with(tmp_path, FlatImage(), "train.lr.field=0.003")
+    trainer = trainer_with(tmp_path, FlatImage(), "model.lr.field=0.003")
     rates = {group["name"]: group["lr"] for group in trainer.optimizer.param_groups}
     assert rates == {"colour": 0.05, "field": 0.003}
+
+
+def test_a_group_without_a_rate_is_refused_naming_it(tmp_path):
+    class Unrated(FlatImage):
+        def parameter_groups(self):
+            return {"colour": [self.colour], "depth": [self.distance]}
+
+    with pytest.raises(ConfigError, match=r"model Unrated trains a parameter group 'depth' that model.lr has no rate "
+                                          r"for; model.lr has: field, grid, colour"):
+        trainer_with(tmp_path, Unrated())
 
 
 def test_a_parameter_in_no_group_is_refused_naming_it(tmp_path):

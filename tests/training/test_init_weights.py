@@ -67,7 +67,7 @@ def test_gnt_checkpoint_with_an_unknown_key_is_one_line_naming_file_and_key(tmp_
 
 def test_gnt_checkpoint_of_another_width_names_the_tensor(tmp_path):
     path = tmp_path / "wide.pth"
-    torch.save(gnt_checkpoint(tiny_model(0, "field_aggregator.width=32", "feature_extractor.fpn_channels=8")), path)
+    torch.save(gnt_checkpoint(tiny_model(0, "model.field_aggregator.width=32", "model.feature_extractor.fpn_channels=8")), path)
     with pytest.raises(DataError, match=r"'net_coarse\.rgbfeat_fc\.0\.weight' has shape \[32, 35\] but 'field\.rgbfeat_fc\.0\.weight'"):
         init_weights(tiny_model(1), path)
 

@@ -53,8 +53,8 @@ def test_bf16_training_step_keeps_float32_weights(tmp_path):
     cfg = compose(["+head=unet", "+loss=dgs", "train.precision=bf16", "threads=1", f"dataset.root={tmp_path / 's'}",
                    "dataset.num_train_scenes=1", "dataset.num_unseen_scenes=1", "dataset.frames_per_scene=6",
                    "dataset.eval_every=3", "dataset.height=32", "dataset.width=48", "train.rays=16",
-                   "feature_extractor.widths=[8,8,8,16]", "feature_extractor.fpn_channels=8",
-                   "field_aggregator.width=16", "field_aggregator.num_blocks=2", "model.num_source_views=2",
+                   "model.feature_extractor.widths=[8,8,8,16]", "model.feature_extractor.fpn_channels=8",
+                   "model.field_aggregator.width=16", "model.field_aggregator.num_blocks=2", "model.num_source_views=2",
                    "train.steps=2", "train.log_every=1"])
     trainer = make_trainer(cfg, tmp_path / "run")
     result = trainer.fit(progress=False)

@@ -140,3 +140,71 @@ def test_an_old_checkpoint_evaluates_with_todays_keys(trained, tmp_path):
     assert "model.fuse_rendered=true" in restored.overrides
     cfg = open_trained(restored, [*TINY_SCENES, f"dataset.root={source / 'scenes'}"], command="eval").cfg
     assert OmegaConf.select(cfg, "model.fuse_rendered") is True and cfg.model.name == "gnt"
+
+
+OLD_PART_OVERRIDES = ["model/feature_extractor=resunet_fpn", "model.feature_extractor.widths=[8,8,8,16]",
+                      "model.feature_extractor.fpn_channels=4", "model.field_aggregator.width=16",
+                      "model.field_aggregator.num_blocks=2", "model.lr.head=0.002"]
+"""TINY_MODEL's part options and a rate as today's keys (``old_layout`` writes them as a checkpoint before the moves
+did)."""
+
+
+def old_layout(state):
+    """``state`` as a checkpoint written before the family owned its subtree: the parts at the top of its config, the
+    rates in ``train.lr`` (with the groups other families had), in its overrides too, and its recorded model
+    sections naming the parts."""
+    config = yaml.safe_load(state["config"])
+    for kind in ("feature_extractor", "field_aggregator", "ray_aggregator"):
+        config[kind] = config["model"].pop(kind)
+    config["train"]["lr"] = {**config["model"].pop("lr"), "field": 5e-4, "grid": 1e-2}
+    state["config"] = yaml.safe_dump(config, sort_keys=False)
+    state["overrides"] = [*state["overrides"], *(o.replace("model/", "").replace("model.lr", "train.lr")
+                                                 .replace("model.feature", "feature").replace("model.field", "field")
+                                                 for o in OLD_PART_OVERRIDES), "train.lr.grid=0.1"]
+    state["model_sections"] = ["model", "feature_extractor", "field_aggregator", "ray_aggregator", "head", "loss"]
+    state["content_sha256"] = checkpoint_module.content_digest(state)
+    return state
+
+
+def test_a_checkpoint_written_before_the_family_owned_its_subtree_reads_as_todays(trained, tmp_path):
+    _, checkpoint = trained
+    state = torch.load(checkpoint, weights_only=True)
+    today = yaml.safe_load(state["config"])
+    old = tmp_path / "old.pt"
+    torch.save(old_layout(state), old)
+    release_trained()
+    restored = load_trained(old)
+    assert yaml.safe_load(restored.config_yaml) == today  # the parts and rates under the model again
+    assert restored.model_sections == ("model", "head", "loss")
+    assert all(o in restored.overrides for o in OLD_PART_OVERRIDES)
+    assert not any("grid" in o for o in restored.overrides)  # a rate of a group gnt has not: dropped
+    cfg = restored.config()
+    assert cfg.model.field_aggregator.width == 16 and list(cfg.model.feature_extractor.widths) == [8, 8, 8, 16]
+    assert cfg.model.lr.head == 0.002 and "feature_extractor" not in cfg and "lr" not in cfg.train
+
+
+def test_an_old_config_keeps_only_the_parts_its_family_builds():
+    old = yaml.safe_dump({"model": {"name": "semantic_nerf"}, "feature_extractor": {"name": "resunet_fpn"},
+                          "field_aggregator": {"name": "gnt_view"}, "ray_aggregator": {"name": "gnt_ray"}})
+    assert yaml.safe_load(upgrade_config_yaml(old)) == {"model": {"name": "semantic_nerf"}}
+    old = yaml.safe_dump({"model": {"name": "mvsnerf"}, "feature_extractor": {"name": "mvsnet"},
+                          "field_aggregator": {"name": "gnt_view", "width": 8}})
+    assert yaml.safe_load(upgrade_config_yaml(old)) == {"model": {"name": "mvsnerf",
+                                                                  "feature_extractor": {"name": "mvsnet"}}}
+    assert upgrade_overrides(["feature_extractor=mvsnet", "+feature_extractor.x=1", "field_aggregator.width=8",
+                              "model.num_planes=8"], "mvsnerf") == [
+        "model/feature_extractor=mvsnet", "+model.feature_extractor.x=1", "model.num_planes=8"]
+
+
+def test_an_old_config_s_rates_move_to_the_groups_its_family_has():
+    """``train.lr`` beside a family's own ``model.lr``: the family's rate won then and wins now; a group the family
+    has not (every family's config had all five) is dropped."""
+    shared = {"feature_extractor": 1e-3, "transformer": 5e-4, "head": 1e-3, "field": 5e-4, "grid": 1e-2}
+    old = yaml.safe_dump({"model": {"name": "mvsplat", "lr": {"mvsplat": 5e-4}}, "train": {"steps": 3, "lr": shared}})
+    assert yaml.safe_load(upgrade_config_yaml(old)) == {
+        "model": {"name": "mvsplat", "lr": {"feature_extractor": 1e-3, "head": 1e-3, "mvsplat": 5e-4}},
+        "train": {"steps": 3}}
+    old = yaml.safe_dump({"model": {"name": "semantic_nerf"}, "train": {"lr": shared}})
+    assert yaml.safe_load(upgrade_config_yaml(old))["model"]["lr"] == {"field": 5e-4, "grid": 1e-2}
+    assert upgrade_overrides(["train.lr.field=0.01", "train.lr.head=1", "train.lr_schedule=cosine"],
+                             "semantic_nerf") == ["model.lr.field=0.01", "train.lr_schedule=cosine"]

@@ -45,7 +45,7 @@ def test_nan_loss_stops_training_naming_step_term_and_view(tmp_path):
 
 
 def test_learning_rate_groups(tmp_path):
-    cfg = tiny_cfg(tmp_path, "train.lr.feature_extractor=0.1", "train.lr.transformer=0.2", "train.lr.head=0.3")
+    cfg = tiny_cfg(tmp_path, "model.lr.feature_extractor=0.1", "model.lr.transformer=0.2", "model.lr.head=0.3")
     trainer = make_trainer(cfg, tmp_path / "run")
     rates = {group["name"]: group["lr"] for group in trainer.optimizer.param_groups}
     assert rates == {"feature_extractor": 0.1, "transformer": 0.2, "head": 0.3}
@@ -166,7 +166,7 @@ def test_resume_with_another_model_config_is_refused_naming_the_keys(tmp_path):
 def test_checkpoint_of_another_model_size_names_the_first_tensor(tmp_path):
     trainer = make_trainer(tiny_cfg(tmp_path, "train.steps=1"), tmp_path / "run")
     checkpoint = trainer.fit(progress=False).checkpoint
-    wider = tiny_cfg(tmp_path, f"train.resume={checkpoint}", "feature_extractor.widths=[8,8,8,24]", "train.resume_strict=false")
+    wider = tiny_cfg(tmp_path, f"train.resume={checkpoint}", "model.feature_extractor.widths=[8,8,8,24]", "train.resume_strict=false")
     with pytest.raises(DataError) as error:
         make_trainer(wider, tmp_path / "run2")
     message = str(error.value)

@@ -107,7 +107,7 @@ def test_depth_points_lie_on_the_frames_depths(tiny):
 
 MVSPLAT = ["+experiment=baselines/mvsplat", "model.feature_dim=8", "model.transformer_layers=1",
            "model.depth_candidates=4", "model.cost_unet_dim=4", "model.depth_unet_dim=4", "model.unet_levels=2",
-           "model.sh_degree=1", "feature_extractor.widths=[8,8,8,16]", "threads=1"]
+           "model.sh_degree=1", "model.feature_extractor.widths=[8,8,8,16]", "threads=1"]
 
 
 def test_a_gaussian_family_shows_its_gaussians_as_splats_in_either_colouring(tiny, at_frame):

@@ -27,7 +27,7 @@ CHECKS: dict[str, dict[str, Callable[[Subject], None]]] = {
 }
 
 RUNTIME: dict[str, dict[str, Any]] = {
-    "model": {},  # ``parts``: the kit's small built-in parts (``inputs.kit_parts``), made per check
+    "model": {},  # ``parts``: the parts its config declares (``inputs.kit_parts``), made per check
     "feature_extractor": {},
     "field_aggregator": {"in_dim": inputs.FIELD_IN_DIM},
     "ray_aggregator": {"in_dim": inputs.RAY_IN_DIM, "num_blocks": inputs.RAY_BLOCKS},

@@ -45,6 +45,9 @@ class Subject:
     registry: Registry
     config: Mapping[str, Any] = field(default_factory=dict)
     runtime: Mapping[str, Any] = field(default_factory=dict)
+    part_configs: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    """A model family's: the kit's ``configs`` of part components (``{"feature_extractor/<name>": {...}}``), which the
+    parts its config declares are built with (``inputs.kit_parts``)."""
 
     @property
     def label(self) -> str:
@@ -61,6 +64,13 @@ class Subject:
             samples = {key: value for key, value in KIT_SAMPLES.items() if key in fields}
         return {"name": self.name, **samples, **self.config}
 
+    def kit_parts(self, *, head: bool) -> Any:
+        """A model family's ``ModelParts``: the parts its config declares, with the options its config under check and
+        the kit's ``configs`` give them (``inputs.kit_parts``), and the kit's head when ``head``."""
+        from gpnerf_core.testing.inputs import kit_parts
+
+        return kit_parts(self.registry, self.name, head=head, parts=self.node(), configs=self.part_configs)
+
     @property
     def predicts_instances(self) -> bool:
         """A head whose class declares ``predicts = Predicts.INSTANCES`` (``num_outputs = slots + 1``, at least 2)."""
@@ -72,9 +82,7 @@ class Subject:
         """A model family that decodes with a head (``Capabilities.accepts_head``); other kinds: True."""
         if self.kind != "model":
             return True
-        from gpnerf_core.testing.inputs import kit_parts
-
-        model = self.build(parts=kit_parts(self.registry, self.name, head=False))
+        model = self.build(parts=self.kit_parts(head=False))
         return bool(model.capabilities.accepts_head)
 
     def build(self, node: Mapping[str, Any] | None = None, **runtime: Any) -> Any:
@@ -85,9 +93,7 @@ class Subject:
         """
         arguments = {**self.runtime, **runtime}
         if self.kind == "model" and "parts" not in arguments:
-            from gpnerf_core.testing.inputs import kit_parts
-
-            arguments["parts"] = kit_parts(self.registry, self.name, head=self.takes_head)
+            arguments["parts"] = self.kit_parts(head=self.takes_head)
         where = "building" + (" from the round-tripped config" if node is not None else "")
         where += f" with {describe(arguments)}" if arguments and node is None else ""
         node = self.node() if node is None else node

@@ -3,8 +3,9 @@ Prediction`` on a whole view, what they say about themselves (``capabilities``, 
 ``parameter_groups``), and their hooks in a few training steps (callbacks, their own loss terms, an optimizer that
 follows a change of size).
 
-The kit builds a family with small built-in parts (``inputs.KIT_PARTS``: ``resunet_fpn``, ``gnt_view``, ``gnt_ray`` and
-the ``unet`` head, at 3 classes) and renders a synthetic 32 x 48 scene seen from two source views (a per-scene family
+The kit builds a family with the parts its config declares (``gpnerf_core.part``; their options from the family's
+config under check and the kit's ``configs``, else their defaults) and the kit's head (``inputs.KIT_HEAD``), at 3
+classes, and renders a synthetic 32 x 48 scene seen from two source views (a per-scene family
 is first ``initialise``d with that scene, ``inputs.model_scene``).
 """
 
@@ -29,8 +30,8 @@ from gpnerf_core.testing.checks.common import (
     shape,
     total,
 )
-from gpnerf_core.testing.inputs import KIT_CLASSES, kit_parts, model_batch, model_scene, model_view
-from gpnerf_core.training.optimizer import make_optimizer
+from gpnerf_core.testing.inputs import KIT_CLASSES, model_batch, model_scene, model_view
+from gpnerf_core.training.optimizer import check_parameter_groups as check_groups, learning_rates, make_optimizer
 from gpnerf_core.types import ImageOutput, Prediction, RenderedRays, StepOutput, ViewOutput
 
 KIT_STEPS = 8
@@ -44,7 +45,7 @@ def build(subject: Subject, *, head: bool) -> ModelFamily:
 
 def built(subject: Subject, *, head: bool) -> tuple[ModelFamily, set[int]]:
     """The family, and the ids of its parts' parameters (the parts are checked as components of their own kinds)."""
-    parts = kit_parts(subject.registry, subject.name, head=head)
+    parts = subject.kit_parts(head=head)
     model = subject.build(parts=parts)
     expect(isinstance(model, ModelFamily), f"built a {type(model).__name__}, expected a ModelFamily")
     if not model.capabilities.generalizable:  # as the trainer does before a per-scene family's first step
@@ -70,24 +71,26 @@ def heads(subject: Subject) -> tuple[bool, ...]:
 
 
 def check_build(subject: Subject) -> None:
-    """Builds with and without a head (a family with ``accepts_head = False`` refuses one with a ConfigError);
-    parameters start finite; ``semantic_output`` is a ``SemanticOutput`` or None, with the kit's class count for a
+    """Builds with and without a head (a family with ``Capabilities(accepts_head=False)`` refuses one with a
+    ConfigError); parameters start finite; ``semantic_output`` is a ``SemanticOutput`` or None, with the kit's class count for a
     class output."""
     if not subject.takes_head:
         try:
             build(subject, head=True)
         except CheckFailed as failed:
             expect("ConfigError" in str(failed) or "ConfigError" in type(failed.__cause__).__name__,
-                   f"accepts_head is False but a configured head made the build fail otherwise: {failed}")
+                   "capabilities.accepts_head is False but a configured head made the build fail otherwise: "
+                   f"{failed}")
         else:
-            raise CheckFailed("accepts_head is False but the family built with a configured head (it would be "
-                              "silently ignored): raise a ConfigError naming +head")
+            raise CheckFailed("capabilities.accepts_head is False but the family built with a configured head (it "
+                              "would be silently ignored): raise a ConfigError naming +head")
     if subject.takes_head:  # a configured head is used, not silently ignored
-        parts = kit_parts(subject.registry, subject.name, head=True)
+        parts = subject.kit_parts(head=True)
         with_head = subject.build(parts=parts)
         expect("head" in parts.built_kinds,
                "a head was configured (+head=unet) but the family built none, so it would be silently ignored: build "
-               "it with parts.head(...), or set accepts_head = False and refuse it with a ConfigError naming +head")
+               "it with parts.head(...), or declare Capabilities(accepts_head=False) and refuse it with a ConfigError "
+               "naming +head")
         decoded = semantic_output(with_head)
         expect(decoded is not None and decoded.mode is SemanticMode.DECODED,
                f"with a head configured semantic_output.mode is {getattr(decoded, 'mode', None)}, expected "
@@ -101,36 +104,23 @@ def check_build(subject: Subject) -> None:
                                                       f"{KIT_CLASSES}-class dataset, expected {KIT_CLASSES}")
 
 
-def family_rates(subject: Subject) -> set[str]:
-    """The learning-rate groups a family's config names itself (its ``lr`` section's fields, ``model.lr.<group>``)."""
-    lr = next((f for f in dataclasses.fields(subject.entry.spec.config) if f.name == "lr"), None)
-    if lr is None:
-        return set()
-    default = lr.default_factory() if lr.default_factory is not dataclasses.MISSING else lr.default
-    if dataclasses.is_dataclass(default):
-        return {f.name for f in dataclasses.fields(default)}
-    return set(default) if isinstance(default, dict) else set()
+def family_rates(subject: Subject) -> dict[str, float]:
+    """The family's learning rates as the optimizer takes them: its config's ``lr`` section (``model.lr.<group>``), with
+    the kit's config on top."""
+    lr = getattr(subject.entry.spec.config(), "lr", None)
+    rates = dataclasses.asdict(lr) if dataclasses.is_dataclass(lr) else dict(lr or {})
+    return learning_rates({**rates, **dict(subject.node().get("lr") or {})})
 
 
 def check_parameter_groups(subject: Subject) -> None:
-    """Every trainable parameter is in exactly one learning-rate group, named by a ``train.lr`` key or a key of the
-    family's own ``model.lr``."""
-    from gpnerf_core.config.schema import LearningRates
-
+    """``parameter_groups()`` keeps the optimizer's rule (``training.optimizer.check_parameter_groups``, the same
+    check): every trainable parameter in exactly one learning-rate group, and every group a rate in the family's
+    ``model.lr``."""
     model = build(subject, head=subject.takes_head)
     groups = call("parameter_groups()", model.parameter_groups)
     expect(isinstance(groups, dict), f"parameter_groups() returned {type(groups).__name__}, expected a dict")
-    known = set(LearningRates.__dataclass_fields__) | family_rates(subject)
-    unknown = [name for name in groups if name not in known]
-    expect(not unknown, f"parameter group {unknown[0] if unknown else ''!r} is not a key of train.lr or of the "
-                        f"family's model.lr ({', '.join(sorted(known))})")
-    seen: dict[int, str] = {}
-    for name, params in groups.items():
-        for p in params:
-            expect(id(p) not in seen, f"a parameter is in both groups {seen.get(id(p))!r} and {name!r}")
-            seen[id(p)] = name
-    missing = [n for n, p in model.named_parameters() if p.requires_grad and id(p) not in seen]
-    expect(not missing, f"{len(missing)} trainable parameters are in no group (first: {missing[0] if missing else ''})")
+    rates = call("reading the family's learning rates (its config's lr section)", family_rates, subject)
+    call("the optimizer's check of parameter_groups()", check_groups, model, groups, rates)
 
 
 def _pass_outputs(name: str, rendered: RenderedRays, rays: int, classes: int | None) -> dict[str, Tensor]:

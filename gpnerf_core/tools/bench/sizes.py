@@ -37,7 +37,7 @@ class Size:
     semantic: tuple[str, ...]
 
 
-GNT_ONLY = ("+loss=rgb", "model.semantic_field.enabled=false", "feature_extractor.semantic=false")
+GNT_ONLY = ("+loss=rgb", "model.semantic_field.enabled=false", "model.feature_extractor.semantic=false")
 """The anchor: the same backbone, rays and samples with no FPN, no semantic field, no head, colour loss only."""
 
 PAPER_LOSS = ("+loss=dgs", "loss.rgb_weight=0.75", "loss.ce_weight=1.5", "loss.sd_weight=0.25", "loss.dgs_weight=0.25")
@@ -79,7 +79,7 @@ VARIANTS = ("gpnerf", "gnt_only")
 
 def _experiment_text(family: str) -> str:
     """The text of ``conf/experiment/baselines/<family>.yaml`` and of the baseline experiments its defaults include
-    (``- /experiment/baselines/<other>``: e.g. ``semantic_nerf_grid`` is ``semantic_nerf`` with its grid option)."""
+    (``- /experiment/baselines/<other>``: a variant of another baseline's family)."""
     import re
 
     from gpnerf_core.config.compose import config_dir
@@ -100,10 +100,13 @@ def baseline_families() -> list[str]:
 
 
 def registered_families() -> list[str]:
-    """Every model family a plugin registers (third parties' too), GP-NeRF's own (``gnt``) aside."""
+    """Every model family a plugin registers (third parties' too), the default one aside (``conf/config.yaml``'s
+    ``model``: GP-NeRF's, which the ``gpnerf`` and ``gnt_only`` variants measure)."""
+    from gpnerf_core.config.overrides import default_choice
     from gpnerf_core.registry.components import get_registry
 
-    return [name for name in get_registry().names("model") if name != "gnt"]
+    default = default_choice("model")
+    return [name for name in get_registry().names("model") if name != default]
 
 
 def checked_families(value: str) -> list[str]:
@@ -118,11 +121,6 @@ def checked_families(value: str) -> list[str]:
     return names
 
 
-def _sets_own_scale(family: str) -> bool:
-    """The experiment ``baselines/<family>`` drops the ``scale`` preset (``override /scale: null``)."""
-    return "override /scale:" in _experiment_text(family)
-
-
 def variant_overrides(size: Size, variant: str, overrides: list[str]) -> list[str]:
     """The overrides of ``variant`` at ``size``, the user's last (they win): ``gpnerf``, ``gnt_only``, a baseline
     family (its ``+experiment=baselines/<variant>`` on the size's common overrides: the same images, views and rays), or
@@ -130,13 +128,38 @@ def variant_overrides(size: Size, variant: str, overrides: list[str]) -> list[st
     if variant in VARIANTS:
         extra = size.semantic if variant == "gpnerf" else GNT_ONLY
         return [*size.common, *extra, *overrides]
-    if variant in baseline_families():
-        common = list(size.common)
-        if _sets_own_scale(variant):  # e.g. mvsnerf: scale's keys are another extractor's; its sizes are its own
-            common = [o for o in common if not o.startswith("scale=")]
-        return [*common, f"+experiment=baselines/{variant}", *overrides]
+    if variant in baseline_families():  # the size's scale sizes the family as it sizes its own (scale/<scale>/<model>)
+        common = [*size.common, f"+experiment=baselines/{variant}"]
+        return [*common, *own_parts(tuple(common), overrides)]
     common = [*size.common, f"model={variant}"]
-    return [*common, f"+loss={family_loss(tuple(common), variant)}", *overrides]
+    return [*common, f"+loss={family_loss(tuple(common), variant)}", *own_parts(tuple(common), overrides)]
+
+
+def own_parts(common: tuple[str, ...], overrides: list[str]) -> list[str]:
+    """``overrides`` without those of parts the family ``common`` composes does not build (``model.<kind>.*``,
+    ``model/<kind>=``): options given for GP-NeRF's parts apply to another family where it has those parts."""
+    from gpnerf_core.config.overrides import override_key
+    from gpnerf_core.registry.kinds import GROUPS, PART_KINDS
+
+    def part(override: str) -> str | None:
+        key = override_key(override)
+        kind = GROUPS.get(key) or (key.split(".")[1] if key.startswith("model.") and "." in key[6:] else None)
+        return kind if kind in PART_KINDS else None
+
+    if not any(part(o) for o in overrides):
+        return list(overrides)
+    built = family_parts(common)
+    return [o for o in overrides if part(o) is None or part(o) in built]
+
+
+@functools.cache
+def family_parts(common: tuple[str, ...]) -> frozenset[str]:
+    """The part kinds under the model ``common`` composes."""
+    from gpnerf_core.config.compose import compose
+    from gpnerf_core.registry.kinds import PART_KINDS
+
+    model = compose(list(common)).model
+    return frozenset(kind for kind in PART_KINDS if kind in model)
 
 
 @functools.cache

@@ -7,16 +7,20 @@ or ``unfinished`` (a run that failed, was stopped or killed, or still runs: ``un
 show), never left out in silence. Runs
 whose configs differ only by ``seed`` (and by where or how they ran: ``out_dir``, ``threads``, ``device``, ...) form
 one row: each cell is the mean +- sample standard deviation over its runs, with n. Metric columns are keyed on the
-evaluator's protocol ids (``miou/image_mean_present``, ``psnr/clamped``). A row gets the paper's Table 4 ID and
-numbers only when it is the paper's method (the built-in ``unet`` head with a built-in loss set ``ce``, ``sd`` or
-``dgs``) with that row's switches; a third-party head or loss set never sits beside the paper's number. A row gets the
-paper's Table 1 generalization mIoU (Replica / ScanNet) when it is one of the compared methods' built-in families
+evaluator's protocol ids (``miou/image_mean_present``, ``psnr/clamped``).
+
+A run's method is named by its family's declaration (``ComponentSpec.display_name``: ``GP-NeRF``, ``Semantic-Ray``,
+``NeuRay + semantic head``, ...); the report knows no family by its registry name. A row gets the paper's Table 4 ID
+and numbers only when it is the paper's method (``GP-NeRF``, with the built-in ``unet`` head and a built-in loss set
+``ce``, ``sd`` or ``dgs``) with that row's switches; a third-party head or loss set never sits beside the paper's
+number. A row gets the paper's Table 1 mIoU (Replica / ScanNet) when its method is one of that table's rows by name,
 trained with its cross-entropy (``+experiment=baselines/<name>``), or GP-NeRF with every Table 4 switch on. The
 paper's numbers are Replica and ScanNet at full size: context, not a target for CPU-sized runs.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import os
@@ -28,7 +32,7 @@ from typing import Any
 
 import yaml
 
-from gpnerf_core.config.legacy import upgrade_config_yaml
+from gpnerf_core.config.legacy import DEFAULT_MODEL, upgrade_config_yaml
 from gpnerf_core.errors import DataError
 from gpnerf_core.runtime.run_folder import LOCK_NAME
 from gpnerf_core.training.resume import run_checkpoints
@@ -41,23 +45,26 @@ PAPER_TABLE4 = {
     (True, True, True, False): ("4", 59.55, 29.26),
     (True, True, True, True): ("5", 59.92, 29.37),
 }
-# Table 1 of the paper, generalization to unseen scenes: model family (or "gpnerf") -> mIoU on (Replica, ScanNet).
+PAPER_METHOD = "GP-NeRF"
+"""The paper's own method, by name: Table 4's rows are its ablations."""
+# Table 1 of the paper, generalization to unseen scenes: the method as the paper names it (a family's display name)
+# -> mIoU on (Replica, ScanNet).
 PAPER_TABLE1 = {
-    "mvsnerf": (23.41, 39.82),
-    "neuray": (35.90, 51.03),
-    "semantic_ray": (41.59, 57.15),
-    "gpnerf": (48.53, 59.92),
+    "MVSNeRF + semantic head": (23.41, 39.82),
+    "NeuRay + semantic head": (35.90, 51.03),
+    "Semantic-Ray": (41.59, 57.15),
+    PAPER_METHOD: (48.53, 59.92),
 }
 # Table 1's fine-tuning rows, the same columns: a run of ``finetune`` (its metrics carry a ``finetune`` curve), and a
 # per-scene family's run (Semantic-NeRF has only this setting: fitted on one scene, scored on its held-out frames).
 PAPER_TABLE1_FINETUNED = {
-    "mvsnerf": (53.77, 55.26),
-    "neuray": (63.73, 77.48),
-    "semantic_ray": (75.96, 91.06),
-    "gpnerf": (87.72, 93.84),
+    "MVSNeRF + semantic head": (53.77, 55.26),
+    "NeuRay + semantic head": (63.73, 77.48),
+    "Semantic-Ray": (75.96, 91.06),
+    PAPER_METHOD: (87.72, 93.84),
 }
 PAPER_TABLE1_PER_SCENE = {
-    "semantic_nerf": (75.06, 91.24),
+    "Semantic-NeRF": (75.06, 91.24),
 }
 PAPER_HEADS = ("unet",)
 PAPER_LOSS_SETS = ("ce", "sd", "dgs")
@@ -88,33 +95,48 @@ class RunRow:
     state: str = "finished"
     """``finished`` (``metrics.json``), ``failed`` (``error.json``) or ``unfinished`` (neither)."""
 
+    @property
+    def semantic_field(self) -> dict[str, Any] | None:
+        """The run's ``model.semantic_field`` (its family's defaults filled in) where its family's config has GP-NeRF's
+        attention-reusing semantic field (``semantic_field.joint_attention``), whose switches Table 4's rows are; else
+        None."""
+        entry = _registry_for(self.config).components["model"].get(self.model)
+        default = getattr(entry.spec.config(), "semantic_field", None) if entry is not None else None
+        if default is None or not hasattr(default, "joint_attention"):
+            return None
+        own = (self.config.get("model") or {}).get("semantic_field") or {}
+        return {**dataclasses.asdict(default), **own} if dataclasses.is_dataclass(default) else dict(own)
+
     def switches(self) -> tuple[bool | None, bool, bool, bool] | None:
         """Table 4's switches (joint attention, S.D, gradient block, D.G) of any run whose loss config carries them
         (a built-in loss set, or a third-party one with ``sd_weight`` / ``dgs_weight``), whatever its head; else None.
-        Joint attention is GNT's semantic field's switch: None for another model family."""
+        Joint attention is the semantic field's switch: None for a family without one."""
         loss = self.config.get("loss") or {}
         if loss.get("name") not in PAPER_LOSS_SETS and not {"sd_weight", "dgs_weight"} & set(loss):
             return None
-        semantic_field = ((self.config.get("model") or {}).get("semantic_field") or {})
-        joint = bool(semantic_field.get("joint_attention", True)) if self.model == "gnt" else None
+        semantic_field = self.semantic_field
+        joint = bool(semantic_field.get("joint_attention", True)) if semantic_field is not None else None
         sd = float(loss.get("sd_weight", 0)) > 0
         dgs = float(loss.get("dgs_weight", 0)) > 0
         block = bool(loss.get("teacher_stop_grad", False)) and (sd or dgs)
         return joint, sd, block, dgs
 
     def paper_switches(self) -> tuple[bool | None, bool, bool, bool] | None:
-        """``switches`` for the paper's method only (GNT's field, ``PAPER_HEADS`` x ``PAPER_LOSS_SETS``): what gets a
-        Table 4 ID. Another family decoded by the U-Net head with GP-NeRF's losses is not a Table 4 row."""
+        """``switches`` for the paper's method only (``PAPER_METHOD`` with its semantic field, ``PAPER_HEADS`` x
+        ``PAPER_LOSS_SETS``): what gets a Table 4 ID. Another family decoded by the U-Net head with GP-NeRF's losses is
+        not a Table 4 row."""
         loss = self.config.get("loss") or {}
         head = self.config.get("head") or {}
-        if self.model != "gnt" or loss.get("name") not in PAPER_LOSS_SETS or head.get("name") not in PAPER_HEADS:
+        if loss.get("name") not in PAPER_LOSS_SETS or head.get("name") not in PAPER_HEADS:
+            return None
+        if self.semantic_field is None or method_name(self) != PAPER_METHOD:
             return None
         return self.switches()
 
     @property
     def model(self) -> str:
-        """The run's model family (``gnt`` for runs written before families were plugins)."""
-        return str((self.config.get("model") or {}).get("name") or "gnt")
+        """The run's model family (the default for runs written before families were plugins)."""
+        return str((self.config.get("model") or {}).get("name") or DEFAULT_MODEL)
 
     @property
     def evaluated(self) -> bool:
@@ -131,15 +153,13 @@ class RunRow:
         fine-tuning row for a ``finetune`` run, or for a per-scene family its per-scene row (Semantic-NeRF's own MLP
         only: its grid option is not the paper's)."""
         table = PAPER_TABLE1_FINETUNED if self.fine_tuned else PAPER_TABLE1
-        if self.model == "gnt":
-            return table["gpnerf"] if self.paper_switches() == (True, True, True, True) else None
+        name = method_name(self)
+        if name == PAPER_METHOD:
+            return table[PAPER_METHOD] if self.paper_switches() == (True, True, True, True) else None
         loss = (self.config.get("loss") or {}).get("name")
         if loss != "ce":
             return None
-        if self.model in PAPER_TABLE1_PER_SCENE:
-            field = (self.config.get("model") or {}).get("field", "mlp")
-            return PAPER_TABLE1_PER_SCENE[self.model] if field == "mlp" else None
-        return table.get(self.model)
+        return PAPER_TABLE1_PER_SCENE.get(name) or table.get(name)
 
     def method_key(self) -> str:
         """The config without the keys that do not change what the run computes (the seed among them), and whether it
@@ -178,26 +198,31 @@ def _registry_for(config: dict[str, Any]) -> Any:
     """The built-in registry where it has every component ``config`` names, else the full one: reading runs of the
     built-in components imports no third-party plugin (one that is slow to import costs every ``report``)."""
     from gpnerf_core.registry.components import get_registry
-    from gpnerf_core.registry.kinds import KINDS
+    from gpnerf_core.registry.kinds import KINDS, section
 
     builtin = _builtin_registry()
-    named = [(kind, str(config[kind].get("name"))) for kind in KINDS if isinstance(config.get(kind), dict)]
+    nodes = {kind: section(config, kind) for kind in KINDS}
+    named = [(kind, str(node["name"])) for kind, node in nodes.items() if isinstance(node, dict) and node.get("name")]
     return builtin if all(name in builtin.components[kind] for kind, name in named) else get_registry()
 
 
 def _component_defaults(config: dict[str, Any]) -> dict[str, Any]:
-    """The defaults of each component section's registered config (``model``, ``head``, ...), by the name it holds."""
-    import dataclasses
-
-    from gpnerf_core.registry.kinds import KINDS
+    """The defaults of each component section's registered config (``model``, ``head``, ...), by the name it holds; a
+    part's inside the model's (``model.feature_extractor``)."""
+    from gpnerf_core.registry.kinds import KINDS, section
 
     registry = _registry_for(config)
-    defaults = {}
+    defaults: dict[str, Any] = {}
     for kind in KINDS:
-        section = config.get(kind)
-        entry = registry.components[kind].get(str(section.get("name"))) if isinstance(section, dict) else None
-        if entry is not None:
-            defaults[kind] = _plain(dataclasses.asdict(entry.spec.config()))
+        node = section(config, kind)
+        entry = registry.components[kind].get(str(node.get("name"))) if isinstance(node, dict) else None
+        if entry is None:
+            continue
+        values = _plain(dataclasses.asdict(entry.spec.config()))
+        if KINDS[kind].part:  # after the model's own (KINDS lists the model first)
+            defaults.setdefault("model", {})[kind] = values
+        else:
+            defaults[kind] = values
     return defaults
 
 
@@ -448,32 +473,17 @@ def fronts_possible(method: Any) -> bool:
     return any(a.name in method.points for a in ACCURACY) and any(c.name in method.points for c in COSTS)
 
 
-METHOD_NAMES = {
-    "gnt": "GP-NeRF",
-    "semantic_ray": "Semantic-Ray",
-    "neuray": "NeuRay",
-    "mvsnerf": "MVSNeRF",
-    "mvsplat": "MVSplat",
-    "semantic_nerf": "Semantic-NeRF",
-    "semantic_3dgs": "Semantic 3DGS",
-    "dm_nerf": "DM-NeRF",
-}
-"""The methods the built-in families are, by family name (a third party's family is named by its own name)."""
-WITH_SEMANTIC_HEAD = ("neuray", "mvsnerf")
-"""Families the paper names "<method> + semantic head" when they render labels themselves (its Table 1 rows)."""
-
-
 def method_name(row: RunRow) -> str:
-    """The method a run is, by name: ``GP-NeRF``, ``GNT`` (GP-NeRF's field without semantics), ``Semantic-Ray``,
-    ``NeuRay + semantic head``, ``MVSNeRF + unet head``, ..., or a third-party family's own name."""
+    """The method a run is, as its family declares it (``ComponentSpec.display_name``): ``GP-NeRF``, ``GNT``
+    (GP-NeRF's field without semantics), ``Semantic-Ray``, ``NeuRay + semantic head``, ``MVSNeRF + unet head``, ...; a
+    family that declares a name (or none: its registry name) with a ``+head`` is ``<name> + <head> head``."""
+    entry = _registry_for(row.config).components["model"].get(row.model)
+    declared = entry.spec.display_name if entry is not None else ""
+    if callable(declared):
+        return str(declared(row.config))
     head = (row.config.get("head") or {}).get("name")
-    name = METHOD_NAMES.get(row.model, row.model)
-    if row.model == "gnt":
-        field = ((row.config.get("model") or {}).get("semantic_field") or {}).get("enabled", True)
-        return "GNT" if head is None and not field else name
-    if head is not None:
-        return f"{name} + {head} head"
-    return f"{name} + semantic head" if row.model in WITH_SEMANTIC_HEAD else name
+    name = declared or row.model
+    return f"{name} + {head} head" if head is not None else name
 
 
 def method_labels(groups: list[RowGroup]) -> list[str]:
@@ -488,7 +498,8 @@ def method_labels(groups: list[RowGroup]) -> list[str]:
         loss = (first.config.get("loss") or {}).get("name", "no loss")
         switches = first.paper_switches()
         paper = PAPER_TABLE4.get(switches) if switches else None
-        variant = f"{head or 'no head'} + {loss}" if first.model == "gnt" else loss
+        # The semantic field's variants are named by head and loss (Table 4's rows); another method's name says its head
+        variant = f"{head or 'no head'} + {loss}" if first.semantic_field is not None else loss
         variant += f", Table 4 ID {paper[0]}" if paper else ""
         described.append(f"{method_name(first)} ({variant})" + sampling_label(first.config))
     labels = []
@@ -513,7 +524,7 @@ def sampling_label(config: dict[str, Any]) -> str:
 
 def distinguishing_values(group: RowGroup, twins: list[RowGroup], most: int = 4) -> str:
     """``key=value`` of ``group`` for the config keys whose values differ among ``twins`` (keys by their last part,
-    so ``field_aggregator.num_blocks=2`` reads ``num_blocks=2``; the model's size first), at most ``most`` of them,
+    so ``model.field_aggregator.num_blocks=2`` reads ``num_blocks=2``; the model's size first), at most ``most`` of them,
     then ``+N more``."""
     defaults = _flatten(_without_empty(_schema_defaults()))  # sections a run's config lacks read as the defaults
     flat = [{**defaults, **_flatten(json.loads(twin.runs[0].method_key()))} for twin in twins]
@@ -533,7 +544,7 @@ def distinguishing_values(group: RowGroup, twins: list[RowGroup], most: int = 4)
 
 
 _SIZE_ORDER = {section: rank for rank, section in enumerate(
-    ("model", "field_aggregator", "ray_aggregator", "feature_extractor", "dataset", "train", "loss", "head"))}
+    ("model", "dataset", "train", "loss", "head"))}
 """Sections named first in a label: the model's size before the data, the recipe and the rest."""
 
 

@@ -8,7 +8,7 @@ from typing import Any
 
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.evaluation.evaluator import SPLIT_LABELS
-from gpnerf_core.tools.sizing.knobs import KNOBS
+from gpnerf_core.tools.sizing.knobs import known_knobs
 
 METRICS = {"miou": ("train_heldout", "miou/image_mean_present"), "psnr": ("train_heldout", "psnr/clamped")}
 """Selection metric -> where it is in ``metrics.json`` (held-out views of the training scenes, never unseen scenes)."""
@@ -108,15 +108,17 @@ def parse_size_options(argv: list[str]) -> tuple[SizeOptions, list[str]]:
 
 
 def _knobs(text: str) -> list[str]:
+    """``size.knobs``: the knobs declared by the registered families and parts, by key or label."""
+    knobs = known_knobs()
     names = [n.strip() for n in text.strip("[]").split(",") if n.strip()]
     if not names:
-        raise ConfigError(f"size.knobs={text!r}: expected at least one knob of {', '.join(k.key for k in KNOBS)} "
+        raise ConfigError(f"size.knobs={text!r}: expected at least one knob of {', '.join(k.key for k in knobs)} "
                           "(leave size.knobs out to size every knob)")
-    by_name = {k.key: k.key for k in KNOBS} | {k.label.replace(" ", "_"): k.key for k in KNOBS}
+    by_name = {k.key: k.key for k in knobs} | {k.label.replace(" ", "_"): k.key for k in knobs}
     unknown = [n for n in names if n not in by_name]
     if unknown:
-        raise ConfigError(f"size.knobs: unknown knob {unknown[0]!r}; known: {', '.join(k.key for k in KNOBS)} "
-                          f"(or {', '.join(k.label.replace(' ', '_') for k in KNOBS)})")
+        raise ConfigError(f"size.knobs: unknown knob {unknown[0]!r}; known: {', '.join(k.key for k in knobs)} "
+                          f"(or {', '.join(k.label.replace(' ', '_') for k in knobs)})")
     return [by_name[n] for n in names]
 
 

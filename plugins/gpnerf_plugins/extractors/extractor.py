@@ -8,7 +8,7 @@ from typing import Any, Mapping, Sequence
 import torch.nn.functional as F
 from torch import Tensor
 
-from gpnerf_core import ConfigError, FeatureExtractor, FeatureMaps, ImportedWeights
+from gpnerf_core import ConfigError, FeatureExtractor, FeatureMaps, ImportedWeights, fractions, size_knob
 from gpnerf_plugins.extractors.fpn import FPN, concat_levels
 from gpnerf_plugins.extractors.resunet import ResUNet
 
@@ -33,14 +33,15 @@ class ResUNetFPNConfig:
     """Feed x3 detached into the radiance decoder, so rendering never trains layer3 (GP-NeRF: True, GNT: False)."""
     semantic: bool = True
     """Build the FPN semantic branch; False gives a GNT-only extractor (no semantic map)."""
-    fpn_channels: int = 128
-    """Channels of each of the 4 FPN levels; the semantic map has 4 times this many (GP-NeRF: 128)."""
+    fpn_channels: int = size_knob(128, "semantic width", fractions(4, 4, 0.75, 0.5), needs="head")
+    """Channels of each of the 4 FPN levels; the semantic map has 4 times this many (GP-NeRF: 128); a size knob only
+    with a ``+head``, the one reader of the semantic map."""
 
 
 def _check_positive_list(key: str, values: Sequence[int], length: int) -> list[int]:
     values = [int(v) for v in values]
     if len(values) != length or any(v < 1 for v in values):
-        raise ConfigError(f"feature_extractor.{key}={values}: expected {length} positive integers")
+        raise ConfigError(f"model.feature_extractor.{key}={values}: expected {length} positive integers")
     return values
 
 
@@ -67,9 +68,9 @@ class ResUNetFPN(FeatureExtractor):
         widths = _check_positive_list("widths", widths, 4)
         blocks = _check_positive_list("blocks", blocks, 3)
         if radiance_dim < 1:
-            raise ConfigError(f"feature_extractor.radiance_dim={radiance_dim}: expected a positive integer")
+            raise ConfigError(f"model.feature_extractor.radiance_dim={radiance_dim}: expected a positive integer")
         if semantic and fpn_channels < 1:
-            raise ConfigError(f"feature_extractor.fpn_channels={fpn_channels}: expected a positive integer")
+            raise ConfigError(f"model.feature_extractor.fpn_channels={fpn_channels}: expected a positive integer")
         self.backbone = ResUNet(widths, blocks, radiance_dim)
         self.fpn = FPN(widths, fpn_channels) if semantic else None
         self.detach_deep_for_radiance = bool(detach_deep_for_radiance)

@@ -128,7 +128,7 @@ class HashGridField(nn.Module):
         self.branch, self.detach_branch = branch, detach_branch
 
     def grid_parameters(self) -> list[nn.Parameter]:
-        """The hash tables (trained at ``train.lr.grid``; the networks at ``train.lr.field``)."""
+        """The hash tables (trained at ``model.lr.grid``; the networks at ``model.lr.field``)."""
         return [self.encoding.tables]
 
     def forward(self, position: Tensor, direction: Tensor, with_branch: bool) -> tuple[Tensor, Tensor, Tensor | None]:

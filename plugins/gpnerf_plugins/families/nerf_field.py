@@ -225,7 +225,7 @@ class PerSceneNeRF(ModelFamily):
     # ---- what the model is ------------------------------------------------------------------------------------------
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
-        """The scene's own field (``train.lr.field``); a hash grid's tables at ``train.lr.grid``."""
+        """The scene's own field (``model.lr.field``); a hash grid's tables at ``model.lr.grid``."""
         if self.field_kind != "grid":
             return {"field": list(self.parameters())}
         tables = [table for field in (self.coarse, self.fine) if field is not None for table in field.grid_parameters()]

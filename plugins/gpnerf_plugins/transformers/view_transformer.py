@@ -27,6 +27,9 @@ from gpnerf_core import (
     ProjectedFeatures,
     RayBatch,
     RaySamples,
+    fractions,
+    one_fewer_or_halved,
+    size_knob,
 )
 from gpnerf_plugins.transformers.common import (
     FeedForward,
@@ -49,9 +52,9 @@ class GNTViewTransformerConfig:
 
     name: str = "gnt_view"
     """Registry name of this field aggregator."""
-    width: int = 64
+    width: int = size_knob(64, "transformer width", fractions(8, 8, 0.75, 0.5))  # 8s: ray heads, D // 8
     """Token width D (GNT ``netwidth``); also the number of attention channels."""
-    num_blocks: int = 8
+    num_blocks: int = size_knob(8, "transformer blocks", one_fewer_or_halved)
     """Number of view-transformer blocks (GNT ``trans_depth``); the ray aggregator gets the same number."""
     ff_ratio: int = 4
     """Hidden width of the feed-forward block, as a multiple of D."""

@@ -3,9 +3,10 @@ counts this machine can train (each official value in the field's docstring)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from gpnerf_core import RayMarchingConfig
+from gpnerf_plugins.families.rates import FieldRates
 
 
 @dataclass
@@ -41,3 +42,5 @@ class DMNeRFConfig(RayMarchingConfig):
     trains)."""
     inverse_depth: bool = False
     """Samples uniform in 1/depth instead of depth (DM-NeRF: in depth)."""
+    lr: FieldRates = field(default_factory=FieldRates)
+    """Learning rates (``model.lr.field``: the NeRF and object fields; DM-NeRF: 5e-4)."""

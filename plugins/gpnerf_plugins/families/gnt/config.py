@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Any, ClassVar
 
-from gpnerf_core import ModelConfig, RayMarchingConfig
+from gpnerf_core import ModelConfig, RayMarchingConfig, part
+from gpnerf_plugins.families.rates import SourceViewRates
 
 
 @dataclass
@@ -25,6 +26,12 @@ class GNTModelConfig(RayMarchingConfig):
 
     name: str = "gnt"
     """Registry name of this model family."""
+    feature_extractor: Any = part("resunet_fpn")
+    """Encodes source and target images: radiance maps for the transformers, semantic maps for the field and head."""
+    field_aggregator: Any = part("gnt_view")
+    """GNT's view transformer: attention over the source views per sample (FAT)."""
+    ray_aggregator: Any = part("gnt_ray")
+    """GNT's ray transformer: attention over a ray's samples (RAT)."""
     sampler: str = "uniform"
     """Samples of the fine pass: ``uniform`` (the coarse samples plus ``fine_samples`` drawn from the coarse weights,
     GNT's) or ``depth`` (only ``fine_samples`` samples, around the coarse pass's depth, or drawn from the coarse
@@ -52,6 +59,9 @@ class GNTModelConfig(RayMarchingConfig):
     """``torch.compile`` the transformer block pairs and the semantic attention sums (compiled on first use)."""
     compile_backend: str = "inductor"
     """The ``torch.compile`` backend when ``compile`` is true (inductor: C++ on CPU, Triton on CUDA)."""
+    lr: SourceViewRates = field(default_factory=SourceViewRates)
+    """Learning rates (``model.lr.<group>``): ``feature_extractor``, ``transformer`` (the aggregators and the semantic
+    adaptor), ``head``."""
 
     runtime_keys: ClassVar[tuple[str, ...]] = (
         *ModelConfig.runtime_keys, "checkpoint_blocks", "channels_last_maps", "compile", "compile_backend",

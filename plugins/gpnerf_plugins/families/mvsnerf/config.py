@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Any, ClassVar
 
-from gpnerf_core import ModelConfig, RayMarchingConfig
+from gpnerf_core import ModelConfig, RayMarchingConfig, part
+from gpnerf_plugins.families.rates import SourceViewRates
 
 
 @dataclass
@@ -16,6 +17,9 @@ class MVSNeRFConfig(RayMarchingConfig):
 
     name: str = "mvsnerf"
     """Registry name of this model family."""
+    feature_extractor: Any = part("mvsnet")
+    """Encodes the source views: MVSNeRF's FeatureNet (``mvsnet``); with a ``+head``, an extractor that makes semantic
+    maps (``model/feature_extractor=resunet_fpn``, ``+experiment=baselines/mvsnerf_unet``)."""
     coarse_samples: int = 48
     """Stratified samples per ray, uniform in depth (MVSNeRF: 128)."""
     fine_samples: int = 0
@@ -50,5 +54,8 @@ class MVSNeRFConfig(RayMarchingConfig):
     label_rendering: bool = True
     """Render class scores with the semantic branch (off: colour and depth only, MVSNeRF itself); with a ``+head`` the
     branch renders the head's input features whatever this is."""
+    lr: SourceViewRates = field(default_factory=SourceViewRates)
+    """Learning rates (``model.lr.<group>``): ``feature_extractor``, ``transformer`` (the 3D U-Net and the MLP),
+    ``head``."""
 
     runtime_keys: ClassVar[tuple[str, ...]] = ModelConfig.runtime_keys

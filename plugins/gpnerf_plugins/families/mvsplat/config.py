@@ -4,17 +4,21 @@ docstring; ``model.py`` says why each differs)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Any, ClassVar
 
-from gpnerf_core import ModelConfig
+from gpnerf_core import ModelConfig, fractions, part, size_knob
 
 
 @dataclass
 class MVSplatLearningRates:
-    """The family's own learning-rate group (``model.lr.<group>``); the extractor and the head take ``train.lr``'s."""
+    """The family's learning-rate groups (``model.lr.<group>``)."""
 
+    feature_extractor: float = 5e-3
+    """The extractor (``model.feature_extractor``; GP-NeRF's rate for it)."""
     mvsplat: float = 2.0e-4
     """The multi-view transformer, the cost-volume and depth networks and the Gaussian head (MVSplat: Adam 2e-4)."""
+    head: float = 5e-5
+    """The ``+head`` (GP-NeRF's rate for it)."""
 
 
 @dataclass
@@ -25,16 +29,19 @@ class MVSplatConfig(ModelConfig):
 
     name: str = "mvsplat"
     """Registry name of this model family."""
+    feature_extractor: Any = part("resunet_fpn")
+    """Encodes each source view: its 1/4 radiance map is MVSplat's CNN features, its semantic maps what each Gaussian
+    carries for a ``+head``."""
     num_source_views: int = 2
     """Source views whose pixels become Gaussians (MVSplat: 2 context views; any count >= 2 works)."""
-    feature_dim: int = 64
+    feature_dim: int = size_knob(64, "matching width", fractions(2, 4, 0.75, 0.5))
     """Channels of the multi-view transformer and the cost volume's features (MVSplat: ``d_feature`` 128)."""
     transformer_layers: int = 2
     """Blocks of self- then cross-view attention over the 1/4 maps (MVSplat: 6)."""
     attention_splits: int = 2
     """Each 1/4 map is cut into splits x splits windows for attention, shifted by half a window every other block
     (MVSplat: ``multiview_trans_attn_split`` 2)."""
-    depth_candidates: int = 32
+    depth_candidates: int = size_knob(32, "depth candidates", fractions(2, 4, 0.75, 0.5))
     """Depths of the cost volume, uniform in inverse depth between near and far (MVSplat: ``num_depth_candidates``
     32; 128 for RE10K)."""
     cost_unet_dim: int = 32
@@ -59,6 +66,6 @@ class MVSplatConfig(ModelConfig):
     """Rasterizer backend: ``auto`` (gsplat on CUDA where installed, numba on CPU, else torch), ``numba``, ``torch``
     or ``gsplat`` (docs/rasterizer.md)."""
     lr: MVSplatLearningRates = field(default_factory=MVSplatLearningRates)
-    """The family's own learning rates (``model.lr.mvsplat``)."""
+    """Learning rates (``model.lr.<group>``): ``feature_extractor``, ``mvsplat``, ``head``."""
 
-    runtime_keys: ClassVar[tuple[str, ...]] = (*ModelConfig.runtime_keys, "rasterizer", "lr")
+    runtime_keys: ClassVar[tuple[str, ...]] = (*ModelConfig.runtime_keys, "rasterizer")

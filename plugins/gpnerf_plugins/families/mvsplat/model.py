@@ -120,7 +120,7 @@ class MVSplat(LabelsOrHead):
     # ---- what the model is ------------------------------------------------------------------------------------------
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
-        """The extractor under ``feature_extractor``, the head under ``head`` (``train.lr``), MVSplat's own networks
+        """The extractor under ``feature_extractor``, the head under ``head``, MVSplat's own networks
         under its own group ``mvsplat`` (``model.lr.mvsplat``)."""
         groups = super().parameter_groups()
         groups["mvsplat"] = groups.pop("transformer")

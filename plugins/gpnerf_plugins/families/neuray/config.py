@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import ClassVar
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
-from gpnerf_core import ModelConfig, RayMarchingConfig
+from gpnerf_core import ModelConfig, RayMarchingConfig, part
+from gpnerf_plugins.families.rates import SourceViewRates
 
 
 @dataclass
@@ -15,6 +16,8 @@ class NeuRayConfig(RayMarchingConfig):
 
     name: str = "neuray"
     """Registry name of this model family."""
+    feature_extractor: Any = part("resunet_fpn")
+    """Encodes the source views: image features (its radiance maps) and, for a ``+head``, semantic maps."""
     fine_samples: int = 24
     """Samples of the fine pass, drawn from the coarse pass's weights in normalised inverse depth; the fine pass
     renders only these (NeuRay and Semantic-Ray do not merge them with the coarse samples). 0 = coarse pass only."""
@@ -29,6 +32,9 @@ class NeuRayConfig(RayMarchingConfig):
     surface_uncertainty: float = 0.2
     """``sampler=depth``: a ray whose belief's standard deviation exceeds this fraction of its depth gets its samples
     drawn from the belief."""
+    lr: SourceViewRates = field(default_factory=SourceViewRates)
+    """Learning rates (``model.lr.<group>``): ``feature_extractor``, ``transformer`` (the visibility decoder, the
+    aggregation and density networks), ``head``."""
 
     runtime_keys: ClassVar[tuple[str, ...]] = ModelConfig.runtime_keys
 

@@ -12,8 +12,8 @@ from gpnerf_core import ModelConfig
 
 @dataclass
 class Semantic3DGSLearningRates:
-    """The family's own learning-rate groups (``model.lr.<group>``), 3DGS's Adam rates; the semantic classifier and a
-    ``+head`` take ``train.lr.head``."""
+    """The family's learning-rate groups (``model.lr.<group>``): 3DGS's Adam rates, and the semantic classifier's or the
+    ``+head``'s."""
 
     means: float = 1.6e-4
     """Centres, per metre of the scene's extent (3DGS: ``position_lr_init`` 1.6e-4 x the cameras' extent), decayed
@@ -30,6 +30,8 @@ class Semantic3DGSLearningRates:
     """Quaternions (3DGS: ``rotation_lr`` 1e-3)."""
     features: float = 2.5e-3
     """The semantic feature of each Gaussian (Gaussian Grouping: its identity encoding at ``feature_lr`` 2.5e-3)."""
+    head: float = 5e-5
+    """The 1 x 1 classifier or the ``+head`` (GP-NeRF's rate for a head)."""
 
 
 @dataclass
@@ -94,6 +96,6 @@ class Semantic3DGSConfig(ModelConfig):
     """Rasterizer backend: ``auto`` (gsplat on CUDA where installed, numba on CPU, else torch), ``numba``, ``torch``
     or ``gsplat`` (docs/rasterizer.md)."""
     lr: Semantic3DGSLearningRates = field(default_factory=Semantic3DGSLearningRates)
-    """The family's own learning rates (``model.lr.<group>``)."""
+    """Learning rates (``model.lr.<group>``)."""
 
-    runtime_keys: ClassVar[tuple[str, ...]] = (*ModelConfig.runtime_keys, "rasterizer", "lr", "max_gaussians")
+    runtime_keys: ClassVar[tuple[str, ...]] = (*ModelConfig.runtime_keys, "rasterizer", "max_gaussians")

@@ -212,7 +212,7 @@ class Semantic3DGS(ModelFamily):
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """Each Gaussian parameter in its own group (``model.lr.<group>``: ``means``, ``harmonics``, ...); the
-        classifier or the head under ``head`` (``train.lr.head``)."""
+        classifier or the head under ``head`` (``model.lr.head``)."""
         rows = self.gaussians.rows()
         groups = {group: [rows[name]] for name, group in ROWS.items()}
         decoder = self.head if self.head is not None else self.classifier

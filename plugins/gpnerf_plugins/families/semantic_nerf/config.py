@@ -3,9 +3,11 @@ depths and sample counts this machine can train (each official value in the fiel
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 from gpnerf_core import RayMarchingConfig
+from gpnerf_plugins.families.rates import GridFieldRates
 
 
 @dataclass
@@ -57,3 +59,6 @@ class SemanticNeRFConfig(RayMarchingConfig):
     footprint at 96 x 128 and 1-2 m)."""
     grid_width: int = 64
     """``field=grid``: hidden width of its density and colour networks (Instant-NGP: 64)."""
+    lr: GridFieldRates = dataclasses.field(default_factory=GridFieldRates)  # (its option ``field`` hides the name)
+    """Learning rates (``model.lr.<group>``): ``field`` (the MLP, or the grid's small networks) and ``grid`` (its
+    tables)."""
