@@ -17,12 +17,18 @@ def run_dir_resolver(out_dir: str, default: str) -> str:
 
 
 def register_schema() -> None:
-    """Store the schema in Hydra's ConfigStore and register the resolvers ``conf/config.yaml`` uses."""
+    """Store the schema in Hydra's ConfigStore, register the resolvers ``conf/config.yaml`` uses, and register
+    gpnerf-core's search-path plugin (plugins' presets) with Hydra itself: Hydra finds plugins by listing the
+    ``hydra_plugins`` namespace, which misses a module an editable install serves through its import hook."""
     from hydra.core.config_store import ConfigStore
+    from hydra.core.plugins import Plugins
     from omegaconf import OmegaConf
+
+    from hydra_plugins.gpnerf_core_searchpath.searchpath import GpnerfSearchPathPlugin
 
     ConfigStore.instance().store(name="gpnerf_schema", node=RootConfig)
     OmegaConf.register_new_resolver("gpnerf_run_dir", run_dir_resolver, replace=True)
+    Plugins.instance().register(GpnerfSearchPathPlugin)
 
 
 def compose(overrides: list[str] | tuple[str, ...] = ()) -> Any:

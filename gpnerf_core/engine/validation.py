@@ -243,11 +243,16 @@ def check_image_size(cfg: DictConfig, components: Components, height: int, width
 def _require_trained_head(cfg: DictConfig, components: Components, training: bool) -> None:
     """Semantic outputs trained from scratch need a loss set that renders semantics (``LossSet.needs_semantics``):
     otherwise no term reaches them and their evaluation would score an untrained head. A model that starts trained
-    (``finetune``'s checkpoint, ``model.init``) may keep them fixed."""
+    (``finetune``'s checkpoint, ``model.init``) may keep them fixed, and a family whose own loss terms are weighted
+    (``Capabilities.loss_terms``, ``model.loss_weights``) trains them itself."""
+    from gpnerf_core.training.trainer import family_term_weights
+
     output, loss = components.model.semantic_output, components.loss
     if not training or output is None or loss is None or loss.needs_semantics:
         return
     if cfg.get("checkpoint") or cfg.model.get("init"):
+        return
+    if family_term_weights(str(cfg.model.name), components.model, cfg.model.get("loss_weights")):
         return
     raise ConfigError(
         f"{_scores_owner(cfg)} is trained by no term of loss {cfg.loss.name!r} (it renders no semantics), so its "

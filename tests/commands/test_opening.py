@@ -47,7 +47,7 @@ def test_open_trained_restores_validates_once_and_loads_the_chosen_weights(train
     assert validations == [1]
     assert opened.trained is read and opened.weights == "average"  # eval.weights' default
     cfg = opened.cfg
-    assert cfg.field_aggregator.width == 16 and cfg.model.coarse_samples == 6  # restored from the checkpoint
+    assert cfg.model.field_aggregator.width == 16 and cfg.model.coarse_samples == 6  # restored from the checkpoint
     assert cfg.model.fine_samples == 3  # the command set it: its value stays
     assert any("kept the checkpoint's value of" in note and "field_aggregator.width" in note for note in opened.notes)
     average = read.state["weight_average"]["weights"]

@@ -165,7 +165,7 @@ def test_nan_in_a_gaussian_parameter_stops_training_naming_it_and_the_step():
     state = TrainingState(step=7, total_steps=10, optimizer=optimizer)
     with pytest.raises(NonFiniteError, match=r"^step 7: model 'semantic_3dgs' Gaussian parameter 'log_scales' holds "
                                              r"NaN or Inf \(1 of \d+ Gaussians\); training stopped$"):
-        model.hooks._check_finite(state)
+        model.hooks.check_finite(state)
 
 
 def test_a_checkpoint_whose_count_differs_from_its_tensors_is_refused():

@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 
 from gpnerf_core.config.compose import compose
 from gpnerf_core.config.legacy import upgrade_config_yaml, upgrade_overrides
-from gpnerf_core.engine.opening import open_trained
+from gpnerf_core.engine.opening import open_trained, restore_trained_settings
 from gpnerf_core.engine.resuming import plan_resume
 from gpnerf_core.errors import DataError
 from gpnerf_core.model import checkpoint as checkpoint_module
@@ -172,13 +172,13 @@ def test_a_checkpoint_written_before_the_family_owned_its_subtree_reads_as_today
     today = yaml.safe_load(state["config"])
     old = tmp_path / "old.pt"
     torch.save(old_layout(state), old)
-    release_trained()
     restored = load_trained(old)
     assert yaml.safe_load(restored.config_yaml) == today  # the parts and rates under the model again
     assert restored.model_sections == ("model", "head", "loss")
     assert all(o in restored.overrides for o in OLD_PART_OVERRIDES)
     assert not any("grid" in o for o in restored.overrides)  # a rate of a group gnt has not: dropped
-    cfg = restored.config()
+    cfg = compose(restored.overrides)
+    restore_trained_settings(cfg, restored, restored.overrides, "eval")
     assert cfg.model.field_aggregator.width == 16 and list(cfg.model.feature_extractor.widths) == [8, 8, 8, 16]
     assert cfg.model.lr.head == 0.002 and "feature_extractor" not in cfg and "lr" not in cfg.train
 

@@ -200,6 +200,13 @@ class SceneRenderer:
         """The model renders from 3D Gaussians the viewer can draw (``Capabilities.gaussians``)."""
         return self.model.capabilities.gaussians
 
+    @property
+    def label_count(self) -> int:
+        """The label values a Gaussian may carry (``scene_gaussians``' labels): the classes, or an instance family's
+        ``slots + 1`` outputs; 0 without semantic scores."""
+        output = self.model.semantic_output
+        return 0 if output is None else (output.num_outputs if output.slots is not None else self.num_classes)
+
     def gaussians(self, scene_name: str, sources: tuple[int, ...]) -> GaussianScene | None:
         """The model's Gaussians of ``scene_name`` for the source frames ``sources`` (a per-scene family's own for
         none), from the feature cache when it holds them; None for a family without Gaussians."""

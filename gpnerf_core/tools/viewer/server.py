@@ -434,7 +434,7 @@ class ViewerServer:
                 return
             if state.splats is not None:
                 state.splats.remove()
-            arrays = splat_arrays(splats, shown[2], self.renderer.num_classes)
+            arrays = splat_arrays(splats, shown[2], self.renderer.label_count)
             state.splats = client.scene.add_gaussian_splats("/gaussians", **arrays)
             state.splats_shown = shown
         state.splats.visible = True

@@ -1,0 +1,84 @@
+"""The contract kit passes the family, and fails each broken variant of it naming what broke."""
+
+import dataclasses
+import types
+
+import torch
+
+from gpnerf_core import ComponentSpec, hookimpl
+from gpnerf_core.testing import check_plugin, contract_checks
+from gpnerf_gaussian_grouping.config import GaussianGroupingConfig
+from gpnerf_gaussian_grouping.model import GaussianGrouping, GroupingHooks
+from gpnerf_gaussian_grouping.plugin import build_gaussian_grouping
+
+pytest_plugins = ["gpnerf_core.testing.pytest_plugin"]
+
+SMALL = {"model/gaussian_grouping": {"init_points": 200, "identity_dim": 4, "sh_degree": 1, "schedule_steps": 2000,
+                                     "reg3d_sample_size": 50}}
+"""Small, with the densification schedule scaled into the kit's 8 steps (it densifies from the third)."""
+
+
+@contract_checks("gpnerf-gaussian-grouping", configs=SMALL)  # the installed distribution, by name
+def test_contract(gpnerf_check):
+    gpnerf_check.run()
+
+
+def variant(family: type) -> types.ModuleType:
+    """A plugin module registering ``family`` built as the real one is, under the name ``broken_grouping``."""
+
+    @dataclasses.dataclass
+    class BrokenConfig(GaussianGroupingConfig):
+        name: str = "broken_grouping"
+
+    def build(**options):
+        built = build_gaussian_grouping(**options)
+        broken = family.__new__(family)
+        broken.__dict__ = built.__dict__
+        return broken
+
+    build.__annotations__["return"] = family  # the docs' pattern: the registry reads the class it builds
+    module = types.ModuleType("broken_grouping_plugin")
+    module.gpnerf_register_models = hookimpl(lambda: [ComponentSpec("broken_grouping", build, BrokenConfig)])
+    return module
+
+
+def failed(family: type) -> dict[str, str]:
+    config = {"model/broken_grouping": SMALL["model/gaussian_grouping"]}
+    results = check_plugin(variant(family), configs=config, raise_on_failure=False)
+    return {result.check: result.message for result in results if result.failed}
+
+
+def test_a_term_that_turns_nan_fails_naming_the_term():
+    class NaNHooks(GroupingHooks):
+        def loss_terms(self, state, wanted):
+            terms = dict(super().loss_terms(state, wanted))
+            terms["identity_3d"] = terms["identity_3d"] * float("nan")
+            return terms
+
+    class NaNTerm(GaussianGrouping):
+        capabilities = dataclasses.replace(GaussianGrouping.capabilities, hooks=NaNHooks)
+
+    assert "loss term 'identity_3d' is nan at step 0" in failed(NaNTerm)["training hooks"]
+
+
+def test_a_densification_that_skips_the_optimizer_fails():
+    class SkipsOptimizer(GroupingHooks):
+        def density_control(self, state):
+            gaussians = self.family.gaussians
+            rows = {name: torch.cat([row.detach(), row.detach()[:1]]) for name, row in gaussians.rows().items()}
+            gaussians.set_rows(rows)  # one more Gaussian, the optimizer still holding the old tensors
+
+    class Skips(GaussianGrouping):
+        capabilities = dataclasses.replace(GaussianGrouping.capabilities, hooks=SkipsOptimizer)
+
+    assert "parameters were replaced without the optimizer" in failed(Skips)["training hooks"]
+
+
+def test_a_capability_it_declares_but_lacks_is_refused_at_registration_naming_the_plugin():
+    class ClaimsATeacher(GaussianGrouping):
+        capabilities = dataclasses.replace(GaussianGrouping.capabilities, teacher=True)
+
+    message = failed(ClaimsATeacher)["registration"]
+    assert "plugin broken_grouping_plugin" in message
+    assert ("ClaimsATeacher declares capabilities.teacher but ClaimsATeacher does not implement teacher_logits"
+            in message)
