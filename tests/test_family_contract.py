@@ -65,3 +65,22 @@ def test_every_built_in_family_declares_exactly_what_it_implements(name):
         family = factory.__globals__.get(family)
     assert inspect.isclass(family) and issubclass(family, ModelFamily), f"{name}'s factory names no family class"
     assert capability_problems(family) == []
+
+
+def test_the_files_that_branch_on_the_head_kind_are_the_ones_architecture_md_lists():
+    import ast
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    package = root / "gpnerf_core"
+    branching = set()
+    for path in package.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "Predicts":
+                branching.add(path.relative_to(package).as_posix())
+    row = next(line for line in (root / "docs" / "architecture.md").read_text().splitlines()
+               if line.startswith("| a head kind"))
+    listed = set(re.findall(r"`([\w/]+\.py)`", row)) - {"interfaces/head.py", "tests/test_family_contract.py"}
+    count = int(re.search(r"the (\d+) files that branch on it", row).group(1))
+    assert branching - {"interfaces/head.py"} == listed and count == len(listed)

@@ -249,7 +249,7 @@ class Capabilities:
             per-pixel scores (label rendering) says False and refuses a configured head with a ConfigError.
         trains_on: ``TrainingBatch.RAYS`` (random pixels; ``forward`` returns ``ViewOutput`` s) or
             ``TrainingBatch.IMAGES`` (whole target images; ``forward`` returns ``ImageOutput`` s).
-        source_encoding: what ``render``, ``view`` and ``export`` keep between frames (``SourceEncoding``): each
+        source_encoding: what ``render`` and ``view`` keep between frames (``SourceEncoding``): each
             source view's ``encode`` or the whole set's ``encode_sources``; None for a per-scene family.
         changes_size: its parameters are replaced by larger or smaller ones while it trains (densification, through
             ``gpnerf_core.resize_parameter``): ``hooks.resize_to`` gives it a checkpoint's sizes, and the trainer refuses

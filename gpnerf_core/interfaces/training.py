@@ -5,7 +5,7 @@
 told the step (``TrainingState``), including what the step's forward pass returned (``outputs``: a rasterizer's
 projected centres and footprints reach a densification callback as an argument, gsplat's ``info``). A family's
 callbacks do its own work on the step's clock (a schedule tied to the step, densification statistics); a command's
-(``training.callbacks.CurvePoints``) run off the clock (``timed=False``: an evaluation). The trainer runs them on every
+(``training.callbacks.evaluate_at``) run off the clock (``timed=False``: an evaluation). The trainer runs them on every
 process, on the model itself (never its ``DistributedDataParallel`` wrapper), in the order given.
 ``FamilyHooks.optimizer_options`` gives a group's own learning-rate schedule and Adam epsilon (``GroupOptions``: 3D
 Gaussian splatting decays its positions' rate on its own schedule, with an epsilon of 1e-15).

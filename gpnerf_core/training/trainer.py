@@ -457,7 +457,7 @@ class Trainer:
 
         Args:
             callbacks: the command's ``TrainingCallback`` s, the same protocol as the family's: timed ones run at their
-                phase after the family's; those with ``timed=False`` (``CurvePoints``: an evaluation) after the step and
+                phase after the family's; those with ``timed=False`` (``evaluate_at``: an evaluation) after the step and
                 its checkpoint, off the training clock, with the model back in training mode after them.
 
         Raises:
