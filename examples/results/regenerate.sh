@@ -32,6 +32,9 @@
 #   per_scene_gaussians  per-scene semantic 3D Gaussian splatting (baselines/semantic_3dgs) and Semantic-NeRF's grid
 #             option on unseen_00 x seeds 0-2, 2000 steps each evaluated every 250, each seed's two runs side by side
 #             (the same job names as per_scene's grid runs), and the 3DGS stress suite (not in the default stages)
+#   gaussian_grouping  the third-party Gaussian Grouping family (examples/gpnerf-gaussian-grouping, installed first)
+#             on layout_00 x seeds 0-2, 2000 steps, its instances against DM-NeRF and the instance head; its stress
+#             suite (not in the default stages)
 #   stress    the stress suite of IDs 1 and 5 (3 seeds each), one process per method, merged   (needs table4's runs)
 #   instance  the instance head on layout_00 x seeds 0-2, and the connected-components baseline on ID 5's runs
 #   finetune  ID 5's three runs fine-tuned on the unseen layout (300 steps)                      (needs table4's runs)
@@ -61,7 +64,7 @@ PROTOCOL_FAMILIES=${PROTOCOL_FAMILIES:-semantic_ray neuray mvsnerf}  # the compa
 RECORDS=${RECORDS:-$(cd "$(dirname "$0")" && pwd)/records}
 POLL_SECONDS=${POLL_SECONDS:-10}
 RUNS="$WORK/runs"
-KNOWN="table4 methods baselines grid gaussians samplers per_scene per_scene_gaussians layouts protocol stress instance finetune report records"
+KNOWN="table4 methods baselines grid gaussians samplers per_scene per_scene_gaussians gaussian_grouping layouts protocol stress instance finetune report records"
 for stage in $STAGES; do
   [[ " $KNOWN " == *" $stage "* ]] || { echo "unknown stage '$stage' (known: $KNOWN)" >&2; exit 2; }
 done
@@ -141,6 +144,14 @@ stage_jobs() {
       done
       job stress_semantic_3dgs "semantic_3dgs_unseen_s0,semantic_3dgs_unseen_s1,semantic_3dgs_unseen_s2" stress \
         "$RUNS"/semantic_3dgs_unseen_s{0,1,2} --views-per-scene 1 --threads 1 --overwrite --out "$WORK/stress/semantic_3dgs" ;;
+    gaussian_grouping)  # pip install --no-deps --no-build-isolation examples/gpnerf-gaussian-grouping first
+      for s in 0 1 2; do
+        train_job "gaussian_grouping_l0_s$s" $s +experiment=gaussian_grouping "'dataset.scenes=[layout_00]'" \
+          eval.save_images=0
+      done
+      job stress_gaussian_grouping "gaussian_grouping_l0_s0,gaussian_grouping_l0_s1,gaussian_grouping_l0_s2" stress \
+        "$RUNS"/gaussian_grouping_l0_s{0,1,2} --views-per-scene 1 --threads 1 --overwrite \
+        --out "$WORK/stress/gaussian_grouping" ;;
     per_scene)
       for s in 0 1 2; do
         train_job "semantic_nerf_unseen_s$s" $s +experiment=baselines/semantic_nerf "'dataset.scenes=[unseen_00]'" \

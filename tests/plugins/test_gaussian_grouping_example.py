@@ -92,6 +92,19 @@ def test_its_checkpoint_goes_through_eval_render_and_export_with_its_slots(insta
     assert labels.size > 0 and ((labels >= -1) & (labels < 16)).all()
 
 
+def test_report_names_it_and_stress_runs_it(installed, trained):
+    workspace, _, env = installed
+    report = run("-m", "gpnerf_core", "report", str(trained), cwd=workspace, env=env)
+    assert report.returncode == 0, report.stderr[-3000:]
+    assert "| gaussian_grouping | - | image |" in report.stdout
+    stress = run("-m", "gpnerf_core", "stress", str(trained), "--quick", "--cases", "rotation_noise", "--threads", "1",
+                 "--out", str(workspace / "stress"), cwd=workspace, env=env)
+    assert stress.returncode == 0, stress.stderr[-3000:]
+    written = (workspace / "stress" / "stress.md").read_text()
+    assert "Gaussian Grouping (image)" in written  # the method by the name its spec declares
+    assert "model 'gaussian_grouping' renders from its own parameters (per-scene)" in written  # sources it has none of
+
+
 def test_the_viewer_draws_its_gaussians(installed, trained):
     workspace, _, env = installed
     script = f"""
