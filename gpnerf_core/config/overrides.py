@@ -1,6 +1,6 @@
 """Hydra override strings as typed on the command line: their keys, and which of them belong to one run only.
 
-String handling (Hydra's override parser decides what needs quotes), shared by the job lifecycle (``jobs``), the
+String handling (Hydra's override parser decides what needs quotes), shared by the job lifecycle (``engine``), the
 commands that recompose a checkpoint's config (``eval``, ``finetune``, ``render``) and the tools that launch runs of
 their own (``size``).
 """

@@ -47,7 +47,7 @@ def newest_intact_checkpoint(run_dir: Path) -> tuple[Path | None, list[str]]:
     notes = []
     for _, path in reversed(checkpoints):
         try:
-            load_trained(path)  # the one resumed from stays read for plan_resume and the trainer
+            load_trained(path)  # verified here; the caller reads the one found again (only after damage)
         except DataError as exc:
             notes.append(f"skipped a damaged checkpoint: {exc}")
             continue
