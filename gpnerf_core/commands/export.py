@@ -13,7 +13,9 @@ optional voxel grid merges the rest (``export.voxel``). Writes into the run fold
 - ``points_labels.ply``: the same points coloured by label in the palette of ``render`` and the viewer (with scores);
 - ``gaussians.ply``, for a family that renders 3D Gaussians (``ModelFamily.scene_gaussians``; a feed-forward one's
   from the source views of the first exported frame): the standard 3D Gaussian splatting PLY (``x y z``, ``f_dc_*``,
-  ``f_rest_*``, ``opacity``, ``scale_*``, ``rot_*``) with each Gaussian's ``label``, which splat viewers open;
+  ``f_rest_*``, ``opacity``, ``scale_*``, ``rot_*``) with each Gaussian's ``label``, which splat viewers open. It is
+  written whatever the fusion keeps: where no point is kept, it and ``export.json`` (with a ``note`` saying why) are
+  all that is written, and the reason is said on stderr;
 - ``legend.png`` (classes) and ``export.json``: the frames, the settings, the point counts, the class names.
 """
 
@@ -121,11 +123,13 @@ def export_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handove
         rendered = sum(len(cloud) for cloud in clouds)
         fused = concatenate(kept)
         merged = voxel_merge(fused, float(settings.voxel))
-        if len(merged) == 0:
-            raise DataError(f"export: no point of scene {name!r} is inside its depth bounds and seen by "
-                            f"{min_views} other view(s) within {settings.tolerance:g}; lower export.min_views or raise "
-                            "export.tolerance")
         splats = scene_gaussians(model, first, scene, owners, name)
+        empty = None
+        if len(merged) == 0:  # a Gaussian family's Gaussians are written whatever the fusion keeps
+            empty = (f"no point of scene {name!r} is inside its depth bounds and seen by {min_views} other view(s) "
+                     f"within {settings.tolerance:g}; lower export.min_views or raise export.tolerance")
+            if splats is None:
+                raise DataError(f"export: {empty}")
         seconds = time.perf_counter() - started
         result = _result(cfg, loaded, components, name, indices, prediction.stride, rendered, len(fused), len(merged),
                          seconds)
@@ -134,9 +138,16 @@ def export_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handove
             result["gaussians"] = {"count": splats.count, "source_frames": list(first.indices),
                                    "file": "gaussians.ply"}
             result["outputs"].insert(-1, "gaussians.ply")
+        if empty is not None:
+            result["note"] = f"the point cloud is not written: {empty}"
+            result["outputs"] = ["gaussians.ply", "export.json"]
         write_staged(folder.path, _writes(merged, result, components, splats), STAGING_PREFIX)
-        print(f"exported {len(merged)} points of {name} from {len(indices)} frames ({rendered} rendered, "
-              f"{len(fused)} agreed by {min_views}+ views) to {folder.path / 'points.ply'}")
+        if empty is not None:
+            print(f"export: {empty}: wrote the model's {splats.count} Gaussians only, to "
+                  f"{folder.path / 'gaussians.ply'}", file=sys.stderr)
+        else:
+            print(f"exported {len(merged)} points of {name} from {len(indices)} frames ({rendered} rendered, "
+                  f"{len(fused)} agreed by {min_views}+ views) to {folder.path / 'points.ply'}")
     return result
 
 
@@ -257,13 +268,15 @@ def _writes(cloud: Any, result: dict[str, Any], components: Any, splats: Any = N
         return {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "red": colours[:, 0], "green": colours[:, 1],
                 "blue": colours[:, 2], "label": label}
 
-    rgb = (cloud.rgb.numpy() * 255).round().astype(np.uint8)
-    writes: list[tuple[str, Write]] = [("points.ply", partial(write_ply, columns=columns(rgb), comments=comment))]
-    if result["labels"] == "instances":
-        label_colours = vis.colorize_instances(cloud.label[None]).reshape(-1, 3)
-    elif result["labels"] == "classes":
-        label_colours = vis.colorize_labels(cloud.label[None], components.classes.num_classes).reshape(-1, 3)
-    if result["labels"]:
+    writes: list[tuple[str, Write]] = []
+    if "points.ply" in result["outputs"]:
+        rgb = (cloud.rgb.numpy() * 255).round().astype(np.uint8)
+        writes.append(("points.ply", partial(write_ply, columns=columns(rgb), comments=comment)))
+    if "points_labels.ply" in result["outputs"]:
+        if result["labels"] == "instances":
+            label_colours = vis.colorize_instances(cloud.label[None]).reshape(-1, 3)
+        else:
+            label_colours = vis.colorize_labels(cloud.label[None], components.classes.num_classes).reshape(-1, 3)
         writes.append(("points_labels.ply", partial(write_ply, columns=columns(label_colours.astype(np.uint8)),
                                                     comments=comment)))
     if splats is not None:

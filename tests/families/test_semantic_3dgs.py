@@ -246,6 +246,25 @@ def test_eval_render_and_export_build_it_at_the_checkpoints_size(fitted, tmp_pat
     assert set(np.unique(columns["label"])) <= set(range(21))
 
 
+def test_it_trains_in_bf16_the_rasterizer_working_in_float32(tmp_path):
+    out = tmp_path / "bf16"
+    assert cli_main(["run", "+experiment=baselines/semantic_3dgs", *TINY, "train.steps=2", "train.precision=bf16",
+                     "eval.max_views_per_scene=1", f"out_dir={out}"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["train"]["precision"] == "bf16"
+
+
+def test_export_writes_the_gaussians_when_the_fusion_keeps_no_point(fitted, tmp_path, capsys):
+    checkpoint = fitted / "checkpoints" / "step_0000006.pt"
+    count = int(torch.load(checkpoint, weights_only=False)["model"]["gaussians.count"])
+    out = tmp_path / "export"
+    assert cli_main(["export", f"checkpoint={checkpoint}", "export.tolerance=1e-9", f"out_dir={out}"]) == 0
+    assert "no point of scene 'layout_00' is inside its depth bounds" in capsys.readouterr().err
+    written = sorted(p.name for p in out.iterdir() if p.suffix in (".ply", ".json") and p.name != "plugins.json")
+    assert written == ["export.json", "gaussians.ply"]
+    assert len(read_ply((out / "gaussians.ply").read_bytes())["x"]) == count
+    assert "the point cloud is not written" in json.loads((out / "export.json").read_text())["note"]
+
+
 def test_stress_skips_what_a_per_scene_model_cannot_be_asked(fitted, tmp_path):
     out = tmp_path / "stress"
     assert cli_main(["stress", str(fitted), "--quick", "--threads", "1", "--cases", "unseen,textureless,source_views",

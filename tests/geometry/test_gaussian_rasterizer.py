@@ -256,6 +256,20 @@ def test_numba_agrees_with_torch_in_float32():
         assert float((numba - reference).detach().abs().max()) <= tolerance * max(scale, 1.0), index
 
 
+def test_half_precision_inputs_and_autocast_rasterize_in_float32(backend):
+    """``train.precision=bf16`` runs the step under CPU autocast and may hand bfloat16 features: the rasterizer works
+    in float32 whatever it is given, as it would in float32."""
+    gaussians, intrinsics, c2w = scene(60, 4, seed=5, dtype=torch.float32)
+    reference = render(gaussians, intrinsics, c2w, backend)
+    half = Gaussians(*(getattr(gaussians, field).to(torch.bfloat16) for field in FIELDS))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        under_autocast = render(gaussians, intrinsics, c2w, backend)
+        from_half = render(half, intrinsics, c2w, backend)
+    assert under_autocast.features.dtype == torch.float32 and torch.equal(under_autocast.features, reference.features)
+    assert from_half.features.dtype == torch.float32
+    assert torch.allclose(from_half.alpha, reference.alpha, atol=0.05)
+
+
 def test_numba_is_deterministic_whatever_the_thread_count():
     pytest.importorskip("numba")
     gaussians, intrinsics, c2w = scene(200, 5, seed=4, dtype=torch.float32)

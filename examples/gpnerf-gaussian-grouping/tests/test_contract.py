@@ -74,6 +74,27 @@ def test_a_densification_that_skips_the_optimizer_fails():
     assert "parameters were replaced without the optimizer" in failed(Skips)["training hooks"]
 
 
+def test_a_family_that_grows_but_says_its_size_does_not_change_fails():
+    from gpnerf_core import FamilyHooks
+
+    class SilentHooks(GroupingHooks):
+        resize_to = FamilyHooks.resize_to  # nothing declared, nothing implemented: only the growth tells
+
+    class Grows(GaussianGrouping):
+        capabilities = dataclasses.replace(GaussianGrouping.capabilities, changes_size=False, hooks=SilentHooks)
+
+    assert "changed its shape, but capabilities.changes_size is False" in failed(Grows)["training hooks"]
+
+
+def test_gaussians_whose_columns_disagree_fail_before_export_would():
+    class ShortLabels(GaussianGrouping):
+        def scene_gaussians(self, sources, *, near, far, features=None):
+            splats = super().scene_gaussians(sources, near=near, far=far, features=features)
+            return dataclasses.replace(splats, labels=splats.labels[:-1])
+
+    assert "scene_gaussians' labels has" in failed(ShortLabels)["training hooks"]
+
+
 def test_a_capability_it_declares_but_lacks_is_refused_at_registration_naming_the_plugin():
     class ClaimsATeacher(GaussianGrouping):
         capabilities = dataclasses.replace(GaussianGrouping.capabilities, teacher=True)

@@ -93,7 +93,8 @@ def rasterize_gaussians(gaussians: Gaussians, *, intrinsics: Tensor, c2w: Tensor
     """Render ``gaussians`` into one pinhole view, differentiably in every Gaussian parameter.
 
     Args:
-        gaussians: G activated Gaussians in the world frame; every tensor is cast to ``means``' dtype.
+        gaussians: G activated Gaussians in the world frame; every tensor is cast to ``means``' dtype (float32 for a
+            half-precision one, and always outside autocast: ``train.precision=bf16`` rasterizes in float32).
         intrinsics: ``[3, 3]`` pinhole matrix at ``height`` x ``width`` (pixel centres at integer coordinates).
         c2w: ``[4, 4]`` camera-to-world pose (OpenCV: x right, y down, z forward), metres.
         height, width: image size, pixels.
@@ -108,7 +109,13 @@ def rasterize_gaussians(gaussians: Gaussians, *, intrinsics: Tensor, c2w: Tensor
     """
     _check(gaussians, intrinsics, c2w, height, width, tile_size, background)
     name = choose_backend(backend, gaussians.means.device)
-    dtype = gaussians.means.dtype
+    with torch.autocast(gaussians.means.device.type, enabled=False):  # projection and blending need float32 at least
+        return _rasterize(gaussians, intrinsics, c2w, height, width, near, background, tile_size, name)
+
+
+def _rasterize(gaussians: Gaussians, intrinsics: Tensor, c2w: Tensor, height: int, width: int, near: float,
+               background: Tensor | None, tile_size: int, name: str) -> Rasterized:
+    dtype = gaussians.means.dtype if gaussians.means.dtype in (torch.float32, torch.float64) else torch.float32
     gaussians = Gaussians(*(getattr(gaussians, field.name).to(dtype) for field in fields(Gaussians)))
     if name == "numba" and not _needs_gradient(gaussians, intrinsics, c2w):
         projected, bins = project_and_bin_numba(gaussians, intrinsics, c2w, height, width, near, tile_size)

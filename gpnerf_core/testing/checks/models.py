@@ -16,6 +16,7 @@ import dataclasses
 import torch
 from torch import Tensor, nn
 
+from gpnerf_core.geometry.gaussians.scene import GaussianScene
 from gpnerf_core.interfaces.head import Predicts
 from gpnerf_core.interfaces.model import ModelFamily, SemanticMode, SemanticOutput, TrainingBatch, capability_problems
 from gpnerf_core.interfaces.training import TrainingPhase, TrainingState
@@ -316,6 +317,7 @@ def check_training_hooks(subject: Subject) -> None:
             if callback.phase is phase and callback.due(state.step):
                 call(f"its {phase.value} callback at step {state.step}", callback.run, state)
 
+    shapes = {name: tuple(p.shape) for name, p in model.named_parameters()}
     for step in range(KIT_STEPS):
         batch = model_batch(sources=capabilities.generalizable, whole_images=whole, views=1)
         state = TrainingState(step=step, total_steps=KIT_STEPS, optimizer=optimizer, batch=batch)
@@ -345,6 +347,37 @@ def check_training_hooks(subject: Subject) -> None:
         optimizer.step()
         run(TrainingPhase.AFTER_STEP, state)
         _optimizer_follows(model, optimizer, step)
+        if not capabilities.changes_size:
+            changed = [n for n, p in model.named_parameters() if shapes.get(n) != tuple(p.shape)]
+            expect(not changed, f"after step {step} parameter {changed[0] if changed else ''!r} changed its shape, but "
+                                "capabilities.changes_size is False: declare it (the trainer then refuses what cannot "
+                                "follow a change of size, and checkpoints load through hooks.resize_to)")
+    if capabilities.gaussians and not capabilities.generalizable:
+        _check_gaussians(model.eval(), f"after {KIT_STEPS} training steps")
+
+
+def _check_gaussians(model: ModelFamily, when: str) -> None:
+    """A per-scene family's ``scene_gaussians`` (what ``export`` writes, ``view`` draws): one row per Gaussian in
+    every field, finite, labels -1 or an output of ``semantic_output``."""
+    scene = model_scene()
+    with torch.no_grad():
+        splats = call("scene_gaussians(None, ...)", model.scene_gaussians, None, near=scene.near, far=scene.far)
+    expect(isinstance(splats, GaussianScene), f"scene_gaussians returned {type(splats).__name__}, expected a "
+                                              "gpnerf_core.GaussianScene")
+    count = int(splats.means.shape[0])
+    for field in ("means", "scales", "rotations", "opacities", "harmonics", "labels"):
+        tensor = getattr(splats, field)
+        expect(int(tensor.shape[0]) == count, f"{when}: scene_gaussians' {field} has {int(tensor.shape[0])} rows for "
+                                              f"{count} means; every field has one row per Gaussian (export writes "
+                                              "them as columns)")
+        if field != "labels":
+            expect(bool(torch.isfinite(tensor).all()), f"{when}: scene_gaussians' {field} holds NaN or Inf")
+    output = model.semantic_output
+    top = output.num_outputs if output is not None else 0
+    labels = splats.labels
+    expect(bool(((labels >= -1) & (labels < max(top, 0))).all()) if top else bool((labels == -1).all()),
+           f"{when}: scene_gaussians' labels reach {int(labels.max()) if labels.numel() else -1}; expected -1 (none) or "
+           f"an output of semantic_output (0 to {top - 1})")
 
 
 CHECKS = {
