@@ -39,8 +39,8 @@ class GaussianRates:
     """The higher-degree coefficients (3DGS: ``feature_lr / 20``)."""
     opacities: float = 0.05
     """Opacity logits (3DGS: ``opacity_lr`` 0.05)."""
-    scales: float = 1.0e-3
-    """Log scales (3DGS: ``scaling_lr`` 1e-3)."""
+    scales: float = 5.0e-3
+    """Log scales (3DGS: ``scaling_lr`` 5e-3, as Feature 3DGS and Gaussian Grouping; 1e-3 before 2026-12-06)."""
     rotations: float = 1.0e-3
     """Quaternions (3DGS: ``rotation_lr`` 1e-3)."""
 

@@ -375,9 +375,10 @@ def _check_gaussians(model: ModelFamily, when: str) -> None:
     output = model.semantic_output
     top = output.num_outputs if output is not None else 0
     labels = splats.labels
-    expect(bool(((labels >= -1) & (labels < max(top, 0))).all()) if top else bool((labels == -1).all()),
-           f"{when}: scene_gaussians' labels reach {int(labels.max()) if labels.numel() else -1}; expected -1 (none) or "
-           f"an output of semantic_output (0 to {top - 1})")
+    highest = int(labels.max()) if labels.numel() else -1
+    expect(bool(((labels >= -1) & (labels < top)).all()),
+           f"{when}: scene_gaussians' labels reach {highest}; expected -1 (none) or an output of semantic_output "
+           f"(0 to {top - 1})")
 
 
 CHECKS = {
