@@ -392,6 +392,81 @@ def test_nan_or_inf_in_any_input_is_named(backend):
         render(gaussians, intrinsics, c2w * float("nan"), backend)
 
 
+@pytest.mark.parametrize("change, message", [
+    ({"height": 24.0}, "height=24.0 \\(float\\): expected an int"),
+    ({"width": True}, "width=True"),
+    ({"tile_size": 8.5}, "tile_size=8.5"),
+    ({"near": float("nan")}, "near=nan: expected a finite distance >= 0"),
+    ({"near": float("inf")}, "near=inf"),
+    ({"near": -0.5}, "near=-0.5"),
+    ({"intrinsics": "zero focal"}, "fx=0, fy=0: expected focal lengths > 0"),
+    ({"intrinsics": "negative focal"}, "fx=-28, fy=30"),
+    ({"scales": -0.01}, "scales hold -0.01: expected standard deviations >= 0"),
+    ({"opacities": 1.5}, "opacities span .*1.5.*: expected values in \\[0, 1\\]"),
+    ({"opacities": -0.25}, "opacities span \\[-0.25"),
+])
+def test_bad_arguments_are_one_line_config_errors_naming_them_before_any_kernel(backend, change, message):
+    """Each documented check (docs/rasterizer.md, "Checks"): a ConfigError naming the argument and its value, never
+    numba's own error, a ZeroDivisionError or a silently empty image."""
+    gaussians, intrinsics, c2w = scene(5, 3, seed=11)
+    kwargs = {key: value for key, value in change.items() if key in ("height", "width", "tile_size", "near")}
+    if "intrinsics" in change:
+        intrinsics = intrinsics.clone()
+        if change["intrinsics"] == "zero focal":
+            intrinsics[0, 0] = intrinsics[1, 1] = 0.0
+        else:
+            intrinsics[0, 0] = -28.0
+    values = {field: getattr(gaussians, field) for field in FIELDS}
+    for field in ("scales", "opacities"):
+        if field in change:
+            values[field] = values[field].clone()
+            values[field].view(-1)[2] = change[field]
+    with pytest.raises(ConfigError, match=message) as caught:
+        render(Gaussians(**values), intrinsics, c2w, backend, **kwargs)
+    assert "\n" not in str(caught.value) and "rasterize" in str(caught.value)
+
+
+def test_boundary_arguments_are_accepted(backend):
+    """near 0, opacities exactly 0 and 1, zero scales and numpy integer sizes are valid (no refusal)."""
+    import numpy as np
+    gaussians, intrinsics, c2w = scene(5, 3, seed=12)
+    opacities = gaussians.opacities.clone()
+    opacities[0], opacities[1] = 0.0, 1.0
+    scales = gaussians.scales.clone()
+    scales[2] = 0.0
+    out = render(Gaussians(gaussians.means, scales, gaussians.rotations, opacities, gaussians.features), intrinsics,
+                 c2w, backend, near=0, height=np.int64(HEIGHT), width=WIDTH)
+    assert out.alpha.shape == (HEIGHT, WIDTH)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_scales_overflowing_the_dtype_are_a_non_finite_error_on_every_backend(backend, dtype):
+    """docs/rasterizer.md promises a NonFiniteError for a covariance overflowing the dtype: with and without gradients
+    (the numba backend renders without gradients by its own projection kernel, which counts what overflowed)."""
+    gaussians, intrinsics, c2w = scene(5, 3, seed=13, dtype=dtype)
+    scales = gaussians.scales.clone()
+    scales[3] = 1e30 if dtype == torch.float32 else 1e200
+    huge = Gaussians(gaussians.means, scales, gaussians.rotations, gaussians.opacities, gaussians.features)
+    with pytest.raises(NonFiniteError, match="scales: the 2D covariance of 1 Gaussian\\(s\\) overflows"):
+        with torch.no_grad():
+            render(huge, intrinsics, c2w, backend)
+    with pytest.raises(NonFiniteError, match="overflows"):
+        render(Gaussians(huge.means, huge.scales.requires_grad_(), *(getattr(huge, n) for n in FIELDS[2:])),
+               intrinsics, c2w, backend)
+
+
+def test_half_precision_camera_and_gaussians_are_cast_never_reaching_numba(backend):
+    """float16 everywhere (the Gaussians, the camera, the background) renders as float32 would, to float16's
+    rounding of the inputs: the documented cast, so the numba kernels only ever see float32 or float64."""
+    gaussians, intrinsics, c2w = scene(40, 3, seed=14, dtype=torch.float32)
+    half = Gaussians(*(getattr(gaussians, field).half() for field in FIELDS))
+    rounded = Gaussians(*(getattr(half, field).float() for field in FIELDS))
+    out = render(half, intrinsics.half(), c2w.half(), backend, background=torch.ones(3, dtype=torch.float16))
+    want = render(rounded, intrinsics.half().float(), c2w.half().float(), backend, background=torch.ones(3))
+    assert out.features.dtype == torch.float32
+    torch.testing.assert_close(out.features, want.features)
+
+
 def test_unknown_or_unavailable_backends_are_config_errors():
     gaussians, intrinsics, c2w = scene(5, 3, seed=9)
     with pytest.raises(ConfigError, match="known: auto, torch, numba, gsplat"):

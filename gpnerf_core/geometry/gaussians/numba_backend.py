@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from gpnerf_core.errors import NonFiniteError
 from gpnerf_core.geometry.gaussians.binning import TileBins
 from gpnerf_core.geometry.gaussians.projection import ProjectedGaussians
 
@@ -118,15 +119,19 @@ def project_and_bin_numba(gaussians: Any, intrinsics: Tensor, c2w: Tensor, heigh
     """``projection.project_gaussians`` and ``binning.bin_gaussians`` by one numba kernel, for a render without
     gradients (the projection's torch ops cost more than compositing a small view). The same lists; the footprints'
     sums in float64."""
-    from gpnerf_core.geometry.gaussians.projection import ALPHA_MIN, BOX_MARGIN, JACOBIAN_LIMIT, LOW_PASS
+    from gpnerf_core.geometry.gaussians.projection import (
+        ALPHA_MIN, BOX_MARGIN, JACOBIAN_LIMIT, LOW_PASS, overflow_message,
+    )
 
     dtype = gaussians.means.dtype
     rotation_cw = c2w[:3, :3].to(dtype).T.contiguous()
-    (means2d, conics, depths, visible, radii, clamped, behind, offsets, listed) = kernels().project_and_bin(
+    (means2d, conics, depths, visible, radii, clamped, behind, overflowed, offsets, listed) = kernels().project_and_bin(
         *map(_array, (gaussians.means, gaussians.scales, gaussians.rotations, gaussians.opacities)),
         _array(intrinsics.to(torch.float64)), _array(rotation_cw.to(torch.float64)),
         _array(c2w[:3, 3].to(torch.float64)), height, width, float(near), tile_size, LOW_PASS, JACOBIAN_LIMIT,
         ALPHA_MIN, BOX_MARGIN)
+    if overflowed:
+        raise NonFiniteError(overflow_message(int(overflowed), dtype))
     projected = ProjectedGaussians(
         means2d=torch.from_numpy(means2d), conics=torch.from_numpy(conics), depths=torch.from_numpy(depths),
         opacities=gaussians.opacities, extents=torch.zeros(0), visible=torch.from_numpy(visible),

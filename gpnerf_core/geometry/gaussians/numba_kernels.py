@@ -277,7 +277,9 @@ def project_and_bin(means, scales, rotations, opacities, intrinsics, rotation_cw
     gradients: the same footprints, culling and front-to-back lists (the sums in float64, so a few ulps from torch's).
 
     ``rotation_cw`` ``[3, 3]`` world-to-camera rotation, ``origin`` ``[3]`` the camera centre. Returns ``(means2d
-    [G, 2], conics [G, 3], depths [G], visible [G] bool, radii [G] int32, clamped, culled_behind, offsets, listed)``.
+    [G, 2], conics [G, 3], depths [G], visible [G] bool, radii [G] int32, clamped, culled_behind, overflowed, offsets,
+    listed)``; ``overflowed`` counts the Gaussians in front whose 2D covariance or its determinant does not fit the
+    dtype (the caller refuses those, as ``project_gaussians`` does).
     """
     count = means.shape[0]
     dtype = means.dtype
@@ -294,8 +296,9 @@ def project_and_bin(means, scales, rotations, opacities, intrinsics, rotation_cw
     lo_x, hi_x = -(cx + 0.5) / fx - spare_x, (width - 0.5 - cx) / fx + spare_x
     lo_y, hi_y = -(cy + 0.5) / fy - spare_y, (height - 0.5 - cy) / fy + spare_y
     eps = np.finfo(dtype).eps
+    largest = np.finfo(dtype).max
     tiles_x, tiles_y = (width + tile_size - 1) // tile_size, (height + tile_size - 1) // tile_size
-    clamped, behind = 0, 0
+    clamped, behind, overflowed = 0, 0, 0
     local = np.empty((3, 3))
     world = np.empty((3, 3))
     for i in range(count):
@@ -339,6 +342,9 @@ def project_and_bin(means, scales, rotations, opacities, intrinsics, rotation_cw
         if det <= 8 * eps * (a + c) ** 2:
             clamped += 1
         det_filtered = det + low_pass * (a + c) + low_pass * low_pass
+        if not (a <= largest and c <= largest and abs(b) <= largest and det_filtered <= largest):  # Inf or NaN in the dtype
+            overflowed += 1
+            continue
         a, c = a + low_pass, c + low_pass
         conics[i, 0], conics[i, 1], conics[i, 2] = c / det_filtered, -b / det_filtered, a / det_filtered
         opacity = opacities[i]
@@ -361,4 +367,4 @@ def project_and_bin(means, scales, rotations, opacities, intrinsics, rotation_cw
     ids = np.nonzero(visible)[0]
     ids = ids[np.argsort(depths[ids], kind="mergesort")]  # front to back, ties by index (stable)
     offsets, listed = fill_tiles(ids, low[ids], high[ids], tiles_x, tiles_y)
-    return means2d, conics, depths, visible, radii, clamped, behind, offsets, listed
+    return means2d, conics, depths, visible, radii, clamped, behind, overflowed, offsets, listed

@@ -43,6 +43,12 @@ BOX_MARGIN = 1e-2
 """px added to the footprint box's half-widths, so rounding never drops a pixel the Gaussian reaches."""
 
 
+def overflow_message(count: int, dtype: object) -> str:
+    """The ``NonFiniteError`` both projections raise when ``count`` Gaussians' 2D covariances overflow ``dtype``."""
+    return (f"rasterize_gaussians: scales: the 2D covariance of {count} Gaussian(s) overflows {dtype} in this view "
+            f"(a Gaussian far larger than the image; scales are standard deviations in metres)")
+
+
 @dataclass(frozen=True)
 class ProjectedGaussians:
     """G Gaussians in one view's image.
@@ -113,9 +119,10 @@ def project_gaussians(gaussians: Gaussians, intrinsics: Tensor, c2w: Tensor, hei
     det_filtered = det + LOW_PASS * (a + c) + LOW_PASS**2
     a, c = a + LOW_PASS, c + LOW_PASS
     conics = torch.stack([c / det_filtered, -b / det_filtered, a / det_filtered], dim=-1)
-    if not all_finite(torch.where(in_front[:, None], conics, torch.zeros_like(conics))):
-        raise NonFiniteError(f"scales: the 2D covariance of a Gaussian overflows {means.dtype} in this view "
-                             f"(a Gaussian far larger than the image)")
+    sizes = torch.cat([conics, det_filtered[:, None]], dim=-1)
+    if not all_finite(torch.where(in_front[:, None], sizes, torch.zeros_like(sizes))):
+        overflowing = in_front & ~torch.isfinite(sizes).all(-1)
+        raise NonFiniteError(overflow_message(int(overflowing.sum()), means.dtype))
 
     with torch.no_grad():
         opacities = gaussians.opacities.detach()

@@ -8,6 +8,8 @@ otherwise ``w = alpha T`` weighs its features and depth and ``T <- T (1 - alpha)
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import fields
 from typing import Callable
 
@@ -59,20 +61,59 @@ def _needs_gradient(gaussians: Gaussians, intrinsics: Tensor, c2w: Tensor) -> bo
     return torch.is_grad_enabled() and any(tensor.requires_grad for tensor in tensors)
 
 
-def _check(gaussians: Gaussians, intrinsics: Tensor, c2w: Tensor, height: int, width: int, tile_size: int,
-           background: Tensor | None) -> None:
+def _is_integer(value: object) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _extremes(name: str, tensor: Tensor) -> tuple[float, float]:
+    """``tensor``'s min and max in one ``aminmax`` pass; NaN or Inf is a ``NonFiniteError`` naming ``name``."""
+    values = tensor.detach()
+    if values.numel() == 0:
+        return 0.0, 0.0
+    if not values.is_floating_point():
+        values = values.double()
+    low, high = torch.aminmax(values)
+    low, high = float(low), float(high)
+    if not (math.isfinite(low) and math.isfinite(high)):
+        raise NonFiniteError(f"rasterize_gaussians: {name} holds NaN or Inf")
+    return low, high
+
+
+def _check(gaussians: Gaussians, intrinsics: Tensor, c2w: Tensor, height: int, width: int, near: float,
+           tile_size: int, background: Tensor | None) -> None:
+    """Every argument against what the docstring expects (docs/rasterizer.md's table of checks), before any kernel."""
+    for name, value in (("height", height), ("width", width), ("tile_size", tile_size)):
+        if not _is_integer(value):
+            raise ConfigError(f"rasterize_gaussians: {name}={value!r} ({type(value).__name__}): expected an int "
+                              f"(pixels)")
     if min(height, width, tile_size) < 1:
         raise ConfigError(f"rasterizer image {height} x {width}, tile_size {tile_size}: expected all >= 1")
+    if not isinstance(near, numbers.Real) or isinstance(near, bool) or not math.isfinite(near) or near < 0:
+        raise ConfigError(f"rasterize_gaussians: near={near!r}: expected a finite distance >= 0 (metres; Gaussians "
+                          f"at camera z <= near are culled)")
     if tuple(intrinsics.shape) != (3, 3) or tuple(c2w.shape) != (4, 4):
-        raise ValueError(f"intrinsics {list(intrinsics.shape)}, c2w {list(c2w.shape)}: expected [3, 3] and [4, 4]")
+        raise ConfigError(f"rasterize_gaussians: intrinsics {list(intrinsics.shape)}, c2w {list(c2w.shape)}: "
+                          f"expected [3, 3] and [4, 4]")
     if background is not None and tuple(background.shape) != (gaussians.channels,):
-        raise ValueError(f"background {list(background.shape)}: expected [{gaussians.channels}] (one per channel)")
-    named = {"means": gaussians.means, "scales": gaussians.scales, "rotations": gaussians.rotations,
-             "opacities": gaussians.opacities, "features": gaussians.features, "intrinsics": intrinsics, "c2w": c2w,
-             "background": background}
+        raise ConfigError(f"rasterize_gaussians: background {list(background.shape)}: expected "
+                          f"[{gaussians.channels}] (one per channel)")
+    named = {"means": gaussians.means, "rotations": gaussians.rotations, "features": gaussians.features,
+             "intrinsics": intrinsics, "c2w": c2w, "background": background}
     for name, tensor in named.items():
         if tensor is not None and not all_finite(tensor.detach()):
             raise NonFiniteError(f"rasterize_gaussians: {name} holds NaN or Inf")
+    fx, fy = float(intrinsics[0, 0]), float(intrinsics[1, 1])
+    if not (fx > 0 and fy > 0):
+        raise ConfigError(f"rasterize_gaussians: intrinsics fx={fx:g}, fy={fy:g}: expected focal lengths > 0 "
+                          f"(pixels)")
+    low, _ = _extremes("scales", gaussians.scales)
+    if low < 0:
+        raise ConfigError(f"rasterize_gaussians: scales hold {low:g}: expected standard deviations >= 0 (metres; a "
+                          f"model storing logs passes exp)")
+    low, high = _extremes("opacities", gaussians.opacities)
+    if low < 0 or high > 1:
+        raise ConfigError(f"rasterize_gaussians: opacities span [{low:g}, {high:g}]: expected values in [0, 1] (a "
+                          f"model storing logits passes sigmoid)")
 
 
 def strided_camera(camera: TargetCamera, stride: int) -> tuple[Tensor, int, int]:
@@ -104,10 +145,12 @@ def rasterize_gaussians(gaussians: Gaussians, *, intrinsics: Tensor, c2w: Tensor
         backend: ``"torch"``, ``"numba"``, ``"gsplat"`` or ``"auto"`` (``choose_backend``).
 
     Raises:
-        NonFiniteError: NaN or Inf in an input (named), or a covariance overflowing the dtype.
-        ConfigError: an unknown backend, or one that cannot run on these tensors; a size below 1.
+        NonFiniteError: NaN or Inf in an input (named), or a covariance overflowing the dtype (every backend).
+        ConfigError: an unknown backend, or one that cannot run on these tensors; a size that is not an int >= 1;
+            ``near`` not finite and >= 0; ``fx`` or ``fy`` <= 0; a negative scale; an opacity outside [0, 1]; a
+            wrong shape (docs/rasterizer.md's table of checks).
     """
-    _check(gaussians, intrinsics, c2w, height, width, tile_size, background)
+    _check(gaussians, intrinsics, c2w, height, width, near, tile_size, background)
     name = choose_backend(backend, gaussians.means.device)
     with torch.autocast(gaussians.means.device.type, enabled=False):  # projection and blending need float32 at least
         return _rasterize(gaussians, intrinsics, c2w, height, width, near, background, tile_size, name)
