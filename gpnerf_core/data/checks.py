@@ -2,7 +2,8 @@
 and the layout checkers of ``data check`` share (``far_away_cameras``, ``depth_problem``): one implementation, whichever
 way a dataset is checked.
 
-``quick``: every scene loads (its reader indexes the files and reads the image headers and poses), every camera
+``quick``: every scene loads (its reader indexes the files and reads the image headers and poses), its sparse points
+(``Scene.sparse_points``, a capture's ``sparse_points.ply``) read with finite coordinates, every camera
 pose is a finite rigid transform, no camera centre is absurdly far from the others, the cameras' scale fits the scene's
 near/far (``gpnerf_core.geometry.pose_sanity``), and ``QUICK_FRAMES`` frames per scene, spread over it, decode with
 valid values (below). ``full``: every training and evaluation frame decodes with valid values: colours in [0, 1],
@@ -85,9 +86,24 @@ def check_scene_files(dataset: CheckedDataset, scenes: Sequence[str], level: str
                 problems += [_located(name, f) for f in scene_pose_findings(scene) if f.refuses]
             except GpnerfError as exc:
                 problems.append(f"scene {name!r} {exc}")
+        problems += _sparse_point_problems(name, scene)
         for index in frames_to_check(scene, level):
             problems += _frame_problems(dataset, scene, index)
     return problems
+
+
+def _sparse_point_problems(name: str, scene: Scene) -> list[str]:
+    """The scene's sparse points (a capture's ``sparse_points.ply``), read as a per-scene Gaussian family reads them:
+    the reader's refusal naming the file, or NaN / Inf coordinates."""
+    if scene.sparse_points is None:
+        return []
+    try:
+        points = scene.sparse_points()
+    except GpnerfError as exc:
+        return [str(exc)]
+    if not all_finite(points.xyz):
+        return [f"scene {name!r}: its sparse points hold NaN or Inf coordinates; expected finite points"]
+    return []
 
 
 def frames_to_check(scene: Scene, level: str) -> list[int]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 from pathlib import Path
 
@@ -282,6 +283,58 @@ def test_bounds_from_the_sparse_points_of_ply_file_path(embedded_scene, tmp_path
     (capture / "transforms.json").write_text(json.dumps(transforms))
     with pytest.raises(DataError, match="missing.ply: unreadable point cloud"):
         load(capture)
+
+
+def _binary_ply(xyz: np.ndarray, declared: int | None = None) -> bytes:
+    """A little-endian PLY of ``xyz`` with black colours, as pycolmap writes one (``declared``: the header's count)."""
+    header = ("ply\nformat binary_little_endian 1.0\n"
+              f"element vertex {len(xyz) if declared is None else declared}\n"
+              "property float x\nproperty float y\nproperty float z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n").encode()
+    rows = np.zeros(len(xyz), dtype=[("xyz", "<f4", 3), ("rgb", "u1", 3)])
+    rows["xyz"] = xyz
+    return header + rows.tobytes()
+
+
+_POINTS = np.array([[0.1, 0.2, 1.5], [0.3, -0.1, 2.0], [-0.2, 0.0, 1.8]])
+
+
+@pytest.mark.parametrize("content, message", [
+    (bytes(range(256)) * 3, "unreadable point cloud .*x, y, z properties missing"),
+    (_binary_ply(np.array([[0.1, 0.2, 1.5], [np.nan, 0.0, 1.0], [0.3, np.inf, 2.0]])),
+     "2 of 3 sparse points have NaN or Inf coordinates; expected finite"),
+    (b"ply\nformat ascii 1.0\nelement face 2\nproperty float x\nend_header\n1\n2\n", "unreadable point cloud"),
+    (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float a\nproperty float b\nend_header\n1 2\n3 4\n",
+     "unreadable point cloud"),
+    (_binary_ply(_POINTS, declared=5), "unreadable point cloud .*Unexpected end of PLY file"),
+    (b"ply\nformat ascii 1.0\nelement vertex 5\nproperty float x\nproperty float y\nproperty float z\n"
+     b"end_header\n0 0 1\n", "holds 1 of the 5 points its header declares"),
+])
+def test_a_bad_sparse_points_ply_is_named_at_read_time_and_by_the_data_checks(capture, tmp_path, capsys, content,
+                                                                               message):
+    """A capture with depth maps reads its bounds from them, so only the checks and the Gaussian family's
+    initialisation read ``sparse_points.ply``: both name the file (was: "problems: none", then NaN at step 0)."""
+    from gpnerf_core.cli import main
+
+    folder = _copy(capture, tmp_path, lambda t: t.update(ply_file_path="sparse_points.ply"))
+    (folder / "sparse_points.ply").write_bytes(content)
+    dataset, scene = load(folder)
+    with pytest.raises(DataError, match=f"sparse_points.ply: {message}") as caught:
+        scene.sparse_points()
+    assert "\n" not in str(caught.value)
+    problems = dataset.check_files(dataset.scenes("train"), "quick")
+    assert any("sparse_points.ply" in problem and re.search(message, problem) for problem in problems), problems
+    assert main(["data", "check", str(folder), "--layout", "capture"]) == 1
+    out = capsys.readouterr().out
+    assert "sparse_points.ply" in out and "problems: none" not in out
+
+
+def test_a_good_sparse_points_ply_passes_the_checks(capture, tmp_path):
+    folder = _copy(capture, tmp_path, lambda t: t.update(ply_file_path="sparse_points.ply"))
+    (folder / "sparse_points.ply").write_bytes(_binary_ply(_POINTS))
+    dataset, scene = load(folder)
+    assert dataset.check_files(dataset.scenes("train"), "quick") == []
+    assert scene.sparse_points().count == 3
 
 
 def _eight_bit_depth(t):

@@ -31,6 +31,7 @@ from gpnerf_core import (
     check_image_size,
     from_launch_dir,
 )
+from gpnerf_plugins.datasets.capture.points import check_finite_points, read_point_cloud
 from gpnerf_plugins.datasets.capture.transforms import TRANSFORMS_FILE, CaptureFile, CaptureFrame, read_transforms
 from gpnerf_plugins.datasets.capture.undistort import Undistorter
 from gpnerf_plugins.datasets.common.cameras import scale_intrinsics
@@ -342,26 +343,16 @@ class CaptureScenes(DatasetBase):
 
 def _point_cloud(capture: CaptureFile) -> tuple[np.ndarray, np.ndarray]:
     """``(xyz [P, 3] float64, rgb [P, 3] uint8)`` of the capture's sparse points (``ply_file_path``), in the file's
-    world."""
-    import pycolmap
-
-    cloud = pycolmap.Reconstruction()
-    try:
-        cloud.import_PLY(str(capture.points))
-    except Exception as exc:  # pycolmap raises its own exception types for a missing or malformed file
-        raise DataError(f"{capture.points}: unreadable point cloud ({type(exc).__name__}: {exc}); expected the PLY "
-                        "of ply_file_path") from None
-    points = list(cloud.points3D.values())
-    if not points:
-        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint8)
-    return np.stack([p.xyz for p in points]), np.stack([p.color for p in points]).astype(np.uint8)
+    world, validated (``points.read_point_cloud``)."""
+    return read_point_cloud(capture.points)
 
 
 def read_sparse_points(capture: CaptureFile, scale: float) -> ScenePoints:
     """The capture's sparse points in the poses' world, metres after ``scale`` (``Scene.sparse_points``)."""
     xyz, rgb = _point_cloud(capture)
-    xyz = (xyz @ capture.world[:3, :3].T + capture.world[:3, 3]) * scale
-    return ScenePoints(xyz=torch.from_numpy(xyz).float(), rgb=torch.from_numpy(rgb).float() / 255.0)
+    xyz = torch.from_numpy((xyz @ capture.world[:3, :3].T + capture.world[:3, 3]) * scale).float()
+    check_finite_points(capture.points, xyz.numpy(), " in float32 after the capture's transform and dataset.scale")
+    return ScenePoints(xyz=xyz, rgb=torch.from_numpy(rgb).float() / 255.0)
 
 
 def _point_bounds(capture: CaptureFile, c2w: np.ndarray, intrinsics: np.ndarray, size: tuple[int, int],
