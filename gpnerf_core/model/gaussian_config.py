@@ -152,6 +152,10 @@ def gaussian_setup(options: Mapping[str, Any]) -> GaussianSetup:
     _number("init_opacity", o["init_opacity"], 0.0, 1.0)
     if o["init_opacity"] >= 1.0:
         raise ConfigError(f"model.init_opacity={o['init_opacity']!r}: expected a number in (0, 1)")
+    if not isinstance(o["prune_opacity"], bool) and isinstance(o["prune_opacity"], (int, float)) \
+            and o["prune_opacity"] >= 1.0:
+        raise ConfigError(f"model.prune_opacity={o['prune_opacity']!r}: expected a number in [0, 1) (Gaussians whose "
+                          "opacity is below it are pruned: 1 or more prunes every Gaussian; 3DGS: 0.005)")
     if o["density"] not in DENSITY:
         raise ConfigError(f"model.density={o['density']!r}: expected one of {', '.join(DENSITY)}")
     thresholds = dict(

@@ -18,7 +18,7 @@ from typing import ClassVar, Mapping, Sequence
 import torch
 from torch import Tensor, nn
 
-from gpnerf_core.errors import ConfigError, NonFiniteError
+from gpnerf_core.errors import ConfigError, DataError, NonFiniteError
 from gpnerf_core.geometry.gaussians.density import ViewInfo, scaled_step
 from gpnerf_core.geometry.gaussians.harmonics import colour_to_dc, sh_colours
 from gpnerf_core.geometry.gaussians.initialisation import neighbour_scales, scene_extent, starting_points
@@ -77,6 +77,7 @@ class GaussianHooks(FamilyHooks):
 
     def resize_to(self, weights: Mapping[str, Tensor], source: str) -> None:
         self.family.gaussians.take_sizes(weights, "gaussians.", source)
+        self.family.empty_source = source if not self.family.gaussians.size else None
 
     def optimizer_options(self, total_steps: int) -> dict[str, GroupOptions]:
         """3DGS's epsilon for every Gaussian row's group; the centres' rate times the scene's extent, decayed
@@ -149,6 +150,7 @@ class GaussianFamily(ModelFamily):
         self.head = head
         self.gaussians = GaussianParameters(setup.sh_degree, dict(channels))
         self.setup = setup
+        self.empty_source: str | None = None  # the checkpoint that gave it 0 Gaussians, named when it renders
         self.strategy = setup.strategy
         self.strategy.initialize_state(self.gaussians)
 
@@ -168,6 +170,10 @@ class GaussianFamily(ModelFamily):
         a background term, as Gaussian Grouping's identities) when ``channels`` and it has any; ``info``: what the
         rasterizer reported (density control's input)."""
         if not self.gaussians.size:
+            if self.empty_source is not None:
+                raise DataError(f"{self.empty_source}: it holds 0 Gaussians (gaussians.count=0), so model={self.name} "
+                                "has nothing to render; expected a checkpoint of a fitted model (one a run wrote "
+                                "while training)")
             raise ConfigError(f"model={self.name} has no Gaussians: it is fitted on its scene first (run), or built "
                               "from a checkpoint")
         field = self.gaussians

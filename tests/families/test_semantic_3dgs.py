@@ -87,6 +87,67 @@ def test_the_gaussians_start_from_sparse_points_else_from_depth_else_the_scene_i
         starting_points(bare, 100, 1)
 
 
+def test_sparse_points_in_another_frame_than_the_poses_are_named():
+    """Points none of which any training camera sees (another COLMAP model's frame): refused naming them and why,
+    where before every Gaussian started invisible and the model ended with none, the cause unnamed."""
+    scene = model_scene()
+    behind = ScenePoints(xyz=torch.rand(50, 3) - torch.tensor([0.0, 0.0, 3.0]), rgb=torch.rand(50, 3))
+    with pytest.raises(DataError, match=r"^scene 'kit': none of its 50 sparse points \(a capture's ply_file_path, "
+                                        r"sparse_points.ply\) lies in front of a training camera inside its image: "
+                                        r"the points are in another frame than the poses"):
+        starting_points(dataclasses.replace(scene, sparse_points=lambda: behind), 40, 1)
+    aside = ScenePoints(xyz=torch.rand(50, 3) + torch.tensor([100.0, 0.0, 2.0]), rgb=torch.rand(50, 3))
+    with pytest.raises(DataError, match="none of its 50 sparse points"):
+        starting_points(dataclasses.replace(scene, sparse_points=lambda: aside), 40, 1)
+
+
+def test_a_depth_stride_too_coarse_for_any_valid_depth_names_the_key_and_a_stride_that_works():
+    scene = model_scene()
+
+    def corner_empty(index):  # only pixel (0, 0) of a stride over the image: make it invalid
+        frame = scene.load_frame(index)
+        depth = frame.depth.clone()
+        depth[0, 0] = 0.0
+        return dataclasses.replace(frame, depth=depth)
+
+    sparse = dataclasses.replace(scene, load_frame=corner_empty)
+    with pytest.raises(DataError, match=r"^scene 'kit': model.init_depth_stride=64 meets no valid depth in its training "
+                                        r"frames \(32x48: .*\); expected a finer stride: model.init_depth_stride=47 "
+                                        r"meets some$"):
+        starting_points(sparse, 100, 64)
+    assert starting_points(sparse, 100, 47)[0].count == 2  # the stride it names works
+
+
+def test_prune_opacity_of_one_is_refused_and_pruning_every_gaussian_names_its_cause():
+    with pytest.raises(ConfigError, match=r"^model.prune_opacity=1.0: expected a number in \[0, 1\)"):
+        get_registry().build("model", {**SMALL, "prune_opacity": 1.0},
+                             parts=kit_parts(get_registry(), "semantic_3dgs", head=False, parts=KIT_PARTS))
+    torch.manual_seed(0)
+    model, optimizer = _fitted_field()
+    field = model.gaussians
+    strategy = DefaultStrategy(prune_opacity=0.99)  # above every Gaussian's opacity (0.1 at the start)
+    with pytest.raises(ConfigError, match=r"^step 119: density control would prune every one of the \d+ Gaussians "
+                                          r"\(\d+ with opacity below model.prune_opacity=0.99 \(the largest opacity "
+                                          r"is .*\)\), leaving the model with no Gaussians; expected .*lower "
+                                          r"model.prune_opacity"):
+        strategy.densify_and_prune(field, optimizer, 120, prune_large=False)
+    assert field.size > 0  # refused before anything was removed
+
+
+def test_a_checkpoint_with_no_gaussians_is_named_when_it_renders():
+    model = small_model()
+    weights = {k: v.clone() for k, v in model.state_dict().items()}  # never initialised: count 0
+    fresh = small_model()
+    load_weights(fresh, weights, "checkpoint empty.pt")
+    from gpnerf_core.testing.inputs import model_view
+    camera, _ = model_view(sources=False)
+    with pytest.raises(DataError, match=r"^checkpoint empty.pt: it holds 0 Gaussians \(gaussians.count=0\), so "
+                                        r"model=semantic_3dgs has nothing to render"):
+        fresh.render(camera, 1, channels=False)
+    with pytest.raises(ConfigError, match="has no Gaussians: it is fitted on its scene first"):
+        small_model().render(camera, 1, channels=False)
+
+
 def test_a_starting_scale_is_the_rms_distance_to_the_three_nearest_neighbours():
     grid = torch.stack(torch.meshgrid(torch.arange(5.0), torch.arange(5.0), indexing="ij"), -1).reshape(-1, 2)
     xyz = torch.cat([grid * 0.1, torch.zeros(25, 1)], dim=1)

@@ -227,12 +227,34 @@ class DefaultStrategy(DensityStrategy):
             if prune_large:
                 prune |= state["max_radius"] > self.prune_screen_radius
                 prune |= params.log_scales.exp().max(dim=-1).values > self.prune_world_scale * extent
+            if params.size and bool(prune.all()):
+                raise ConfigError(self.all_pruned_message(params, iteration, prune_large))
             added = params.size - before
             if bool(prune.any()):
                 keep_rows(params, optimizer, ~prune)
             for tensor in params.row_state().values():
                 tensor.zero_()
             return max(added, 0), int(prune.sum())
+
+
+    def all_pruned_message(self, params: GaussianParameters, iteration: int, prune_large: bool) -> str:
+        """Why pruning at ``iteration`` would remove every one of the ``params``' Gaussians: each rule's count and its
+        key, and what to change."""
+        opacities = torch.sigmoid(params.opacity_logits)
+        causes = [f"{int((opacities < self.prune_opacity).sum())} with opacity below model.prune_opacity="
+                  f"{self.prune_opacity:g} (the largest opacity is {float(opacities.max()):.3g})"]
+        if prune_large:
+            extent = float(params.extent)
+            radius = params.row_state()["max_radius"]
+            largest = params.log_scales.exp().max(dim=-1).values
+            causes.append(f"{int((radius > self.prune_screen_radius).sum())} wider than model.prune_screen_radius="
+                          f"{self.prune_screen_radius:g} px")
+            causes.append(f"{int((largest > self.prune_world_scale * extent).sum())} larger than "
+                          f"model.prune_world_scale={self.prune_world_scale:g} x the cameras' extent {extent:.3g} m")
+        return (f"step {iteration - 1}: density control would prune every one of the {params.size} Gaussians "
+                f"({'; '.join(causes)}), leaving the model with no Gaussians; expected thresholds the Gaussians meet: "
+                "lower model.prune_opacity (3DGS: 0.005) or raise the others, or check that the scene's points and "
+                "cameras share one world")
 
 
 @dataclass(frozen=True)

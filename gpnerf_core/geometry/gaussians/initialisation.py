@@ -41,9 +41,16 @@ def starting_points(scene: Scene, limit: int, depth_stride: int) -> tuple[SceneP
         points, origin = scene.sparse_points(), "sparse points"
         if points.count == 0:
             points = None
+        else:
+            check_points_in_view(scene, points)
     if points is None:
         points, origin = depth_points(scene, depth_stride), "depth"
     if points is None:
+        if depth_stride > 1 and depth_points(scene, 1) is not None:
+            raise DataError(f"scene {scene.name!r}: model.init_depth_stride={depth_stride} meets no valid depth in "
+                            f"its training frames ({scene.height}x{scene.width}: every {depth_stride}-th pixel from "
+                            f"(0, 0) has none); expected a finer stride: model.init_depth_stride="
+                            f"{_finest_working_stride(scene, depth_stride)} meets some")
         raise DataError(f"scene {scene.name!r} has no sparse points (a capture's ply_file_path, which `data "
                         "prepare-capture` and `data import-colmap` write) and no depth in its training frames; "
                         "a per-scene Gaussian model starts its Gaussians from one of them")
@@ -51,6 +58,34 @@ def starting_points(scene: Scene, limit: int, depth_stride: int) -> tuple[SceneP
         chosen = torch.randperm(points.count)[:limit].sort().values
         points = ScenePoints(xyz=points.xyz[chosen], rgb=points.rgb[chosen])
     return points, origin
+
+
+def _finest_working_stride(scene: Scene, stride: int) -> int:
+    """The coarsest stride below ``stride`` whose pixels meet some valid depth (1 does: the caller checked)."""
+    for candidate in range(stride - 1, 1, -1):
+        if depth_points(scene, candidate) is not None:
+            return candidate
+    return 1
+
+
+def check_points_in_view(scene: Scene, points: ScenePoints, near: float = 0.01) -> None:
+    """A ``DataError`` naming the scene's sparse points when not one of them lies in front of a training camera (camera
+    z > ``near`` metres) inside its image: they are in another frame than the poses, and every Gaussian started
+    from them would be invisible to every training view."""
+    xyz = points.xyz.double()
+    for index in scene.train_frames:
+        c2w, k = scene.c2w[index].double(), scene.intrinsics[index].double()
+        camera = (xyz - c2w[:3, 3]) @ c2w[:3, :3]
+        z = camera[:, 2]
+        front = z > near
+        u = k[0, 0] * camera[front, 0] / z[front] + k[0, 2]
+        v = k[1, 1] * camera[front, 1] / z[front] + k[1, 2]
+        if bool(((u > -0.5) & (u < scene.width - 0.5) & (v > -0.5) & (v < scene.height - 0.5)).any()):
+            return
+    raise DataError(f"scene {scene.name!r}: none of its {points.count} sparse points (a capture's ply_file_path, "
+                    f"sparse_points.ply) lies in front of a training camera inside its image: the points are in "
+                    f"another frame than the poses; expected points in the poses' world (a capture's "
+                    f"applied_transform, or the COLMAP model the poses came from)")
 
 
 def depth_points(scene: Scene, stride: int) -> ScenePoints | None:
