@@ -126,12 +126,13 @@ def _integer(key: str, value: object, least: int) -> int:
     return value
 
 
-def _number(key: str, value: object, low: float, high: float, *, open_low: bool = True) -> float:
+def _number(key: str, value: object, low: float, high: float, *, open_low: bool = True, open_high: bool = False,
+            why: str = "") -> float:
     ok = not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
-    ok = ok and (low < value if open_low else low <= value) and value <= high
+    ok = ok and (low < value if open_low else low <= value) and (value < high if open_high else value <= high)
     if not ok:
-        bound = "(" if open_low else "["
-        raise ConfigError(f"model.{key}={value!r}: expected a finite number in {bound}{low:g}, {high:g}]")
+        left, right = "(" if open_low else "[", ")" if open_high else "]"
+        raise ConfigError(f"model.{key}={value!r}: expected a finite number in {left}{low:g}, {high:g}{right}{why}")
     return float(value)
 
 
@@ -144,24 +145,22 @@ def gaussian_setup(options: Mapping[str, Any]) -> GaussianSetup:
     if unknown:
         raise ConfigError(f"model.{unknown[0]}: not an option of a per-scene Gaussian family (GaussianSceneConfig)")
     o = {**known, **options}
-    _integer("sh_degree", o["sh_degree"], 0)
-    if o["sh_degree"] > 3:
-        raise ConfigError(f"model.sh_degree={o['sh_degree']}: expected 0 to 3 (3D Gaussian splatting's degrees)")
+    degree = o["sh_degree"]
+    if isinstance(degree, bool) or not isinstance(degree, int) or not 0 <= degree <= 3:
+        raise ConfigError(f"model.sh_degree={degree!r}: expected an integer in [0, 3] (3D Gaussian splatting's "
+                          "degrees)")
     for key in ("init_points", "init_depth_stride", "max_gaussians", *SCHEDULE_KEYS):
         _integer(key, o[key], 1)
-    _number("init_opacity", o["init_opacity"], 0.0, 1.0)
-    if o["init_opacity"] >= 1.0:
-        raise ConfigError(f"model.init_opacity={o['init_opacity']!r}: expected a number in (0, 1)")
-    if not isinstance(o["prune_opacity"], bool) and isinstance(o["prune_opacity"], (int, float)) \
-            and o["prune_opacity"] >= 1.0:
-        raise ConfigError(f"model.prune_opacity={o['prune_opacity']!r}: expected a number in [0, 1) (Gaussians whose "
-                          "opacity is below it are pruned: 1 or more prunes every Gaussian; 3DGS: 0.005)")
+    _number("init_opacity", o["init_opacity"], 0.0, 1.0, open_high=True,
+            why=" (stored as its logit, infinite at 0 and 1; 3DGS: 0.1)")
     if o["density"] not in DENSITY:
         raise ConfigError(f"model.density={o['density']!r}: expected one of {', '.join(DENSITY)}")
     thresholds = dict(
         grad_threshold=_number("densify_grad_threshold", o["densify_grad_threshold"], 0.0, math.inf),
         percent_dense=_number("percent_dense", o["percent_dense"], 0.0, 1.0),
-        prune_opacity=_number("prune_opacity", o["prune_opacity"], 0.0, 1.0, open_low=False),
+        prune_opacity=_number("prune_opacity", o["prune_opacity"], 0.0, 1.0, open_low=False, open_high=True,
+                              why=" (Gaussians whose opacity is below it are pruned: 1 prunes every Gaussian; "
+                                  "3DGS: 0.005)"),
         prune_screen_radius=_number("prune_screen_radius", o["prune_screen_radius"], 0.0, math.inf),
         prune_world_scale=_number("prune_world_scale", o["prune_world_scale"], 0.0, math.inf),
         max_gaussians=o["max_gaussians"],

@@ -119,7 +119,8 @@ def test_a_depth_stride_too_coarse_for_any_valid_depth_names_the_key_and_a_strid
 
 
 def test_prune_opacity_of_one_is_refused_and_pruning_every_gaussian_names_its_cause():
-    with pytest.raises(ConfigError, match=r"^model.prune_opacity=1.0: expected a number in \[0, 1\)"):
+    with pytest.raises(ConfigError, match=r"^model.prune_opacity=1.0: expected a finite number in \[0, 1\) \(Gaussians whose "
+                                          r"opacity is below it are pruned"):
         get_registry().build("model", {**SMALL, "prune_opacity": 1.0},
                              parts=kit_parts(get_registry(), "semantic_3dgs", head=False, parts=KIT_PARTS))
     torch.manual_seed(0)
@@ -132,6 +133,38 @@ def test_prune_opacity_of_one_is_refused_and_pruning_every_gaussian_names_its_ca
                                           r"model.prune_opacity"):
         strategy.densify_and_prune(field, optimizer, 120, prune_large=False)
     assert field.size > 0  # refused before anything was removed
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("sh_degree", 4, r"^model.sh_degree=4: expected an integer in \[0, 3\] \(3D Gaussian splatting's degrees\)$"),
+    ("sh_degree", -1, r"^model.sh_degree=-1: expected an integer in \[0, 3\]"),
+    ("sh_degree", 10, r"^model.sh_degree=10: expected an integer in \[0, 3\]"),
+    ("init_opacity", 1.0, r"^model.init_opacity=1.0: expected a finite number in \(0, 1\) \(stored as its logit"),
+    ("init_opacity", 0.0, r"^model.init_opacity=0.0: expected a finite number in \(0, 1\)"),
+])
+def test_colour_degree_and_opacities_out_of_range_name_the_key_and_the_range(key, value, message):
+    with pytest.raises(ConfigError, match=message):
+        get_registry().build("model", {**SMALL, key: value},
+                             parts=kit_parts(get_registry(), "semantic_3dgs", head=False, parts=KIT_PARTS))
+
+
+def test_mvsplat_sh_degree_out_of_range_names_the_key():
+    with pytest.raises(ConfigError, match=r"^model.sh_degree=10: expected an integer in \[0, 4\]"):
+        get_registry().build("model", {"name": "mvsplat", "sh_degree": 10},
+                             parts=kit_parts(get_registry(), "mvsplat", head=False, parts=KIT_PARTS))
+
+
+@pytest.mark.parametrize("degree", [10, -1, 2])
+def test_a_checkpoint_with_a_corrupt_active_degree_is_refused_naming_the_file_and_key(degree):
+    """SMALL has sh_degree 1: 2 is as corrupt as 10 for it (was: 'spherical-harmonic degree 10', naming nothing)."""
+    model = small_model()
+    model.hooks.initialise(model_scene())
+    weights = {k: v.clone() for k, v in model.state_dict().items()}
+    weights["gaussians.active_degree"] = torch.tensor(degree)
+    with pytest.raises(DataError, match=rf"^checkpoint bad.pt: gaussians.active_degree={degree}: expected the "
+                                        r"colour's active spherical-harmonic degree, an integer in \[0, 1\] "
+                                        r"\(model.sh_degree=1\)"):
+        load_weights(small_model(), weights, "checkpoint bad.pt")
 
 
 def test_a_checkpoint_with_no_gaussians_is_named_when_it_renders():

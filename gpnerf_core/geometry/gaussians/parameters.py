@@ -135,11 +135,20 @@ class GaussianParameters(nn.Module):
 
     def take_sizes(self, weights: Mapping[str, Tensor], prefix: str, source: str) -> None:
         """Give every per-Gaussian tensor the row count of ``weights`` (keys ``prefix`` + name) before they are loaded:
-        a ``DataError`` naming ``source`` when the tensors disagree with each other or with the recorded count."""
+        a ``DataError`` naming ``source`` when the tensors disagree with each other or with the recorded count, or the
+        recorded active degree is not one of ``sh_degree``'s."""
         count_key = prefix + "count"
         if count_key not in weights:
             return  # not these parameters' weights: the loader names what is missing
         recorded = int(weights[count_key])
+        degree_key = prefix + "active_degree"
+        if degree_key in weights:
+            degree = weights[degree_key]
+            if degree.numel() != 1 or not 0 <= float(degree) <= self.sh_degree or float(degree) != int(degree):
+                raise DataError(f"{source}: {degree_key}={degree.tolist()!r}: expected the colour's active "
+                                f"spherical-harmonic degree, an integer in [0, {self.sh_degree}] (model.sh_degree="
+                                f"{self.sh_degree}); the file is inconsistent (edited or written by other code): use "
+                                "another checkpoint")
         for name in (*self.row_shapes(), *self._row_state):
             key = prefix + name
             if key in weights and int(weights[key].shape[0]) != recorded:

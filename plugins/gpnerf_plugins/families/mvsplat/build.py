@@ -29,6 +29,16 @@ def _check(feature_dim: int, transformer_layers: int, attention_splits: int, dep
         raise ConfigError(f"model.rasterizer={rasterizer!r}: expected one of {', '.join(RASTERIZER_BACKENDS)}")
 
 
+MAX_SH_DEGREE = 4
+"""The highest colour degree the rasterizing families evaluate (``gpnerf_core.sh_colours``; MVSplat's own)."""
+
+
+def _check_sh_degree(sh_degree: object) -> None:
+    if isinstance(sh_degree, bool) or not isinstance(sh_degree, int) or not 0 <= sh_degree <= MAX_SH_DEGREE:
+        raise ConfigError(f"model.sh_degree={sh_degree!r}: expected an integer in [0, {MAX_SH_DEGREE}] (the colour's "
+                          "spherical-harmonic degree; MVSplat's is 4)")
+
+
 def build_mvsplat(
     *,
     parts: ModelParts,
@@ -50,6 +60,7 @@ def build_mvsplat(
     networks. Without a ``+head`` each Gaussian carries class scores (label rendering); with one it carries the
     extractor's semantic feature at its source pixel, which needs an extractor with semantic maps (refused in one line
     otherwise)."""
+    _check_sh_degree(sh_degree)
     _check(feature_dim, transformer_layers, attention_splits, depth_candidates, cost_unet_dim, depth_unet_dim,
            unet_levels, float(scale_min), float(scale_max), float(background), rasterizer)
     extractor = parts.build("feature_extractor")
