@@ -13,6 +13,7 @@ Grouping example (``examples/gpnerf-gaussian-grouping``) are two.
 from __future__ import annotations
 
 import math
+import sys
 from typing import ClassVar, Mapping, Sequence
 
 import torch
@@ -113,8 +114,15 @@ class GaussianHooks(FamilyHooks):
                                                rasterized(state))
 
     def density_control(self, state: TrainingState) -> None:
-        """The strategy's statistics and density changes, told what the rasterizer reported of the step's views."""
+        """The strategy's statistics and density changes, told what the rasterizer reported of the step's views; the
+        strategy's note on the run's schedule (``schedule_note``: resets dropped in a short run) printed once."""
         gaussians = self.family.gaussians
+        if not self.family.schedule_noted:
+            self.family.schedule_noted = True
+            note = getattr(self.family.strategy, "schedule_note", None)
+            said = note(state.total_steps) if note is not None else None
+            if said:
+                print(f"note: {said}", file=sys.stderr)
         self.family.strategy.scaled(state.total_steps).step_post_backward(
             gaussians, state.optimizer, gaussians.row_state(), state.step, rasterized(state))
 
@@ -151,6 +159,7 @@ class GaussianFamily(ModelFamily):
         self.gaussians = GaussianParameters(setup.sh_degree, dict(channels))
         self.setup = setup
         self.empty_source: str | None = None  # the checkpoint that gave it 0 Gaussians, named when it renders
+        self.schedule_noted = False  # the strategy's schedule note is printed once per run
         self.strategy = setup.strategy
         self.strategy.initialize_state(self.gaussians)
 

@@ -340,6 +340,17 @@ def test_eval_render_and_export_build_it_at_the_checkpoints_size(fitted, tmp_pat
     assert set(np.unique(columns["label"])) <= set(range(21))
 
 
+def test_a_short_run_of_the_official_schedule_resets_no_opacity_and_says_so_once(tmp_path, capsys):
+    out = tmp_path / "short"
+    assert cli_main(["run", "+experiment=baselines/semantic_3dgs", *TINY, "model.schedule_steps=30000",
+                     "model.opacity_reset_every=3000", "train.steps=2", "eval.max_views_per_scene=1",
+                     f"out_dir={out}"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("note: model.opacity_reset_every=3000 of a 30000-step schedule (model.schedule_steps) scaled to "
+                     "2 steps would cap every opacity at 0.01 every 1 step(s), under 50") == 1
+    assert "this run resets no opacity" in err
+
+
 def test_it_trains_in_bf16_the_rasterizer_working_in_float32(tmp_path):
     out = tmp_path / "bf16"
     assert cli_main(["run", "+experiment=baselines/semantic_3dgs", *TINY, "train.steps=2", "train.precision=bf16",

@@ -87,6 +87,36 @@ def test_the_official_schedule_scales_to_a_runs_length():
     assert DefaultStrategy().scaled(20).densify_every == 1  # never below one step
 
 
+def test_opacity_resets_scaled_closer_than_the_floor_are_dropped_for_the_run_and_said():
+    """A 20-step run of the official schedule would cap every opacity at 0.01 at every step of its first half (the
+    render turns near-black): it resets none and says why; 600- and 2000-step runs keep the official scaling exactly
+    (bit for bit), 495 is the shortest run of the official schedule that keeps the resets."""
+    official = DefaultStrategy()
+    for steps, interval in ((600, 60), (2000, 200), (495, 50), (3000, 300)):
+        scaled = official.scaled(steps)
+        assert scaled.opacity_reset_every == interval and not official.resets_dropped(steps)
+        assert official.schedule_note(steps) is None
+        assert (scaled.densify_from, scaled.densify_until, scaled.densify_every) == tuple(
+            max(1, round(v * steps / 30000)) for v in (500, 15000, 100))
+    for steps in (20, 40, 494):
+        assert official.resets_dropped(steps) and official.scaled(steps).opacity_reset_every == steps + 1
+    note = official.schedule_note(20)
+    assert note.startswith("model.opacity_reset_every=3000 of a 30000-step schedule (model.schedule_steps) scaled to "
+                           "20 steps would cap every opacity at 0.01 every 2 step(s), under 50:")
+    assert "this run resets no opacity" in note and note.endswith("runs of 495 steps or more keep the resets")
+    # an interval configured short on purpose (the schedule run as written) is kept
+    explicit = DefaultStrategy(opacity_reset_every=4, schedule_steps=6)
+    assert explicit.scaled(6).opacity_reset_every == 4 and explicit.schedule_note(6) is None
+    # the 20-step run's density control never touches an opacity
+    params, optimizer = fitted(strategy=official)
+    before = params.opacity_logits.detach().clone()
+    run = official.scaled(20)
+    for step in range(20):
+        run.step_post_backward(params, optimizer, params.row_state(), step, [])
+    assert torch.equal(params.opacity_logits.detach(), before)
+    assert BudgetedStrategy().scaled(20).opacity_reset_every == 21
+
+
 def _view(params: GaussianParameters, gradient: torch.Tensor) -> ViewInfo:
     means2d = torch.zeros(params.size, 2, requires_grad=True)
     means2d.grad = torch.stack([gradient, torch.zeros_like(gradient)], dim=-1)

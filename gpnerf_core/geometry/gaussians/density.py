@@ -30,7 +30,8 @@ One departure from the official code: its ``densification_postfix`` zeroes every
 Gaussians, before ``densify_and_prune`` tests them, so its screen-size pruning fires only in a densification that
 cloned and split nothing; here the radii gathered since the last densification are tested, as the paper describes.
 The schedules' step numbers are the official ones for ``schedule_steps`` steps; ``scaled(total_steps)`` gives them for
-a run of another length (gsplat's ``steps_scaler``).
+a run of another length (gsplat's ``steps_scaler``), except that opacity resets scaled closer than
+``MIN_RESET_INTERVAL`` steps apart are dropped for the run (``schedule_note`` says so; the family prints it once).
 """
 
 from __future__ import annotations
@@ -72,6 +73,13 @@ class ViewInfo:
     radii: Tensor
     height: int
     width: int
+
+
+MIN_RESET_INTERVAL = 50
+"""Fewest steps between two opacity resets a scaled schedule keeps: below it (a run under a tenth of 3DGS's 30k-step
+schedule at 1/60 of its length, say) a run resets no opacity (``DefaultStrategy.scaled``). Each reset caps every
+opacity at 0.01, and the official schedule leaves 3000 steps to recover; a run of 20 steps would reset at every
+step of its first half and render near-black."""
 
 
 def scaled_step(official: int, total_steps: int, schedule_steps: int) -> int:
@@ -144,6 +152,11 @@ class DensityStrategy:
     def initialize_state(self, params: GaussianParameters) -> None:
         """Register the per-Gaussian statistics this strategy keeps (``GaussianParameters.register_row_state``)."""
 
+    def schedule_note(self, total_steps: int) -> str | None:
+        """One line on how a run of ``total_steps`` departs from the strategy's schedule (the family prints it once
+        when training starts), or None."""
+        return None
+
     def step_pre_backward(self, params: GaussianParameters, optimizer: torch.optim.Optimizer,
                           state: dict[str, Tensor], step: int, info: Sequence[ViewInfo]) -> None:
         """Before the backward pass: keep what it must fill."""
@@ -172,10 +185,32 @@ class DefaultStrategy(DensityStrategy):
 
     def scaled(self, total_steps: int) -> "DefaultStrategy":
         """The same strategy for a run of ``total_steps`` steps: each step number scaled by ``total_steps /
-        schedule_steps`` (at least 1)."""
+        schedule_steps`` (at least 1); the opacity resets dropped when their scaled interval falls below
+        ``MIN_RESET_INTERVAL`` (``resets_dropped``; ``schedule_note`` says why)."""
         steps = {name: scaled_step(getattr(self, name), total_steps, self.schedule_steps)
                  for name in ("densify_from", "densify_until", "densify_every", "opacity_reset_every")}
+        if self.resets_dropped(total_steps):
+            steps["opacity_reset_every"] = total_steps + 1  # never within the run (nor the pruning gated on it)
         return dataclasses.replace(self, **steps, schedule_steps=total_steps)
+
+    def resets_dropped(self, total_steps: int) -> bool:
+        """Whether a run of ``total_steps`` drops the opacity resets: scaling shrank their interval below
+        ``MIN_RESET_INTERVAL`` steps (an interval configured that short, unscaled, is kept)."""
+        interval = scaled_step(self.opacity_reset_every, total_steps, self.schedule_steps)
+        return interval < min(MIN_RESET_INTERVAL, self.opacity_reset_every)
+
+    def schedule_note(self, total_steps: int) -> str | None:
+        """One line saying that, and why, a run of ``total_steps`` resets no opacity; None when it keeps the resets."""
+        if not self.resets_dropped(total_steps):
+            return None
+        interval = scaled_step(self.opacity_reset_every, total_steps, self.schedule_steps)
+        keeps = next(steps for steps in range(total_steps + 1, 100 * self.schedule_steps + 2)
+                     if not self.resets_dropped(steps))
+        return (f"model.opacity_reset_every={self.opacity_reset_every} of a {self.schedule_steps}-step schedule "
+                f"(model.schedule_steps) scaled to {total_steps} steps would cap every opacity at 0.01 every "
+                f"{interval} step(s), under {MIN_RESET_INTERVAL}: too often for the Gaussians to recover (the render "
+                f"turns near-black), so this run resets no opacity and, as 3DGS before its first reset, prunes none "
+                f"by screen or world size; runs of {keeps} steps or more keep the resets")
 
     def initialize_state(self, params: GaussianParameters) -> None:
         for name in STATISTICS:
