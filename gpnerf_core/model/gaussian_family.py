@@ -117,7 +117,7 @@ class GaussianHooks(FamilyHooks):
         """The strategy's statistics and density changes, told what the rasterizer reported of the step's views; the
         strategy's note on the run's schedule (``schedule_note``: resets dropped in a short run) printed once."""
         gaussians = self.family.gaussians
-        if not self.family.schedule_noted:
+        if not getattr(self.family, "schedule_noted", False):
             self.family.schedule_noted = True
             note = getattr(self.family.strategy, "schedule_note", None)
             said = note(state.total_steps) if note is not None else None
@@ -179,7 +179,7 @@ class GaussianFamily(ModelFamily):
         a background term, as Gaussian Grouping's identities) when ``channels`` and it has any; ``info``: what the
         rasterizer reported (density control's input)."""
         if not self.gaussians.size:
-            if self.empty_source is not None:
+            if getattr(self, "empty_source", None) is not None:
                 raise DataError(f"{self.empty_source}: it holds 0 Gaussians (gaussians.count=0), so model={self.name} "
                                 "has nothing to render; expected a checkpoint of a fitted model (one a run wrote "
                                 "while training)")
