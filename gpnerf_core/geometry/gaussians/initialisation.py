@@ -50,7 +50,7 @@ def starting_points(scene: Scene, limit: int, depth_stride: int) -> tuple[SceneP
             raise DataError(f"scene {scene.name!r}: model.init_depth_stride={depth_stride} meets no valid depth in "
                             f"its training frames ({scene.height}x{scene.width}: every {depth_stride}-th pixel from "
                             f"(0, 0) has none); expected a finer stride: model.init_depth_stride="
-                            f"{_finest_working_stride(scene, depth_stride)} meets some")
+                            f"{_coarsest_working_stride(scene, depth_stride)} meets some")
         raise DataError(f"scene {scene.name!r} has no sparse points (a capture's ply_file_path, which `data "
                         "prepare-capture` and `data import-colmap` write) and no depth in its training frames; "
                         "a per-scene Gaussian model starts its Gaussians from one of them")
@@ -60,7 +60,7 @@ def starting_points(scene: Scene, limit: int, depth_stride: int) -> tuple[SceneP
     return points, origin
 
 
-def _finest_working_stride(scene: Scene, stride: int) -> int:
+def _coarsest_working_stride(scene: Scene, stride: int) -> int:
     """The coarsest stride below ``stride`` whose pixels meet some valid depth (1 does: the caller checked)."""
     for candidate in range(stride - 1, 1, -1):
         if depth_points(scene, candidate) is not None:
