@@ -122,7 +122,9 @@ class GaussianHooks(FamilyHooks):
             note = getattr(self.family.strategy, "schedule_note", None)
             said = note(state.total_steps) if note is not None else None
             if said:
-                print(f"note: {said}", file=sys.stderr)
+                from tqdm import tqdm  # the training progress bar's writer: the note on a line of its own
+
+                tqdm.write(f"note: {said}", file=sys.stderr)
         self.family.strategy.scaled(state.total_steps).step_post_backward(
             gaussians, state.optimizer, gaussians.row_state(), state.step, rasterized(state))
 
