@@ -14,7 +14,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 import torch
@@ -36,7 +36,7 @@ from gpnerf_plugins.datasets.capture.undistort import Undistorter
 from gpnerf_plugins.datasets.common.cameras import scale_intrinsics
 from gpnerf_plugins.datasets.common.decoding import FrameDecoder, FrameFiles
 from gpnerf_plugins.datasets.common.image_io import decode_image, resize_nearest, resize_rgb
-from gpnerf_plugins.datasets.common.scene_lists import chosen_scenes, disjoint_unseen, missing_scene
+from gpnerf_plugins.datasets.common.scene_lists import chosen_scenes, chosen_unseen, missing_scene
 
 CLASSES_FILE = "classes.json"
 DEFAULT_DEPTH_UNIT = 1e-3
@@ -84,8 +84,8 @@ class CaptureScenesConfig(DatasetConfig):
     frames take the model's predicted labels, at the dataset's size, and its classes (the label-free path)."""
     scenes: list[str] = field(default_factory=list)
     """Captures trained on (folder names under root); empty = every capture not in unseen_scenes."""
-    unseen_scenes: list[str] = field(default_factory=list)
-    """Captures never trained on, evaluated for generalization; empty = none."""
+    unseen_scenes: Optional[list[str]] = None
+    """Captures never trained on, evaluated for generalization; null or [] = none."""
 
 
 @dataclass(frozen=True)
@@ -113,7 +113,7 @@ class CaptureScenes(DatasetBase):
         labels_from: str = CaptureScenesConfig.labels_from,
         validate: str = CaptureScenesConfig.validate,
         scenes: Sequence[str] = (),
-        unseen_scenes: Sequence[str] = (),
+        unseen_scenes: Sequence[str] | None = None,
     ) -> None:
         holds = f"a capture ({TRANSFORMS_FILE} in it) or folders of captures"
         if not root:  # refused before any file is read (the base resolves the root on first use)
@@ -161,8 +161,8 @@ class CaptureScenes(DatasetBase):
             for name in names:
                 if name not in found:
                     raise missing_scene(self.root, name, f"a capture folder with {TRANSFORMS_FILE} (dataset.{key})")
-        unseen = disjoint_unseen(self._given["train"], self._given["unseen"], train_given=bool(self._given["train"]),
-                                 unseen_given=bool(self._given["unseen"]))
+        unseen = chosen_unseen(self._given["unseen"], (), train=self._given["train"],
+                               train_given=bool(self._given["train"]))
         if split == "unseen":
             return unseen
         return self._given["train"] or tuple(name for name in found if name not in unseen)
