@@ -157,6 +157,7 @@ class CaptureScenes(DatasetBase):
 
     def list_scenes(self, split: str) -> tuple[str, ...]:
         found = self._found()
+        self._check_predicted_scene(found)
         for key, names in (("scenes", self._given["train"]), ("unseen_scenes", self._given["unseen"])):
             for name in names:
                 if name not in found:
@@ -179,15 +180,19 @@ class CaptureScenes(DatasetBase):
     # -- classes ---------------------------------------------------------------------------------------------------
 
     def predicted(self) -> PredictedLabels | None:
-        """``labels_from``'s labels.json, read once (None without ``labels_from``)."""
+        """``labels_from``'s labels.json, read once (None without ``labels_from``); its scene is checked against the
+        captures when scenes are listed or loaded (``_check_predicted_scene``), so that the classes can be read
+        first (a per-scene model pointed at another capture is refused over its scene, not over these labels)."""
         if self.labels_from is not None and self._predicted is None:
-            predicted = read_predicted_labels(self.labels_from)
-            found = self._found()
-            if predicted.scene not in found:
-                raise DataError(f"dataset.labels_from={self.labels_from}: its labels are of scene {predicted.scene!r}, "
-                                f"which is no capture under {self.root} (found: {', '.join(found)})")
-            self._predicted = predicted
+            self._predicted = read_predicted_labels(self.labels_from)
         return self._predicted
+
+    def _check_predicted_scene(self, found: dict[str, Path]) -> None:
+        """``labels_from``'s scene must be a capture under ``root``: DataError naming both otherwise."""
+        predicted = self.predicted()
+        if predicted is not None and predicted.scene not in found:
+            raise DataError(f"dataset.labels_from={self.labels_from}: its labels are of scene {predicted.scene!r}, "
+                            f"which is no capture under {self.root} (found: {', '.join(found)})")
 
     def _class_list(self) -> ClassList | None:
         """The one class list of the labelled captures: ``labels_from``'s (the model's), else ``classes_file``, else
@@ -224,6 +229,7 @@ class CaptureScenes(DatasetBase):
     # -- loading ---------------------------------------------------------------------------------------------------
 
     def read_scene(self, name: str) -> Scene:
+        self._check_predicted_scene(self._found())
         return self._scene(name, self.capture(name))
 
     def _scene(self, name: str, capture: CaptureFile) -> Scene:
