@@ -4,7 +4,8 @@ validated once, the process set up once, the model built with the checkpoint's c
 
 ``eval``, ``render``, ``view``, ``export``, ``label`` and ``finetune`` get their config from Hydra, composed from the
 checkpoint's overrides and the command's (``launching.launch_from_checkpoint``, whose read of the checkpoint reaches the
-job); ``stress`` and the viewer's timing compose the same overrides without Hydra. Both end here.
+job); ``stress`` and the viewer's timing compose the same overrides without Hydra. Both end here, and here a
+per-scene model pointed at data without its scene is refused (``engine.fitted_data``; ``finetune`` opts out).
 """
 
 from __future__ import annotations
