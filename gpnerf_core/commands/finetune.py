@@ -55,7 +55,7 @@ def finetune_task(cfg: DictConfig, dist: Distributed, handover: Handover = Hando
     with open_dict(cfg):
         cfg.eval.splits = ["train"]  # the chosen scenes' held-out frames
     opened = open_trained(handover.trained, cfg=cfg, command="finetune", validated=handover.validated,
-                          device=dist.device, new_classes=True, source="finetune checkpoint={path}")
+                          device=dist.device, new_classes=True, other_data=True, source="finetune checkpoint={path}")
     trained, components, which, reinitialised = opened.trained, opened.components, opened.weights, opened.reinitialised
     checkpoint, notes = trained.path, opened.notes
     plan = plan_resume(cfg, dist)  # train.resume: an interrupted fine-tuning's own checkpoint (or auto)

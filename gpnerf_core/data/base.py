@@ -14,7 +14,7 @@ import math
 from abc import abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Optional, Sequence
 
 from gpnerf_core.data.checks import check_validation_level
 from gpnerf_core.data.dataset import SPLITS, SceneDataset
@@ -42,8 +42,10 @@ class DatasetConfig:
     """Ray-sampling far bound, metres (training and evaluation alike)."""
     scenes: list[str] = field(default_factory=list)
     """Scenes to train on, by folder name under ``root``; empty = the dataset's shipped list (its protocol's)."""
-    unseen_scenes: list[str] = field(default_factory=list)
-    """Scenes never trained on, evaluated for generalization; empty = the dataset's shipped list."""
+    unseen_scenes: Optional[list[str]] = None
+    """Scenes never trained on, evaluated for generalization. null (the default): the dataset's shipped unseen list
+    less the scenes ``scenes`` names, and none when ``scenes`` names only scenes of your own (none shipped); [] = no
+    unseen scenes; a list = those."""
     validate: str = "quick"
     """Check the chosen scenes' files before training: quick (every file indexed, image sizes, poses finite and rigid),
     full (also decode every frame and check its labels) or off."""

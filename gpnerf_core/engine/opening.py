@@ -4,7 +4,8 @@ validated once, the process set up once, the model built with the checkpoint's c
 
 ``eval``, ``render``, ``view``, ``export``, ``label`` and ``finetune`` get their config from Hydra, composed from the
 checkpoint's overrides and the command's (``launching.launch_from_checkpoint``, whose read of the checkpoint reaches the
-job); ``stress`` and the viewer's timing compose the same overrides without Hydra. Both end here.
+job); ``stress`` and the viewer's timing compose the same overrides without Hydra. Both end here, and here a
+per-scene model pointed at data without its scene is refused (``engine.fitted_data``; ``finetune`` opts out).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from gpnerf_core.config.overrides import merge_overrides, override_key
 from gpnerf_core.data.dataset import FittedScenes
+from gpnerf_core.engine.fitted_data import check_fitted_data, fitted_scenes
 from gpnerf_core.engine.runs import task_overrides
 from gpnerf_core.engine.setup import compose_overrides, start
 from gpnerf_core.engine.validation import check_data
@@ -71,6 +73,7 @@ def open_trained(
     new_classes: bool = False,
     source: str = "checkpoint {path}",
     check_scenes: bool = False,
+    other_data: bool = False,
 ) -> OpenedModel:
     """Open a trained model for ``command``: config, validation, process set-up, build, weights. Nothing is written.
 
@@ -91,10 +94,13 @@ def open_trained(
         source: how the errors of the weights name the checkpoint (``{path}``: its path).
         check_scenes: ``eval``'s checks: a per-scene model is scored on its own scene only, and the evaluated splits'
             data is checked (``check_data``).
+        other_data: the command fits the model on other data (``finetune``): a per-scene model is not refused for a
+            dataset without its scene (``fitted_data.check_fitted_data``, which every other command passes).
 
     Raises:
         ConfigError: no ``checkpoint=`` in a job, ``model=`` of another family than the checkpoint's, a value the
-            schema refuses, a model config whose tensors do not fit the checkpoint's (naming the keys that differ).
+            schema refuses, a model config whose tensors do not fit the checkpoint's (naming the keys that differ), a
+            per-scene model pointed at data without the scene it was fitted on.
         DataError: the checkpoint unreadable or damaged, its weights missing, extra or not finite.
     """
     if cfg is None:
@@ -108,6 +114,10 @@ def open_trained(
     notes = restore_trained_settings(cfg, trained, own, command)
     resolved = start(cfg, validated=validated)
     components = build_components(cfg, classes=trained.classes)
+    fitted = fitted_scenes(cfg, components, trained)
+    if not other_data:
+        asked = OmegaConf.select(cfg, f"{command}.scene", default="")
+        check_fitted_data(cfg, components, trained, fitted, command, str(asked or ""))
     if components.classes.from_checkpoint:
         notes.append(components.classes.note(str(cfg.dataset.name)))
     chosen, which = trained.weights(str(cfg.eval.weights) if weights is None else weights)
@@ -120,7 +130,6 @@ def open_trained(
         or "no key (a different plugin version?)",
     )
     checkpoint_classes = int(chosen[reinitialised[0]].shape[0]) if reinitialised else None
-    fitted = _fitted_scenes(cfg, components, trained)
     if check_scenes:
         if fitted is not None:
             _check_evaluated_scenes(cfg, components, fitted)
@@ -157,17 +166,6 @@ def _checkpoint_of(cfg: DictConfig, trained: TrainedModel | None, command: str) 
     if trained is not None and Path(str(cfg.checkpoint)).absolute() == trained.path.absolute():
         return trained
     return load_trained(str(cfg.checkpoint))
-
-
-def _fitted_scenes(cfg: DictConfig, components: Any, trained: TrainedModel) -> FittedScenes | None:
-    """The scenes a per-scene model (``Capabilities.generalizable`` False) was fitted on, from its checkpoint; None for a
-    generalizable model, or a checkpoint that names none."""
-    if components.model.capabilities.generalizable or not trained.scenes:
-        return None
-    scenes = trained.scenes
-    shown = f"scene {scenes[0]!r}" if len(scenes) == 1 else f"scenes {', '.join(map(repr, scenes))}"
-    return FittedScenes(scenes, f"model {cfg.model.name!r} was fitted on {shown} alone (checkpoint {trained.path}): a "
-                                "per-scene model renders only its scene")
 
 
 def _check_evaluated_scenes(cfg: DictConfig, components: Any, fitted: FittedScenes) -> None:

@@ -123,7 +123,8 @@ def test_a_per_scene_model_is_refused_any_scene_but_its_own(fitted, tmp_path, ca
     err = capsys.readouterr().err
     assert other == 2 and ("render.scene='unseen_00': model 'semantic_nerf' was fitted on scene 'layout_00' alone "
                            "(checkpoint") in err and "expected render.scene=layout_00 or render.scene left out" in err
-    assert scored == 2 and "eval.splits has 'train' with scene 'layout_01', but model 'semantic_nerf'" in err
+    assert scored == 2 and ("eval: model 'semantic_nerf' was fitted on scene 'layout_00' alone" in err
+                            and "asked for 'layout_01': dataset=embedded holds 'layout_01', not 'layout_00'" in err)
     assert not (tmp_path / "video").exists() and not (tmp_path / "eval").exists()
 
 

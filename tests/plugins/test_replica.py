@@ -585,6 +585,45 @@ def test_own_scene_lists_are_checked():
         ReplicaInstanceScenes(unseen_scenes=["a/b"])
 
 
+def test_unseen_scenes_null_is_the_shipped_list_and_empty_is_none():
+    """Issue 55: null (the default) = the shipped unseen list less the scenes trained on, none when the trained
+    scenes are the user's own (no shipped scene to read); [] = none."""
+    assert ReplicaScenesConfig().unseen_scenes is None
+    assert ReplicaScenes().test_scene_names == ("office_0", "room_0")
+    assert ReplicaScenes(scenes=["office_0"]).test_scene_names == ("room_0",)
+    assert ReplicaScenes(scenes=["office_1"]).test_scene_names == ("office_0", "room_0")
+    assert ReplicaScenes(scenes=["kitchen"]).test_scene_names == ()  # the user's own: no shipped scene read
+    assert ReplicaScenes(unseen_scenes=[]).test_scene_names == ()
+    assert ReplicaScenes(scenes=["kitchen"], unseen_scenes=[]).test_scene_names == ()
+    with pytest.raises(ConfigError, match=r"'kitchen' is in both .* \(dataset.unseen_scenes=\[\] for none\)"):
+        ReplicaScenes(scenes=["kitchen"], unseen_scenes=["kitchen"])
+    assert ReplicaInstanceScenes(scenes=["kitchen"]).unseen_scene_names == ()
+
+
+def test_a_model_of_the_users_own_folder_evaluates_renders_and_exports_it_alone(tmp_path, monkeypatch):
+    """Issue 55: a generalizable model trained on a Replica-layout folder holding only the user's scene was refused
+    over office_0 (a shipped scene the folder never had) by run, render and export."""
+    from pipeline_check import TINY_MODEL, in_process
+
+    root = tmp_path / "mine"
+    write_frames(root / "kitchen" / "Sequence_1", range(6), scene=1, size=(32, 48))
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("GPNERF_DISABLE_PLUGIN_AUTOLOAD", "1")
+    data = ["dataset=replica", f"dataset.root={root}", "dataset.scenes=[kitchen]", "dataset.height=32",
+            "dataset.width=48", "dataset.eval_step=2", "dataset.eval_count=2"]
+    run = tmp_path / "run"
+    assert in_process("run", "+head=unet", "+loss=dgs", *TINY_MODEL, "eval.save_images=0", *data,
+                      f"out_dir={run}") == 0
+    assert "unseen_scenes: null" in (run / "config.yaml").read_text()
+    checkpoint = next((run / "checkpoints").glob("*.pt"))
+    assert in_process("export", f"checkpoint={checkpoint}", f"out_dir={tmp_path / 'x'}", "threads=1") == 0
+    assert (tmp_path / "x" / "points.ply").is_file()
+    assert in_process("export", f"checkpoint={checkpoint}", "export.scene=kitchen/Sequence_1",
+                      f"out_dir={tmp_path / 'x2'}", "threads=1") == 0
+    assert in_process("render", f"checkpoint={checkpoint}", "render.frames=2", f"out_dir={tmp_path / 'r'}",
+                      "threads=1") == 0
+
+
 def test_own_instance_scenes(instance_root):
     dataset = ReplicaInstanceScenes(root=str(instance_root), height=H, width=W, scenes=["room_0"], unseen_scenes=["office_0"])
     assert dataset.scenes("train") == ("room_0",) and dataset.scenes("unseen") == ("office_0",)

@@ -14,7 +14,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 import torch
@@ -37,7 +37,7 @@ from gpnerf_plugins.datasets.capture.undistort import Undistorter
 from gpnerf_plugins.datasets.common.cameras import scale_intrinsics
 from gpnerf_plugins.datasets.common.decoding import FrameDecoder, FrameFiles
 from gpnerf_plugins.datasets.common.image_io import decode_image, resize_nearest, resize_rgb
-from gpnerf_plugins.datasets.common.scene_lists import chosen_scenes, disjoint_unseen, missing_scene
+from gpnerf_plugins.datasets.common.scene_lists import chosen_scenes, chosen_unseen, missing_scene
 
 CLASSES_FILE = "classes.json"
 DEFAULT_DEPTH_UNIT = 1e-3
@@ -85,8 +85,8 @@ class CaptureScenesConfig(DatasetConfig):
     frames take the model's predicted labels, at the dataset's size, and its classes (the label-free path)."""
     scenes: list[str] = field(default_factory=list)
     """Captures trained on (folder names under root); empty = every capture not in unseen_scenes."""
-    unseen_scenes: list[str] = field(default_factory=list)
-    """Captures never trained on, evaluated for generalization; empty = none."""
+    unseen_scenes: Optional[list[str]] = None
+    """Captures never trained on, evaluated for generalization; null or [] = none."""
 
 
 @dataclass(frozen=True)
@@ -114,7 +114,7 @@ class CaptureScenes(DatasetBase):
         labels_from: str = CaptureScenesConfig.labels_from,
         validate: str = CaptureScenesConfig.validate,
         scenes: Sequence[str] = (),
-        unseen_scenes: Sequence[str] = (),
+        unseen_scenes: Sequence[str] | None = None,
     ) -> None:
         holds = f"a capture ({TRANSFORMS_FILE} in it) or folders of captures"
         if not root:  # refused before any file is read (the base resolves the root on first use)
@@ -158,12 +158,13 @@ class CaptureScenes(DatasetBase):
 
     def list_scenes(self, split: str) -> tuple[str, ...]:
         found = self._found()
+        self._check_predicted_scene(found)
         for key, names in (("scenes", self._given["train"]), ("unseen_scenes", self._given["unseen"])):
             for name in names:
                 if name not in found:
                     raise missing_scene(self.root, name, f"a capture folder with {TRANSFORMS_FILE} (dataset.{key})")
-        unseen = disjoint_unseen(self._given["train"], self._given["unseen"], train_given=bool(self._given["train"]),
-                                 unseen_given=bool(self._given["unseen"]))
+        unseen = chosen_unseen(self._given["unseen"], (), train=self._given["train"],
+                               train_given=bool(self._given["train"]))
         if split == "unseen":
             return unseen
         return self._given["train"] or tuple(name for name in found if name not in unseen)
@@ -180,15 +181,19 @@ class CaptureScenes(DatasetBase):
     # -- classes ---------------------------------------------------------------------------------------------------
 
     def predicted(self) -> PredictedLabels | None:
-        """``labels_from``'s labels.json, read once (None without ``labels_from``)."""
+        """``labels_from``'s labels.json, read once (None without ``labels_from``); its scene is checked against the
+        captures when scenes are listed or loaded (``_check_predicted_scene``), so that the classes can be read
+        first (a per-scene model pointed at another capture is refused over its scene, not over these labels)."""
         if self.labels_from is not None and self._predicted is None:
-            predicted = read_predicted_labels(self.labels_from)
-            found = self._found()
-            if predicted.scene not in found:
-                raise DataError(f"dataset.labels_from={self.labels_from}: its labels are of scene {predicted.scene!r}, "
-                                f"which is no capture under {self.root} (found: {', '.join(found)})")
-            self._predicted = predicted
+            self._predicted = read_predicted_labels(self.labels_from)
         return self._predicted
+
+    def _check_predicted_scene(self, found: dict[str, Path]) -> None:
+        """``labels_from``'s scene must be a capture under ``root``: DataError naming both otherwise."""
+        predicted = self.predicted()
+        if predicted is not None and predicted.scene not in found:
+            raise DataError(f"dataset.labels_from={self.labels_from}: its labels are of scene {predicted.scene!r}, "
+                            f"which is no capture under {self.root} (found: {', '.join(found)})")
 
     def _class_list(self) -> ClassList | None:
         """The one class list of the labelled captures: ``labels_from``'s (the model's), else ``classes_file``, else
@@ -225,6 +230,7 @@ class CaptureScenes(DatasetBase):
     # -- loading ---------------------------------------------------------------------------------------------------
 
     def read_scene(self, name: str) -> Scene:
+        self._check_predicted_scene(self._found())
         return self._scene(name, self.capture(name))
 
     def _scene(self, name: str, capture: CaptureFile) -> Scene:

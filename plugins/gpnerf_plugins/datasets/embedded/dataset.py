@@ -20,7 +20,7 @@ from gpnerf_core import (
     check_scene_files,
     from_launch_dir,
 )
-from gpnerf_plugins.datasets.common.scene_lists import chosen_scenes, disjoint_unseen
+from gpnerf_plugins.datasets.common.scene_lists import chosen_scenes, chosen_unseen
 from gpnerf_plugins.datasets.embedded import CLASS_NAMES, IGNORE_INDEX, SEQUENCE, SceneSetParams, ensure_generated
 from gpnerf_plugins.datasets.embedded.generation import check_params, damaged_files
 from gpnerf_plugins.datasets.replica.layout import ReplicaSequence, every_nth_split
@@ -81,7 +81,7 @@ class EmbeddedScenes(DatasetBase):
         textureless: bool = EmbeddedScenesConfig.textureless,
         validate: str = EmbeddedScenesConfig.validate,
         scenes: Sequence[str] = (),
-        unseen_scenes: Sequence[str] = (),
+        unseen_scenes: Sequence[str] | None = None,
     ) -> None:
         super().__init__(root="", validate=validate, near=near, far=far)
         self.params = SceneSetParams(
@@ -90,7 +90,7 @@ class EmbeddedScenes(DatasetBase):
         generated = self.params.scene_names("train") + self.params.scene_names("unseen")
         self._lists = {
             "train": chosen_scenes("scenes", scenes, self.params.scene_names("train")),
-            "unseen": chosen_scenes("unseen_scenes", unseen_scenes, self.params.scene_names("unseen")),
+            "unseen": chosen_scenes("unseen_scenes", unseen_scenes, ()),
         }
         for key, names in (("scenes", self._lists["train"]), ("unseen_scenes", self._lists["unseen"])):
             unknown = [name for name in names if name not in generated]
@@ -99,8 +99,9 @@ class EmbeddedScenes(DatasetBase):
                     f"dataset.{key} has {unknown[0]!r}; the embedded set generates {', '.join(generated)} "
                     "(dataset.num_train_scenes / dataset.num_unseen_scenes)"
                 )
-        self._lists["unseen"] = disjoint_unseen(
-            self._lists["train"], self._lists["unseen"], train_given=bool(scenes), unseen_given=bool(unseen_scenes)
+        self._lists["unseen"] = chosen_unseen(
+            unseen_scenes, self.params.scene_names("unseen"), train=self._lists["train"], train_given=bool(scenes),
+            shipped_train=self.params.scene_names("train"),
         )
         every_nth_split(frames_per_scene, eval_every)  # raises ConfigError for a bad eval_every
         self.eval_every = eval_every

@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Sequence
 
 from gpnerf_core import ConfigError, DataError, DatasetBase, DatasetConfig, Frame, Scene, check_image_size
-from gpnerf_plugins.datasets.common.scene_lists import chosen_scenes, disjoint_unseen, missing_scene
+from gpnerf_plugins.datasets.common.scene_lists import chosen_scenes, chosen_unseen, missing_scene
 from gpnerf_plugins.datasets.replica.check import check_replica_instance_layout, check_replica_layout
 from gpnerf_plugins.datasets.replica.classes import CLASS_NAMES, IGNORE_INDEX, map_raw_labels
 from gpnerf_plugins.datasets.replica.dm_layout import InstanceSequence
@@ -204,17 +204,16 @@ class ReplicaScenes(_ReplicaDataset):
         eval_count: int = ReplicaScenesConfig.eval_count,
         strict_labels: bool = ReplicaScenesConfig.strict_labels,
         scenes: Sequence[str] = (),
-        unseen_scenes: Sequence[str] = (),
+        unseen_scenes: Sequence[str] | None = None,
     ) -> None:
         train_file, test_file = protocol_files(protocol)
         super().__init__(root, protocol, height, width, near, far, hfov_deg, strict_labels, validate)
         check_frame_rule("eval_start/eval_stop/eval_step/eval_count", eval_start, eval_stop, eval_step, eval_count)
         self.eval_rule = (eval_start, eval_stop, eval_step, eval_count)
-        self.train_scene_names = chosen_scenes("scenes", scenes, read_split_file(train_file))
-        self.test_scene_names = chosen_scenes("unseen_scenes", unseen_scenes, read_split_file(test_file))
-        self.test_scene_names = disjoint_unseen(
-            self.train_scene_names, self.test_scene_names, train_given=bool(scenes), unseen_given=bool(unseen_scenes)
-        )
+        shipped_train = read_split_file(train_file)
+        self.train_scene_names = chosen_scenes("scenes", scenes, shipped_train)
+        self.test_scene_names = chosen_unseen(unseen_scenes, read_split_file(test_file), train=self.train_scene_names,
+                                              train_given=bool(scenes), shipped_train=shipped_train)
         self._sequences: dict[str, tuple[str, ...]] = {}
         leaked = sorted(set(self.train_scene_names) & set(self.test_scene_names))
         if leaked:
@@ -300,7 +299,7 @@ class ReplicaInstanceScenes(_ReplicaDataset):
         train_step: int = ReplicaInstanceScenesConfig.train_step,
         strict_labels: bool = ReplicaInstanceScenesConfig.strict_labels,
         scenes: Sequence[str] = (),
-        unseen_scenes: Sequence[str] = (),
+        unseen_scenes: Sequence[str] | None = None,
     ) -> None:
         protocol_files(protocol)  # same protocol names as ``replica``
         super().__init__(root, protocol, height, width, near, far, hfov_deg, strict_labels, validate)
@@ -309,8 +308,7 @@ class ReplicaInstanceScenes(_ReplicaDataset):
         self.eval_rule = (eval_start, eval_stop, eval_step)
         self.train_rule = (0, train_stop, train_step)
         self.scene_names = chosen_scenes("scenes", scenes, read_split_file(INSTANCE_SCENES_FILE))
-        self.unseen_scene_names = chosen_scenes("unseen_scenes", unseen_scenes, ())
-        disjoint_unseen(self.scene_names, self.unseen_scene_names, train_given=True, unseen_given=True)
+        self.unseen_scene_names = chosen_unseen(unseen_scenes, (), train=self.scene_names, train_given=bool(scenes))
         if protocol == "paper_parity":
             warnings.warn(
                 "replica_instance protocol 'paper_parity' trains on its evaluation frames (the reference's overlap); "

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Optional, Sequence
 
 from gpnerf_core import ConfigError, DataError, DatasetBase, DatasetConfig, Scene, check_image_size, from_launch_dir
 from gpnerf_plugins.datasets.scannet.check import check_scannet_layout
@@ -21,7 +21,7 @@ from gpnerf_plugins.datasets.scannet.labels import (
     read_label_map,
 )
 from gpnerf_plugins.datasets.scannet.scene import DEPTH_ALIGNMENTS, PROTOCOLS, ScanNetScene
-from gpnerf_plugins.datasets.common.scene_lists import chosen_scenes, disjoint_unseen, present_folders
+from gpnerf_plugins.datasets.common.scene_lists import chosen_scenes, chosen_unseen, present_folders
 from gpnerf_plugins.datasets.scannet.splits import read_split
 
 __all__ = ["ScanNetScenes", "ScanNetScenesConfig", "check_scannet_layout", "read_split"]
@@ -49,8 +49,9 @@ class ScanNetScenesConfig(DatasetConfig):
     """Skip split scenes absent from root with a warning instead of failing."""
     scenes: list[str] = field(default_factory=list)
     """Scenes of the train split; empty = the shipped splits/scannet_train.txt (198 scenes)."""
-    unseen_scenes: list[str] = field(default_factory=list)
-    """Scenes of the unseen split; empty = the shipped splits/scannet_test.txt (10 scenes)."""
+    unseen_scenes: Optional[list[str]] = None
+    """Scenes of the unseen split; null = the shipped splits/scannet_test.txt (10 scenes) less those trained on, none
+    when dataset.scenes names only scenes outside the shipped splits; [] = none."""
 
 
 class ScanNetScenes(DatasetBase):
@@ -74,7 +75,7 @@ class ScanNetScenes(DatasetBase):
         allow_missing_scenes: bool = ScanNetScenesConfig.allow_missing_scenes,
         depth_alignment: str = ScanNetScenesConfig.depth_alignment,
         scenes: Sequence[str] = (),
-        unseen_scenes: Sequence[str] = (),
+        unseen_scenes: Sequence[str] | None = None,
     ) -> None:
         if depth_alignment not in DEPTH_ALIGNMENTS:
             raise ConfigError(
@@ -85,20 +86,17 @@ class ScanNetScenes(DatasetBase):
             raise ConfigError(f"dataset.protocol={protocol!r}; expected one of: {', '.join(PROTOCOLS)}")
         super().__init__(root=root, validate=validate, near=near, far=far, root_holds="the sceneXXXX_YY folders")
         self.height, self.width = check_image_size(height, width)
-        for key, names in (("scenes", scenes), ("unseen_scenes", unseen_scenes)):
+        for key, names in (("scenes", scenes), ("unseen_scenes", unseen_scenes or ())):
             bad = [n for n in names if not SCENE_NAME.match(str(n))]
             if bad:
                 raise ConfigError(f"dataset.{key} has {bad[0]!r}; expected scene names sceneXXXX_YY")
         self.label_map_path = from_launch_dir(label_map_file) if label_map_file else None
         self.protocol = protocol
         self.allow_missing_scenes = bool(allow_missing_scenes)
-        self._lists = {
-            "train": chosen_scenes("scenes", scenes, read_split("train")),
-            "unseen": chosen_scenes("unseen_scenes", unseen_scenes, read_split("test")),
-        }
-        self._lists["unseen"] = disjoint_unseen(
-            self._lists["train"], self._lists["unseen"], train_given=bool(scenes), unseen_given=bool(unseen_scenes)
-        )
+        train = chosen_scenes("scenes", scenes, read_split("train"))
+        unseen = chosen_unseen(unseen_scenes, read_split("test"), train=train, train_given=bool(scenes),
+                               shipped_train=read_split("train") + read_split("val"))
+        self._lists = {"train": train, "unseen": unseen}
         self._label_map: LabelMap | None = None
 
     @property
