@@ -99,6 +99,17 @@ def check_finite_model(model: torch.nn.Module, family: str, when: str) -> None:
     family, the tensor and ``when`` (``step 40: checkpoint step_0000040.pt``). The trainer calls it before every
     checkpoint, so ``train.resume=auto`` finds the last finite one; the contract kit checks it sees a family's
     parameters."""
+    found = non_finite_tensor(model)
+    if found is not None:
+        raise NonFiniteError(
+            f"{when}: model {family!r} {found}, so it is not written; the newest checkpoint before it is finite "
+            "(train.resume=auto resumes from it): lower the learning rates or find what diverged"
+        )
+
+
+def non_finite_tensor(model: torch.nn.Module) -> str | None:
+    """``parameter 'x' holds NaN or Inf (3 of 600 values)`` for the first floating tensor of ``model``'s state dict
+    that is not finite, or None."""
     for key, value in model.state_dict().items():
         if not (value.is_floating_point() or value.is_complex()):
             continue
@@ -106,11 +117,8 @@ def check_finite_model(model: torch.nn.Module, family: str, when: str) -> None:
         if bool(finite.all()):
             continue
         kind = "parameter" if key in dict(model.named_parameters()) else "buffer"
-        raise NonFiniteError(
-            f"{when}: model {family!r} {kind} {key!r} holds NaN or Inf ({int((~finite).sum())} of {value.numel()} "
-            "values), so it is not written; the newest checkpoint before it is finite (train.resume=auto resumes "
-            "from it): lower the learning rates or find what diverged"
-        )
+        return f"{kind} {key!r} holds NaN or Inf ({int((~finite).sum())} of {value.numel()} values)"
+    return None
 
 
 def _class_dimension(found: torch.Size, expected: tuple[int, ...], classes: tuple[int, int]) -> bool:
