@@ -345,7 +345,7 @@ class Trainer:
         an undeclared growth break ``train.ema_decay``'s average and every resume)."""
         name = self.cfg.model.name
         if self.model.capabilities.changes_size:
-            problem = optimizer_problem(self.model, self.optimizer)
+            problem = optimizer_problem(self.model, self.optimizer, str(self.cfg.model.name))
             if problem is not None:
                 raise PluginError(f"step {self.step}, {when}: {problem}; training stopped")
             return
@@ -684,7 +684,7 @@ class Trainer:
             self.scheduler.load_state_dict(state["scheduler"])
         except (ValueError, KeyError) as exc:
             raise ConfigError(f"train.resume={path}: its optimizer state does not fit this model ({exc})") from None
-        problem = optimizer_problem(self.model, self.optimizer)
+        problem = optimizer_problem(self.model, self.optimizer, str(self.cfg.model.name))
         if problem is not None:
             raise ConfigError(f"train.resume={path}: its optimizer state does not fit the parameters ({problem})")
         if self.average is not None:

@@ -356,7 +356,7 @@ def check_training_hooks(subject: Subject) -> None:
         run(TrainingPhase.AFTER_BACKWARD, state)
         optimizer.step()
         run(TrainingPhase.AFTER_STEP, state)
-        problem = optimizer_problem(model, optimizer)
+        problem = optimizer_problem(model, optimizer, subject.name)
         expect(problem is None, f"after step {step}: {problem}")
         found = non_finite_tensor(model)
         expect(found is None, f"after step {step}: {found}; the trainer refuses to write a checkpoint of it "
@@ -432,7 +432,7 @@ def _check_reload(subject: Subject, model: ModelFamily, optimizer: torch.optim.O
                    dict.fromkeys(groups, 1e-3), options)
     call("loading the optimizer's state into the reloaded build's (as resume does)", resumed.load_state_dict,
          optimizer.state_dict())
-    problem = optimizer_problem(fresh, resumed)
+    problem = optimizer_problem(fresh, resumed, subject.name)
     expect(problem is None, f"after a save and reload, the optimizer state resumed does not fit: {problem}")
     name, parameter = next(((n, p) for n, p in fresh.named_parameters() if p.is_floating_point() and p.numel()),
                            (None, None))
