@@ -29,9 +29,9 @@ from pipeline_check import KIT_PARTS, TINY_SCENES, make_trainer
 from ply_reader import read_ply
 
 SMALL = {"name": "semantic_3dgs", "init_points": 300, "feature_dim": 4, "sh_degree": 1, "schedule_steps": 2000}
-"""A small model whose schedule, scaled to the contract kit's 8 training steps, densifies from the third step on and
-resets no opacity (the kit's synthetic scene has cameras 0.1 m apart: 3DGS's world-size pruning at 0.1 x that extent
-would remove every Gaussian after a reset)."""
+"""A small model (the contract kit sets its density schedule itself, ``KIT_DENSITY``: densifying at its 2nd and 4th
+step, no opacity reset, as the kit's synthetic scene has cameras 0.1 m apart and 3DGS's world-size pruning at 0.1 x
+that extent would remove every Gaussian after one)."""
 TINY = [*TINY_SCENES, "dataset.scenes=[layout_00]", "model.init_points=400", "model.feature_dim=4",
         "model.sh_degree=1", "model.schedule_steps=6", "model.densify_from=1", "model.densify_every=2",
         "model.densify_until=5", "model.opacity_reset_every=4", "model.sh_degree_every=2", "train.log_every=1",
