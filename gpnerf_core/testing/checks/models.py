@@ -1,7 +1,8 @@
 """Checks of model families: ``forward(StepBatch) -> StepOutput`` in training, ``predict(camera, sources) ->
 Prediction`` on a whole view, what they say about themselves (``capabilities``, ``semantic_output``,
-``parameter_groups``), and their hooks in a few training steps (callbacks, their own loss terms, an optimizer that
-follows a change of size).
+``parameter_groups``), and their hooks in a few training steps with density control made to act (callbacks, their
+own loss terms, an optimizer that follows a change of size, finite weights), then what follows training: the Gaussians
+``export`` writes, the weights saved and reloaded, the optimizer state resumed.
 
 The kit builds a family with the parts its config declares (``gpnerf_core.part``; their options from the family's
 config under check and the kit's ``configs``, else their defaults) and the kit's head (``inputs.KIT_HEAD``), at 3
