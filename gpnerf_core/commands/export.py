@@ -154,18 +154,36 @@ def export_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handove
 def scene_gaussians(model: Any, given: Any, scene: Any, owners: Any, name: str) -> Any:
     """The Gaussians a Gaussian family renders ``scene`` from (a feed-forward family's from the source views of the
     first exported frame, ``given``), checked finite; None for a family without Gaussians."""
-    from gpnerf_core.errors import NonFiniteError
+    from gpnerf_core.errors import NonFiniteError, PluginError
+    from gpnerf_core.geometry.gaussians.scene import scene_problem
     from gpnerf_core.runtime.finite import all_finite
 
     if not model.capabilities.gaussians:
         return None
     with torch.no_grad():
         splats = model.scene_gaussians(given.sources, near=scene.near, far=scene.far, features=given.features)
+    output = model.semantic_output
+    problem = scene_problem(splats, output.num_outputs if output is not None else None)
+    if problem is not None:
+        raise PluginError(f"export: scene {name!r}: the Gaussians of {family_where(owners.get('colour', 'model'))}: "
+                          f"{problem}; nothing was written")
     for field in ("means", "scales", "rotations", "opacities", "harmonics"):
         if not all_finite(getattr(splats, field)):
             raise NonFiniteError(f"export: scene {name!r}: the {owners.get('colour', 'model')} gave NaN or Inf in its "
                                  f"Gaussians' {field}; nothing was written")
     return splats
+
+
+def family_where(owner: str) -> str:
+    """``model 'x' (plugin <module>, <distribution> <version>)`` for the model ``owner`` names (``model 'x'``): the
+    registry's record of it, so a plugin's fault names the plugin; ``owner`` itself when the registry has none."""
+    from gpnerf_core.registry.components import get_registry
+
+    family = owner.removeprefix("model ").strip("'")
+    try:
+        return get_registry().get("model", family).where
+    except Exception:  # noqa: BLE001 - a message's detail; the fault itself is raised by the caller
+        return owner
 
 
 def rendered_points(prediction: Any, camera: Any, output: Any) -> tuple[Any, Any]:

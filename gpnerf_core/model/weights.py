@@ -18,7 +18,7 @@ from typing import Any, Callable, Mapping, Sequence
 import torch
 from torch import Tensor
 
-from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.errors import ConfigError, DataError, NonFiniteError
 from gpnerf_core.interfaces.model import ModelFamily
 from gpnerf_core.model.checkpoint import checked_state, evaluation_weights, read_torch_file
 
@@ -91,6 +91,34 @@ def check_finite(weights: Mapping[str, Tensor], source: str, skip: Sequence[str]
             f"{source}: tensor {key!r} is not finite ({nan} NaN, {int((~finite).sum()) - nan} Inf of {value.numel()} "
             "values); the file's weights are damaged (saved from a diverged model?): use another checkpoint"
         )
+
+
+def check_finite_model(model: torch.nn.Module, family: str, when: str) -> None:
+    """Refuse to write ``model``'s weights when a floating tensor of its state dict holds NaN or Inf (the rule
+    ``check_finite`` applies on loading, so a checkpoint written is one that loads): a ``NonFiniteError`` naming the
+    family, the tensor and ``when`` (``step 40: checkpoint step_0000040.pt``). The trainer calls it before every
+    checkpoint, so ``train.resume=auto`` finds the last finite one; the contract kit checks it sees a family's
+    parameters."""
+    found = non_finite_tensor(model)
+    if found is not None:
+        raise NonFiniteError(
+            f"{when}: model {family!r} {found}, so it is not written; the newest checkpoint before it is finite "
+            "(train.resume=auto resumes from it): lower the learning rates or find what diverged"
+        )
+
+
+def non_finite_tensor(model: torch.nn.Module) -> str | None:
+    """``parameter 'x' holds NaN or Inf (3 of 600 values)`` for the first floating tensor of ``model``'s state dict
+    that is not finite, or None."""
+    for key, value in model.state_dict().items():
+        if not (value.is_floating_point() or value.is_complex()):
+            continue
+        finite = torch.isfinite(value)
+        if bool(finite.all()):
+            continue
+        kind = "parameter" if key in dict(model.named_parameters()) else "buffer"
+        return f"{kind} {key!r} holds NaN or Inf ({int((~finite).sum())} of {value.numel()} values)"
+    return None
 
 
 def _class_dimension(found: torch.Size, expected: tuple[int, ...], classes: tuple[int, int]) -> bool:

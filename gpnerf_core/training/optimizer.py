@@ -88,3 +88,33 @@ def make_scheduler(optimizer: torch.optim.Optimizer, shared: Callable[[int], flo
     if not any(own):
         return torch.optim.lr_scheduler.LambdaLR(optimizer, shared)
     return torch.optim.lr_scheduler.LambdaLR(optimizer, [factor or shared for factor in own])
+
+
+def optimizer_problem(model: torch.nn.Module, optimizer: torch.optim.Optimizer, family: str | None = None
+                      ) -> str | None:
+    """What keeps ``optimizer`` from training ``model`` after a change of size (densification, a resume), in one
+    sentence, or None: a tensor it steps that the model no longer has (parameters replaced without it), a trainable
+    parameter in none of its groups (it would never train again), or a moment whose shape is not its parameter's.
+    The one rule the trainer checks after a family changes size and on resume, and the contract kit after its steps.
+    ``family``: its registry name, for the message (default: the class's).
+    """
+    family = family or getattr(model, "name", None) or type(model).__name__
+    names = {id(p): n for n, p in model.named_parameters()}
+    held = [p for group in optimizer.param_groups for p in group["params"]]
+    stale = [p for p in held if id(p) not in names]
+    if stale:
+        return (f"model {family!r}: the optimizer steps {len(stale)} tensor(s) the model no longer has (shape "
+                f"{list(stale[0].shape)}): parameters were replaced without the optimizer, so they stop training; "
+                "resize them with gpnerf_core.resize_parameter (GaussianParameters.set_rows with the optimizer)")
+    ids = {id(p) for p in held}
+    missing = [n for n, p in model.named_parameters() if p.requires_grad and id(p) not in ids]
+    if missing:
+        return (f"model {family!r}: parameter {missing[0]!r} is in no optimizer group, so it would never train "
+                "(resize parameters with gpnerf_core.resize_parameter, which hands the new tensor to the optimizer)")
+    for p in held:
+        for key, moment in optimizer.state.get(p, {}).items():
+            if isinstance(moment, torch.Tensor) and moment.dim() > 0 and moment.shape != p.shape:
+                return (f"model {family!r}: the optimizer's {key} of parameter {names[id(p)]!r} is "
+                        f"{list(moment.shape)} for a parameter {list(p.shape)}: its moments did not follow its rows "
+                        "(resize with gpnerf_core.resize_parameter and its kept rows)")
+    return None

@@ -32,12 +32,12 @@ from gpnerf_core.runtime.profiling import stage
 from gpnerf_core.model.output_checks import check_step_output
 from gpnerf_core.model.checkpoint import RunRecord, check_resume_config, checkpoint_sections, save_checkpoint
 from gpnerf_core.model.trained import TrainedModel, load_trained
-from gpnerf_core.model.weights import load_weights
+from gpnerf_core.model.weights import check_finite_model, load_weights
 from gpnerf_core.training.interrupt import StopNow, StopRequest, TrainingInterrupted
 from gpnerf_core.training.loggers import ScalarLogger
 from gpnerf_core.training.resume import checkpoint_path, prune_checkpoints
 from gpnerf_core.training.sampler import StepSampler
-from gpnerf_core.training.optimizer import learning_rates, make_optimizer, make_scheduler
+from gpnerf_core.training.optimizer import learning_rates, make_optimizer, make_scheduler, optimizer_problem
 from gpnerf_core.training.schedule import lr_factor
 from gpnerf_core.training.weight_average import WeightAverage
 from gpnerf_core.types import (
@@ -238,6 +238,8 @@ class Trainer:
             torch.manual_seed(process_seed(int(cfg.seed), dist.rank))
         if cfg.train.resume:
             self._resume(Path(cfg.train.resume), resume_from)
+        self._shapes = self._parameter_shapes()
+        """The parameters' shapes, which a family without ``Capabilities.changes_size`` keeps (``_check_parameters``)."""
         self.wrapped: torch.nn.Module = self.model
         if dist.enabled:
             # A loss set may leave whole modules without gradient (rgb alone: no head, no FPN); DDP must then search
@@ -317,6 +319,7 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
         self._run_family_callbacks(TrainingPhase.AFTER_BACKWARD, state)
+        self._check_parameters("after its after_backward callbacks")
         with stage("optimizer"):
             clip = self.cfg.train.grad_clip
             grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), clip if clip > 0 else math.inf)
@@ -327,9 +330,38 @@ class Trainer:
             if self.average is not None:
                 self.average.update(self.model)
         self._run_family_callbacks(TrainingPhase.AFTER_STEP, state)
+        self._check_parameters("after its after_step callbacks")
         self.last_grad_norm = grad_norm.detach()
         detached = {name: value.detach() for name, value in terms.items()} | {"loss": total.detach()}
         return detached, batch.num_rays, stop_signal
+
+    def _parameter_shapes(self) -> dict[str, tuple[int, ...]]:
+        return {name: tuple(p.shape) for name, p in self.model.named_parameters()}
+
+    def _check_parameters(self, when: str) -> None:
+        """The family's parameters after its callbacks: a family that ``changes_size`` still has every parameter in
+        the optimizer with moments of its shape (``optimizer_problem``), one that does not kept every shape; else a
+        one-line ``PluginError`` (a densification that bypassed the optimizer would otherwise train nothing more, and
+        an undeclared growth break ``train.ema_decay``'s average and every resume)."""
+        name = self.cfg.model.name
+        if self.model.capabilities.changes_size:
+            problem = optimizer_problem(self.model, self.optimizer, str(self.cfg.model.name))
+            if problem is not None:
+                raise PluginError(f"step {self.step}, {when}: {problem}; training stopped")
+            return
+        shapes = self._parameter_shapes()
+        if shapes == self._shapes:
+            return
+        changed = next((key for key in {**self._shapes, **shapes} if self._shapes.get(key) != shapes.get(key)))
+        before, after = self._shapes.get(changed), shapes.get(changed)
+        average = (f"; train.ema_decay={self.average.decay:g} keeps an average of fixed-size copies, which cannot "
+                   "follow it" if self.average is not None else "")
+        raise PluginError(
+            f"step {self.step}, {when}: model={name} changed parameter {changed!r} from "
+            f"{list(before) if before is not None else 'nothing'} to {list(after) if after is not None else 'nothing'}, "
+            f"but its capabilities.changes_size is False{average}: declare Capabilities(changes_size=True) (with "
+            "hooks.resize_to; train.ema_decay must then be 0)"
+        )
 
     def _state(self, batch: StepBatch | None, output: StepOutput | None) -> TrainingState:
         """What a callback or a family term is told at this point of the step."""
@@ -613,11 +645,13 @@ class Trainer:
 
     def _checkpoint(self, elapsed: float) -> Path | None:
         """Write a checkpoint at the current step (rank 0; every process contributes its random state)."""
+        target = checkpoint_path(self.run_dir, self.step)
+        check_finite_model(self.model, str(self.cfg.model.name), f"step {self.step}: checkpoint {target.name}")
         rng_states = self.dist.all_gather_object(self._rng_state())
         if not self.dist.is_main:
             return None
         path = save_checkpoint(
-            checkpoint_path(self.run_dir, self.step),
+            target,
             record=self.record,
             model=self.model,
             optimizer=self.optimizer,
@@ -650,6 +684,9 @@ class Trainer:
             self.scheduler.load_state_dict(state["scheduler"])
         except (ValueError, KeyError) as exc:
             raise ConfigError(f"train.resume={path}: its optimizer state does not fit this model ({exc})") from None
+        problem = optimizer_problem(self.model, self.optimizer, str(self.cfg.model.name))
+        if problem is not None:
+            raise ConfigError(f"train.resume={path}: its optimizer state does not fit the parameters ({problem})")
         if self.average is not None:
             if state.get("weight_average") is None:
                 raise ConfigError(

@@ -29,9 +29,9 @@ from pipeline_check import KIT_PARTS, TINY_SCENES, make_trainer
 from ply_reader import read_ply
 
 SMALL = {"name": "semantic_3dgs", "init_points": 300, "feature_dim": 4, "sh_degree": 1, "schedule_steps": 2000}
-"""A small model whose schedule, scaled to the contract kit's 8 training steps, densifies from the third step on and
-resets no opacity (the kit's synthetic scene has cameras 0.1 m apart: 3DGS's world-size pruning at 0.1 x that extent
-would remove every Gaussian after a reset)."""
+"""A small model (the contract kit sets its density schedule itself, ``KIT_DENSITY``: densifying at its 2nd and 4th
+step, no opacity reset, as the kit's synthetic scene has cameras 0.1 m apart and 3DGS's world-size pruning at 0.1 x
+that extent would remove every Gaussian after one)."""
 TINY = [*TINY_SCENES, "dataset.scenes=[layout_00]", "model.init_points=400", "model.feature_dim=4",
         "model.sh_degree=1", "model.schedule_steps=6", "model.densify_from=1", "model.densify_every=2",
         "model.densify_until=5", "model.opacity_reset_every=4", "model.sh_degree_every=2", "train.log_every=1",
@@ -397,3 +397,59 @@ def test_the_viewer_draws_the_fitted_gaussians_themselves(fitted):
     splats = renderer.gaussians("layout_00", ())  # a per-scene model: no source views, its own Gaussians
     assert renderer.draws_gaussians and splats.count == int(trained.state["model"]["gaussians.count"])
     assert splat_arrays(splats, "class", renderer.num_classes)["centers"].shape == (splats.count, 3)
+
+
+def _kit_failures(hooks_methods: dict, **capabilities) -> dict[str, str]:
+    """``{check: message}`` of the contract kit's failed checks of semantic_3dgs with its hooks' ``hooks_methods``
+    replaced (and ``capabilities`` changed), registered as ``broken_3dgs``."""
+    import types
+
+    from gpnerf_core import ComponentSpec, hookimpl
+    from gpnerf_core.testing import check_plugin
+    from gpnerf_plugins.families.semantic_3dgs.build import build_semantic_3dgs
+    from gpnerf_plugins.families.semantic_3dgs.config import Semantic3DGSConfig
+    from gpnerf_plugins.families.semantic_3dgs.model import Semantic3DGS
+
+    hooks = type("BrokenHooks", (Semantic3DGS.capabilities.hooks,), hooks_methods)
+    family = type("Broken3DGS", (Semantic3DGS,), {"capabilities": dataclasses.replace(
+        Semantic3DGS.capabilities, hooks=hooks, **capabilities)})
+    config = dataclasses.make_dataclass("BrokenConfig", [("name", str, dataclasses.field(default="broken_3dgs"))],
+                                        bases=(Semantic3DGSConfig,))
+
+    def build(**options) -> family:
+        built = build_semantic_3dgs(**options)
+        broken = family.__new__(family)
+        broken.__dict__ = built.__dict__
+        return broken
+
+    module = types.ModuleType("broken_3dgs_plugin")
+    module.gpnerf_register_models = hookimpl(lambda: [ComponentSpec("broken_3dgs", build, config)])
+    options = {key: value for key, value in SMALL.items() if key not in ("name", "schedule_steps")}
+    results = check_plugin(module, configs={"model/broken_3dgs": options}, raise_on_failure=False)
+    return {result.check: result.message for result in results if result.failed}
+
+
+def test_the_contract_kit_densifies_and_fails_what_a_densification_gets_wrong():
+    def skips_optimizer(self, state):
+        gaussians = self.family.gaussians
+        gaussians.set_rows({name: torch.cat([row.detach(), row.detach()[:1]]) for name, row in gaussians.rows().items()})
+
+    def never(self, state):
+        pass
+
+    def turns_nan(self, state):
+        type(self).__mro__[1].density_control(self, state)
+        if state.step == 3:
+            with torch.no_grad():
+                self.family.gaussians.means[0, 0] = float("nan")
+
+    def keeps_size(self, weights, source):
+        pass
+
+    no_finite_check = {"callbacks": lambda self: tuple(c for c in type(self).__mro__[1].callbacks(self)
+                                                       if c.run != self.check_finite)}
+    assert "replaced without the optimizer" in _kit_failures({"density_control": skips_optimizer})["training hooks"]
+    assert "no parameter changed size in 6 steps" in _kit_failures({"density_control": never})["training hooks"]
+    assert ("after step 3: parameter 'gaussians.means' holds NaN or Inf"
+            in _kit_failures({"density_control": turns_nan, **no_finite_check})["training hooks"])
+    assert "loading its saved weights into a fresh build" in _kit_failures({"resize_to": keeps_size})["training hooks"]

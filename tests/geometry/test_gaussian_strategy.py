@@ -140,3 +140,42 @@ def test_a_budget_is_never_exceeded_and_the_largest_gradients_grow_first():
     assert max(sizes) <= budget and sizes == sorted(sizes) and sizes[-1] == 40 + 20 * 9 // 10  # the last at 90 %
     with pytest.raises(ConfigError, match=r"the Gaussians start with 61 rows, above the budget of 60"):
         strategy.check_start(61)
+
+
+def _scene(count: int = 5, **replaced) -> GaussianScene:
+    fields = dict(means=torch.zeros(count, 3), scales=torch.ones(count, 3), rotations=torch.ones(count, 4),
+                  opacities=torch.full((count,), 0.5), harmonics=torch.zeros(count, 3, 4),
+                  labels=torch.zeros(count, dtype=torch.long))
+    return GaussianScene(**{**fields, **replaced})
+
+
+@pytest.mark.parametrize("replaced, expected", [
+    ({"labels": torch.zeros(4, dtype=torch.long)}, "its labels has 4 rows for 5 means"),
+    ({"opacities": torch.zeros(5, 1)}, "its opacities is [5, 1], expected [5]"),
+    ({"harmonics": torch.zeros(5, 3, 3)}, "its harmonics is [5, 3, 3], expected [5, 3, (degree + 1)^2]"),
+    ({"labels": torch.zeros(5)}, "its labels are torch.float32, expected integers"),
+    ({"labels": torch.full((5,), 7)}, "its labels reach 7; expected -1 (none) or an output of semantic_output (0 to 2)"),
+])
+def test_scene_problem_names_the_column_export_would_fail_on(replaced, expected):
+    from gpnerf_core.geometry.gaussians.scene import scene_problem
+
+    assert scene_problem(_scene(), 3) is None
+    assert expected in scene_problem(_scene(**replaced), 3)
+    assert "expected a gpnerf_core.GaussianScene" in scene_problem(object(), 3)
+
+
+def test_export_refuses_columns_of_another_length_in_one_line_naming_the_plugin():
+    from types import SimpleNamespace
+
+    from gpnerf_core.commands.export import scene_gaussians
+    from gpnerf_core.errors import PluginError
+    from gpnerf_core.interfaces.model import Capabilities
+
+    model = SimpleNamespace(capabilities=Capabilities(gaussians=True), semantic_output=None,
+                            scene_gaussians=lambda sources, **_: _scene(labels=torch.zeros(4, dtype=torch.long)))
+    given = SimpleNamespace(sources=None, features=None)
+    with pytest.raises(PluginError) as error:
+        scene_gaussians(model, given, SimpleNamespace(near=0.1, far=5.0), {"colour": "model 'semantic_3dgs'"}, "s")
+    message = str(error.value)
+    assert "\n" not in message and "its labels has 4 rows for 5 means" in message and "nothing was written" in message
+    assert "plugin gpnerf_plugins" in message  # the registry's record of the family names its plugin

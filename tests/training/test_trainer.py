@@ -342,3 +342,68 @@ def _in_float64(view):
                                   intrinsics=view.sources.intrinsics.double(), c2w=view.sources.c2w.double())
     return dataclasses.replace(view, camera=camera, sources=sources, image=view.image.double(),
                                depth=view.depth.double(), pixels=view.pixels.double())
+
+
+def _poison(phase, at_step, change):
+    """A command callback at ``phase`` that applies ``change(model)`` once, at step ``at_step``."""
+    from gpnerf_core.interfaces.training import TrainingCallback
+
+    def run(state):
+        if state.step == at_step:
+            change()
+    return TrainingCallback(phase, run)
+
+
+def test_a_checkpoint_holding_nan_is_not_written_so_auto_resume_takes_the_last_finite(tmp_path):
+    from gpnerf_core.interfaces.training import TrainingPhase
+    from gpnerf_core.training.resume import newest_intact_checkpoint
+
+    cfg = tiny_cfg(tmp_path, "train.steps=4", "train.checkpoint_every=2")
+    trainer = make_trainer(cfg, tmp_path / "run")
+    name, parameter = next(iter(trainer.model.named_parameters()))
+
+    def turn_nan():
+        with torch.no_grad():
+            parameter.view(-1)[0] = float("nan")
+
+    with pytest.raises(NonFiniteError) as error:
+        trainer.fit(progress=False, callbacks=[_poison(TrainingPhase.AFTER_STEP, 3, turn_nan)])
+    message = str(error.value)
+    assert "\n" not in message and f"parameter {name!r} holds NaN or Inf" in message
+    assert message.startswith("step 4: checkpoint step_0000004.pt: model 'gnt'") and "not written" in message
+    assert [p.name for p in (tmp_path / "run" / "checkpoints").iterdir()] == ["step_0000002.pt"]
+    assert newest_intact_checkpoint(tmp_path / "run")[0].name == "step_0000002.pt"
+
+
+def test_a_parameter_that_changes_shape_without_changes_size_is_refused_naming_ema_decay(tmp_path):
+    from gpnerf_core.errors import PluginError
+    from gpnerf_core.interfaces.training import TrainingPhase
+
+    trainer = make_trainer(tiny_cfg(tmp_path, "train.steps=2", "train.ema_decay=0.9"), tmp_path / "run")
+    owner, key = next((m, k) for m in trainer.model.modules() for k, p in m.named_parameters(recurse=False)
+                      if p.dim() == 1)
+
+    def grow():
+        old = getattr(owner, key)
+        setattr(owner, key, torch.nn.Parameter(torch.cat([old.detach(), old.detach()[:1]])))
+
+    with pytest.raises(PluginError) as error:
+        trainer.fit(progress=False, callbacks=[_poison(TrainingPhase.AFTER_BACKWARD, 0, grow)])
+    message = str(error.value)
+    assert "\n" not in message and "capabilities.changes_size is False" in message
+    assert "train.ema_decay=0.9" in message and "step 0, after its after_backward callbacks" in message
+
+
+def test_resume_refuses_optimizer_state_that_does_not_fit_the_parameters_in_one_line(tmp_path):
+    from gpnerf_core.model.trained import load_trained
+
+    checkpoint = make_trainer(tiny_cfg(tmp_path, "train.steps=1"), tmp_path / "run").fit(progress=False).checkpoint
+    read = load_trained(checkpoint)
+    moments = read.state["optimizer"]["state"][0]
+    moments["exp_avg"] = moments["exp_avg"].flatten()[:-1].clone()  # tampered: not the parameter's shape
+    cfg = tiny_cfg(tmp_path, "train.steps=2", f"train.resume={checkpoint}")
+    with pytest.raises(ConfigError) as error:
+        make_trainer(cfg, tmp_path / "run2", resume_from=read)
+    message = str(error.value)
+    assert "\n" not in message and "its optimizer state does not fit the parameters" in message
+    assert "exp_avg of parameter" in message

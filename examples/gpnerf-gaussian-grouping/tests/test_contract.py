@@ -13,9 +13,8 @@ from gpnerf_gaussian_grouping.plugin import build_gaussian_grouping
 
 pytest_plugins = ["gpnerf_core.testing.pytest_plugin"]
 
-SMALL = {"model/gaussian_grouping": {"init_points": 200, "identity_dim": 4, "sh_degree": 1, "schedule_steps": 2000,
-                                     "reg3d_sample_size": 50}}
-"""Small, with the densification schedule scaled into the kit's 8 steps (it densifies from the third)."""
+SMALL = {"model/gaussian_grouping": {"init_points": 200, "identity_dim": 4, "sh_degree": 1, "reg3d_sample_size": 50}}
+"""Small; the kit makes its density control act within its steps itself (``KIT_DENSITY``)."""
 
 
 @contract_checks("gpnerf-gaussian-grouping", configs=SMALL)  # the installed distribution, by name
@@ -92,7 +91,75 @@ def test_gaussians_whose_columns_disagree_fail_before_export_would():
             splats = super().scene_gaussians(sources, near=near, far=far, features=features)
             return dataclasses.replace(splats, labels=splats.labels[:-1])
 
-    assert "scene_gaussians' labels has" in failed(ShortLabels)["training hooks"]
+    message = failed(ShortLabels)["training hooks"]
+    assert "scene_gaussians: its labels has" in message and "export refuses it" in message
+
+
+def test_a_gaussian_that_turns_nan_fails_before_a_checkpoint_would_hold_it():
+    class NaNHooks(GroupingHooks):
+        def callbacks(self):  # its own finiteness check left out, as a family written from scratch might
+            return tuple(c for c in super().callbacks() if c.run != self.check_finite)
+
+        def density_control(self, state):
+            super().density_control(state)
+            if state.step == 3:
+                with torch.no_grad():
+                    self.family.gaussians.means[0, 0] = float("nan")
+
+    class TurnsNaN(GaussianGrouping):
+        capabilities = dataclasses.replace(GaussianGrouping.capabilities, hooks=NaNHooks)
+
+    message = failed(TurnsNaN)["training hooks"]
+    assert "after step 3: parameter 'gaussians.means' holds NaN or Inf" in message
+
+
+def test_a_densification_that_drops_the_optimizer_state_fails():
+    class DropsMoments(GroupingHooks):
+        def density_control(self, state):
+            super().density_control(state)
+            gaussians = self.family.gaussians
+            moments = state.optimizer.state.get(gaussians.means, {})
+            for key in ("exp_avg", "exp_avg_sq"):  # stale moments of the old size, as a hand-written resize might leave them
+                if key in moments:
+                    moments[key] = moments[key][:-1].clone()
+
+    class Drops(GaussianGrouping):
+        capabilities = dataclasses.replace(GaussianGrouping.capabilities, hooks=DropsMoments)
+
+    message = failed(Drops)["training hooks"]
+    assert "exp_avg" in message and "'gaussians.means'" in message and "did not follow its rows" in message
+
+
+def test_a_family_that_declares_changes_size_but_never_changes_fails():
+    class NeverDensifies(GroupingHooks):
+        def density_control(self, state):
+            pass  # statistics and densification left out
+
+    class Never(GaussianGrouping):
+        capabilities = dataclasses.replace(GaussianGrouping.capabilities, hooks=NeverDensifies)
+
+    assert "changes_size is True but no parameter changed size" in failed(Never)["training hooks"]
+
+
+def test_a_checkpoint_that_does_not_reload_fails():
+    class KeepsItsSize(GroupingHooks):
+        def resize_to(self, weights, source):
+            pass  # a checkpoint of another size is not followed
+
+    class NoResize(GaussianGrouping):
+        capabilities = dataclasses.replace(GaussianGrouping.capabilities, hooks=KeepsItsSize)
+
+    message = failed(NoResize)["training hooks"]
+    assert "loading its saved weights into a fresh build" in message and "gaussians." in message
+
+
+def test_gaussians_whose_labels_are_out_of_range_fail():
+    class HighLabels(GaussianGrouping):
+        def scene_gaussians(self, sources, *, near, far, features=None):
+            splats = super().scene_gaussians(sources, near=near, far=far, features=features)
+            return dataclasses.replace(splats, labels=splats.labels.clamp_min(0) + self.slots + 1)
+
+    assert "scene_gaussians: its labels reach" in failed(HighLabels)["training hooks"]
 
 
 def test_a_capability_it_declares_but_lacks_is_refused_at_registration_naming_the_plugin():

@@ -74,6 +74,52 @@ class GaussianScene:
         return columns
 
 
+SCENE_FIELDS = ("means", "scales", "rotations", "opacities", "harmonics", "labels")
+"""``GaussianScene``'s columns, in the order ``scene_problem`` checks them."""
+
+
+def scene_problem(scene: object, num_outputs: int | None = None) -> str | None:
+    """What makes ``scene`` (a family's ``scene_gaussians``) unfit for ``export``'s PLY and ``view``'s splats, in one
+    sentence naming the column, or None: not a ``GaussianScene``; a field that is not a tensor, has another row count
+    than ``means`` or another trailing shape than the class documents (``harmonics`` ``[G, 3, (d + 1)^2]``); labels
+    that are not integers, or outside -1 to ``num_outputs - 1`` (``semantic_output.num_outputs``; None: not checked).
+    Finiteness is checked apart (``export``'s NaN message). The one rule of export and the contract kit."""
+    if not isinstance(scene, GaussianScene):
+        return f"scene_gaussians returned {type(scene).__name__}, expected a gpnerf_core.GaussianScene"
+    trailing = {"means": (3,), "scales": (3,), "rotations": (4,), "opacities": (), "labels": ()}
+    means = scene.means
+    if not isinstance(means, Tensor) or means.dim() != 2:
+        return f"its means is {_described(means)}, expected a [G, 3] tensor"
+    count = int(means.shape[0])
+    for name in SCENE_FIELDS:
+        value = getattr(scene, name)
+        if not isinstance(value, Tensor):
+            return f"its {name} is {type(value).__name__}, expected a tensor with one row per Gaussian"
+        if value.dim() == 0 or int(value.shape[0]) != count:
+            return (f"its {name} has {int(value.shape[0]) if value.dim() else 0} rows for {count} means: every column "
+                    "has one row per Gaussian")
+        rest = tuple(value.shape[1:])
+        if name == "harmonics":
+            ok = len(rest) == 2 and rest[0] == 3 and math.isqrt(rest[1]) ** 2 == rest[1] and rest[1] >= 1
+            if not ok:
+                return f"its harmonics is {list(value.shape)}, expected [{count}, 3, (degree + 1)^2]"
+        elif rest != trailing[name]:
+            return f"its {name} is {list(value.shape)}, expected {[count, *trailing[name]]}"
+    labels = scene.labels
+    if labels.is_floating_point() or labels.dtype == torch.bool:
+        return f"its labels are {labels.dtype}, expected integers (int64: a class id or instance slot, -1 for none)"
+    if num_outputs is not None and labels.numel():
+        low, high = int(labels.min()), int(labels.max())
+        if low < -1 or high >= num_outputs:
+            return (f"its labels reach {low if low < -1 else high}; expected -1 (none) or an output of "
+                    f"semantic_output (0 to {num_outputs - 1})")
+    return None
+
+
+def _described(value: object) -> str:
+    return f"a tensor of shape {list(value.shape)}" if isinstance(value, Tensor) else type(value).__name__
+
+
 def harmonics_rotation(rotation: Tensor, degree: int) -> Tensor:
     """``[(degree + 1)^2, (degree + 1)^2]`` M with ``Y(R^T d) = Y(d) M`` for every unit d: coefficients ``c`` of a colour
     defined on directions of a frame rotated by ``R`` (frame-to-world) are ``M c`` in world directions. Found by least

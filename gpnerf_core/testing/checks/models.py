@@ -1,7 +1,8 @@
 """Checks of model families: ``forward(StepBatch) -> StepOutput`` in training, ``predict(camera, sources) ->
 Prediction`` on a whole view, what they say about themselves (``capabilities``, ``semantic_output``,
-``parameter_groups``), and their hooks in a few training steps (callbacks, their own loss terms, an optimizer that
-follows a change of size).
+``parameter_groups``), and their hooks in a few training steps with density control made to act (callbacks, their
+own loss terms, an optimizer that follows a change of size, finite weights), then what follows training: the Gaussians
+``export`` writes, the weights saved and reloaded, the optimizer state resumed.
 
 The kit builds a family with the parts its config declares (``gpnerf_core.part``; their options from the family's
 config under check and the kit's ``configs``, else their defaults) and the kit's head (``inputs.KIT_HEAD``), at 3
@@ -12,11 +13,14 @@ is first ``initialise``d with that scene, ``inputs.model_scene``).
 from __future__ import annotations
 
 import dataclasses
+import tempfile
+from pathlib import Path
 
 import torch
 from torch import Tensor, nn
 
-from gpnerf_core.geometry.gaussians.scene import GaussianScene
+from gpnerf_core.errors import NonFiniteError
+from gpnerf_core.geometry.gaussians.scene import SCENE_FIELDS, scene_problem
 from gpnerf_core.interfaces.head import Predicts
 from gpnerf_core.interfaces.model import ModelFamily, SemanticMode, SemanticOutput, TrainingBatch, capability_problems
 from gpnerf_core.interfaces.training import TrainingPhase, TrainingState
@@ -32,10 +36,17 @@ from gpnerf_core.testing.checks.common import (
     total,
 )
 from gpnerf_core.testing.inputs import KIT_CLASSES, model_batch, model_scene, model_view
-from gpnerf_core.training.optimizer import check_parameter_groups as check_groups, learning_rates, make_optimizer
+from gpnerf_core.model.weights import check_finite_model, load_weights, non_finite_tensor
+from gpnerf_core.runtime.ply import write_ply
+from gpnerf_core.training.optimizer import (
+    check_parameter_groups as check_groups,
+    learning_rates,
+    make_optimizer,
+    optimizer_problem,
+)
 from gpnerf_core.types import ImageOutput, Prediction, RenderedRays, StepOutput, ViewOutput
 
-KIT_STEPS = 8
+KIT_STEPS = 6
 """Training steps of the hooks check, and its ``train.steps``: a schedule the family scales to the run (3D Gaussian
 splatting's densification) acts within them."""
 
@@ -274,34 +285,33 @@ def check_capabilities(subject: Subject) -> None:
     expect(not problems, "; ".join(problems))
 
 
-def _optimizer_follows(model: ModelFamily, optimizer: torch.optim.Optimizer, step: int) -> None:
-    """Every trainable parameter is in the optimizer once, the optimizer holds nothing else, and its moments have the
-    parameters' shapes."""
-    held = [p for group in optimizer.param_groups for p in group["params"]]
-    names = {id(p): n for n, p in model.named_parameters()}
-    trainable = [p for p in model.parameters() if p.requires_grad]
-    stale = [p for p in held if id(p) not in names]
-    expect(not stale, f"after step {step} the optimizer steps {len(stale)} tensor(s) the model no longer has (shapes "
-                      f"{', '.join(shape(p) for p in stale[:3])}): parameters were replaced without the optimizer; "
-                      "resize them with gpnerf_core.resize_parameter (GaussianParameters.set_rows with the optimizer)")
-    missing = [names[id(p)] for p in trainable if not any(p is q for q in held)]
-    expect(not missing, f"after step {step} the model's parameter {missing[0] if missing else ''!r} is in no optimizer "
-                        "group: it would never train")
-    for p in held:
-        moments = optimizer.state.get(p, {})
-        for key in ("exp_avg", "exp_avg_sq"):
-            if key in moments:
-                expect(moments[key].shape == p.shape, f"after step {step} the optimizer's {key} of "
-                                                      f"{names.get(id(p), '?')!r} is {shape(moments[key])} for a "
-                                                      f"parameter {shape(p)}: the moments did not follow its rows")
+KIT_DENSITY = {"schedule_steps": KIT_STEPS, "densify_from": 1, "densify_every": 2, "densify_until": KIT_STEPS,
+               "opacity_reset_every": 1000, "densify_grad_threshold": 1e-12}
+"""Config fields the hooks check sets where the family's config has them (``GaussianSceneConfig``'s): density control
+acts as the steps' schedule makes it due, at the 2nd and 4th step, on every Gaussian a view saw (any gradient), so a
+family that ``changes_size`` changes size within the steps; no opacity reset (the synthetic scene's cameras are 0.1 m
+apart: world-size pruning after one would remove every Gaussian). A family with its own schedule makes it act within
+``KIT_STEPS`` steps through the kit's ``configs``."""
+
+
+def densifying(subject: Subject) -> Subject:
+    """``subject`` with ``KIT_DENSITY`` over its config, for the fields its config has."""
+    fields = {f.name for f in dataclasses.fields(subject.entry.spec.config)}
+    forced = {key: value for key, value in KIT_DENSITY.items() if key in fields}
+    return dataclasses.replace(subject, config={**subject.config, **forced}) if forced else subject
 
 
 def check_training_hooks(subject: Subject) -> None:
     """``KIT_STEPS`` training steps through the family's hooks as the trainer runs them (``train.steps`` =
-    ``KIT_STEPS``): its callbacks at their phases, told the step and its outputs; its own loss terms (every name of
-    ``capabilities.loss_terms``, a finite scalar each step, its gradient reaching the model); and after every step an
-    optimizer that steps exactly the model's parameters with moments of their shapes (a densification that replaced
-    parameters without the optimizer fails here)."""
+    ``KIT_STEPS``, density control forced due: ``KIT_DENSITY``): its callbacks at their phases, told the step and its
+    outputs; its own loss terms (every name of ``capabilities.loss_terms``, a finite scalar each step, its gradient
+    reaching the model); after every step an optimizer that still steps every parameter with moments of its shape
+    (``training.optimizer.optimizer_problem``, the trainer's rule: a densification that replaced parameters without
+    the optimizer fails here), every weight finite (the trainer writes no checkpoint otherwise), and the shapes kept
+    unless ``capabilities.changes_size``; a family that declares it changes size within the steps. Then what follows
+    training: its Gaussians as ``export`` writes them (``_check_gaussians``), its weights saved, reloaded and equal,
+    its optimizer state resumed (``_check_reload``)."""
+    subject = densifying(subject)
     model = build(subject, head=subject.takes_head).train()
     capabilities = model.capabilities
     groups = call("parameter_groups()", model.parameter_groups)
@@ -318,6 +328,7 @@ def check_training_hooks(subject: Subject) -> None:
                 call(f"its {phase.value} callback at step {state.step}", callback.run, state)
 
     shapes = {name: tuple(p.shape) for name, p in model.named_parameters()}
+    resized = False
     for step in range(KIT_STEPS):
         batch = model_batch(sources=capabilities.generalizable, whole_images=whole, views=1)
         state = TrainingState(step=step, total_steps=KIT_STEPS, optimizer=optimizer, batch=batch)
@@ -346,39 +357,97 @@ def check_training_hooks(subject: Subject) -> None:
         run(TrainingPhase.AFTER_BACKWARD, state)
         optimizer.step()
         run(TrainingPhase.AFTER_STEP, state)
-        _optimizer_follows(model, optimizer, step)
+        problem = optimizer_problem(model, optimizer, subject.name)
+        expect(problem is None, f"after step {step}: {problem}")
+        found = non_finite_tensor(model)
+        expect(found is None, f"after step {step}: {found}; the trainer refuses to write a checkpoint of it "
+                              "(check_finite_model) and stops the run")
+        now = {n: tuple(p.shape) for n, p in model.named_parameters()}
+        resized = resized or now != shapes
         if not capabilities.changes_size:
-            changed = [n for n, p in model.named_parameters() if shapes.get(n) != tuple(p.shape)]
+            changed = [n for n in {**shapes, **now} if shapes.get(n) != now.get(n)]
             expect(not changed, f"after step {step} parameter {changed[0] if changed else ''!r} changed its shape, but "
-                                "capabilities.changes_size is False: declare it (the trainer then refuses what cannot "
-                                "follow a change of size, and checkpoints load through hooks.resize_to)")
+                                "capabilities.changes_size is False: declare it (the trainer refuses a change of "
+                                "shape otherwise, and train.ema_decay with it; checkpoints load through "
+                                "hooks.resize_to)")
+    if capabilities.changes_size:
+        forced = ", ".join(f"model.{k}={KIT_DENSITY[k]}" for k in KIT_DENSITY if k in subject.config)
+        how = (f"with {forced}" if forced
+               else "its config has none of the kit's density keys: give the kit configs that make it act")
+        expect(resized, f"capabilities.changes_size is True but no parameter changed size in {KIT_STEPS} steps "
+                        f"({how}): its density control never acted, so the kit could not check that the optimizer "
+                        "follows it")
+    model.eval()
     if capabilities.gaussians and not capabilities.generalizable:
-        _check_gaussians(model.eval(), f"after {KIT_STEPS} training steps")
+        _check_gaussians(model, f"after {KIT_STEPS} training steps")
+    _check_reload(subject, model, optimizer, options)
 
 
 def _check_gaussians(model: ModelFamily, when: str) -> None:
-    """A per-scene family's ``scene_gaussians`` (what ``export`` writes, ``view`` draws): one row per Gaussian in
-    every field, finite, labels -1 or an output of ``semantic_output``."""
+    """A per-scene family's ``scene_gaussians`` (what ``export`` writes, ``view`` draws) keeps ``scene_problem``
+    (export's rule: one row per Gaussian in every column, the documented shapes, labels -1 or an output of
+    ``semantic_output``), is finite, and is written to a PLY in a temporary folder as ``export`` writes it, one row
+    per Gaussian."""
     scene = model_scene()
     with torch.no_grad():
         splats = call("scene_gaussians(None, ...)", model.scene_gaussians, None, near=scene.near, far=scene.far)
-    expect(isinstance(splats, GaussianScene), f"scene_gaussians returned {type(splats).__name__}, expected a "
-                                              "gpnerf_core.GaussianScene")
-    count = int(splats.means.shape[0])
-    for field in ("means", "scales", "rotations", "opacities", "harmonics", "labels"):
-        tensor = getattr(splats, field)
-        expect(int(tensor.shape[0]) == count, f"{when}: scene_gaussians' {field} has {int(tensor.shape[0])} rows for "
-                                              f"{count} means; every field has one row per Gaussian (export writes "
-                                              "them as columns)")
-        if field != "labels":
-            expect(bool(torch.isfinite(tensor).all()), f"{when}: scene_gaussians' {field} holds NaN or Inf")
     output = model.semantic_output
-    top = output.num_outputs if output is not None else 0
-    labels = splats.labels
-    highest = int(labels.max()) if labels.numel() else -1
-    expect(bool(((labels >= -1) & (labels < top)).all()),
-           f"{when}: scene_gaussians' labels reach {highest}; expected -1 (none) or an output of semantic_output "
-           f"(0 to {top - 1})")
+    problem = scene_problem(splats, output.num_outputs if output is not None else 0)
+    expect(problem is None, f"{when}: scene_gaussians: {problem} (export refuses it)")
+    for field in SCENE_FIELDS[:-1]:
+        expect(bool(torch.isfinite(getattr(splats, field)).all()),
+               f"{when}: scene_gaussians' {field} holds NaN or Inf")
+    with tempfile.TemporaryDirectory(prefix="gpnerf-kit-") as folder:
+        path = Path(folder) / "gaussians.ply"
+        call("writing scene_gaussians as export does (gaussians.ply)", write_ply, path,
+             columns=splats.ply_columns())
+        data = path.read_bytes()
+    header, _, body = data.partition(b"end_header\n")
+    lines = header.decode("ascii").splitlines()
+    count = next((int(line.split()[2]) for line in lines if line.startswith("element vertex")), -1)
+    expect(count == splats.count, f"{when}: the exported gaussians.ply holds {count} vertices for {splats.count} "
+                                  "Gaussians")
+
+
+def _check_reload(subject: Subject, model: ModelFamily, optimizer: torch.optim.Optimizer,
+                  options: object) -> None:
+    """The trained family's weights saved to a file and loaded into a fresh build as a checkpoint is
+    (``load_weights``: ``hooks.resize_to`` first for a family that ``changes_size``) come back bit for bit; its
+    optimizer's state loads into the fresh build's optimizer and fits its parameters (``optimizer_problem``, which
+    resume checks); the trainer's guard before a checkpoint (``check_finite_model``) sees a NaN put in a parameter."""
+    with tempfile.TemporaryDirectory(prefix="gpnerf-kit-") as folder:
+        path = Path(folder) / "weights.pt"
+        call("torch.save(model.state_dict())", torch.save, model.state_dict(), path)
+        weights = torch.load(path, map_location="cpu", weights_only=True)
+    fresh = build(subject, head=subject.takes_head)
+    call("loading its saved weights into a fresh build (load_weights, as resume and eval do)", load_weights, fresh,
+         weights, "the kit's saved weights")
+    reloaded = fresh.state_dict()
+    for key, value in model.state_dict().items():
+        again = reloaded.get(key)
+        expect(again is not None and again.shape == value.shape and torch.equal(again.cpu(), value.cpu()),
+               f"tensor {key!r} is not the same after a save and reload into a fresh build "
+               f"({shape(value)} -> {shape(again) if again is not None else 'missing'})")
+    groups = call("parameter_groups() of the reloaded build", fresh.parameter_groups)
+    resumed = call("building Adam over the reloaded build's groups", make_optimizer, fresh,
+                   dict.fromkeys(groups, 1e-3), options)
+    call("loading the optimizer's state into the reloaded build's (as resume does)", resumed.load_state_dict,
+         optimizer.state_dict())
+    problem = optimizer_problem(fresh, resumed, subject.name)
+    expect(problem is None, f"after a save and reload, the optimizer state resumed does not fit: {problem}")
+    name, parameter = next(((n, p) for n, p in fresh.named_parameters() if p.is_floating_point() and p.numel()),
+                           (None, None))
+    if parameter is None:
+        return
+    with torch.no_grad():
+        parameter.fill_(float("nan"))
+    try:
+        check_finite_model(fresh, subject.name, "the kit's NaN")
+    except NonFiniteError as exc:
+        expect(repr(name) in str(exc), f"a NaN put in parameter {name!r} was refused naming another tensor: {exc}")
+    else:
+        raise CheckFailed(f"a NaN put in parameter {name!r} was not seen by the checkpoint guard (check_finite_model "
+                          "reads state_dict(): the family's state_dict leaves it out)")
 
 
 CHECKS = {
