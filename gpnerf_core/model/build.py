@@ -11,8 +11,9 @@ from gpnerf_core.data.dataset import SceneDataset
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.interfaces import LossSet, PerceptionHead, ViewSelector
 from gpnerf_core.interfaces.head import Predicts
-from gpnerf_core.interfaces.model import ModelFamily, ModelParts, TrainingBatch
+from gpnerf_core.interfaces.model import ModelFamily, ModelParts
 from gpnerf_core.model.classes import ClassList
+from gpnerf_core.model.loss_fit import check_loss_fits, check_predictions_fit, declared_head_predicts
 from gpnerf_core.registry.components import Registry, get_registry
 from gpnerf_core.registry.guards import guard_outputs
 from gpnerf_core.registry.kinds import KINDS, section
@@ -179,31 +180,8 @@ def build_components(cfg: Any, registry: Registry | None = None, *, classes: Cla
     model, sections = built_model(cfg, label_space.num_classes, registry)
     loss = None
     if cfg.get("loss") is not None:
+        check_predictions_fit(cfg, model, declared_head_predicts(cfg, registry))  # before the loss's own checks
         loss = registry.build("loss", cfg.loss)
-        check_loss_fits(cfg, model, loss)
+        check_loss_fits(cfg, model, loss, num_classes=label_space.num_classes, registry=registry)
     return Components(dataset=dataset, view_selector=selector, model=model, loss=loss, classes=label_space,
                       model_sections=sections)
-
-
-def check_loss_fits(cfg: Any, model: ModelFamily, loss: LossSet) -> None:
-    """The loss set reads only what the model renders: semantic outputs, and scores of the kind it trains."""
-    if getattr(loss, "needs_whole_images", False) and model.capabilities.trains_on is not TrainingBatch.IMAGES:
-        raise ConfigError(f"loss {cfg.loss.name!r} reads whole images, and model {cfg.model.name!r} trains on random "
-                          f"rays; use a loss set on rays (+loss=ce, +loss=dgs, ...) or a model that renders whole "
-                          f"images (model=mvsplat)")
-    output = model.semantic_output
-    wanted = Predicts(loss.head_predicts) if loss.head_predicts is not None else None
-    if loss.needs_semantics and output is None:
-        hint = "+head=instance" if wanted is Predicts.INSTANCES else "+head=unet"
-        raise ConfigError(
-            f"loss {cfg.loss.name!r} needs semantics but model {cfg.model.name!r} renders none as configured: add a "
-            f"head ({hint}) and keep the model's semantic outputs on"
-        )
-    if wanted is not None and output is not None and output.predicts is not wanted:
-        predicts = output.predicts.value
-        what = "an instance head (+head=instance)" if wanted is Predicts.INSTANCES else "a class head"
-        owner = f"head {cfg.head.name!r}" if cfg.get("head") is not None else f"model {cfg.model.name!r}"
-        raise ConfigError(
-            f"loss {cfg.loss.name!r} trains {wanted.value} but {owner} predicts {predicts}; use {what} or a loss set "
-            f"for {predicts} (+loss={'instance' if output.predicts is Predicts.INSTANCES else 'dgs'})"
-        )

@@ -111,6 +111,7 @@ class InstanceLossSet(WeightedLossSet):
     """
 
     needs_instances = True
+    head_predicts = Predicts.INSTANCES  # declared on the class: checked against the model before the options are
 
     def __init__(self, instance_weight: float = InstanceLossConfig.instance_weight, **options: float | bool | str):
         if float(options.get("ce_weight", 0.0)) != 0.0:
