@@ -63,3 +63,12 @@ def test_a_family_that_takes_a_head_is_still_told_to_add_one(capsys, tmp_path):
     line = refusal(capsys, "run", "+loss=dgs", *SMALL, f"out_dir={tmp_path / 'run'}")
     assert "model 'gnt' renders none as configured" in line and "(+head=unet)" in line
     assert "train colour only (loss.ce_weight=0 loss.sd_weight=0 loss.dgs_weight=0)" in line
+
+
+def test_depth_candidates_past_the_sane_range_are_refused_with_the_memory_they_would_need(capsys, tmp_path):
+    """Was: a 40 GB allocator message from the first layer over the candidates."""
+    line = refusal(capsys, "run", "+experiment=baselines/mvsplat", "model.depth_candidates=100000", *SMALL,
+                   f"out_dir={tmp_path / 'run'}")
+    assert line.startswith("error: model.depth_candidates=100000: expected 2 to 1024; ")
+    assert "3.7e+11 weights, about 1.48e+03 GB in float32" in line
+    assert not (tmp_path / "run").exists()

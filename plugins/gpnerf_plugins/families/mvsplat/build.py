@@ -9,6 +9,21 @@ from gpnerf_plugins.families.mvsplat.config import MVSplatConfig
 from gpnerf_plugins.families.mvsplat.model import MVSplat
 
 
+MAX_DEPTH_CANDIDATES = 1024
+"""The most depth candidates ``model.depth_candidates`` takes (MVSplat: 32, 128 for RE10K): the layers over the
+candidates grow with their square (``depth_layer_weights``), about 39M weights at 1024."""
+
+
+def depth_layer_weights(candidates: int, feature_dim: int, cost_dim: int) -> int:
+    """The weights of ``DepthPredictor``'s layers whose size depends on the D = ``candidates`` depth candidates (the
+    cost volume's input and output convolutions, its residual and the 3 x 3 depth head, about 37 D^2)."""
+    d, volume_in = candidates, candidates + feature_dim
+    cost_refine = volume_in * cost_dim * 9 + cost_dim + cost_dim * d * 9 + d
+    cost_residual = volume_in * d + d
+    depth_head = d * 2 * d * 9 + 2 * d + 2 * d * d * 9 + d
+    return cost_refine + cost_residual + depth_head
+
+
 def _check(feature_dim: int, transformer_layers: int, attention_splits: int, depth_candidates: int, cost_unet_dim: int,
            depth_unet_dim: int, unet_levels: int, scale_min: float, scale_max: float, background: float,
            rasterizer: str) -> None:
@@ -18,6 +33,11 @@ def _check(feature_dim: int, transformer_layers: int, attention_splits: int, dep
     for key, (value, least) in counts.items():
         if isinstance(value, bool) or not isinstance(value, int) or value < least:
             raise ConfigError(f"model.{key}={value!r}: expected an integer >= {least}")
+    if not depth_candidates <= MAX_DEPTH_CANDIDATES:
+        weights = depth_layer_weights(depth_candidates, feature_dim, cost_unet_dim)
+        raise ConfigError(f"model.depth_candidates={depth_candidates}: expected 2 to {MAX_DEPTH_CANDIDATES}; the layers "
+                          f"over the candidates alone would hold {weights:.2g} weights, about {weights * 4 / 1e9:.3g} GB "
+                          f"in float32 ({weights * 16 / 1e9:.3g} GB training, with gradients and Adam's two moments)")
     if feature_dim % 2:
         raise ConfigError(f"model.feature_dim={feature_dim}: expected an even number (half the position embedding is "
                           "for rows, half for columns)")
