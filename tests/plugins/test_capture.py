@@ -360,3 +360,24 @@ def test_data_that_loads_but_cannot_be_right_is_refused_by_the_checks(capture, t
     dataset = CaptureScenes(root=str(_copy(capture, tmp_path, change)), height=48, width=64, near=0.1, far=8.0)
     problems = dataset.check_files(dataset.scenes("train"), level)
     assert any(message in problem for problem in problems), problems
+
+
+def _label_out_of_range(t):
+    path = Path(t["_folder"]) / t["frames"][3]["semantic_file_path"]
+    labels = np.asarray(Image.open(path)).copy()
+    labels[0, 0] = 77  # 9 classes, ignore index 255
+    Image.fromarray(labels).save(path)
+
+
+def test_a_label_id_outside_the_classes_is_named_with_its_file_when_the_scene_loads_and_when_read(capture, tmp_path):
+    """Issue 55: a training frame the quick check did not decode was refused only when training read it, without
+    the file; its label ids are now read when the scene loads (quick or full), and checked whenever read."""
+    folder = _copy(capture, tmp_path, _label_out_of_range)
+    expected = (f"{folder / 'semantics' / 'frame_00003.png'}: class id 77 outside the 9 classes 0..8 of "
+                f"{folder / 'classes.json'} and not its ignore_index=255")
+    with pytest.raises(DataError, match=expected.replace(".", r"\.")):
+        load(folder)  # dataset.validate=quick: before any training
+    _, scene = load(folder, validate="off")
+    scene.load_frame(2)
+    with pytest.raises(DataError, match=expected.replace(".", r"\.")):
+        scene.load_frame(3)

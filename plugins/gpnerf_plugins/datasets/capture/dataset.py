@@ -256,6 +256,8 @@ class CaptureScenes(DatasetBase):
         c2w[:, :3, 3] *= self.scale
         train, held_out = self._split(capture)
         reader = _FrameReader(self, capture, (height, width), intrinsics, c2w)
+        if all(labelled) and self.validation != "off":
+            reader.check_label_files(sorted(set(train) | set(held_out)))
         near, far = self._depth_bounds(name, capture, reader)
         return Scene(
             name=name, c2w=torch.from_numpy(c2w).float(), intrinsics=torch.from_numpy(intrinsics).float(),
@@ -535,10 +537,35 @@ class _FrameReader(FrameDecoder):
             raise DataError(f"{files.semantic}: labels of shape {list(stored.shape)} and type {stored.dtype}; "
                             "expected a single-channel 8- or 16-bit PNG of class ids")
         labels = stored.astype(np.int64)
+        self._check_class_ids(files.semantic, labels)
         undistort = self._undistorter(frame)
         if undistort is not None:
             labels = undistort.labels(labels, self.ignore_index)
         return resize_nearest(labels, *self.size)
+
+    def check_label_files(self, indices: Sequence[int]) -> None:
+        """The class ids of frames ``indices``' label files, read when the scene loads (``dataset.validate`` quick or
+        full), so an id outside the class list in a frame the quick check decodes no further is refused, naming the
+        file, before training rather than when training or evaluation first reads that frame."""
+        for index in indices:
+            frame = self.capture.frames[index]
+            stored = self._stored(frame.semantic, frame, "semantic label")
+            if stored.ndim == 2 and np.issubdtype(stored.dtype, np.integer):  # else labels() names the file's type
+                self._check_class_ids(frame.semantic, stored.astype(np.int64))
+
+    def _check_class_ids(self, path: Path, labels: np.ndarray) -> None:
+        """Every id of the label file ``path`` is a class of the class list or its ignore index, named with the file
+        where one is not (read when the frame is: before training for a training frame, see ``CaptureScenes``)."""
+        classes = self.dataset._class_list()
+        if classes is None:
+            return
+        bad = ((labels < 0) | (labels >= len(classes.names))) & (labels != classes.ignore_index)
+        if bad.any():
+            found = np.unique(labels[bad])
+            raise DataError(f"{path}: class id {int(found[0])} outside the {len(classes.names)} classes 0.."
+                            f"{len(classes.names) - 1} of {classes.path} and not its ignore_index={classes.ignore_index}"
+                            f" ({len(found)} such id{'s' if len(found) > 1 else ''}, {int(bad.sum())} pixels); expected "
+                            "class ids of that list (fix the file, or the class list)")
 
     def keep(self, files: FrameFiles) -> np.ndarray | None:
         if files.mask is None:
