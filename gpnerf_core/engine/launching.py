@@ -34,7 +34,7 @@ from typing import Any, Callable
 from omegaconf import DictConfig
 
 from gpnerf_core.config.overrides import is_search_path, merge_overrides, quoted_for_hydra
-from gpnerf_core.engine.opening import restore_trained_settings
+from gpnerf_core.engine.opening import check_family_choice, restore_trained_settings
 from gpnerf_core.engine.setup import check_component_choices, check_config, compose_overrides
 from gpnerf_core.engine.sweeps import ERROR_FILE, FAILED_SWEEP_JOBS
 from gpnerf_core.errors import ConfigError, GpnerfError
@@ -114,6 +114,7 @@ def launch_from_checkpoint(task: Callable[[DictConfig, Handover], Any], argv: li
         raise GpnerfError(f"{command} needs checkpoint=<path to a .pt file written by run>")
     trained = load_trained(given[-1].split("=", 1)[1])
     check_recorded_components(trained.state, trained.path)
+    check_family_choice(trained, argv, command)
     return launch(task, merge_overrides(trained.overrides, argv), f"gpnerf_core {command}", trained=trained,
                   command=command)
 

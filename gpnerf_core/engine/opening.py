@@ -17,7 +17,7 @@ from typing import Any, Sequence
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from gpnerf_core.config.overrides import merge_overrides, override_key
+from gpnerf_core.config.overrides import is_search_path, merge_overrides, override_key
 from gpnerf_core.data.dataset import FittedScenes
 from gpnerf_core.engine.fitted_data import check_fitted_data, fitted_scenes
 from gpnerf_core.engine.runs import task_overrides
@@ -107,6 +107,7 @@ def open_trained(
         if trained is None:
             raise TypeError("open_trained: give the checkpoint read (load_trained), or a Hydra job's cfg")
         own = list(overrides or ())
+        check_family_choice(trained, own, command)
         cfg = compose_overrides(merge_overrides(trained.overrides, own))
     else:
         trained = _checkpoint_of(cfg, trained, command)
@@ -137,6 +138,39 @@ def open_trained(
     where = device or resolved
     components.model.to(where)
     return OpenedModel(trained, cfg, components, where, which, notes, reinitialised, checkpoint_classes, fitted)
+
+
+def check_family_choice(trained: TrainedModel, overrides: Sequence[str], command: str) -> None:
+    """The command's own ``model=`` and ``+experiment=`` choose the checkpoint's family, checked before the rest is
+    composed: an experiment of another family would otherwise be refused over a loss or key it brings (its ``+loss``
+    clashing with the checkpoint's), never over the family.
+
+    Raises:
+        ConfigError: ``model=`` or an experiment's model is another family than the checkpoint's.
+    """
+    family = trained.family
+    own = [o for o in overrides if o not in trained.overrides]
+    for override in own:
+        key, _, value = override.lstrip("+~").partition("=")
+        if key == "model" and value and value != family:
+            raise ConfigError(f"model={value}: checkpoint {trained.path} holds a trained model {family!r}; {command} "
+                              f"takes its model family from the checkpoint: drop model=...")
+        if key == "experiment" and value:
+            chosen = _experiment_family(override, [o for o in own if is_search_path(o)])
+            if chosen is not None and chosen != family:
+                raise ConfigError(
+                    f"{override}: the experiment trains model {chosen!r}, but checkpoint {trained.path} is a "
+                    f"{family} model; {command} takes its model family from the checkpoint: drop {override}, or "
+                    f"train a {chosen} model first (run {override})")
+
+
+def _experiment_family(override: str, search_path: list[str]) -> str | None:
+    """The model family the experiment ``override`` selects; None when it does not compose on its own (the full
+    composition then says why)."""
+    try:
+        return str(compose_overrides([*search_path, override]).model.name)
+    except Exception:  # noqa: BLE001 - any failure is reported by the composition that follows
+        return None
 
 
 def restore_trained_settings(cfg: DictConfig, trained: TrainedModel, overrides: Sequence[str],

@@ -103,3 +103,20 @@ def test_run_validates_once_and_each_job_of_a_sweep_once(trained, validations, t
     assert len(validations) == 1
     assert in_process("run", "-m", *tiny, "seed=0,1", f"hydra.sweep.dir={tmp_path / 'sweep'}") == 0
     assert len(validations) == 3  # a sweep is not prechecked: each job validates its own config
+
+
+def test_an_experiment_of_another_family_is_refused_over_the_family_first(tmp_path, capsys):
+    """Issue 55: a GNT checkpoint's +loss clashed with the experiment's loss, so eval and finetune were refused over a
+    +loss=ce the user never typed; the experiment's family is now checked against the checkpoint's first."""
+    tiny = [*TINY_MODEL, *TINY_SCENES, f"dataset.root={tmp_path / 'scenes'}"]
+    assert in_process("run", "+loss=rgb", *tiny, "train.steps=1", "eval.splits=[]", f"out_dir={tmp_path / 'run'}") == 0
+    checkpoint = tmp_path / "run" / "checkpoints" / "step_0000001.pt"
+    capsys.readouterr()
+    for command in ("eval", "finetune"):
+        assert in_process(command, f"checkpoint={checkpoint}", "+experiment=baselines/neuray",
+                          f"out_dir={tmp_path / command}") == 2
+        err = capsys.readouterr().err
+        assert (f"error: +experiment=baselines/neuray: the experiment trains model 'neuray', but checkpoint "
+                f"{checkpoint} is a gnt model; {command} takes its model family from the checkpoint: drop "
+                f"+experiment=baselines/neuray, or train a neuray model first") in err, err
+        assert "+loss" not in err and not (tmp_path / command).exists()
