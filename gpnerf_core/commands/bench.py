@@ -22,7 +22,8 @@ from typing import Any
 
 from gpnerf_core.tools.bench.machine import matmul_peak_gflops
 from gpnerf_core.tools.bench.measure import run_measurement
-from gpnerf_core.tools.bench.sizes import SIZES, VARIANTS, checked_families, get_size, variant_overrides
+from gpnerf_core.tools.bench.sizes import (SIZES, VARIANTS, check_family_overrides, checked_families, get_size,
+                                           variant_overrides)
 from gpnerf_core.tools.bench.sweeps import Sweep, get_sweep, rows_of, slopes
 from gpnerf_core.tools.bench.sweeps import draw as draw_sweep
 from gpnerf_core.config.compose import compose
@@ -74,6 +75,7 @@ def main(argv: list[str]) -> int:
         if len(sizes) != 1:
             raise ConfigError(f"bench sweep={own['sweep']}: one size at a time, got size={own.get('size')}")
         return run_sweep(get_sweep(own["sweep"]), sizes[0], overrides, warmup, repeats, own.get("out_dir"))
+    check_family_overrides(overrides)
     variants = [*VARIANTS, *(checked_families(own["families"]) if "families" in own else [])]
     for size in sizes:  # refuse bad overrides before measuring anything
         for variant in variants:

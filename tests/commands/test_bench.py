@@ -66,6 +66,22 @@ def test_bench_bad_input_is_one_line(tmp_path):
         assert cuda.returncode == 2 and "CUDA is not available" in cuda.stderr and cuda.stderr.count("\n") == 1
 
 
+def test_another_family_in_the_overrides_is_refused_naming_it_and_families(tmp_path):
+    """Issue 55: ``bench size=demo model=neuray`` ended in Hydra's "Could not override
+    model.semantic_field.enabled", a key of the GNT-only anchor bench adds itself."""
+    from gpnerf_core.tools.bench.sizes import check_family_overrides
+
+    with pytest.raises(ConfigError, match=r"^bench model=neuray: bench measures GP-NeRF \(model=gnt\) and its "
+                                          r"GNT-only anchor, .* with families=neuray \(drop model=neuray\)$"):
+        check_family_overrides(["model=neuray"])
+    with pytest.raises(ConfigError, match=r"^bench \+experiment=baselines/semantic_ray: .*families=semantic_ray"):
+        check_family_overrides(["+experiment=baselines/semantic_ray", "train.rays=16"])
+    check_family_overrides(["model=gnt", "+experiment=table4_id5", "train.rays=16"])  # GP-NeRF's own: measured
+    refused = bench("size=demo", "model=neuray", *TINY, cwd=tmp_path)
+    assert refused.returncode == 2 and refused.stderr.strip().startswith("error: bench model=neuray: ")
+    assert "Could not override" not in refused.stderr and not (tmp_path / "outputs").exists()
+
+
 def profile(*args, cwd):
     env = dict(os.environ, GPNERF_DISABLE_PLUGIN_AUTOLOAD="1", GPNERF_CACHE=str(cwd / "cache"))
     return subprocess.run([sys.executable, "-m", "gpnerf_core.tools.bench.profile", *args], cwd=cwd, env=env,

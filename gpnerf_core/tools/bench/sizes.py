@@ -121,6 +121,35 @@ def checked_families(value: str) -> list[str]:
     return names
 
 
+def check_family_overrides(overrides: list[str]) -> None:
+    """The overrides keep GP-NeRF's family: ``bench``'s own variants are GP-NeRF and its GNT-only anchor, whose
+    overrides (``GNT_ONLY``, a size's head and loss) are options of that family only; another family is measured
+    beside them with ``families=<name>``.
+
+    Raises:
+        ConfigError: ``model=<another family>`` or an experiment that selects one, naming it and ``families=``.
+    """
+    from gpnerf_core.config.compose import compose
+    from gpnerf_core.config.overrides import default_choice, is_search_path, override_key
+
+    default = default_choice("model")
+    for override in overrides:
+        key, _, value = override.lstrip("+~").partition("=")
+        if override_key(override) not in ("model", "experiment") or not value:
+            continue
+        if key == "experiment":
+            try:
+                value = str(compose([*(o for o in overrides if is_search_path(o)), override]).model.name)
+            except Exception:  # noqa: BLE001 - composing the variants names what is wrong
+                continue
+        if value != default:
+            name = override.partition("=")[2].rpartition("/")[2] if key == "experiment" else value
+            measured = name if name in {*baseline_families(), *registered_families()} else value
+            raise ConfigError(f"bench {override}: bench measures GP-NeRF (model={default}) and its GNT-only anchor, "
+                              f"whose overrides are options of that family only (not of model {value!r}); measure {value} "
+                              f"beside them with families={measured} (drop {override})")
+
+
 def variant_overrides(size: Size, variant: str, overrides: list[str]) -> list[str]:
     """The overrides of ``variant`` at ``size``, the user's last (they win): ``gpnerf``, ``gnt_only``, a baseline
     family (its ``+experiment=baselines/<variant>`` on the size's common overrides: the same images, views and rays), or
