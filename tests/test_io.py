@@ -190,3 +190,43 @@ def test_atomic_open_rejects_read_modes(tmp_path):
     with pytest.raises(ValueError, match="mode"):
         with gio.atomic_open(tmp_path / "f", "r"):
             pass
+
+
+@pytest.mark.parametrize("writer", ["bytes", "text", "json", "ply"])
+def test_a_full_disk_names_the_file_being_written_and_leaves_nothing(tmp_path, monkeypatch, writer):
+    """Issue 55: ``export`` onto a full disk said "No space left on device" without the file (the write of the
+    temporary file raised an OSError that names none)."""
+    import errno
+
+    from gpnerf_core.runtime.ply import write_ply
+
+    real_fdopen = os.fdopen
+
+    class FullDisk:
+        def __init__(self, handle):
+            self.handle = handle
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.handle.close()
+
+        def write(self, data):
+            self.handle.write(data[:10])
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def __getattr__(self, name):
+            return getattr(self.handle, name)
+
+    monkeypatch.setattr(gio.os, "fdopen", lambda *args, **kwargs: FullDisk(real_fdopen(*args, **kwargs)))
+    target = tmp_path / "export" / "gaussians.ply"
+    write = {"bytes": lambda: gio.atomic_write_bytes(target, b"x" * 100),
+             "text": lambda: gio.atomic_write_text(target, "x" * 100),
+             "json": lambda: gio.atomic_write_json(target, {"x": 1}),
+             "ply": lambda: write_ply(target, {"x": np.zeros(4, np.float32)})}[writer]
+    with pytest.raises(OSError) as error:
+        write()
+    assert error.value.errno == errno.ENOSPC and error.value.filename == str(target)
+    assert error.value.strerror.startswith("No space left on device while writing it: the disk is full")
+    assert os.listdir(target.parent) == []  # no temporary file, no partial file

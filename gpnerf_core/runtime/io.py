@@ -8,6 +8,7 @@ is left as it was (absent if it did not exist). Parent folders are created as ne
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import math
 import os
@@ -61,7 +62,12 @@ def atomic_open(path: str | os.PathLike[str], mode: str = "wb", encoding: str | 
         raise ValueError(f"atomic_open mode must be 'wb' or 'w', got {mode!r}")
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    except OSError as exc:
+        if exc.errno in DISK_FULL:
+            raise writing_error(exc, target) from None
+        raise
     try:
         text_encoding = (encoding or "utf-8") if mode == "w" else None
         with os.fdopen(fd, mode, encoding=text_encoding) as handle:
@@ -71,11 +77,31 @@ def atomic_open(path: str | os.PathLike[str], mode: str = "wb", encoding: str | 
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(tmp_name, target)
+    except OSError as exc:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp_name)
+        if exc.filename is None or exc.errno in DISK_FULL:  # a write, flush or fsync of the temporary file
+            raise writing_error(exc, target) from None
+        raise
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp_name)
         raise
     _fsync_dir(target.parent)
+
+
+DISK_FULL = frozenset(code for code in (errno.ENOSPC, getattr(errno, "EDQUOT", None)) if code is not None)
+"""The errors of a write that found no space (a full disk, a used-up quota)."""
+
+
+def writing_error(exc: OSError, target: Path) -> OSError:
+    """``exc``, raised while ``target`` was written (through its temporary file, which is gone), as an ``OSError``
+    naming ``target``, and on a full disk saying so: the command line prints it as one line, ``<file>: <why>``."""
+    if exc.errno in DISK_FULL:
+        why = f"{exc.strerror or 'No space left on device'} while writing it: the disk is full (nothing half-written left)"
+    else:
+        why = f"{exc.strerror or exc} while writing it (nothing half-written left)"
+    return OSError(exc.errno, why, str(target))
 
 
 def _fsync_dir(folder: Path) -> None:
@@ -188,7 +214,7 @@ def atomic_torch_save(path: str | os.PathLike[str], obj: Any) -> Path:
             error = writer.error  # a full disk: torch re-raises it bare, or as a RuntimeError about stream positions
             if error is None:
                 raise
-            raise OSError(error.errno, error.strerror or str(error), str(path)) from None
+            raise writing_error(error, Path(path)) from None
     return Path(path)
 
 
