@@ -34,7 +34,8 @@ def check_predictions_fit(cfg: Any, model: ModelFamily, wanted: Predicts | None)
     if wanted is None or output is None or output.predicts is wanted:
         return
     predicts = output.predicts.value
-    other_loss = f"+loss={'instance' if output.predicts is Predicts.INSTANCES else 'dgs'}"
+    rays = model.capabilities.trains_on is TrainingBatch.RAYS
+    other_loss = f"+loss={'instance' if output.predicts is Predicts.INSTANCES else 'dgs' if rays else 'image'}"
     if cfg.get("head") is not None or model.capabilities.accepts_head:
         owner = f"head {cfg.head.name!r}" if cfg.get("head") is not None else f"model {cfg.model.name!r}"
         what = "an instance head (+head=instance)" if wanted is Predicts.INSTANCES else "a class head"

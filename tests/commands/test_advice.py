@@ -72,3 +72,9 @@ def test_depth_candidates_past_the_sane_range_are_refused_with_the_memory_they_w
     assert line.startswith("error: model.depth_candidates=100000: expected 2 to 1024; ")
     assert "3.7e+11 weights, about 1.48e+03 GB in float32" in line
     assert not (tmp_path / "run").exists()
+
+
+def test_a_family_that_trains_on_images_is_pointed_at_a_loss_set_on_images(capsys, tmp_path):
+    line = refusal(capsys, "run", "+experiment=baselines/mvsplat", "loss=instance", *SMALL, f"out_dir={tmp_path / 'run'}")
+    assert "loss 'instance' trains instances but model 'mvsplat' predicts classes" in line
+    assert "(+head=instance)" in line and "(+loss=image)" in line and "dgs" not in line
