@@ -224,3 +224,20 @@ def test_the_unets_are_mvsplats_post_norm_ldm_layout_and_start_as_their_skip_pat
     predictor = DepthPredictor(feature_dim=8, candidates=4, cost_dim=32, depth_dim=32, levels=2, raw_channels=5)
     assert predictor.cost_refine[1].num_groups == 8 and predictor.depth_refine[1].num_groups == 4
 
+
+def test_an_mvsplat_checkpoint_of_the_structure_before_issue_55_is_refused_in_one_line():
+    from gpnerf_core import DataError
+    from gpnerf_core.model.weights import load_weights
+
+    model = get_registry().build("model", {"name": "mvsplat", "feature_dim": 8, "transformer_layers": 1,
+                                           "depth_candidates": 4, "cost_unet_dim": 4, "depth_unet_dim": 4,
+                                           "unet_levels": 2, "sh_degree": 1},
+                                 parts=kit_parts(get_registry(), "mvsplat", head=False, parts=KIT_PARTS))
+    weights = model.state_dict()
+    load_weights(model, weights, "checkpoint new.pt")  # its own structure loads
+    old = dict(weights)
+    old["depth.cost_refine.3.middle.body.0.weight"] = torch.zeros(4)
+    with pytest.raises(DataError, match=r"^checkpoint old\.pt is an mvsplat model from before issue 55's structure "
+                                        r".*retrain") as caught:
+        load_weights(model, old, "checkpoint old.pt")
+    assert "\n" not in str(caught.value)
