@@ -165,3 +165,10 @@ def test_the_primary_config_picks_a_size_preset_for_every_part_kind_and_the_fami
     presets = {key: value for entry in entries for key, value in entry.items() if key.startswith("optional scale@")}
     assert presets == {**{f"optional scale@model.{kind}": f"${{scale}}/{kind}/${{model/{kind}}}" for kind in PART_KINDS},
                        "optional scale@_global_": "${scale}/${model}"}
+
+
+@pytest.mark.parametrize("experiment", ["baselines/mvsplat", "baselines/mvsplat_unet"])
+def test_mvsplat_clips_gradients_at_the_official_0_5(registry, experiment):
+    """Issue 55: MVSplat's ``gradient_clip_val`` 0.5 (config/main.yaml), on the CPU scale and the experiments."""
+    assert compose_with([f"+experiment={experiment}"]).train.grad_clip == 0.5
+    assert compose_with(["model=mvsplat", "+loss=image"]).train.grad_clip == 0.5

@@ -1,6 +1,6 @@
 """The data a per-scene model was fitted on, and the one refusal of a command pointed at other data.
 
-A per-scene family (``Capabilities.generalizable`` False: ``semantic_nerf``, ``semantic_3dgs``, ...) holds one scene in
+A per-scene family (``Capabilities.generalizable`` False) holds one scene in
 its parameters, so it can show, score, export or label that scene alone. ``eval``, ``render``, ``export``, ``label``,
 ``view``, ``stress`` and the viewer's timing open a model through ``engine.opening``, which asks here before any
 frame is read: a dataset that does not hold the fitted scene (another dataset, another capture under

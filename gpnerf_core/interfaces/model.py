@@ -208,6 +208,11 @@ class FamilyHooks:
         its tensors take the sizes the weights have (a checkpoint's Gaussian count); weights whose sizes disagree
         with each other are refused in one line naming ``source``. Required with ``Capabilities.changes_size``."""
 
+    def check_weights(self, weights: Mapping[str, Tensor], source: str) -> None:
+        """Called before ``weights`` (a checkpoint's, ``model.init``'s) are loaded, before their keys are compared
+        with the model's: a family whose structure changed refuses weights of an older structure here in one line
+        naming ``source`` and the fix (``DataError``), rather than as a list of missing tensors. Nothing by default."""
+
     def loss_terms(self, state: TrainingState, wanted: frozenset[str]) -> Mapping[str, Tensor]:
         """The family's own loss terms of this step, unweighted scalars by name, computed on its own state (its
         Gaussians, its fields) and the step's outputs (``state.batch``, ``state.outputs``): a 3D regulariser, a scale

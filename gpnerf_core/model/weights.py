@@ -48,6 +48,8 @@ def load_weights(
             one line.
         ConfigError: a differently shaped tensor when ``explain`` is given (the model config differs).
     """
+    if isinstance(module, ModelFamily):
+        module.hooks.check_weights(weights, source)  # a family refuses weights of a structure it no longer has
     if isinstance(module, ModelFamily) and module.capabilities.changes_size:
         module.hooks.resize_to(weights, source)  # a family that changes size takes the weights' sizes first
     own = module.state_dict()

@@ -173,3 +173,71 @@ def test_the_exported_3dgs_ply_renders_what_the_model_renders():
                   torch.sigmoid(torch.from_numpy(columns["opacity"])), colours),
         intrinsics=camera.intrinsics, c2w=camera.c2w, height=camera.height, width=camera.width)
     assert torch.allclose(rasterized.features, model.predict(camera, views, stride=1, chunk_rays=1).rgb, atol=2e-4)
+
+
+# ---- issue 55: made like the official MVSplat ---------------------------------------------------------------------
+
+
+def test_cross_view_attention_reads_the_other_views_as_they_entered_the_block():
+    """The official ``MultiViewFeatureTransformer`` builds the keys and values of a block's cross-attention from the
+    previous block's output (``batch_features`` once per block), not from the views after the block's self-attention."""
+    from gpnerf_plugins.families.mvsplat.transformer import window_position_embedding
+
+    torch.manual_seed(0)
+    transformer = MultiViewTransformer(channels=8, layers=1, splits=1).eval()
+    maps = torch.randn(2, 8, 4, 6)
+    x = (maps + window_position_embedding((4, 6), 8, maps.device)[None]).permute(0, 2, 3, 1).reshape(2, 1, 24, 8)
+    self_attention, cross_attention = transformer.blocks[0]
+    after_self = self_attention(x, x, None)
+    expected = cross_attention(after_self, x.flip(0), None)  # two views: each one's "others" is the other's input
+    got = transformer(maps).permute(0, 2, 3, 1).reshape(2, 1, 24, 8)
+    assert torch.allclose(got, expected, atol=1e-6)
+    assert not torch.allclose(got, cross_attention(after_self, after_self.flip(0), None), atol=1e-3)
+
+
+def test_the_transformer_starts_xavier_uniform_and_blocks_past_the_sixth_as_identities():
+    torch.manual_seed(0)
+    channels = 64
+    transformer = MultiViewTransformer(channels=channels, layers=7, splits=2)
+    bound = (6 / (2 * channels)) ** 0.5  # xavier-uniform of a square matrix; torch's default Linear is 1 / sqrt(C)
+    weight = transformer.blocks[0][0].query.weight.detach()
+    assert float(weight.abs().max()) <= bound and float(weight.abs().max()) > 1.2 / channels ** 0.5
+    for index, (self_attention, cross_attention) in enumerate(transformer.blocks):
+        zero = index >= 6
+        for norm in (self_attention.norm, cross_attention.norm_out):
+            assert bool((norm.weight == 0).all()) == zero and bool((norm.weight == 1).all()) != zero
+
+
+def test_the_unets_are_mvsplats_post_norm_ldm_layout_and_start_as_their_skip_paths():
+    from gpnerf_plugins.families.mvsplat.depth import DepthPredictor, ResidualBlock, UNet
+
+    torch.manual_seed(0)
+    block = ResidualBlock(8)
+    x = torch.randn(2, 8, 6, 8)
+    assert torch.equal(block(x), x)  # the zero-initialised final GroupNorm: the block starts as its skip path
+    assert isinstance(block.in_layers[0], torch.nn.Conv2d) and isinstance(block.in_layers[1], torch.nn.GroupNorm)
+    unet = UNet(8, levels=3)
+    assert isinstance(unet.stem, torch.nn.Conv2d) and len(unet.middle) == 2 and len(unet.decoder) == 6
+    assert sum(isinstance(m, ResidualBlock) for m in unet.encoder) == 3 and len(unet.upsample) == 2
+    assert unet(torch.randn(2, 8, 12, 16)).shape == (2, 8, 12, 16)
+    assert unet(torch.randn(1, 8, 6, 10)).shape == (1, 8, 6, 10)  # sides that do not halve evenly
+    predictor = DepthPredictor(feature_dim=8, candidates=4, cost_dim=32, depth_dim=32, levels=2, raw_channels=5)
+    assert predictor.cost_refine[1].num_groups == 8 and predictor.depth_refine[1].num_groups == 4
+
+
+def test_an_mvsplat_checkpoint_of_the_structure_before_issue_55_is_refused_in_one_line():
+    from gpnerf_core import DataError
+    from gpnerf_core.model.weights import load_weights
+
+    model = get_registry().build("model", {"name": "mvsplat", "feature_dim": 8, "transformer_layers": 1,
+                                           "depth_candidates": 4, "cost_unet_dim": 4, "depth_unet_dim": 4,
+                                           "unet_levels": 2, "sh_degree": 1},
+                                 parts=kit_parts(get_registry(), "mvsplat", head=False, parts=KIT_PARTS))
+    weights = model.state_dict()
+    load_weights(model, weights, "checkpoint new.pt")  # its own structure loads
+    old = dict(weights)
+    old["depth.cost_refine.3.middle.body.0.weight"] = torch.zeros(4)
+    with pytest.raises(DataError, match=r"^checkpoint old\.pt is an mvsplat model from before issue 55's structure "
+                                        r".*retrain") as caught:
+        load_weights(model, old, "checkpoint old.pt")
+    assert "\n" not in str(caught.value)

@@ -352,6 +352,20 @@ def test_gaussians_behind_or_on_the_camera_plane_are_culled_with_finite_gradient
     assert torch.isfinite(scales.grad).all()
 
 
+def test_the_default_near_plane_is_the_official_0_2_m_with_and_without_gradients(backend):
+    """Issue 55: the official 3DGS rasterizer culls at camera z <= 0.2 (``in_frustum``); 0.01 before."""
+    gaussians, intrinsics, c2w = scene(4, 3, seed=5)
+    camera_points = torch.tensor([[0.0, 0.0, 0.1], [0.01, 0.0, 0.199], [0.0, 0.01, 0.21], [0.2, -0.1, 3.0]],
+                                 dtype=torch.float64)
+    means = camera_points @ c2w[:3, :3].T + c2w[:3, 3]
+    moved = Gaussians(means, *(getattr(gaussians, n) for n in FIELDS[1:]))
+    for grad in (False, True):
+        with torch.set_grad_enabled(grad):
+            probe = Gaussians(means.clone().requires_grad_(grad), *(getattr(gaussians, n) for n in FIELDS[1:]))
+            out = render(probe if grad else moved, intrinsics, c2w, backend)
+        assert out.culled_behind == 2 and (out.radii[:2] == 0).all() and (out.radii[2:] > 0).all()
+
+
 def test_all_behind_the_camera_is_an_empty_view(backend):
     gaussians, intrinsics, _ = scene(20, 3, seed=6)
     flipped = torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0], dtype=torch.float64))  # turned round: all behind

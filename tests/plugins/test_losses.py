@@ -348,3 +348,36 @@ def test_the_image_set_adds_d_ssim_on_whole_images_and_is_zero_for_a_perfect_ren
     assert not colour_only.needs_semantics and not colour_only.needs_labels
     with pytest.raises(ConfigError, match="the model renders random rays"):
         loss_set(loss_inputs(semantics=True, sample_semantics=False))
+
+
+def official_3dgs_ssim(img1, img2, window_size=11):
+    """3DGS's ``utils/loss_utils.py`` ``ssim`` (graphdeco-inria/gaussian-splatting), verbatim but for names:
+    ``[N, C, H, W]``, size_average."""
+    gauss = torch.tensor([math.exp(-(x - window_size // 2) ** 2 / float(2 * 1.5 ** 2)) for x in range(window_size)],
+                         dtype=img1.dtype)
+    gauss = gauss / gauss.sum()
+    channel = img1.size(-3)
+    window = gauss[:, None].mm(gauss[:, None].t())[None, None].expand(channel, 1, window_size, window_size)
+    mu1 = F.conv2d(img1, window, padding=window_size // 2, groups=channel)
+    mu2 = F.conv2d(img2, window, padding=window_size // 2, groups=channel)
+    mu1_sq, mu2_sq, mu1_mu2 = mu1.pow(2), mu2.pow(2), mu1 * mu2
+    sigma1_sq = F.conv2d(img1 * img1, window, padding=window_size // 2, groups=channel) - mu1_sq
+    sigma2_sq = F.conv2d(img2 * img2, window, padding=window_size // 2, groups=channel) - mu2_sq
+    sigma12 = F.conv2d(img1 * img2, window, padding=window_size // 2, groups=channel) - mu1_mu2
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    ssim_map = ((2 * mu1_mu2 + c1) * (2 * sigma12 + c2)) / ((mu1_sq + mu2_sq + c1) * (sigma1_sq + sigma2_sq + c2))
+    return ssim_map.mean()
+
+
+def test_the_training_ssim_is_3dgs_official_zero_padded_one():
+    """Issue 55: D-SSIM zero-pads like 3DGS's official code (kornia's metric reflect-pads, which differs at borders)."""
+    from kornia.metrics import ssim as kornia_ssim
+    from gpnerf_plugins.losses.terms import structural_dissimilarity
+
+    gen = torch.Generator().manual_seed(0)
+    pred, target = torch.rand(3, 20, 24, generator=gen, dtype=torch.float64), torch.rand(3, 20, 24, generator=gen,
+                                                                                       dtype=torch.float64)
+    official = 1.0 - official_3dgs_ssim(pred[None], target[None])
+    assert float(structural_dissimilarity(pred, target)) == pytest.approx(float(official), rel=1e-12, abs=1e-12)
+    reflect = 1.0 - kornia_ssim(pred[None], target[None], window_size=11, max_val=1.0).mean()
+    assert abs(float(reflect) - float(official)) > 1e-4

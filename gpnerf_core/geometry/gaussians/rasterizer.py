@@ -36,6 +36,10 @@ BACKENDS: dict[str, Compositor] = {"torch": composite_torch, "numba": composite_
 RASTERIZER_BACKENDS: tuple[str, ...] = ("auto", *BACKENDS)
 """The names ``rasterize_gaussians(backend=...)`` takes."""
 
+NEAR_CULL = 0.2
+"""Metres: Gaussians at camera z <= this are culled by default, as the official 3DGS rasterizer's ``in_frustum``
+(``p_view.z <= 0.2``); 0.01 before issue 55."""
+
 
 def choose_backend(name: str, device: torch.device) -> str:
     """The backend ``name`` resolves to for tensors on ``device``: ``"auto"`` is gsplat on CUDA when installed, numba on
@@ -129,7 +133,7 @@ def strided_camera(camera: TargetCamera, stride: int) -> tuple[Tensor, int, int]
 
 
 def rasterize_gaussians(gaussians: Gaussians, *, intrinsics: Tensor, c2w: Tensor, height: int, width: int,
-                        near: float = 0.01, background: Tensor | None = None, tile_size: int = 16,
+                        near: float = NEAR_CULL, background: Tensor | None = None, tile_size: int = 16,
                         backend: str = "auto") -> Rasterized:
     """Render ``gaussians`` into one pinhole view, differentiably in every Gaussian parameter.
 
@@ -139,7 +143,7 @@ def rasterize_gaussians(gaussians: Gaussians, *, intrinsics: Tensor, c2w: Tensor
         intrinsics: ``[3, 3]`` pinhole matrix at ``height`` x ``width`` (pixel centres at integer coordinates).
         c2w: ``[4, 4]`` camera-to-world pose (OpenCV: x right, y down, z forward), metres.
         height, width: image size, pixels.
-        near: Gaussians at camera z <= near (metres) are culled.
+        near: Gaussians at camera z <= near (metres) are culled (``NEAR_CULL``, 0.2 m as the official 3DGS).
         background: ``[C]`` added as ``background * (1 - alpha)`` to the features, or None.
         tile_size: side of the square tiles, pixels (the result does not depend on it).
         backend: ``"torch"``, ``"numba"``, ``"gsplat"`` or ``"auto"`` (``choose_backend``).

@@ -138,19 +138,51 @@ def depth_guided_distance(sample_features: Tensor, teacher: Tensor, window: Tens
     return pull + outside.clamp(min=0.0).mean()
 
 
+SSIM_WINDOW = 11
+"""Pixels: the side of the SSIM window (3DGS's ``ssim(window_size=11)``)."""
+
+SSIM_SIGMA = 1.5
+"""Pixels: the standard deviation of the SSIM window's Gaussian."""
+
+
+def ssim_map(pred: Tensor, target: Tensor) -> Tensor:
+    """``[C, H, W]`` per-pixel SSIM of two images on values in [0, 1], as 3D Gaussian splatting's official
+    ``utils/loss_utils.py``: an 11-pixel Gaussian window of sigma 1.5 applied per channel by ``F.conv2d`` with
+    ``padding=window_size // 2`` (zeros beyond the border: the border pixels' means and variances include zeros),
+    ``C1 = 0.01^2``, ``C2 = 0.03^2``. (The evaluation metric ``ssim/gaussian11`` is another function and unchanged.)
+
+    Args:
+        pred, target: ``[C, H, W]``, same shape.
+    """
+    channels = pred.shape[0]
+    offsets = torch.arange(SSIM_WINDOW, dtype=pred.dtype, device=pred.device) - SSIM_WINDOW // 2
+    line = torch.exp(-offsets.square() / (2 * SSIM_SIGMA ** 2))
+    line = line / line.sum()
+    window = (line[:, None] * line[None, :]).expand(channels, 1, SSIM_WINDOW, SSIM_WINDOW).contiguous()
+
+    def blur(image: Tensor) -> Tensor:
+        return F.conv2d(image[None], window, padding=SSIM_WINDOW // 2, groups=channels)[0]
+
+    target = target.to(pred.dtype)
+    mu_p, mu_t = blur(pred), blur(target)
+    var_p = blur(pred * pred) - mu_p.square()
+    var_t = blur(target * target) - mu_t.square()
+    covariance = blur(pred * target) - mu_p * mu_t
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    return ((2 * mu_p * mu_t + c1) * (2 * covariance + c2)) / ((mu_p.square() + mu_t.square() + c1) * (var_p + var_t + c2))
+
+
 def structural_dissimilarity(pred: Tensor, target: Tensor, valid: Tensor | None = None) -> Tensor:
-    """``1 - SSIM`` of two images, averaged over pixels and channels: Wang et al.'s SSIM with an 11-pixel Gaussian window
-    of sigma 1.5 on values in [0, 1] (``kornia.metrics.ssim``), the D-SSIM of 3D Gaussian splatting.
+    """``1 - SSIM`` of two images, averaged over pixels and channels: the D-SSIM of 3D Gaussian splatting, its
+    zero-padded SSIM (``ssim_map``; a reflect-padded ``kornia.metrics.ssim`` before issue 55).
 
     Args:
         pred, target: ``[C, H, W]``.
         valid: ``[H, W]`` bool, the pixels averaged over (None: all).
     """
-    from kornia.metrics import ssim
-
     if pred.shape != target.shape or pred.dim() != 3:
         raise ConfigError(f"SSIM got images {tuple(pred.shape)} and {tuple(target.shape)}; expected the same [C, H, W]")
-    similarity = ssim(pred[None], target[None].to(pred.dtype), window_size=11, max_val=1.0)[0]  # [C, H, W]
+    similarity = ssim_map(pred, target)  # [C, H, W]
     if valid is None:
         return 1.0 - similarity.mean()
     weights = valid.to(similarity.dtype)[None].expand_as(similarity)

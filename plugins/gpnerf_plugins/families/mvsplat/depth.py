@@ -17,49 +17,76 @@ from torch import Tensor, nn
 from gpnerf_core import ReferenceFrustum, SourceViews, plane_sweep
 
 
-def group_norm(channels: int) -> nn.GroupNorm:
-    """GroupNorm with up to 8 groups that divide ``channels``."""
-    groups = max(g for g in (8, 4, 2, 1) if channels % g == 0)
-    return nn.GroupNorm(groups, channels)
+COST_REFINE_GROUPS = 8
+"""GroupNorm groups after the cost volume's input convolution (the official ``nn.GroupNorm(8, channels)``)."""
+
+DEPTH_REFINE_GROUPS = 4
+"""GroupNorm groups after the depth refinement's input convolution (the official ``nn.GroupNorm(4, channels)``; 8
+before issue 55)."""
+
+
+def group_norm(channels: int, groups: int = 8) -> nn.GroupNorm:
+    """GroupNorm with ``groups`` groups where they divide ``channels`` (the LDM code's ``normalization`` as MVSplat
+    calls it: 8, 4 where 8 do not divide), else the largest of 4, 2 or 1 below it that does (for the small widths
+    of the tests, which the official never takes)."""
+    return nn.GroupNorm(max(g for g in (groups, 4, 2, 1) if g <= groups and channels % g == 0), channels)
 
 
 class ResidualBlock(nn.Module):
-    """LDM's ``ResBlock`` without the time embedding: (GroupNorm, SiLU, 3x3 conv) twice, added to the input."""
+    """LDM's ``ResBlock`` as MVSplat builds it (``postnorm=True``, no time embedding): (3x3 conv, GroupNorm, SiLU)
+    twice, the second GroupNorm zero-initialised (so the block starts as its skip path), added to the input or, when
+    the width changes, to its 1x1 projection."""
 
-    def __init__(self, channels: int) -> None:
+    def __init__(self, channels: int, out_channels: int | None = None) -> None:
         super().__init__()
-        self.body = nn.Sequential(group_norm(channels), nn.SiLU(), nn.Conv2d(channels, channels, 3, padding=1),
-                                  group_norm(channels), nn.SiLU(), nn.Conv2d(channels, channels, 3, padding=1))
+        out_channels = out_channels or channels
+        self.in_layers = nn.Sequential(nn.Conv2d(channels, out_channels, 3, padding=1), group_norm(out_channels),
+                                       nn.SiLU())
+        final_norm = group_norm(out_channels)
+        nn.init.zeros_(final_norm.weight)
+        nn.init.zeros_(final_norm.bias)
+        self.out_layers = nn.Sequential(nn.Conv2d(out_channels, out_channels, 3, padding=1), final_norm, nn.SiLU())
+        self.skip = nn.Identity() if out_channels == channels else nn.Conv2d(channels, out_channels, 1)
 
     def forward(self, x: Tensor) -> Tensor:
-        return x + self.body(x)
+        return self.skip(x) + self.out_layers(self.in_layers(x))
 
 
 class UNet(nn.Module):
-    """A 2D U-Net of ``levels`` resolutions at ``channels`` each (LDM's ``UNetModel`` as MVSplat configures it:
-    ``channel_mult`` all 1, one residual block per level, no attention): a block then a stride-2 convolution down each
-    level, a middle block, and up each level the skip concatenated, a 1x1 projection, a block and an upsampling."""
+    """LDM's ``UNetModel`` as MVSplat configures it (``ldm_unet/unet.py``: ``num_res_blocks`` 1, ``channel_mult`` all
+    1 over ``levels`` resolutions, no attention, ``postnorm``, ``conv_resample``) at ``channels`` wide: an input 3x3
+    convolution; per level a residual block, and a stride-2 3x3 convolution down between levels; two residual blocks
+    in the middle; up each level two residual blocks, each on the current map concatenated with the next saved skip
+    (2C -> C), then (but at the last level) a nearest 2x upsampling and a 3x3 convolution; an output 3x3 convolution,
+    GroupNorm and SiLU. Sides that do not halve evenly are upsampled to the skip's size (the official needs them
+    even)."""
 
     def __init__(self, channels: int, levels: int) -> None:
         super().__init__()
-        self.down = nn.ModuleList(ResidualBlock(channels) for _ in range(levels - 1))
-        self.pool = nn.ModuleList(nn.Conv2d(channels, channels, 3, stride=2, padding=1) for _ in range(levels - 1))
-        self.middle = ResidualBlock(channels)
-        self.join = nn.ModuleList(nn.Conv2d(2 * channels, channels, 1) for _ in range(levels - 1))
-        self.up = nn.ModuleList(ResidualBlock(channels) for _ in range(levels - 1))
-        self.out = nn.Sequential(group_norm(channels), nn.SiLU(), nn.Conv2d(channels, channels, 3, padding=1))
+        self.levels = levels
+        self.stem = nn.Conv2d(channels, channels, 3, padding=1)
+        self.encoder = nn.ModuleList()
+        for level in range(levels):
+            self.encoder.append(ResidualBlock(channels))
+            if level != levels - 1:
+                self.encoder.append(nn.Conv2d(channels, channels, 3, stride=2, padding=1))
+        self.middle = nn.Sequential(ResidualBlock(channels), ResidualBlock(channels))
+        self.decoder = nn.ModuleList(ResidualBlock(2 * channels, channels) for _ in range(2 * levels))
+        self.upsample = nn.ModuleList(nn.Conv2d(channels, channels, 3, padding=1) for _ in range(levels - 1))
+        self.out = nn.Sequential(nn.Conv2d(channels, channels, 3, padding=1), group_norm(channels), nn.SiLU())
 
     def forward(self, x: Tensor) -> Tensor:
-        skips = []
-        for block, pool in zip(self.down, self.pool):
-            x = block(x)
+        x = self.stem(x)
+        skips = [x]
+        for module in self.encoder:
+            x = module(x)
             skips.append(x)
-            x = pool(x)
         x = self.middle(x)
-        for join, block in zip(self.join, self.up):
-            skip = skips.pop()
-            x = F.interpolate(x, size=skip.shape[-2:], mode="nearest")
-            x = block(join(torch.cat([x, skip], dim=1)))
+        for index, block in enumerate(self.decoder):
+            x = block(torch.cat([x, skips.pop()], dim=1))
+            if index % 2 == 1 and index // 2 < self.levels - 1:
+                x = F.interpolate(x, size=skips[-1].shape[-2:], mode="nearest")
+                x = self.upsample[index // 2](x)
         return self.out(x)
 
 
@@ -90,8 +117,10 @@ def candidate_depths(near: float, far: float, count: int, like: Tensor) -> Tenso
 def correlation_volume(features: Tensor, sources: SourceViews, near: float, far: float, count: int) -> Tensor:
     """``[V, D, h, w]``: for each view, the dot product (over C, / sqrt C) of its features with every other view's
     warped onto its D fronto-parallel planes (``gpnerf_core.plane_sweep``, zero where a plane point falls outside a
-    view), averaged over the other views. A single view has nothing to match: zeros (the depth then comes from its own
-    features alone, as MVSplat's ``wo_cost_volume`` ablation)."""
+    view), averaged over the other views. A single view has nothing to match: zeros, this project's own one-view
+    fallback (the same networks, trained on two views, then read the depth from the view's own features and an empty
+    volume; the official code has no one-view path, and its ``wo_cost_volume`` ablation is another network without
+    the volume's channels)."""
     views, channels, rows, cols = features.shape
     if views == 1:
         return features.new_zeros(1, int(count), rows, cols)
@@ -124,7 +153,8 @@ class DepthPredictor(nn.Module):
         super().__init__()
         self.candidates, self.upscale = candidates, upscale
         volume_in = candidates + feature_dim
-        self.cost_refine = nn.Sequential(nn.Conv2d(volume_in, cost_dim, 3, padding=1), group_norm(cost_dim), nn.GELU(),
+        self.cost_refine = nn.Sequential(nn.Conv2d(volume_in, cost_dim, 3, padding=1),
+                                         group_norm(cost_dim, COST_REFINE_GROUPS), nn.GELU(),
                                          UNet(cost_dim, levels), nn.Conv2d(cost_dim, candidates, 3, padding=1))
         self.cost_residual = nn.Conv2d(volume_in, candidates, 1)
         self.depth_head = nn.Sequential(nn.Conv2d(candidates, 2 * candidates, 3, padding=1), nn.GELU(),
@@ -133,8 +163,9 @@ class DepthPredictor(nn.Module):
                                        nn.Upsample(scale_factor=upscale, mode="bilinear", align_corners=True),
                                        nn.GELU())
         self.project = nn.Conv2d(feature_dim, depth_dim, 3, padding=1)
-        self.depth_refine = nn.Sequential(nn.Conv2d(3 + depth_dim + 2, depth_dim, 3, padding=1), group_norm(depth_dim),
-                                          nn.GELU(), UNet(depth_dim, levels))
+        self.depth_refine = nn.Sequential(nn.Conv2d(3 + depth_dim + 2, depth_dim, 3, padding=1),
+                                          group_norm(depth_dim, DEPTH_REFINE_GROUPS), nn.GELU(),
+                                          UNet(depth_dim, levels))
         gaussian_in = depth_dim + 3 + feature_dim
         self.to_gaussians = nn.Sequential(nn.Conv2d(gaussian_in, 2 * raw_channels, 3, padding=1), nn.GELU(),
                                           nn.Conv2d(2 * raw_channels, raw_channels, 3, padding=1))

@@ -62,6 +62,7 @@ from gpnerf_core import (
     strided_camera,
 )
 from gpnerf_plugins.families.mvsplat.adapter import GEOMETRY_CHANNELS, PixelGaussians, pixel_gaussians
+from gpnerf_plugins.families.mvsplat.checkpoints import MVSplatHooks
 from gpnerf_plugins.families.mvsplat.depth import DepthPredictor
 from gpnerf_plugins.families.mvsplat.transformer import MultiViewTransformer
 
@@ -98,7 +99,7 @@ class MVSplat(LabelsOrHead):
     """
 
     capabilities = Capabilities(trains_on=TrainingBatch.IMAGES, source_encoding=SourceEncoding.SOURCE_SET, gaussians=True,
-                                teacher=True)
+                                teacher=True, hooks=MVSplatHooks)
 
     def __init__(self, *, extractor: FeatureExtractor, head: PerceptionHead | None, num_classes: int, feature_dim: int,
                  transformer_layers: int, attention_splits: int, depth_candidates: int, cost_unet_dim: int,

@@ -5,7 +5,11 @@ token attends to the tokens of its window in its own view (self) and in every ot
 
 One block: self-attention (q, k, v and merge without bias, LayerNorm on the message, added to the input), then
 cross-attention whose message goes, concatenated with the input, through a feed-forward network (2C -> 8C -> C, GELU,
-LayerNorm) before it is added. A sine position embedding per window is added before the first block.
+LayerNorm) before it is added. As the official ``MultiViewFeatureTransformer``, a view's cross-attention queries come
+from its self-attention's output, and its keys and values are the other views' maps as they entered the block (the
+previous block's output; ``batch_features`` is called once per block). A sine position embedding per window is added
+before the first block. Every weight matrix starts xavier-uniform and the LayerNorms of blocks past the sixth start at
+zero, as the official (since issue 55: cross-attention read the other views after their self-attention, default init).
 """
 
 from __future__ import annotations
@@ -15,6 +19,10 @@ import math
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+
+OFFICIAL_LAYERS = 6
+"""MVSplat's transformer depth; the official zero-initialises the LayerNorms of any block past it."""
 
 
 def window_position_embedding(window: tuple[int, int], channels: int, device: torch.device) -> Tensor:
@@ -110,6 +118,13 @@ class MultiViewTransformer(nn.Module):
         self.blocks = nn.ModuleList(
             nn.ModuleList([AttentionLayer(channels, feed_forward=False), AttentionLayer(channels, feed_forward=True)])
             for _ in range(layers))
+        for parameter in self.parameters():
+            if parameter.dim() > 1:
+                nn.init.xavier_uniform_(parameter)
+        for self_attention, cross_attention in list(self.blocks)[OFFICIAL_LAYERS:]:
+            for norm in (self_attention.norm, cross_attention.norm_out):  # blocks past the sixth start as identities
+                nn.init.zeros_(norm.weight)
+                nn.init.zeros_(norm.bias)
 
     def forward(self, maps: Tensor) -> Tensor:
         views, channels, height, width = maps.shape
@@ -126,9 +141,10 @@ class MultiViewTransformer(nn.Module):
                 x = torch.roll(x, shifts=(-shift[0], -shift[1]), dims=(1, 2))
             windows = to_windows(x, splits)  # [V, n, L, C]
             layer_mask = mask if shifted else None
+            entering = windows  # the block's input: the other views' keys and values (the official batch_features)
             windows = self_attention(windows, windows, layer_mask)
             if views > 1:
-                others = torch.stack([torch.cat([windows[j] for j in range(views) if j != i], dim=1)
+                others = torch.stack([torch.cat([entering[j] for j in range(views) if j != i], dim=1)
                                       for i in range(views)])  # [V, n, (V - 1) L, C]
                 cross_mask = layer_mask.repeat(1, 1, views - 1) if layer_mask is not None else None
                 windows = cross_attention(windows, others, cross_mask)
