@@ -94,7 +94,8 @@ def test_knob_levels_shrink_from_the_reference_and_respect_the_coverage_floor():
     assert levels["model.field_aggregator.width"] == (32, [24, 16])
     assert levels["model.field_aggregator.num_blocks"] == (4, [3, 2])
     assert levels["model.feature_extractor.fpn_channels"] == (16, [12, 8])
-    assert [n.split(":")[0] for n in notes] == ["model.feature_dim", "model.depth_candidates"]  # MVSplat's knobs
+    # MVSplat's knobs and the Gaussian families' cap: another family's, each named
+    assert [n.split(":")[0] for n in notes] == ["model.feature_dim", "model.depth_candidates", "model.max_gaussians"]
     without_head, notes = knob_levels(compose(["scale=cpu"]), min_source_views=4)
     assert "model.feature_extractor.fpn_channels" not in without_head and "model.num_source_views" not in without_head
     assert any("no head" in n for n in notes) and any("needs all 4" in n for n in notes)
