@@ -344,3 +344,12 @@ def test_a_per_scene_family_is_sized_by_its_gaussians_cap_scored_by_its_predicti
         assert trial["parameters"] == run["parameters"]["total"] and run["parameters"]["gaussians"] > 0
         assert trial["flops_per_ray"] is None
     assert "n/a" in (out / "size.md").read_text()
+
+
+def test_a_per_scene_family_without_a_size_knob_is_refused_in_one_line(tmp_path, monkeypatch):
+    from gpnerf_core.commands import size
+
+    monkeypatch.setattr(size, "configured_knobs", lambda cfg, registry=None, per_scene=False: [])
+    with pytest.raises(ConfigError, match=r"^size: model 'semantic_3dgs' \(per-scene\) declares no size knob"):
+        size.main([*PER_SCENE, f"size.out={tmp_path / 's'}"])
+    assert not (tmp_path / "s").exists()  # refused before anything is written

@@ -167,6 +167,18 @@ def test_view_distance_thirds_are_held_out_frames_ordered_by_distance_to_the_tra
     assert "three thirds by distance need 3" in case.unavailable(1.0, {}, [replace(scene, eval_frames=[0, 1])], 2)
 
 
+def test_a_case_choosing_a_frame_that_is_not_held_out_is_refused_naming_it(scene_and_sources):
+    from gpnerf_core.errors import DataError
+    from gpnerf_core.evaluation.evaluator import _targets
+
+    components, frames, scene, _, _ = scene_and_sources
+    cfg = compose(["+head=unet", *TINY_MODEL, *TINY_SCENES, "dataset.frames_per_scene=12", "dataset.eval_every=4"])
+    kept = _targets(cfg, components, frames, "train", lambda s: list(s.eval_frames[-1:]))
+    assert [index for _, index in kept] == list(scene.eval_frames[-1:])
+    with pytest.raises(DataError, match=f"target frame {scene.train_frames[0]} is not a held-out frame"):
+        _targets(cfg, components, frames, "train", lambda s: [s.train_frames[0]])
+
+
 def test_perturbations_are_reproducible_and_stay_in_range(scene_and_sources):
     *_, sources = scene_and_sources
     for case in (GaussianNoise(), Blur(), Jpeg(), Exposure(), OneWrongCamera()):
