@@ -16,14 +16,22 @@ images, views and rays, each beside GP-NeRF in the same run (the ``<family> / GP
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 from typing import Any
 
 from gpnerf_core.tools.bench.machine import matmul_peak_gflops
 from gpnerf_core.tools.bench.measure import run_measurement
-from gpnerf_core.tools.bench.sizes import (SIZES, VARIANTS, check_family_overrides, checked_families, get_size,
-                                           variant_overrides)
+from gpnerf_core.tools.bench.sizes import (
+    SIZES,
+    VARIANTS,
+    check_family_overrides,
+    checked_families,
+    dropped_overrides,
+    get_size,
+    variant_overrides,
+)
 from gpnerf_core.tools.bench.sweeps import Sweep, get_sweep, rows_of, slopes
 from gpnerf_core.tools.bench.sweeps import draw as draw_sweep
 from gpnerf_core.config.compose import compose
@@ -80,6 +88,11 @@ def main(argv: list[str]) -> int:
     for size in sizes:  # refuse bad overrides before measuring anything
         for variant in variants:
             compose_checked(variant_overrides(size, variant, overrides))
+    for variant in variants[len(VARIANTS):]:
+        dropped = dropped_overrides(sizes[0], variant, overrides)
+        if dropped:
+            print(f"bench: note: {variant} does not take {', '.join(dropped)} (left out for it; the other variants "
+                  "take them)", file=sys.stderr)
     device = resolve_device(compose(variant_overrides(sizes[0], "gpnerf", overrides)).device)
     out_dir = Path(own.get("out_dir") or Path("outputs") / "bench" / time.strftime("%Y-%m-%d_%H-%M-%S"))
     with RunFolder(out_dir) as folder:
@@ -107,9 +120,28 @@ def main(argv: list[str]) -> int:
             report["sizes"][size.name] = entry
             atomic_write_json(out_dir / "bench.json", report)
         print(format_table(report))
+        for note in flop_notes(report):
+            print(note)
         print(f"bench.json: {(out_dir / 'bench.json').resolve()}")
-    failed = [s for s, e in report["sizes"].items() for v in variants for p in phases if "error" in e[v][p]]
+    failed = [(s, v, p, e[v][p]["error"]) for s, e in report["sizes"].items() for v in variants for p in phases
+              if "error" in e[v][p]]
+    if failed:
+        size, variant, phase, error = failed[0]
+        more = f" ({len(failed) - 1} more in bench.json)" if len(failed) > 1 else ""
+        print(f"error: bench: {size} {variant} {phase} failed: {error}{more}", file=sys.stderr)
     return 1 if failed else 0
+
+
+def flop_notes(report: dict[str, Any]) -> list[str]:
+    """One line per variant whose FLOPs are not reported (``n/a`` in the table), with why."""
+    notes = {}
+    for entry in report["sizes"].values():
+        for variant in report.get("variants", VARIANTS):
+            for phase in PHASES:
+                note = entry[variant][phase].get("flops_note") if isinstance(entry[variant][phase], dict) else None
+                if note:
+                    notes.setdefault(variant, note)
+    return [f"note: {variant}: FLOPs n/a: {note}" for variant, note in notes.items()]
 
 
 def run_sweep(sweep: Sweep, size: Any, overrides: list[str], warmup: int, repeats: int, out: str | None) -> int:
@@ -192,11 +224,19 @@ def format_table(report: dict[str, Any]) -> str:
         named = [("GP-NeRF / GNT-only", entry["ratios"])]
         named += [(f"{family} / GP-NeRF", ratios) for family, ratios in entry.get("family_ratios", {}).items()]
         for label, ratios in named:
+            flops = "n/a" if ratios["train_flops"] is None and _uncounted(entry, label) else _x(ratios["train_flops"])
             rows.append((name, f"{label} (min)", "", _x(ratios["train_step_time"]), _x(ratios["train_peak_memory"]),
-                         _x(ratios["train_flops"]), "", _x(ratios["render_samples_per_second"]),
+                         flops, "", _x(ratios["render_samples_per_second"]),
                          _x(ratios["render_frame_time"]), ""))
     widths = [max(len(str(row[i])) for row in rows) for i in range(len(header))]
     return "\n".join("  ".join(str(cell).rjust(widths[i]) for i, cell in enumerate(row)) for row in rows)
+
+
+def _uncounted(entry: dict[str, Any], label: str) -> bool:
+    """A ratio row (``<a> / <b>``) one of whose variants has FLOPs not reported (a rasterizing family)."""
+    names = {"GP-NeRF": "gpnerf", "GNT-only": "gnt_only"}
+    variants = [names.get(part.strip(), part.strip()) for part in label.split(" / ")]
+    return any(entry.get(v, {}).get("train", {}).get("flops_note") for v in variants)
 
 
 def _x(value: float | None) -> str:
@@ -209,10 +249,12 @@ def _train_cells(train: dict[str, Any], peak: float) -> tuple[str, ...]:
     if "error" in train:
         return ("", train["error"], "", "", "")
     params = sum(train["parameters"].values()) / 1e6
+    timing = (f"{params:.2f}", f"{train['seconds_median']:.3f}/{train['seconds_min']:.3f}",
+              f"{train['peak_memory_mb']:.0f}")
+    if train.get("flops") is None:  # a rasterizing family: its FLOPs are not counted (flop_notes says why)
+        return (*timing, "n/a", "n/a")
     flops = train["flops"] / train["seconds_median"] / 1e9
-    return (f"{params:.2f}", f"{train['seconds_median']:.3f}/{train['seconds_min']:.3f}",
-            f"{train['peak_memory_mb']:.0f}", f"{train['flops'] / train['rays'] / 1e9:.3f}",
-            f"{flops:.1f} ({100 * flops / peak:.0f}%)")
+    return (*timing, f"{train['flops'] / train['rays'] / 1e9:.3f}", f"{flops:.1f} ({100 * flops / peak:.0f}%)")
 
 
 def _render_cells(render: dict[str, Any]) -> tuple[str, ...]:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import shutil
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +28,7 @@ from gpnerf_core.engine.setup import compose_checked, setup_process
 from gpnerf_core.config.overrides import RUN_SPECIFIC_KEYS, override_key
 from gpnerf_core.runtime.run_folder import LOCK_NAME, RunFolder
 from gpnerf_core.tools.sizing.costs import StaticCost, static_cost
-from gpnerf_core.tools.sizing.knobs import knob_levels, label_of
+from gpnerf_core.tools.sizing.knobs import configured_knobs, knob_levels, label_of
 from gpnerf_core.tools.sizing.options import SizeOptions, check_eval_splits, parse_size_options, resolve_metric
 from gpnerf_core.tools.sizing.report import describe_scene, draw_trials, sized_command, write_experiment, write_report
 from gpnerf_core.tools.sizing.scene import measure_scenes
@@ -59,7 +60,16 @@ def main(argv: list[str]) -> int:
         if argument.startswith("-"):
             raise ConfigError(f"size: {argument!r}: size takes Hydra overrides and size.<option>=<value>, not flags")
     cfg = compose_checked(overrides)
-    metric, tolerance = resolve_metric(options, cfg.get("head") is not None)
+    model = build_components(cfg).model
+    metric, tolerance = resolve_metric(options, model_predicts(model))
+    if not model.capabilities.generalizable and not configured_knobs(cfg, per_scene=True):
+        raise ConfigError(f"size: model {cfg.model.name!r} (per-scene) declares no size knob (size_knob on its config's "
+                          "fields): nothing to size; declare one (docs/sizing.md) or train it as configured")
+    if model.capabilities.gaussians and options.max_flops_per_ray:
+        raise ConfigError(f"size.max_flops_per_ray={options.max_flops_per_ray:g}: model {cfg.model.name!r} rasterizes "
+                          "Gaussians with numba kernels torch's FLOP counter cannot see; budget its time instead "
+                          "(size.max_seconds_per_frame) or its size (size.max_parameters)")
+    del model
     check_eval_splits(metric, list(cfg.eval.splits))
     steps = options.steps or max(1, int(cfg.train.steps) // 2)
     out = Path(options.out or Path("outputs") / "size" / time.strftime("%Y-%m-%d_%H-%M-%S"))
@@ -75,6 +85,14 @@ def main(argv: list[str]) -> int:
             if not isinstance(exc, SizeFailed) and not (out / "runs").exists():
                 _forget_request(out)  # refused before any trial: a corrected request may use the folder
             raise
+
+
+def model_predicts(model: Any) -> str | None:
+    """What the built model's semantic scores are: ``classes``, ``instances``, or None (colour only)."""
+    from gpnerf_core.interfaces.head import Predicts
+
+    output = model.semantic_output
+    return None if output is None else Predicts(output.predicts).value
 
 
 def _forget_request(out: Path) -> None:
@@ -110,10 +128,11 @@ def _size(cfg: Any, overrides: list[str], options: SizeOptions, metric: str, tol
     setup_process(cfg)
     components = build_components(cfg)
     check_data(cfg, components, training=True)
+    per_scene = not components.model.capabilities.generalizable
     train_scenes = list(components.dataset.scenes("train"))
     print(f"measuring {len(train_scenes)} training scene(s) ...", flush=True)
     scene = measure_scenes(components.dataset, components.view_selector, scenes=train_scenes,
-                           max_views=int(cfg.model.num_source_views), margin=options.depth_margin)
+                           max_views=0 if per_scene else int(cfg.model.num_source_views), margin=options.depth_margin)
     atomic_write_json(out / "scene.json", scene.to_json())
     base, notes = with_bounds(overrides, scene)
     print(describe_scene(scene, cfg), flush=True)
@@ -124,7 +143,7 @@ def _size(cfg: Any, overrides: list[str], options: SizeOptions, metric: str, tol
         notes.append(f"no source-view count up to {fewest} shows {options.min_coverage:.0%} of a target's pixels to two "
                      "sources: source views not sized")
     reference_cfg = compose(base)
-    levels, knob_notes = knob_levels(reference_cfg, fewest)
+    levels, knob_notes = knob_levels(reference_cfg, fewest, per_scene=per_scene)
     notes += knob_notes
     if options.knobs:
         missing = [knob for knob in options.knobs if knob not in levels]
@@ -153,13 +172,16 @@ def _size(cfg: Any, overrides: list[str], options: SizeOptions, metric: str, tol
 
     def train(trial: Trial) -> None:
         train_trial(trial, base, steps, options.seeds, int(cfg.seed), metric, out, f"[{next(counter)}/{total}]")
+        trained = trial.measured.get("parameters")
+        if per_scene and trained:  # its size is what it trained to (built, it holds no Gaussians yet)
+            trial.cost = replace(trial.cost, parameters=int(round(trained)))
 
     trials_so_far: list[Trial] = []
 
     def on_trial(trial: Trial, reference: Trial) -> None:
         verdict = "reference" if trial is reference else ("kept" if trial.kept else "not kept")
         shown = "failed: " + str(trial.error) if trial.accuracy is None else f"{metric} {trial.accuracy:.4f}"
-        costs = (f", {trial.cost.parameters / 1e6:.3f} M parameters, {trial.cost.flops_per_ray / 1e6:.2f} MFLOP/ray"
+        costs = (f", {trial.cost.parameters / 1e6:.3f} M parameters, {trial.cost.flops_text()} MFLOP/ray"
                  if trial.cost.rays else "")
         print(f"    {trial.name}: {shown}{costs} -> {verdict}", flush=True)
         trials_so_far.append(trial)
@@ -179,9 +201,10 @@ def _size(cfg: Any, overrides: list[str], options: SizeOptions, metric: str, tol
     if chosen is None:
         raise SizeFailed(f"size: {failure} (every trial is in {out / 'size.md'})")
     reference = trials[0]
-    print(f"chosen: {describe(chosen.changes)}: "
-          f"{chosen.cost.parameters / 1e6:.3f} M parameters (x{chosen.cost.parameters / reference.cost.parameters:.2f}), "
-          f"{chosen.cost.flops_per_ray / 1e6:.2f} MFLOP/ray (x{chosen.cost.flops_per_ray / reference.cost.flops_per_ray:.2f}), "
+    flops = (f"{chosen.cost.flops_text()} MFLOP/ray (x{chosen.cost.flops_per_ray / reference.cost.flops_per_ray:.2f})"
+             if chosen.cost.flops_counted and reference.cost.flops_per_ray else "MFLOP/ray n/a")
+    params = (f" (x{chosen.cost.parameters / reference.cost.parameters:.2f})" if reference.cost.parameters else "")
+    print(f"chosen: {describe(chosen.changes)}: {chosen.cost.parameters / 1e6:.3f} M parameters{params}, {flops}, "
           f"{metric} {chosen.accuracy:.4f} against {reference.accuracy:.4f}")
     print(f"run it: {command}")
     return 0

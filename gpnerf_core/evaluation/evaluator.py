@@ -37,6 +37,8 @@ from gpnerf_core.interfaces.head import Predicts
 from gpnerf_core.types import Frame, Prediction, Scene, SourceViews
 
 SourcesFor = Callable[[Scene, int], SourceViews]
+TargetsFor = Callable[[Scene], list[int]]
+"""``scene -> held-out frame indices`` to score (a subset of ``scene.eval_frames``; the stress suite's cases)."""
 """``(scene, target frame index) -> the source views`` the model is given for that target."""
 
 SPLIT_LABELS = {"train": "train_heldout", "unseen": "unseen"}
@@ -120,6 +122,7 @@ def evaluate(
     dist: Distributed,
     *,
     sources_for: SourcesFor | None = None,
+    targets_for: TargetsFor | None = None,
     references: bool = True,
     pictures: bool = True,
 ) -> dict[str, Any]:
@@ -130,6 +133,8 @@ def evaluate(
     Args:
         sources_for: the source views of a target (default: ``model.num_source_views`` frames from the view
             selector); the stress suite passes its cases' views here.
+        targets_for: the held-out frames of a scene to score (default: all of ``scene.eval_frames``), before the
+            ``eval.max_views_per_scene`` cap; the stress suite passes its cases' target views here.
         references: also score the references (2D teacher, majority class, connected-components instances).
         pictures: write the pictures of the first ``eval.save_images`` views (False: none, as at a curve point).
     """
@@ -144,7 +149,7 @@ def evaluate(
     results: dict[str, Any] = {}
     for split in cfg.eval.splits:
         label = SPLIT_LABELS[split]
-        targets = _targets(cfg, components, frames, split)
+        targets = _targets(cfg, components, frames, split, targets_for)
         if not targets:
             results[label] = {"count/images": 0, "note": f"split {split!r} has no evaluation frames"}
             continue
@@ -202,13 +207,23 @@ def check_splits_have_frames(cfg: Any, components: Components) -> list[str]:
     return [f"{reason} in {where}: {SPLIT_LABELS[split]} scores no image" for split, reason in empty.items()]
 
 
-def _targets(cfg: Any, components: Components, frames: FrameCache, split: str) -> list[tuple[Scene, int]]:
-    """The split's evaluation views in a fixed order (capped per scene by ``eval.max_views_per_scene``)."""
+def _targets(
+    cfg: Any, components: Components, frames: FrameCache, split: str, targets_for: TargetsFor | None = None
+) -> list[tuple[Scene, int]]:
+    """The split's evaluation views in a fixed order (those ``targets_for`` keeps, capped per scene by
+    ``eval.max_views_per_scene``)."""
     cap = int(cfg.eval.max_views_per_scene)
     targets = []
     for name in components.dataset.scenes(split):
         scene = frames.scene(name)
         indices = list(scene.eval_frames)
+        if targets_for is not None:
+            kept = list(targets_for(scene))
+            outside = [i for i in kept if i not in indices]
+            if outside:
+                raise DataError(f"scene {scene.name!r}: target frame {outside[0]} is not a held-out frame "
+                                f"(expected some of {indices})")
+            indices = kept
         if cap:
             indices = indices[:: max(1, len(indices) // cap)][:cap]
         targets += [(scene, index) for index in indices]

@@ -18,7 +18,9 @@ class StressCase(ABC):
 
     A case changes what a trained model is given for each held-out target view, never the model: which source
     frames and how many (``source_indices``), what they look like or where their cameras are said to be
-    (``perturb_sources``), or which data is evaluated (``dataset_overrides``, ``split``). The suite evaluates
+    (``perturb_sources``), which held-out target views are scored (``target_frames``), or which data is evaluated
+    (``dataset_overrides``, ``split``). A per-scene model has no source views and renders only its own scene: the
+    cases that apply to it change only ``target_frames`` (the others are skipped with the reason). The suite evaluates
     the clean condition once per model and every level of every chosen case; a level a dataset cannot offer is
     skipped with the reason ``unavailable`` gives.
 
@@ -60,6 +62,12 @@ class StressCase(ABC):
     ) -> str | None:
         """Why this level cannot be evaluated on these scenes (None: it can). The suite prints it and skips."""
         return None
+
+    def target_frames(self, level: float, scene: Scene, eval_frames: Sequence[int]) -> list[int]:
+        """The held-out frames of ``scene`` scored at this level (default: all of ``eval_frames``, the scene's
+        held-out frames in order). A subset only: a frame outside ``eval_frames`` is refused (a training frame would be
+        scored against the data the model was fitted on). The suite's per-scene view cap applies afterwards."""
+        return list(eval_frames)
 
     def num_source_views(self, level: float, trained: int) -> int:
         """Source views per target at this level (``trained``: the model's ``model.num_source_views``)."""

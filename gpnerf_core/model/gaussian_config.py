@@ -16,6 +16,7 @@ from typing import Any, ClassVar, Mapping
 
 from gpnerf_core.config.schema import ModelConfig
 from gpnerf_core.errors import ConfigError
+from gpnerf_core.registry.declarations import fractions, size_knob
 from gpnerf_core.geometry.gaussians.density import BudgetedStrategy, DefaultStrategy
 from gpnerf_core.geometry.gaussians.rasterizer import RASTERIZER_BACKENDS
 
@@ -62,9 +63,9 @@ class GaussianSceneConfig(ModelConfig):
     """Back-projected depth: every ``init_depth_stride``-th pixel of each training frame (before the subset)."""
     init_opacity: float = 0.1
     """Opacity of every starting Gaussian (3DGS: 0.1)."""
-    max_gaussians: int = 200000
+    max_gaussians: int = size_knob(200000, "Gaussians", fractions(1000, 1000, 0.5, 0.25, 0.125))
     """Densification stops adding Gaussians at this count (said once in the run's log); with ``density=budgeted`` the
-    budget the count never exceeds."""
+    budget the count never exceeds. ``size``'s knob for a Gaussian family: it tries a half, a quarter and an eighth."""
     density: str = "default"
     """Density control (``gpnerf_core.geometry.gaussians.density``): ``default`` (3DGS's official schedule,
     ``DefaultStrategy``) or ``budgeted`` (``BudgetedStrategy``: the same schedule, the count rising linearly to

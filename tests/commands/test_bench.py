@@ -183,3 +183,39 @@ def test_bench_takes_baseline_experiments_and_registered_families():
     with pytest.raises(ConfigError, match="the baseline experiments and the registered model families"):
         checked_families("mini")
     assert "+experiment=baselines/mvsplat" in variant_overrides(SIZES["demo"], "mvsplat", [])
+
+
+def test_a_per_scene_family_is_measured_with_its_preset_its_gaussians_and_no_flop_figure(tmp_path):
+    """semantic_3dgs beside GP-NeRF on GP-NeRF's tiny overrides: those it has no field for (samples, source views) are
+    left out for it with a note; it is initialised (its Gaussians counted), evaluated on its scene's held-out frames,
+    and its FLOPs (the rasterizer's numba kernels, which torch's counter cannot see) are n/a, never 0."""
+    result = bench("size=demo", "repeats=1", "warmup=0", "phases=train", "families=semantic_3dgs", *TINY,
+                   f"out_dir={tmp_path / 'b'}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    notes = [line for line in result.stderr.splitlines() if line.startswith("bench: note: semantic_3dgs")]
+    assert len(notes) == 1 and "model.coarse_samples=6" in notes[0] and "model.num_source_views=2" in notes[0]
+    family = json.loads((tmp_path / "b" / "bench.json").read_text())["sizes"]["demo"]["semantic_3dgs"]
+    assert "+experiment=baselines/semantic_3dgs" in family["overrides"] and "eval.splits=[train]" in family["overrides"]
+    assert "model.coarse_samples=6" not in family["overrides"]
+    train = family["train"]
+    assert train["parameters"]["gaussians"] > 0 and train["flops"] is None and train["flops_torch_only"] >= 0
+    assert "numba" in train["flops_note"]
+    row = next(line for line in result.stdout.splitlines() if line.split()[1:2] == ["semantic_3dgs"])
+    assert row.split()[-2:] == ["n/a", "n/a"] and "0.000" not in row  # phases=train: no render cells
+    assert "x0.00" not in result.stdout and "note: semantic_3dgs: FLOPs n/a" in result.stdout
+
+
+def test_a_failed_measurement_is_one_line_on_stderr_and_exit_1(tmp_path):
+    result = bench("size=demo", "repeats=1", "warmup=0", "phases=train", *TINY, "model.num_source_views=5",
+                   f"out_dir={tmp_path / 'b'}", cwd=tmp_path)
+    assert result.returncode == 1
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith("error: bench: demo gpnerf train failed: ") and "model.num_source_views" in last
+    assert last.endswith("(1 more in bench.json)")
+
+
+def test_a_registered_family_without_preset_gets_the_loss_of_what_it_predicts():
+    from gpnerf_core.tools.bench.sizes import SIZES, family_loss, loss_options
+
+    base = (*SIZES["demo"].common, "model=semantic_3dgs")  # no preset: model= alone
+    assert family_loss(base, "semantic_3dgs") == "image" and loss_options(base) == ()

@@ -94,7 +94,8 @@ def test_knob_levels_shrink_from_the_reference_and_respect_the_coverage_floor():
     assert levels["model.field_aggregator.width"] == (32, [24, 16])
     assert levels["model.field_aggregator.num_blocks"] == (4, [3, 2])
     assert levels["model.feature_extractor.fpn_channels"] == (16, [12, 8])
-    assert [n.split(":")[0] for n in notes] == ["model.feature_dim", "model.depth_candidates"]  # MVSplat's knobs
+    # MVSplat's knobs and the Gaussian families' cap: another family's, each named
+    assert [n.split(":")[0] for n in notes] == ["model.feature_dim", "model.depth_candidates", "model.max_gaussians"]
     without_head, notes = knob_levels(compose(["scale=cpu"]), min_source_views=4)
     assert "model.feature_extractor.fpn_channels" not in without_head and "model.num_source_views" not in without_head
     assert any("no head" in n for n in notes) and any("needs all 4" in n for n in notes)
@@ -117,7 +118,14 @@ def test_knobs_are_the_declared_fields_never_an_option_by_its_name():
 
     assert "model.feature_dim" in {k.key for k in configured_knobs(compose(["model=mvsplat"]))}
     gaussians = compose(["+experiment=baselines/semantic_3dgs", "dataset.scenes=[layout_00]"])
-    assert {k.key for k in configured_knobs(gaussians)} == {"model.num_source_views"}
+    assert {k.key for k in configured_knobs(gaussians)} == {"model.num_source_views", "model.max_gaussians"}
+    # A per-scene family reads no source views: its knob is its Gaussians' cap (the BudgetedStrategy budget).
+    assert {k.key for k in configured_knobs(gaussians, per_scene=True)} == {"model.max_gaussians"}
+    levels, notes = knob_levels(gaussians, 1, per_scene=True)
+    cap = gaussians.model.max_gaussians
+    assert levels == {"model.max_gaussians": (cap, sorted({max(1000, round(cap * f / 1000) * 1000)
+                                                           for f in (0.5, 0.25, 0.125)}, reverse=True))}
+    assert not any("num_source_views" in n for n in notes)
 
 
 def _cost(changes):
@@ -189,13 +197,18 @@ def test_size_options_are_checked_one_line_each():
     for bad, expected in (("size.step=5", "unknown size option; known: size.out, size.steps"),
                           ("size.steps=-1", "size.steps='-1': expected an integer >= 0"),
                           ("size.tolerance=nan", "size.tolerance='nan': expected a number >= 0"),
-                          ("size.metric=ap", "size.metric='ap': expected one of miou, psnr"),
+                          ("size.metric=ap", "size.metric='ap': expected one of miou, ap75, psnr"),
                           ("size.knobs=[depth]", "size.knobs: unknown knob 'depth'")):
         with pytest.raises(ConfigError, match=expected.replace("[", r"\[").replace("(", r"\(")):
             parse_size_options([bad])
-    with pytest.raises(ConfigError, match="size.metric=miou needs a model with a head"):
-        resolve_metric(parse_size_options(["size.metric=miou"])[0], has_head=False)
-    assert resolve_metric(parse_size_options([])[0], has_head=False) == ("psnr", 0.5)
+    with pytest.raises(ConfigError, match="size.metric=miou needs a model with class scores"):
+        resolve_metric(parse_size_options(["size.metric=miou"])[0], None)
+    assert resolve_metric(parse_size_options([])[0], None) == ("psnr", 0.5)
+    # The default metric is that of what the model predicts (label rendering included: no head needed).
+    assert resolve_metric(parse_size_options([])[0], "classes") == ("miou", 0.02)
+    assert resolve_metric(parse_size_options([])[0], "instances") == ("ap75", 0.02)
+    with pytest.raises(ConfigError, match="size.metric=miou needs a model with class scores .* use size.metric=ap75"):
+        resolve_metric(parse_size_options(["size.metric=miou"])[0], "instances")
 
 
 # ---- the command ---------------------------------------------------------------------------------------------
@@ -303,3 +316,40 @@ def test_a_level_that_cannot_be_built_is_passed_over_not_ending_its_knob():
     ]
     assert trials[1].error.startswith("cannot be built: semantic width 64") and trials[1].accuracy is None
     assert choose(trials, {})[0].changes == {"model.field_aggregator.width": 16}
+
+
+PER_SCENE = ["+experiment=baselines/semantic_3dgs", "dataset.scenes=[layout_00]", "dataset.height=32", "dataset.width=48",
+             "dataset.frames_per_scene=9", "dataset.eval_every=3", "threads=1"]
+
+
+def test_a_rasterizing_family_refuses_a_flop_budget_in_one_line(tmp_path):
+    result = gpnerf("size", *PER_SCENE, "size.max_flops_per_ray=1e6", f"size.out={tmp_path / 's'}", cwd=tmp_path)
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines()[-1].startswith(
+        "error: size.max_flops_per_ray=1e+06: model 'semantic_3dgs' rasterizes Gaussians with numba kernels")
+
+
+def test_a_per_scene_family_is_sized_by_its_gaussians_cap_scored_by_its_predictions_counted_as_trained(tmp_path):
+    """semantic_3dgs: no source views measured or sized, mIoU by its label rendering (no head), the Gaussians' cap
+    turned down, each trial's parameters those it trained to (Gaussians included), FLOPs n/a."""
+    out = tmp_path / "s"
+    result = gpnerf("size", *PER_SCENE, "train.steps=4", "model.max_gaussians=2000", f"size.out={out}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "sizing 1 knob(s) in this order: Gaussians" in result.stdout and "keep while miou" in result.stdout
+    report = json.loads((out / "size.json").read_text())
+    trials = report["trials"]
+    assert [t["changes"] for t in trials] == [{}, {"model.max_gaussians": 1000}]
+    for trial in trials:
+        run = json.loads((Path(trial["runs"][0]) / "metrics.json").read_text())
+        assert trial["parameters"] == run["parameters"]["total"] and run["parameters"]["gaussians"] > 0
+        assert trial["flops_per_ray"] is None
+    assert "n/a" in (out / "size.md").read_text()
+
+
+def test_a_per_scene_family_without_a_size_knob_is_refused_in_one_line(tmp_path, monkeypatch):
+    from gpnerf_core.commands import size
+
+    monkeypatch.setattr(size, "configured_knobs", lambda cfg, registry=None, per_scene=False: [])
+    with pytest.raises(ConfigError, match=r"^size: model 'semantic_3dgs' \(per-scene\) declares no size knob"):
+        size.main([*PER_SCENE, f"size.out={tmp_path / 's'}"])
+    assert not (tmp_path / "s").exists()  # refused before anything is written

@@ -19,6 +19,7 @@ from gpnerf_core.tools.stress.summary import StressSummary
 from gpnerf_core import hookimpl
 from gpnerf_plugins.stress.geometry_cases import Baseline, OneWrongCamera, random_rotations
 from gpnerf_plugins.stress.image_cases import Blur, Exposure, GaussianNoise, Jpeg, blur
+from gpnerf_plugins.stress.target_cases import ViewDistance, distance_to_training
 from pipeline_check import TINY_CLI as TINY
 from pipeline_check import TINY_MODEL, TINY_SCENES, gpnerf
 
@@ -153,6 +154,31 @@ def test_baseline_thirds_are_ordered_by_distance_and_never_take_the_target(scene
     assert distance[1.0] < distance[2.0] < distance[3.0]
 
 
+def test_view_distance_thirds_are_held_out_frames_ordered_by_distance_to_the_training_cameras(scene_and_sources):
+    _, _, scene, _, _ = scene_and_sources
+    case = ViewDistance()
+    assert case.unavailable(3.0, {}, [scene], 2) is None and len(scene.eval_frames) == 3
+    distance = {}
+    for level in case.levels:
+        picked = case.target_frames(level, scene, scene.eval_frames)
+        assert picked and set(picked) <= set(scene.eval_frames)
+        distance[level] = float(distance_to_training(scene, picked).mean())
+    assert distance[1.0] <= distance[2.0] <= distance[3.0] and distance[1.0] < distance[3.0]
+    assert "three thirds by distance need 3" in case.unavailable(1.0, {}, [replace(scene, eval_frames=[0, 1])], 2)
+
+
+def test_a_case_choosing_a_frame_that_is_not_held_out_is_refused_naming_it(scene_and_sources):
+    from gpnerf_core.errors import DataError
+    from gpnerf_core.evaluation.evaluator import _targets
+
+    components, frames, scene, _, _ = scene_and_sources
+    cfg = compose(["+head=unet", *TINY_MODEL, *TINY_SCENES, "dataset.frames_per_scene=12", "dataset.eval_every=4"])
+    kept = _targets(cfg, components, frames, "train", lambda s: list(s.eval_frames[-1:]))
+    assert [index for _, index in kept] == list(scene.eval_frames[-1:])
+    with pytest.raises(DataError, match=f"target frame {scene.train_frames[0]} is not a held-out frame"):
+        _targets(cfg, components, frames, "train", lambda s: [s.train_frames[0]])
+
+
 def test_perturbations_are_reproducible_and_stay_in_range(scene_and_sources):
     *_, sources = scene_and_sources
     for case in (GaussianNoise(), Blur(), Jpeg(), Exposure(), OneWrongCamera()):
@@ -230,6 +256,39 @@ def test_models_without_semantics_fail_on_psnr():
                 Outcome("r", "rgb", 0, "jpeg", 20.0, "20", {"psnr": 19.0}),
                 Outcome("r", "rgb", 0, "jpeg", 8.0, "8", {"psnr": 17.5})]
     assert StressSummary(outcomes).failure("rgb", "jpeg") == "8"
+
+
+def test_instance_models_fail_on_ap75_and_the_csv_has_its_column():
+    outcomes = [Outcome("g", "grouping", 0, "clean", None, "clean", {"ap75": 0.8, "psnr": 24.0}),
+                Outcome("g", "grouping", 0, "view_distance", 1.0, "near", {"ap75": 0.7, "psnr": 10.0}),
+                Outcome("g", "grouping", 0, "view_distance", 3.0, "far", {"ap75": 0.3, "psnr": 23.0})]
+    summary = StressSummary(outcomes)
+    assert summary.metric_of("grouping") == "ap75" and summary.failure("grouping", "view_distance") == "far"
+    assert "| grouping | AP@0.75 x100 | 80.00 | 70.00 | 30.00 | far |" in summary.markdown()
+    assert summary.csv().splitlines()[0].split(",")[6:10] == ["miou", "accuracy", "ap75", "psnr"]
+
+
+def test_a_per_scene_model_gets_the_cases_that_apply_and_a_note_when_none_does(tmp_path):
+    run = gpnerf("run", "+experiment=baselines/semantic_3dgs", "dataset.scenes=[layout_00]", "dataset.height=32",
+                 "dataset.width=48", "dataset.frames_per_scene=9", "dataset.eval_every=3", "train.steps=2", "threads=1",
+                 "eval.save_images=0", f"out_dir={tmp_path / 'run'}", cwd=tmp_path)
+    assert run.returncode == 0, run.stderr[-2000:]
+    out = tmp_path / "suite"
+    result = gpnerf("stress", str(tmp_path / "run"), "--cases", "view_distance,blur", "--threads", "1", "--out",
+                    str(out), cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    outcomes = json.loads((out / "stress.json").read_text())["outcomes"]
+    by_level = {(o["case"], o["label"]): o for o in outcomes}
+    for label in ("near", "medium", "far"):  # one held-out frame per third: each scored on its own
+        assert by_level[("view_distance", label)]["skipped"] is None
+        assert math.isfinite(by_level[("view_distance", label)]["metrics"]["miou"])
+    assert "no source views to change" in by_level[("blur", "2")]["skipped"]
+    assert "stress: note" not in result.stderr
+    none = gpnerf("stress", str(tmp_path / "run"), "--cases", "blur", "--quick", "--threads", "1", "--out",
+                  str(tmp_path / "none"), cwd=tmp_path)
+    assert none.returncode == 0, none.stderr[-3000:]
+    notes = [line for line in none.stderr.splitlines() if line.startswith("stress: note")]
+    assert len(notes) == 1 and "per-scene" in notes[0] and "--cases view_distance" in notes[0]
 
 
 def test_merge_summarises_suites_run_apart(trained):

@@ -666,6 +666,13 @@ class TakesTheTarget(GoodCase):
         return [target, *choose(scene, target, num_views - 1)]
 
 
+class ScoresATrainingFrame(GoodCase):
+    name = "scores_a_training_frame"
+
+    def target_frames(self, level, scene, eval_frames):
+        return [*eval_frames, scene.train_frames[0]]
+
+
 class OutOfRange(GoodCase):
     name = "out_of_range"
 
@@ -675,7 +682,7 @@ class OutOfRange(GoodCase):
 
 def test_a_correct_stress_case_passes_every_check():
     results = check_plugin(stress_plugin(GoodCase()))
-    assert [r.check for r in results] == ["levels", "sources", "perturbation", "determinism"]
+    assert [r.check for r in results] == ["levels", "sources", "targets", "perturbation", "determinism"]
     assert all(r.component == "stress_case/good_case" for r in results)
 
 
@@ -684,6 +691,7 @@ def test_a_correct_stress_case_passes_every_check():
     (GlobalRandom(), "determinism", "draw randomness from the generator argument only"),
     (ScaledPoses(), "perturbation", "is not a rigid camera-to-world pose"),
     (TakesTheTarget(), "sources", "never the target"),
+    (ScoresATrainingFrame(), "targets", "expected distinct held-out frames"),
     (OutOfRange(), "perturbation", "expected [0, 1]"),
 ])
 def test_each_broken_stress_case_fails_its_check(case, check, words):

@@ -1,4 +1,5 @@
-"""Checks of stress cases (``gpnerf_register_stress_cases``): levels, source choice, perturbation, determinism.
+"""Checks of stress cases (``gpnerf_register_stress_cases``): levels, source choice, target choice, perturbation,
+determinism.
 
 A case is checked on a synthetic scene of 24 frames on a circle (every 4th held out) and on random source views
 ``[V, 3, 20, 24]``, at every level the case says it can run there.
@@ -84,6 +85,20 @@ def check_sources(case: StressCase) -> None:
                    f"{what} returned {chosen}: sources must be training frames, never the target")
 
 
+def check_targets(case: StressCase) -> None:
+    """``target_frames`` a non-empty list of distinct held-out frames of the scene (never a training frame)."""
+    the_scene = scene()
+    held_out = list(the_scene.eval_frames)
+    for level in runnable_levels(case):
+        what = f"target_frames(level={level}, eval_frames={held_out})"
+        chosen = call(what, case.target_frames, level, the_scene, held_out)
+        expect(isinstance(chosen, list) and all(isinstance(i, int) for i in chosen),
+               f"{what} returned {chosen!r}, expected a list of frame indices")
+        expect(bool(chosen) and len(set(chosen)) == len(chosen) and set(chosen) <= set(held_out),
+               f"{what} returned {chosen}: expected distinct held-out frames, at least one (a training frame would be "
+               "scored against the data the model was fitted on)")
+
+
 def _perturbed(
     case: StressCase, level: float, seed: int, in_place_fails: bool = True
 ) -> tuple[SourceViews, SourceViews]:
@@ -131,6 +146,7 @@ def check_determinism(case: StressCase) -> None:
 CHECKS: dict[str, Callable[[StressCase], None]] = {
     "levels": check_levels,
     "sources": check_sources,
+    "targets": check_targets,
     "perturbation": check_perturbation,
     "determinism": check_determinism,
 }

@@ -34,6 +34,10 @@ from gpnerf_core.training.trainer import Trainer
 from gpnerf_core.engine.setup import setup_process
 from gpnerf_core.engine.validation import check_data
 
+UNCOUNTED_FLOPS = ("its Gaussians are rasterized by numba kernels torch's FLOP counter cannot see (GFLOP/ray n/a; "
+                   "the counted matmuls and convolutions are flops_torch_only)")
+"""Why a rasterizing family's FLOPs are not reported (``Capabilities.gaussians``)."""
+
 OUT_OF_MEMORY = ("OutOfMemoryError", "MemoryError", "out of memory", "can't allocate memory")
 """Markers of a child that ran out of memory (with a kill by signal 9)."""
 
@@ -91,6 +95,15 @@ def count_flops(run: Callable[[], Any]) -> int:
     return int(counter.get_total_flops())
 
 
+def _flops(model: Any, run: Callable[[], Any]) -> dict[str, Any]:
+    """``{"flops": n}``; for a family rasterizing Gaussians ``{"flops": None, "flops_note": why,
+    "flops_torch_only": n}`` (the counter sees none of the rasterizer's work: 0 or a part would read as a figure)."""
+    counted = count_flops(run)
+    if model.capabilities.gaussians:
+        return {"flops": None, "flops_note": UNCOUNTED_FLOPS, "flops_torch_only": counted}
+    return {"flops": counted}
+
+
 def measure(spec: dict[str, Any]) -> dict[str, Any]:
     cfg = compose(spec["overrides"])
     device = setup_process(cfg)
@@ -114,13 +127,13 @@ def measure(spec: dict[str, Any]) -> dict[str, Any]:
             model.train()
             seconds, warmup_seconds = _timed(trainer.train_step, device, spec["warmup"], spec["repeats"], progress)
             rays = trainer.rays_per_view() * int(cfg.train.targets_per_step)  # every pixel for a whole-image family
-            result.update(rays=rays, flops=count_flops(trainer.train_step))
+            result.update(rays=rays, **_flops(model, trainer.train_step))
         else:
             model.eval()
             render = view_renderer(cfg, model, trainer.frames, trainer.sampler.selector, trainer.sampler.scene_names[0])
             seconds, warmup_seconds = _timed(render, device, spec["warmup"], spec["repeats"], progress)
             prediction = render()
-            result.update(rays=int(prediction.rgb.shape[0] * prediction.rgb.shape[1]), flops=count_flops(render))
+            result.update(rays=int(prediction.rgb.shape[0] * prediction.rgb.shape[1]), **_flops(model, render))
     result.update(
         seconds=seconds,
         warmup_seconds=round(warmup_seconds, 3),

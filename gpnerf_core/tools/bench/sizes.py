@@ -152,16 +152,65 @@ def check_family_overrides(overrides: list[str]) -> None:
 
 def variant_overrides(size: Size, variant: str, overrides: list[str]) -> list[str]:
     """The overrides of ``variant`` at ``size``, the user's last (they win): ``gpnerf``, ``gnt_only``, a baseline
-    family (its ``+experiment=baselines/<variant>`` on the size's common overrides: the same images, views and rays), or
-    another registered family (``model=<variant>`` and ``family_loss``'s loss set on them)."""
+    family (its ``+experiment=baselines/<variant>`` on the size's common overrides: the same images, views and rays),
+    a registered family with a plugin's preset (``+experiment=<variant>``, ``plugin_experiment``), or another registered
+    family (``model=<variant>`` and ``family_defaults``' loss set on them). A per-scene family is evaluated on its
+    scene's held-out frames (``eval.splits=[train]``). The user's overrides a family does not take are left out for it
+    (``dropped_overrides`` names them)."""
     if variant in VARIANTS:
         extra = size.semantic if variant == "gpnerf" else GNT_ONLY
         return [*size.common, *extra, *overrides]
+    common = family_common(size, variant)
+    return [*common, *_accepted(common, tuple(overrides))[0]]
+
+
+def dropped_overrides(size: Size, variant: str, overrides: list[str]) -> list[str]:
+    """The user's overrides ``variant`` does not take at ``size`` (none for GP-NeRF's variants): options of parts it
+    does not build, ``model.<key>`` it has no field for, and source views for a per-scene family."""
+    if variant in VARIANTS:
+        return []
+    return _accepted(family_common(size, variant), tuple(overrides))[1]
+
+
+def family_common(size: Size, variant: str) -> tuple[str, ...]:
+    """A family variant's overrides before the user's (the size's, its preset or model, its loss set and splits)."""
     if variant in baseline_families():  # the size's scale sizes the family as it sizes its own (scale/<scale>/<model>)
-        common = [*size.common, f"+experiment=baselines/{variant}"]
-        return [*common, *own_parts(tuple(common), overrides)]
-    common = [*size.common, f"model={variant}"]
-    return [*common, f"+loss={family_loss(tuple(common), variant)}", *own_parts(tuple(common), overrides)]
+        common = (*size.common, f"+experiment=baselines/{variant}")
+    elif plugin_experiment(variant):
+        common = (*size.common, f"+experiment={variant}")
+    else:
+        base = (*size.common, f"model={variant}")
+        common = (*base, f"+loss={family_loss(base, variant)}", *loss_options(base))
+    return (*common, "eval.splits=[train]") if family_per_scene(common) else common
+
+
+def plugin_experiment(family: str) -> bool:
+    """A plugin ships ``experiment/<family>.yaml`` (its preset for its family, ``+experiment=<family>``)."""
+    from gpnerf_core.config.presets import config_files, plugin_search_paths
+
+    return any(f"experiment/{family}.yaml" in config_files(path) for _, path in plugin_search_paths())
+
+
+def _accepted(common: tuple[str, ...], overrides: tuple[str, ...]) -> tuple[list[str], list[str]]:
+    """``(kept, dropped)``: ``overrides`` split by whether the family ``common`` composes takes them."""
+    from gpnerf_core.config.overrides import override_key
+
+    kept = own_parts(common, list(overrides))
+    dropped = [o for o in overrides if o not in kept]
+    if not any(override_key(o).startswith("model.") for o in kept):
+        return kept, dropped
+    # a key the family has no field for would be refused by Hydra; source views, by a per-scene family's check
+    fields = family_fields(common)
+    per_scene = family_per_scene(common)
+
+    def takes(override: str) -> bool:
+        key = override_key(override)
+        if not key.startswith("model.") or override.startswith("+"):
+            return True
+        name = key.split(".")[1]
+        return name in fields and not (per_scene and name == "num_source_views")
+
+    return [o for o in kept if takes(o)], [*dropped, *(o for o in kept if not takes(o))]
 
 
 def own_parts(common: tuple[str, ...], overrides: list[str]) -> list[str]:
@@ -182,6 +231,14 @@ def own_parts(common: tuple[str, ...], overrides: list[str]) -> list[str]:
 
 
 @functools.cache
+def family_fields(common: tuple[str, ...]) -> frozenset[str]:
+    """The top-level keys of the model section ``common`` composes."""
+    from gpnerf_core.config.compose import compose
+
+    return frozenset(str(key) for key in compose(list(common)).model)
+
+
+@functools.cache
 def family_parts(common: tuple[str, ...]) -> frozenset[str]:
     """The part kinds under the model ``common`` composes."""
     from gpnerf_core.config.compose import compose
@@ -192,14 +249,57 @@ def family_parts(common: tuple[str, ...]) -> frozenset[str]:
 
 
 @functools.cache
-def family_loss(common: tuple[str, ...], family: str) -> str:
-    """The loss set a registered family is measured with: ``ce`` (colour and class scores) where it renders semantics
-    as configured, else ``rgb``."""
+def family_per_scene(common: tuple[str, ...]) -> bool:
+    """The family ``common`` composes is per-scene: its config's ``num_source_views`` defaults to 0 (the rule the
+    config check holds a family to); False when it does not compose (the variant's compose names why)."""
+    import dataclasses
+
     from gpnerf_core.config.compose import compose
+    from gpnerf_core.registry.components import get_registry
+
+    try:
+        name = str(compose(list(common)).model.name)
+    except ConfigError:
+        return False
+    registered = get_registry().components["model"].get(name)
+    fields = {f.name: f for f in dataclasses.fields(registered.spec.config)} if registered else {}
+    views = fields.get("num_source_views")
+    return views is not None and views.default == 0
+
+
+@functools.cache
+def family_built(common: tuple[str, ...]) -> tuple[str | None, bool]:
+    """``(predicts, whole_images)`` of the model ``common`` composes, as built: ``classes``, ``instances`` or None
+    (colour only), and whether it trains on whole images; ``("classes", False)`` when it is refused (the variant's
+    compose names why)."""
+    from gpnerf_core.config.compose import compose
+    from gpnerf_core.interfaces.head import Predicts
+    from gpnerf_core.interfaces.model import TrainingBatch
     from gpnerf_core.model.build import build_components
 
     try:
-        semantic = build_components(compose(list(common))).model.semantic_output is not None
+        model = build_components(compose(list(common))).model
     except ConfigError:
-        return "ce"  # refused for another reason: the compose of the variant names it
-    return "ce" if semantic else "rgb"
+        return "classes", False
+    output = model.semantic_output
+    return (None if output is None else Predicts(output.predicts).value,
+            model.capabilities.trains_on is TrainingBatch.IMAGES)
+
+
+def family_loss(common: tuple[str, ...], family: str) -> str:
+    """The loss set a registered family without a preset is measured with, by what it predicts and trains on: on
+    whole images ``image`` (its cross-entropy only for classes, ``loss_options``); on rays ``ce`` for classes,
+    ``instance`` for instance slots, ``rgb`` for colour only. A family refused as composed gets ``ce`` (the compose
+    of the variant names why)."""
+    predicts, whole_images = family_built(common)
+    if whole_images:
+        return "image"
+    return {"classes": "ce", "instances": "instance"}.get(predicts or "", "rgb")
+
+
+def loss_options(common: tuple[str, ...]) -> tuple[str, ...]:
+    """Options of ``family_loss``'s set: the image set's cross-entropy off for a family without class scores."""
+    predicts, whole_images = family_built(common)
+    if whole_images and predicts != "classes":
+        return ("loss.ce_weight=0",)
+    return ()

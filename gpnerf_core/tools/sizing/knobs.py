@@ -58,13 +58,15 @@ def component_knobs(config: type, prefix: str, registry: Any, node: Any = None) 
     return found
 
 
-def configured_knobs(cfg: Any, registry: Any = None) -> list[Knob]:
-    """The knobs of the model ``cfg`` configures: its family's and those of the parts it builds."""
+def configured_knobs(cfg: Any, registry: Any = None, *, per_scene: bool = False) -> list[Knob]:
+    """The knobs of the model ``cfg`` configures: its family's and those of the parts it builds (``per_scene``: a
+    per-scene family reads no source views, so ``model.num_source_views`` is not one of them)."""
     from gpnerf_core.registry.components import get_registry
 
     registry = registry or get_registry()
     entry = registry.components["model"].get(str(cfg.model.name))
-    return [] if entry is None else component_knobs(entry.spec.config, "model.", registry, cfg.model)
+    knobs = [] if entry is None else component_knobs(entry.spec.config, "model.", registry, cfg.model)
+    return [k for k in knobs if not (per_scene and k.key == SOURCE_VIEWS)]
 
 
 def known_knobs(registry: Any = None) -> list[Knob]:
@@ -82,16 +84,19 @@ def known_knobs(registry: Any = None) -> list[Knob]:
     return list(found.values())
 
 
-def knob_levels(cfg: Any, min_source_views: int) -> tuple[dict[str, tuple[int, list[int]]], list[str]]:
+def knob_levels(
+    cfg: Any, min_source_views: int, *, per_scene: bool = False
+) -> tuple[dict[str, tuple[int, list[int]]], list[str]]:
     """Each of the configured model's knobs with its reference value and smaller levels, and notes on the knobs left
     out (another component's knob, one whose add-on is not configured, one with no smaller value).
 
     Args:
         cfg: the reference config.
         min_source_views: no fewer source views are tried (the scene's coverage floor).
+        per_scene: the model is per-scene (no source views to size).
     """
-    knobs = configured_knobs(cfg)
-    own = {knob.key for knob in knobs}
+    knobs = configured_knobs(cfg, per_scene=per_scene)
+    own = {knob.key for knob in knobs} | ({SOURCE_VIEWS} if per_scene else set())
     notes = [f"{knob.key}: {_why_absent(cfg, knob.key)}; not sized" for knob in known_knobs() if knob.key not in own]
     levels: dict[str, tuple[int, list[int]]] = {}
     for knob in knobs:

@@ -10,9 +10,12 @@ from gpnerf_core.errors import ConfigError
 from gpnerf_core.evaluation.evaluator import SPLIT_LABELS
 from gpnerf_core.tools.sizing.knobs import known_knobs
 
-METRICS = {"miou": ("train_heldout", "miou/image_mean_present"), "psnr": ("train_heldout", "psnr/clamped")}
+METRICS = {"miou": ("train_heldout", "miou/image_mean_present"),
+           "ap75": ("train_heldout", "instance/ap_matched@0.75"), "psnr": ("train_heldout", "psnr/clamped")}
 """Selection metric -> where it is in ``metrics.json`` (held-out views of the training scenes, never unseen scenes)."""
-DEFAULT_TOLERANCE = {"miou": 0.02, "psnr": 0.5}
+DEFAULT_TOLERANCE = {"miou": 0.02, "ap75": 0.02, "psnr": 0.5}
+PREDICTS_METRIC = {"classes": "miou", "instances": "ap75"}
+"""The default metric by what the model predicts (``psnr`` for colour only)."""
 NUMBERS: dict[str, tuple] = {
     "steps": (int, 0),
     "seeds": (int, 1, 10),
@@ -28,9 +31,10 @@ class SizeOptions:
         out: the sizing folder ("" = ``outputs/size/<date>_<time>``).
         steps: training steps of each trial (0 = half the config's ``train.steps``).
         seeds: runs per trial, seeds ``seed``, ``seed + 1``, ...; the trial's accuracy is their mean.
-        metric: ``miou`` (per-image, held-out views) or ``psnr`` (held-out; the default without a head).
+        metric: ``miou`` (per-image, held-out views), ``ap75`` (matched AP@0.75, held-out) or ``psnr`` (held-out);
+            the default by what the model predicts: classes miou, instances ap75, colour only psnr.
         tolerance: a smaller configuration is kept while its metric is at least the reference's minus this
-            (absolute: mIoU in [0, 1], PSNR in dB; default 0.02 or 0.5).
+            (absolute: mIoU and AP in [0, 1], PSNR in dB; default 0.02, 0.02 or 0.5).
         min_coverage: fewest source views tried: those that show at least this fraction of a target's pixels
             to two or more of them (the scene measurement).
         depth_margin: the measured depth range is widened by this fraction on each side for near/far.
@@ -132,10 +136,16 @@ def check_eval_splits(metric: str, splits: list[str]) -> None:
                           f"(e.g. eval.splits=[{','.join([needed, *splits])}], or leave eval.splits out)")
 
 
-def resolve_metric(options: SizeOptions, has_head: bool) -> tuple[str, float]:
-    """The selection metric and tolerance, defaulted from whether the model has a semantic head."""
-    metric = options.metric or ("miou" if has_head else "psnr")
-    if metric == "miou" and not has_head:
-        raise ConfigError("size.metric=miou needs a model with a head (+head=...); use size.metric=psnr")
+def resolve_metric(options: SizeOptions, predicts: str | None) -> tuple[str, float]:
+    """The selection metric and tolerance, defaulted from what the model predicts (``classes``, ``instances`` or None:
+    colour only); a metric of predictions the model does not make is refused."""
+    metric = options.metric or PREDICTS_METRIC.get(predicts or "", "psnr")
+    made = PREDICTS_METRIC.get(predicts or "")
+    if metric != "psnr" and metric != made:
+        what = {"miou": "class scores (a class head, +head=..., or label rendering)",
+                "ap75": "instance slots (+head=instance, or an instance family)"}[metric]
+        have = f"model predicts {predicts}" if predicts else "model predicts colour only"
+        raise ConfigError(f"size.metric={metric} needs a model with {what}; this {have}: use size.metric="
+                          f"{made or 'psnr'}")
     tolerance = options.tolerance if options.tolerance >= 0 else DEFAULT_TOLERANCE[metric]
     return metric, tolerance

@@ -24,7 +24,8 @@ def describe_scene(scene: SceneMeasurement, cfg: Any) -> str:
     return (f"  {scene.frames} frames: depth {scene.depth_low} / {scene.depth_median} / {scene.depth_high} m "
             f"(percentiles {scene.percentiles[0]} / 50 / {scene.percentiles[1]}) -> near {scene.near} m, far "
             f"{scene.far} m (configured {cfg.dataset.near} / {cfg.dataset.far}); a pixel is "
-            f"{scene.metres_per_pixel * 100:.1f} cm at the median depth; pixels two sources see, by sources: {coverage}")
+            f"{scene.metres_per_pixel * 100:.1f} cm at the median depth"
+            + (f"; pixels two sources see, by sources: {coverage}" if coverage else " (per-scene: no source views)"))
 
 
 def sample_spacing_cm(scene: SceneMeasurement, near: float, far: float, samples: int) -> float | None:
@@ -65,8 +66,8 @@ def write_experiment(out: Path, chosen: Trial, base: list[str], metric: str, tol
         f"# Written by `python -m gpnerf_core size` ({time.strftime('%Y-%m-%d %H:%M')}): the cheapest configuration\n"
         f"# kept within {tolerance} {metric} of the reference ({chosen.accuracy:.4f} against {reference.accuracy:.4f}"
         f" after {steps} steps),\n"
-        f"# {chosen.cost.parameters:,} parameters and {chosen.cost.flops_per_ray / 1e6:.2f} MFLOP per ray against "
-        f"{reference.cost.parameters:,} and {reference.cost.flops_per_ray / 1e6:.2f}.\n"
+        f"# {chosen.cost.parameters:,} parameters and {chosen.cost.flops_text()} MFLOP per ray against "
+        f"{reference.cost.parameters:,} and {reference.cost.flops_text()}.\n"
         f"# Run: {sized_command(base, chosen, out)}\n"
     )
     body = OmegaConf.to_yaml(OmegaConf.create(tree)) if tree else "{}\n"
@@ -93,7 +94,7 @@ def write_report(out: Path, scene: SceneMeasurement, request: dict[str, Any], tr
 
 def _trial_json(trial: Trial) -> dict[str, Any]:
     return {"name": trial.name, "changes": trial.changes, "parameters": trial.cost.parameters,
-            "flops_per_ray": trial.cost.flops_per_ray, "accuracy": trial.accuracy, "measured": trial.measured,
+            "flops_per_ray": trial.cost.flops_per_ray if trial.cost.flops_counted else None, "accuracy": trial.accuracy, "measured": trial.measured,
             "kept": trial.kept, "error": trial.error, "runs": trial.runs}
 
 
@@ -119,8 +120,9 @@ def format_report(scene: SceneMeasurement, request: dict[str, Any], trials: list
             f"- ray bounds: near {scene.near} m, far {scene.far} m (the range widened by {scene.margin:.0%})",
             f"- a pixel at the median depth: {scene.metres_per_pixel * 100:.2f} cm (focal {scene.focal_px} px)",
             *([f"- coarse samples over the measured bounds: {spacing}"] if samples else []),
-            "- target pixels seen by at least two of the V nearest sources: "
-            + ", ".join(f"V={v}: {c['2']:.1%}" for v, c in sorted(scene.coverage.items())),
+            *(["- target pixels seen by at least two of the V nearest sources: "
+               + ", ".join(f"V={v}: {c['2']:.1%}" for v, c in sorted(scene.coverage.items()))] if scene.coverage
+              else []),
         ]
     else:
         lines.append(f"- {scene.frames} frames; no depth maps, so the configured near/far were kept")
@@ -136,15 +138,17 @@ def format_report(scene: SceneMeasurement, request: dict[str, Any], trials: list
         kept = "reference" if trial is reference else ("yes" if trial.kept else "no")
         accuracy = "failed: " + str(trial.error) if trial.accuracy is None else f"{trial.accuracy:.4f}"
         cells = [trial.name + mark, describe(trial.changes), kept, accuracy, _cell(m.get("miou unseen"), 4), _cell(m.get("psnr held-out"), 2),
-                 *((f"{trial.cost.parameters / 1e6:.3f}", f"{trial.cost.flops_per_ray / 1e6:.2f}") if trial.cost.rays
+                 *((f"{trial.cost.parameters / 1e6:.3f}", trial.cost.flops_text()) if trial.cost.rays
                    else ("", "")),
                  _cell(m.get("rays_per_second"), 0), _cell(m.get("seconds_per_frame"), 2), _cell(m.get("peak_memory_mb"), 0)]
         lines.append("| " + " | ".join(cells) + " |")
     lines.append("")
     if chosen is not None and reference is not None:
         ratio = [
-            f"parameters x{chosen.cost.parameters / reference.cost.parameters:.2f}",
-            f"FLOPs per ray x{chosen.cost.flops_per_ray / reference.cost.flops_per_ray:.2f}",
+            f"parameters x{chosen.cost.parameters / reference.cost.parameters:.2f}" if reference.cost.parameters
+            else "parameters n/a",
+            f"FLOPs per ray x{chosen.cost.flops_per_ray / reference.cost.flops_per_ray:.2f}"
+            if reference.cost.flops_counted and reference.cost.flops_per_ray else "FLOPs per ray n/a",
         ]
         if chosen.measured.get("seconds_per_frame") and reference.measured.get("seconds_per_frame"):
             ratio.append(f"s/frame x{chosen.measured['seconds_per_frame'] / reference.measured['seconds_per_frame']:.2f}")

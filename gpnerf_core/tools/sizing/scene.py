@@ -108,7 +108,8 @@ def measure_scenes(
     """Measure ``scenes`` (training scenes) from up to ``frames_per_scene`` evenly spaced training frames each.
 
     Args:
-        max_views: coverage is measured for 1..max_views nearest sources (the view selector's choice at evaluation).
+        max_views: coverage is measured for 1..max_views nearest sources (the view selector's choice at evaluation);
+            0: not measured (a per-scene model reads no source views).
         percentiles: low and high percentiles of the valid depth that bound the rays.
         margin: the bounds are widened by this fraction (near * (1 - margin), far * (1 + margin)).
         stride: target pixels on a grid of this stride are reprojected for the coverage.
@@ -128,6 +129,8 @@ def measure_scenes(
             if valid.numel() < MIN_VALID_DEPTH * frame.depth.numel():
                 continue
             depths.append(valid[:: max(1, valid.numel() // 4096)])
+            if not max_views:  # a per-scene model: no source views whose coverage matters
+                continue
             order = choose_sources(selector, scene, index, max_views, None)
             sources = [cache.frame(scene, i) for i in order]
             seen = _seen_by(frame.depth, frame.intrinsics, frame.c2w, sources, stride)

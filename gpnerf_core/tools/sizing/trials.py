@@ -110,4 +110,5 @@ def _measured(results: list[dict[str, Any]]) -> dict[str, float]:
     figures["train_seconds"] = mean([m.get("train", {}).get("seconds") for m in results])
     figures["seconds_per_frame"] = mean([t.get("seconds_per_frame") for t in timing])
     figures["peak_memory_mb"] = mean([t.get("peak_memory_mb") for t in timing])
+    figures["parameters"] = mean([(m.get("parameters") or {}).get("total") for m in results])  # as trained
     return {k: v for k, v in figures.items() if v is not None}

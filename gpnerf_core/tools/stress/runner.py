@@ -23,8 +23,10 @@ from omegaconf import DictConfig, open_dict
 from gpnerf_core.errors import ConfigError, DataError, NonFiniteError, PluginError
 from gpnerf_core.interfaces import StressCase
 
-METRICS = {"miou": "miou/image_mean_present", "accuracy": "acc/image_total", "psnr": "psnr/clamped"}
-"""Figures kept per evaluation: name -> protocol id in ``metrics.json`` (mIoU and accuracy only with semantics)."""
+METRICS = {"miou": "miou/image_mean_present", "accuracy": "acc/image_total", "ap75": "instance/ap_matched@0.75",
+           "psnr": "psnr/clamped"}
+"""Figures kept per evaluation: name -> protocol id in ``metrics.json`` (mIoU and accuracy with a class head, matched
+AP@0.75 with an instance head; PSNR always)."""
 
 QUICK_VIEWS_PER_SCENE = 1
 """``--quick``: held-out views per scene evaluated (0 = all otherwise)."""
@@ -232,6 +234,9 @@ class _Evaluator:
         def choose(scene, target: int, count: int) -> list[int]:
             return choose_sources(components.view_selector, scene, target, count, None)
 
+        def targets_for(scene) -> list[int]:
+            return case.target_frames(level, scene, list(scene.eval_frames))
+
         def sources_for(scene, target: int):
             if not components.model.capabilities.generalizable:
                 return None  # a per-scene model renders from its own parameters
@@ -245,11 +250,12 @@ class _Evaluator:
             generator = torch.Generator().manual_seed(_seed(case.name, level, scene.name, target))
             return case.perturb_sources(level, frames.source_views(scene, indices), generator)
 
+        changes_targets = case is not None and changes_target_frames(case)
         result = evaluate(cfg, components, frames, run_dir, Distributed.single(), sources_for=sources_for,
-                          references=False)
+                          targets_for=targets_for if changes_targets else None, references=False)
         label = "train_heldout" if split == "train" else "unseen"
         values = result["eval"][label]
-        return {name: float(values[key]) for name, key in METRICS.items() if key in values}
+        return {name: float(values[key]) for name, key in METRICS.items() if values.get(key) is not None}
 
     def scenes(self, case: StressCase, level: float) -> list[Any]:
         cfg, components, frames = self.variant(case.dataset_overrides(level, self.cfg.dataset))
@@ -280,6 +286,7 @@ def run_suite(
         outcomes.append(Outcome(model.name, model.method, model.seed, "clean", None, "clean", clean,
                                 seconds=time.perf_counter() - started))
         print(f"stress: {model.name} clean: {_shown(clean)}", file=sys.stderr)
+        first = len(outcomes)
         for case in cases:
             for level in case.chosen_levels(quick):
                 outcome = Outcome(model.name, model.method, model.seed, case.name, float(level), case.label(level))
@@ -297,7 +304,26 @@ def run_suite(
                     shown = _shown(outcome.metrics) if outcome.error is None else f"NOT FINITE: {outcome.error}"
                 outcomes.append(outcome)  # before its line: an interruption after the line keeps what it reports
                 print(f"stress: {model.name} {case.name} {case.label(level)}: {shown}", file=sys.stderr)
+        note = no_case_applies(evaluator, cases, outcomes[first:])
+        if note is not None:
+            print(f"stress: note: {model.name}: {note}", file=sys.stderr)
     return outcomes
+
+
+def no_case_applies(evaluator: "_Evaluator", cases: list[StressCase], outcomes: list[Outcome]) -> str | None:
+    """One line when every level of every chosen case was skipped for a model (None otherwise): for a per-scene
+    model, the registered cases that do apply to it."""
+    if any(not o.skipped for o in outcomes):
+        return None
+    if evaluator.components.model.capabilities.generalizable:
+        return f"none of the {len(cases)} chosen case(s) applies to it (each skip's reason is in stress.md); clean only"
+    from gpnerf_core.registry.components import get_registry
+
+    applying = [name for name, (case, _) in get_registry().stress_cases.items() if per_scene_applies(case)]
+    offer = (f"the cases that change only which held-out views are scored apply: --cases {','.join(applying)}"
+             if applying else "no registered case changes only the held-out views scored")
+    return (f"model {evaluator.cfg.model.name!r} is per-scene (no source views, its own scene only): none of the "
+            f"{len(cases)} chosen case(s) applies to it; clean only; {offer}")
 
 
 def dataset_options(name: str) -> set[str]:
@@ -314,6 +340,19 @@ def changes_sources(case: StressCase) -> bool:
     """The case changes the source views a model is given (which, how many, their images or cameras)."""
     return any(getattr(type(case), method) is not getattr(StressCase, method)
                for method in ("source_indices", "num_source_views", "perturb_sources"))
+
+
+def changes_target_frames(case: StressCase) -> bool:
+    """The case changes which held-out target views are scored."""
+    return type(case).target_frames is not StressCase.target_frames
+
+
+def per_scene_applies(case: StressCase) -> bool:
+    """The case can run on a per-scene model: it changes which held-out views of the model's own scene are scored
+    and nothing else (no source views, no dataset variant, no other split). A case with ``dataset_overrides`` is
+    judged per level by the suite."""
+    return changes_target_frames(case) and not changes_sources(case) and case.split == "train" \
+        and type(case).dataset_overrides is StressCase.dataset_overrides
 
 
 def _unavailable(case: StressCase, level: float, evaluator: _Evaluator) -> str | None:

@@ -1,9 +1,9 @@
 """The stress suite's figures: mean and std over seeds per (method, case, level), when each method fails, which
 method degrades least, and one PNG per case (metric against level, one line per method).
 
-Failure rule: a method fails a case at the first level (mildest first) where its mean per-image mIoU falls below
-half its clean mean; for a model without semantics, where its mean PSNR falls more than 6 dB (4x the squared
-error) below its clean mean. Degradation: the mean over the case's evaluated levels of (level score / clean
+Failure rule: a method fails a case at the first level (mildest first) where its headline metric fails: the metric of
+what the model predicts (mean per-image mIoU for classes, matched AP@0.75 for instances) below half its clean mean; for
+a model predicting colour only, its mean PSNR more than 6 dB (4x the squared error) below its clean mean. Degradation: the mean over the case's evaluated levels of (level score / clean
 score), per method; the method with the highest retained fraction degrades least.
 """
 
@@ -20,7 +20,10 @@ from typing import Any
 from gpnerf_core.tools.stress.runner import Outcome
 
 FAIL_FRACTION = 0.5
-"""mIoU: failed below this fraction of the clean score."""
+"""mIoU and AP@0.75: failed below this fraction of the clean score."""
+SHOWN = (("miou", "mIoU x100", 100.0), ("ap75", "AP@0.75 x100", 100.0), ("psnr", "PSNR dB", 1.0))
+"""Metrics in the tables and plots: name, row label, scale."""
+SCALE = {name: scale for name, _, scale in SHOWN}
 FAIL_PSNR_DROP_DB = 6.0
 """PSNR (models without semantics): failed this many dB below the clean score."""
 
@@ -46,8 +49,8 @@ def cell(values: list[float]) -> Cell | None:
 
 
 def headline(metrics_names: set[str]) -> str:
-    """The metric the failure rule uses: mIoU where the model has semantics, else PSNR."""
-    return "miou" if "miou" in metrics_names else "psnr"
+    """The metric the failure rule uses, by what the model predicts: mIoU (classes), AP@0.75 (instances), else PSNR."""
+    return "miou" if "miou" in metrics_names else "ap75" if "ap75" in metrics_names else "psnr"
 
 
 def _finite(value: float | None) -> float | str | None:
@@ -93,7 +96,7 @@ class StressSummary:
             if clean is None or value is None:
                 continue
             evaluated = True
-            failed = (value.mean < FAIL_FRACTION * clean.mean if metric == "miou"
+            failed = (value.mean < FAIL_FRACTION * clean.mean if metric != "psnr"
                       else value.mean < clean.mean - FAIL_PSNR_DROP_DB)
             if failed:
                 return label
@@ -131,7 +134,8 @@ class StressSummary:
     # ---- outputs -------------------------------------------------------------------------------------------------
 
     def markdown(self) -> str:
-        """Per case: a table of methods x levels (clean first) of mIoU x100 and PSNR, then fails-at and retained."""
+        """Per case: a table of methods x levels (clean first) of mIoU x100 (or AP@0.75 x100) and PSNR, then fails-at
+        and retained."""
         lines = []
         for case in self.cases:
             levels = self.levels(case)
@@ -139,11 +143,12 @@ class StressSummary:
             header = ["method", "metric", "clean", *[label for _, label in levels], "fails at", "retained"]
             lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
             for method in self.methods:
-                for metric, scale, digits in (("miou", 100.0, 2), ("psnr", 1.0, 2)):
+                for metric, shown, scale in SHOWN:
+                    digits = 2
                     clean = self.cell(method, "clean", None, metric)
                     if clean is None:
                         continue
-                    row = [method, "mIoU x100" if metric == "miou" else "PSNR dB", clean.text(scale, digits)]
+                    row = [method, shown, clean.text(scale, digits)]
                     for level, _ in levels:
                         value = self.cell(method, case, level, metric)
                         if self.broken(method, case, level):
@@ -163,7 +168,7 @@ class StressSummary:
                 lines.append(f"Degrades least: {best[0]} (retains {best[1]:.2f} of its clean score on average).")
             top = self.best_at_most_severe(case)
             if top is not None and len(self.methods) > 1:
-                scale = 100.0 if self.metric_of(top[0]) == "miou" else 1.0
+                scale = SCALE[self.metric_of(top[0])]
                 lines.append(f"Highest at the most severe level ({top[1]}): {top[0]} ({top[2] * scale:.2f}).")
             for reason in reasons:
                 lines.append(f"Skipped: {reason}.")
@@ -173,11 +178,11 @@ class StressSummary:
     def csv(self) -> str:
         out = io.StringIO()
         writer = csv.writer(out)
-        writer.writerow(["model", "method", "seed", "case", "level", "label", "miou", "accuracy", "psnr",
+        writer.writerow(["model", "method", "seed", "case", "level", "label", "miou", "accuracy", "ap75", "psnr",
                          "seconds", "skipped"])
         for o in self.outcomes:
             writer.writerow([o.model, o.method, o.seed, o.case, "" if o.level is None else o.level, o.label,
-                             *(o.metrics.get(k, "") for k in ("miou", "accuracy", "psnr")), round(o.seconds, 2),
+                             *(o.metrics.get(k, "") for k in ("miou", "accuracy", "ap75", "psnr")), round(o.seconds, 2),
                              o.skipped or ""])
         return out.getvalue()
 
@@ -201,7 +206,7 @@ class StressSummary:
         }
 
     def draw(self, folder: Path) -> list[Path]:
-        """``<case>.png`` per case: mIoU (or PSNR) and PSNR against level, one line per method, seed error bars."""
+        """``<case>.png`` per case: mIoU (or AP@0.75) and PSNR against level, one line per method, seed error bars."""
         import matplotlib
 
         matplotlib.use("Agg")
@@ -214,9 +219,9 @@ class StressSummary:
         written = []
         for case in self.cases:
             levels = self.levels(case)
-            if not any(self.cell(m, case, lv, k) for m in self.methods for lv, _ in levels for k in ("miou", "psnr")):
+            if not any(self.cell(m, case, lv, k) for m in self.methods for lv, _ in levels for k in SCALE):
                 continue
-            metrics = [k for k in ("miou", "psnr") if any(self.cell(m, "clean", None, k) for m in self.methods)]
+            metrics = [k for k in SCALE if any(self.cell(m, "clean", None, k) for m in self.methods)]
             figure, axes = plt.subplots(1, len(metrics), figsize=(5.2 * len(metrics), 3.8), squeeze=False)
             positions = list(range(len(levels) + 1))
             names = ["clean", *[label for _, label in levels]]
@@ -228,14 +233,14 @@ class StressSummary:
                     xs = [p for p, c in zip(positions, cells) if c is not None]
                     if len(xs) < 1:
                         continue
-                    scale = 100.0 if metric == "miou" else 1.0
+                    scale = SCALE[metric]
                     ax.errorbar(xs, [c.mean * scale for c in cells if c is not None],
                                 yerr=[c.std * scale for c in cells if c is not None], marker="o", capsize=3,
                                 label=method)
                 ax.set_xticks(positions, names, rotation=30 if len(names) > 4 else 0)
                 axis = registered[case].axis if case in registered else case
                 ax.set_xlabel(axis)
-                ax.set_ylabel("per-image mIoU x100" if metric == "miou" else "PSNR (dB)")
+                ax.set_ylabel({"miou": "per-image mIoU x100", "ap75": "matched AP@0.75 x100"}.get(metric, "PSNR (dB)"))
                 ax.grid(alpha=0.3)
             axes[0][0].set_title(f"stress: {case}")
             axes[0][-1].legend(fontsize=7)

@@ -10,6 +10,7 @@ from gpnerf_plugins.stress.geometry_cases import (
     TranslationNoise,
 )
 from gpnerf_plugins.stress.image_cases import Blur, Exposure, GaussianNoise, Jpeg
+from gpnerf_plugins.stress.target_cases import ViewDistance
 
 
 @hookimpl
@@ -26,4 +27,5 @@ def gpnerf_register_stress_cases() -> list[StressCase]:
         Exposure(),
         Textureless(),
         UnseenScenes(),
+        ViewDistance(),
     ]
