@@ -265,7 +265,9 @@ def test_a_head_output_of_the_wrong_shape_names_the_head_and_both_shapes(tiny, g
 
 def test_the_plugin_docs_list_every_loss_inputs_field_with_shape_and_dtype():
     text = (DOCS / "plugins.md").read_text()
-    rows = {m.group(1): m.group(0) for m in re.finditer(r"^\| `([a-z_.]+)` \|.*$", text, re.MULTILINE)}
+    rows: dict[str, str] = {}
+    for m in re.finditer(r"^\| `([a-z_.]+)` \|.*$", text, re.MULTILINE):  # the first table naming a field: LossInputs'
+        rows.setdefault(m.group(1), m.group(0))
     for field in dataclasses.fields(LossInputs):
         assert field.name in rows, field.name
         assert rows[field.name].count("|") >= 6, rows[field.name]  # name, shape, dtype, units, when present

@@ -141,7 +141,7 @@ def evaluate(
     for split in cfg.eval.splits:
         if split not in SPLIT_LABELS:
             raise ConfigError(f"eval.splits contains {split!r}; expected some of {', '.join(SPLIT_LABELS)}")
-    model = components.model.to(dist.device).eval()
+    components.model.to(dist.device).eval()
     dataset = components.dataset
     instance_head = predicts(components) is Predicts.INSTANCES
     semantics = predicts(components) is Predicts.CLASSES

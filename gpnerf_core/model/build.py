@@ -4,8 +4,7 @@ its own parts through ``ConfiguredParts``) and the loss set, and checks that the
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 from gpnerf_core.data.dataset import SceneDataset
 from gpnerf_core.errors import ConfigError
