@@ -43,8 +43,9 @@ class CacheStats:
 def model_state(model: nn.Module) -> tuple[int, ...]:
     """A token that changes whenever a parameter or buffer of ``model`` is changed in place or replaced, or the model
     switches between training and inference mode (normalisations behave differently)."""
-    return (id(model), int(model.training), *(t._version for t in model.parameters()),
-            *(id(t) for t in model.parameters()), *(t._version for t in model.buffers()))
+    parameters = list(model.parameters())  # one walk of the module tree (a viewer frame asks once: ~0.4 ms a walk)
+    return (id(model), int(model.training), *(t._version for t in parameters), *(id(t) for t in parameters),
+            *(t._version for t in model.buffers()))
 
 
 class SourceFeatureCache:
