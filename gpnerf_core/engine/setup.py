@@ -122,6 +122,7 @@ def check_component_choices(argv: list[str], registry: Any) -> None:
 
 
 MULTIPLE_VALUES = re.compile(r"Multiple values for (\w+)\. To override a value use 'override \w+: (\S+)'")
+FOREIGN_KEY = re.compile(r"In '([\w/]+)': ConfigKeyError raised while composing config:\s*Key '(\w+)' not in '(\w+)'")
 
 
 def hydra_message(exc: BaseException) -> str:
@@ -132,6 +133,12 @@ def hydra_message(exc: BaseException) -> str:
         group, option = chosen.groups()
         return (f"+{group}={option}: the config already selects a {group} (an experiment's or a checkpoint's); replace "
                 f"it with {group}={option} (without '+'), or leave the experiment out")
+    foreign = FOREIGN_KEY.search(str(exc))
+    if foreign is not None:  # an experiment's setting for a part that a group override (loss=x) replaced
+        where, key, schema = foreign.groups()
+        return (f"'{where}' sets {key} for the parts it chooses, and {schema} (chosen by an override of yours) has no "
+                f"{key}: an override like loss=<name> replaced the experiment's choice; keep the experiment's, or leave "
+                f"the experiment out")
     parts: list[str] = []
     while exc is not None:
         lines = [line.strip() for line in str(exc).splitlines() if line.strip()]

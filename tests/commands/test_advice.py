@@ -78,3 +78,14 @@ def test_a_family_that_trains_on_images_is_pointed_at_a_loss_set_on_images(capsy
     line = refusal(capsys, "run", "+experiment=baselines/mvsplat", "loss=instance", *SMALL, f"out_dir={tmp_path / 'run'}")
     assert "loss 'instance' trains instances but model 'mvsplat' predicts classes" in line
     assert "(+head=instance)" in line and "(+loss=image)" in line and "dgs" not in line
+
+
+def test_an_experiments_setting_for_a_part_an_override_replaced_is_named_with_the_fix():
+    from gpnerf_core.engine.setup import compose_overrides
+    from gpnerf_core.errors import ConfigError
+
+    with pytest.raises(ConfigError) as refused:
+        compose_overrides(["+experiment=baselines/semantic_3dgs", "loss=instance"])
+    message = str(refused.value)
+    assert "'experiment/baselines/semantic_3dgs' sets rgb_error" in message and "InstanceLossConfig" in message
+    assert "keep the experiment's, or leave the experiment out" in message and "\n" not in message
