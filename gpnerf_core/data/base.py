@@ -14,7 +14,7 @@ import math
 from abc import abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import ClassVar, Optional, Sequence
 
 from gpnerf_core.data.checks import check_validation_level
 from gpnerf_core.data.dataset import SPLITS, SceneDataset
@@ -28,6 +28,9 @@ class DatasetConfig:
     has (it subclasses this one, overriding a default where its own differs; what a field means for one dataset, what
     ``root`` holds or what a size of 0 selects, is in that config's class docstring)."""
 
+    content_keys: ClassVar[tuple[str, ...]] = ()
+    """Fields whose value changes what a scene of a given name holds (a generated dataset's seed): a per-scene model
+    (``engine.fitted_data``) is refused on a value other than the one it was fitted with."""
     name: str = ""
     """Registry name of the dataset (each subclass defaults it to its own)."""
     root: str = ""

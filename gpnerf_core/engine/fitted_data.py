@@ -35,11 +35,29 @@ def fitted_scenes(cfg: DictConfig, components: Any, trained: TrainedModel) -> Fi
                                 "per-scene model renders only its scene")
 
 
-def fitted_dataset(trained: TrainedModel) -> str:
-    """The dataset a model was trained on (its stored config's ``dataset.name``; "" when it names none)."""
+def fitted_dataset_config(trained: TrainedModel) -> dict[str, Any]:
+    """The ``dataset`` section of a model's stored config ({} when it has none)."""
     config = yaml.safe_load(trained.config_yaml) or {}
     dataset = config.get("dataset") if isinstance(config, dict) else None
-    return str(dataset.get("name") or "") if isinstance(dataset, dict) else ""
+    return dataset if isinstance(dataset, dict) else {}
+
+
+def fitted_dataset(trained: TrainedModel) -> str:
+    """The dataset a model was trained on (its stored config's ``dataset.name``; "" when it names none)."""
+    return str(fitted_dataset_config(trained).get("name") or "")
+
+
+def changed_content_key(cfg: DictConfig, trained: TrainedModel) -> tuple[str, Any, Any] | None:
+    """``(key, fitted value, asked value)`` of the first of the dataset's ``content_keys`` (``DatasetConfig``) whose
+    value differs from the one the model was fitted with; None when all agree (or the checkpoint stores none)."""
+    from gpnerf_core.registry.components import get_registry
+
+    stored = fitted_dataset_config(trained)
+    spec = get_registry().get("dataset", str(cfg.dataset.name)).spec
+    for key in getattr(spec.config, "content_keys", ()):
+        if key in stored and key in cfg.dataset and stored[key] != cfg.dataset[key]:
+            return key, stored[key], cfg.dataset[key]
+    return None
 
 
 def check_fitted_data(cfg: DictConfig, components: Any, trained: TrainedModel, fitted: FittedScenes | None,
@@ -68,6 +86,12 @@ def check_fitted_data(cfg: DictConfig, components: Any, trained: TrainedModel, f
     if own and name and own != name:
         raise ConfigError(f"{command}: {fitted.why}; it was fitted on dataset={own}, asked for "
                           f"{repr(asked) if asked else 'a scene'} of {where}; {fix}")
+    changed = changed_content_key(cfg, trained)
+    if changed is not None:
+        key, was, now = changed
+        raise ConfigError(f"{command}: {fitted.why}; it was fitted with dataset.{key}={was}, and dataset.{key}={now} "
+                          f"makes other scenes under the same names; drop dataset.{key}={now}, or fit a model on "
+                          "those scenes (run)")
     try:
         offered = tuple(components.dataset.scenes("train"))
     except DataError as error:  # the fitted scene's folder (dataset.scenes) is not under this root

@@ -57,3 +57,12 @@ def test_another_capture_is_refused_naming_the_fitted_scene_in_one_line(fitted, 
     assert code == 2 and len([line for line in err if line.startswith("error:")]) == 1
     assert "fitted on scene 'layout_00'" in err[-1] and "missing" not in err[-1]
     assert not (work / "refused").exists()
+
+
+def test_another_seed_of_a_generated_dataset_is_refused_naming_the_key(fitted):
+    work, data, trained, _ = fitted
+    with pytest.raises(ConfigError) as refused:  # dataset.seed=3 generates another room called layout_00
+        open_trained(trained, [data, "dataset.seed=3"], command="export")
+    message = str(refused.value)
+    assert "fitted with dataset.seed=0, and dataset.seed=3 makes other scenes under the same names" in message
+    assert "'layout_00'" in message and "\n" not in message

@@ -34,6 +34,7 @@ class EmbeddedScenesConfig(DatasetConfig):
     ~/.cache/gpnerf). A relative path is taken from the launch directory.
     """
 
+    content_keys = ("seed", "textureless")  # another seed generates other rooms under the same names
     name: str = "embedded"
     """Registry name of this dataset."""
     num_train_scenes: int = 4
