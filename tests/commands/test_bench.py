@@ -117,10 +117,10 @@ def test_stage_times_charge_backward_to_the_stage_whose_forward_made_it():
 
     from gpnerf_core.runtime.profiling import GRADIENT_ACCUMULATION, stage, stage_times
 
-    weights = torch.randn(256, 256, requires_grad=True)
+    weights = torch.randn(512, 512, requires_grad=True)  # ~1 GFLOP: far above the profiler's own ~4 ms a stage
     with torch_profile() as profiler:
         with stage("heavy"):
-            hidden = torch.tanh(torch.randn(512, 256) @ weights @ weights)
+            hidden = torch.tanh(torch.randn(2048, 512) @ weights @ weights)
         with stage("light"):
             loss = hidden.sum()
         loss.backward()
