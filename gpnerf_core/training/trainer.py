@@ -318,8 +318,8 @@ class Trainer:
         self._run_family_callbacks(TrainingPhase.BEFORE_BACKWARD, state)
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
-        self._run_family_callbacks(TrainingPhase.AFTER_BACKWARD, state)
-        self._check_parameters("after its after_backward callbacks")
+        if self._run_family_callbacks(TrainingPhase.AFTER_BACKWARD, state):  # only callbacks resize mid-step
+            self._check_parameters("after its after_backward callbacks")
         with stage("optimizer"):
             clip = self.cfg.train.grad_clip
             grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), clip if clip > 0 else math.inf)
@@ -329,8 +329,8 @@ class Trainer:
             self.scheduler.step()
             if self.average is not None:
                 self.average.update(self.model)
-        self._run_family_callbacks(TrainingPhase.AFTER_STEP, state)
-        self._check_parameters("after its after_step callbacks")
+        if self._run_family_callbacks(TrainingPhase.AFTER_STEP, state):  # only callbacks resize mid-step
+            self._check_parameters("after its after_step callbacks")
         self.last_grad_norm = grad_norm.detach()
         detached = {name: value.detach() for name, value in terms.items()} | {"loss": total.detach()}
         return detached, batch.num_rays, stop_signal
@@ -368,15 +368,16 @@ class Trainer:
         return TrainingState(step=self.step, total_steps=int(self.cfg.train.steps), optimizer=self.optimizer,
                              batch=batch, outputs=output, seconds=self.training_seconds, checkpoint=self.checkpoint)
 
-    def _run_family_callbacks(self, phase: TrainingPhase, state: TrainingState) -> None:
+    def _run_family_callbacks(self, phase: TrainingPhase, state: TrainingState) -> bool:
         """The callbacks of ``phase`` that are due at this step and count as training time: the family's
-        (``FamilyHooks.callbacks``) and the command's timed ones, in that order."""
+        (``FamilyHooks.callbacks``) and the command's timed ones, in that order; whether any ran."""
         due = [c for c in self.callbacks[phase] if c.due(self.step)]
         if not due:
-            return
+            return False
         with stage(f"model callbacks ({phase.value})"):
             for callback in due:
                 callback.run(state)
+        return True
 
     def _loss_terms(self, batch: StepBatch, output: StepOutput) -> dict[str, Tensor]:
         """Each term averaged over this process's target views (so DDP's mean over processes is the global mean)."""
