@@ -49,7 +49,7 @@ def labelled_copy(capture: Path, sequence: Path, out: Path) -> None:
     sources = transforms["gpnerf_summary"]["source_frames"]
     for frame in transforms["frames"]:
         name = Path(frame["file_path"]).name
-        index = int(sources[name])  # the video frame it came from
+        index = int(Path(str(sources[name])).stem.split("_")[-1])  # the video frame, or the photo IMG_<frame>.jpg
         shutil.copyfile(sequence / "semantic_class" / f"semantic_class_{index}.png", out / "semantics" / name)
         frame["semantic_file_path"] = f"semantics/{name}"
     (out / "transforms.json").write_text(json.dumps(transforms, indent=1))
@@ -57,23 +57,34 @@ def labelled_copy(capture: Path, sequence: Path, out: Path) -> None:
     (out / "classes.json").write_text(json.dumps({"classes": classes["class_names"], "ignore_index": classes["ignore_index"]}))
 
 
-def make_capture(work: Path, seconds: dict[str, float]) -> tuple[Path, Path]:
+def make_capture(work: Path, seconds: dict[str, float], *, photos_of_seed: int | None = None) -> tuple[Path, Path]:
     """Steps 1-3 in ``work``: the "phone video" of the unseen layout, its capture (``data prepare-capture``) and the
-    capture's labelled copy; returns both folders, the commands' seconds in ``seconds``."""
+    capture's labelled copy; returns both folders, the commands' seconds in ``seconds``. ``photos_of_seed``: instead,
+    another layout (the unseen layout the generator makes with that seed) as a folder of 40 JPEG photos
+    (``IMG_<frame>.jpg``), prepared with the exhaustive matcher as photos not taken in order are."""
     scenes = work / "embedded"
+    seed = [] if photos_of_seed is None else ["--seed", str(photos_of_seed)]
     seconds["render"] = command(work, "make", "data", "make", "--root", str(scenes), "--num-train-scenes", "1",
                                 "--num-unseen-scenes", "1", "--frames-per-scene", "40", "--height", "240",
-                                "--width", "320")
+                                "--width", "320", *seed)
     sequence = next(scenes.glob("unseen_00/*"))
-    video = work / "unseen_00.mp4"
     frames = [imageio.imread(sequence / "rgb" / f"rgb_{i}.png") for i in range(40)]
-    imageio.mimsave(video, frames, fps=10, codec="libx264", macro_block_size=1)
+    if photos_of_seed is None:
+        source = work / "unseen_00.mp4"
+        imageio.mimsave(source, frames, fps=10, codec="libx264", macro_block_size=1)
+        how = ["--frames", "40"]
+    else:
+        source = work / "photos"
+        source.mkdir(exist_ok=True)
+        for i, frame in enumerate(frames):
+            imageio.imwrite(source / f"IMG_{i:04d}.jpg", frame[..., :3], quality=92)
+        how = ["--matcher", "exhaustive"]
 
     capture = work / "capture"
     if capture.exists():
         shutil.rmtree(capture)
-    seconds["prepare_capture"] = command(work, "prepare", "data", "prepare-capture", str(video), "--out", str(capture),
-                                         "--frames", "40")
+    seconds["prepare_capture"] = command(work, "prepare", "data", "prepare-capture", str(source), "--out", str(capture),
+                                         *how)
     labelled = work / "capture_labelled"
     if labelled.exists():
         shutil.rmtree(labelled)
