@@ -202,14 +202,21 @@ def rendered_points(prediction: Any, camera: Any, output: Any) -> tuple[Any, Any
     if prediction.logits is None or output is None:
         label = torch.full((rgb.shape[0],), -1, dtype=torch.long)
     else:
-        scores = torch.nan_to_num(prediction.logits.detach().float().cpu())
-        cells = torch.nn.functional.avg_pool2d(scores, stride)[0] if stride > 1 else scores[0]  # a cell's mean score
-        cells = cells[:, : depth.shape[0], : depth.shape[1]]
+        cells = cell_scores(prediction)
         if output.predicts is Predicts.INSTANCES:
             label = slot_predictions(cells, output.slot_activation)[0].reshape(-1).long()
         else:
             label = cells.argmax(dim=0).reshape(-1)
     return view, PointCloud(backproject(view), rgb, label)
+
+
+def cell_scores(prediction: Any) -> torch.Tensor:
+    """``[K, h, w]`` each rendered cell's mean score (``prediction.logits`` ``[1, K, H, W]`` pooled over the cell's
+    ``stride`` x ``stride`` pixels, NaN as 0), on the CPU, the rendered grid's shape."""
+    stride, depth = prediction.stride, prediction.depth
+    scores = torch.nan_to_num(prediction.logits.detach().float().cpu())
+    cells = torch.nn.functional.avg_pool2d(scores, stride)[0] if stride > 1 else scores[0]
+    return cells[:, : depth.shape[0], : depth.shape[1]]
 
 
 def cell_depth(depth: torch.Tensor, stride: int, grid: tuple[int, int]) -> torch.Tensor:
