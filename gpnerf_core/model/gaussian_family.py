@@ -90,8 +90,9 @@ class GaussianHooks(FamilyHooks):
 
         family = self.family
         start = family.start
-        if getattr(family.setup.strategy, "check_start", None) is not None:
-            kept, note = most_opaque(start.gaussians, family.setup.max_gaussians)
+        budget = getattr(family.setup.strategy, "budget", None)  # BudgetedStrategy's: model.max_gaussians
+        if budget is not None:
+            kept, note = most_opaque(start.gaussians, int(budget))
             if note is not None:
                 start = dataclasses.replace(start, gaussians=kept, notes=(*start.notes, note))
         for note in begin_from_start(family, start, family.start_classes):

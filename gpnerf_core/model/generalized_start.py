@@ -23,6 +23,7 @@ are the Hydra overrides that size the per-scene family's config to carry the sta
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Mapping
 
@@ -367,7 +368,8 @@ def begin_from_start(family: "GaussianFamily", start: GaussianStart,
 
     The Gaussian rows from the start's (``rows_from_gaussians``: the colour's degree cut or padded to the family's);
     the family's ``start_channel`` from the start's features, its other channels as ``GaussianHooks.initialise``
-    starts them (``RGB2SH(U(0, 1))``); ``gaussians.extent`` the scene's; the decoder begun from the start
+    starts them (``RGB2SH(U(0, 1))``); ``gaussians.extent`` the scene's; the colour's active degree the start's
+    (training's schedule sets it from its first step, ``GaussianHooks.colour_degree``); the decoder begun from the start
     (``family.begin_decoder``). Where ``scene_classes`` differ from the start's classes, the geometry and colour are
     kept and the start channel and decoder start afresh, with one note naming both class lists.
     """
@@ -388,6 +390,8 @@ def begin_from_start(family: "GaussianFamily", start: GaussianStart,
     gaussians.set_rows({name: value.to(gaussians.means.device, gaussians.means.dtype)
                         for name, value in rows.items()})
     gaussians.extent.fill_(start.extent)
+    degree = math.isqrt(int(start.gaussians.harmonics.shape[-1])) - 1  # rendered as predicted until training's schedule
+    gaussians.active_degree.fill_(min(gaussians.sh_degree, degree))
     if carried:
         family.begin_decoder(start)
     return notes
