@@ -35,12 +35,12 @@ from gpnerf_core.geometry.gaussians.harmonics import colour_to_dc
 from gpnerf_core.geometry.gaussians.initialisation import scene_extent
 from gpnerf_core.geometry.gaussians.parameters import rows_from_gaussians
 from gpnerf_core.geometry.gaussians.scene import GaussianScene
+from gpnerf_core.geometry.point_fusion import agreeing_views, backproject, cell_scores, inside_bounds, rendered_view
 from gpnerf_core.types import Scene
 
 if TYPE_CHECKING:
     from gpnerf_core.data.frames import FrameCache
     from gpnerf_core.interfaces import ViewSelector
-    from gpnerf_core.model.gaussian_family import GaussianFamily
 
 OPACITY_FLOOR = 0.01
 """A feed-forward Gaussian at or below this opacity is dropped (AnySplat's ``simple_trainer.py``: ``<= 0.01``)."""
@@ -225,8 +225,6 @@ def ray_gaussians(model: Any, frames: "FrameCache", selector: "ViewSelector", sc
                   family: str) -> list[GaussianScene]:
     """A ray family's cell Gaussians of each chosen frame rendered from the other training frames, where ``export``'s
     agreement (``min_views`` other chosen views within ``tolerance``) and depth bounds keep them."""
-    from gpnerf_core.commands.export import inside_bounds, rendered_points
-    from gpnerf_core.geometry.point_fusion import agreeing_views
     from gpnerf_core.model.view_inputs import view_inputs
 
     if min_views > len(chosen) - 1:
@@ -241,21 +239,21 @@ def ray_gaussians(model: Any, frames: "FrameCache", selector: "ViewSelector", sc
             prediction = model.predict(camera, given.sources, stride=0, chunk_rays=chunk_rays, features=given.features)
         if prediction.depth is None:
             raise ConfigError(f"model={family} predicts no Gaussians and renders no depth: a start needs one of them")
-        view, cloud = rendered_points(prediction, camera, model.semantic_output)
+        view = rendered_view(prediction, camera)  # export's rendered_points, without the labels a start ignores
         views.append(view)
-        cells.append(cell_gaussians(prediction, camera, cloud.xyz, cloud.rgb, opacity, head=getattr(model, "head", None)))
+        cells.append(cell_gaussians(prediction, camera, backproject(view), opacity, head=getattr(model, "head", None)))
     agreeing = agreeing_views(views, tolerance)
     return [gaussians.subset((count >= min_views) & inside_bounds(view.depth.reshape(-1), scene))
             for gaussians, count, view in zip(cells, agreeing, views)]
 
 
-def cell_gaussians(prediction: Any, camera: Any, xyz: Tensor, rgb: Tensor, opacity: float, *, head: Any) -> GaussianScene:
-    """One Gaussian per rendered cell (row-major, as ``export.rendered_points``): centre ``xyz`` ``[N, 3]``, colour
-    ``rgb`` ``[N, 3]`` as the degree-0 harmonic, isotropic standard deviation ``CELL_SCALE x depth x stride / focal``
-    (metres), no rotation, opacity ``opacity``; features the cell's rendered semantic feature (a model with a head) or
-    its mean class scores (``export.cell_scores``), None without either."""
-    from gpnerf_core.commands.export import cell_scores
-
+def cell_gaussians(prediction: Any, camera: Any, xyz: Tensor, opacity: float, *, head: Any) -> GaussianScene:
+    """One Gaussian per rendered cell of ``prediction`` (row-major, as ``export.rendered_points``): centre ``xyz``
+    ``[N, 3]`` (``backproject``), the rendered colour (clamped to [0, 1]) as the degree-0 harmonic, isotropic standard
+    deviation ``CELL_SCALE x depth x stride / focal`` (metres), no rotation, opacity ``opacity``; features the cell's
+    rendered semantic feature (a model with a head) or its mean class scores (``cell_scores``), None without
+    either."""
+    rgb = prediction.rgb.detach().float().cpu().clamp(0, 1).reshape(-1, 3)
     depth = prediction.depth.detach().float().cpu().reshape(-1)
     focal = 0.5 * float(camera.intrinsics[0, 0] + camera.intrinsics[1, 1])
     sigma = (CELL_SCALE * depth.clamp_min(0) * prediction.stride / focal).clamp_min(1e-6)
@@ -362,9 +360,9 @@ def _hydra_value(value: Any) -> str:
     return str(value)
 
 
-def begin_from_start(family: "GaussianFamily", start: GaussianStart,
+def begin_from_start(family: Any, start: GaussianStart,
                      scene_classes: tuple[str, ...] | None) -> list[str]:
-    """Give ``family`` its Gaussians and decoder from ``start``; the notes to say once.
+    """Give ``family`` (a ``GaussianFamily``) its Gaussians and decoder from ``start``; the notes to say once.
 
     The Gaussian rows from the start's (``rows_from_gaussians``: the colour's degree cut or padded to the family's);
     the family's ``start_channel`` from the start's features, its other channels as ``GaussianHooks.initialise``
