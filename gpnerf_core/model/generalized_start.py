@@ -260,6 +260,9 @@ def cell_gaussians(prediction: Any, camera: Any, xyz: Tensor, opacity: float, *,
     count = xyz.shape[0]
     features = None
     if head is not None and prediction.semantic is not None:
+        if tuple(prediction.semantic.shape[1:]) != tuple(prediction.depth.shape):
+            raise DataError(f"the rendered semantic map is {list(prediction.semantic.shape)} for a depth grid of "
+                            f"{list(prediction.depth.shape)}: a start needs one feature per rendered cell (stride 0)")
         features = prediction.semantic.detach().float().cpu().flatten(1).T  # [h w, C]
     elif prediction.logits is not None:
         features = cell_scores(prediction).flatten(1).T  # [h w, K]
