@@ -45,7 +45,8 @@ def backproject(view: DepthView) -> Tensor:
 
 
 def rendered_view(prediction: Any, camera: Any) -> DepthView:
-    """A ``Prediction``'s depth on its stride grid as the ``DepthView`` of ``camera`` (a ``TargetCamera``), on the CPU."""
+    """A ``Prediction``'s depth on its stride grid as the ``DepthView`` of ``camera`` (a ``TargetCamera``), on the
+    CPU."""
     return DepthView(depth=prediction.depth.detach().float().cpu(),
                      pixels=pixel_grid(camera.height, camera.width, prediction.stride),
                      intrinsics=camera.intrinsics.float().cpu(), c2w=camera.c2w.float().cpu(),

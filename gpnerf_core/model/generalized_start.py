@@ -45,8 +45,8 @@ if TYPE_CHECKING:
 OPACITY_FLOOR = 0.01
 """A feed-forward Gaussian at or below this opacity is dropped (AnySplat's ``simple_trainer.py``: ``<= 0.01``)."""
 START_OPACITY = 0.8
-"""A ray family's cell Gaussians' opacity (``predict_start``'s default ``opacity``). The hand-off wants the started model
-to render what the generalizable model rendered at step 0: a cell's Gaussian at 0.8, plus its neighbours' overlap
+"""A ray family's cell Gaussians' opacity (``predict_start``'s default ``opacity``). The hand-off wants the started
+model to render what the generalizable model rendered at step 0: a cell's Gaussian at 0.8, plus its neighbours' overlap
 (``CELL_SCALE``), hides what is behind the surface as the rendered depth says it should (3DGS's 0.1 lets the
 background through until training raises it, a drop at the hand-off), while below 1 the opacity keeps a gradient
 (the sigmoid's slope at 0.8 is 0.16, at 0.99 0.01) and a floater that training should remove can still fade."""
@@ -145,6 +145,11 @@ def predict_start(model: Any, frames: "FrameCache", selector: "ViewSelector", sc
                               opacity=opacity, min_views=min_views, tolerance=tolerance, chunk_rays=chunk_rays,
                               family=name)
     predicted = concatenate(parts)
+    if not predicted.count:
+        raise DataError(f"scene {scene.name!r}: model={name} left no Gaussian to start from in training frames "
+                        f"{list(chosen)} (opacity <= {OPACITY_FLOOR}, or no cell within the depth bounds seen by "
+                        f"{min_views} other view(s) within {tolerance:g}); expected a checkpoint fitted to such "
+                        "scenes, or a lower min_views")
     merged = voxel_keep_opaque(predicted, median_footprint(predicted))
     kept, note = most_opaque(merged, budget)
     semantics, head_state, levels, stride = _semantics(model, predicted, frames, scene)
@@ -348,8 +353,19 @@ def start_overrides(start: GaussianStart) -> list[str]:
                               "is not known (predict_start's head_config: the checkpoint's head group)")
         config = dict(start.head_config)
         overrides.append(f"+head={config.pop('name')}")
-        overrides.extend(f"head.{key}={_hydra_value(value)}" for key, value in sorted(config.items()))
+        overrides.extend(f"head.{key}={_hydra_value(value)}" for key, value in _flat(config))
     return overrides
+
+
+def _flat(config: Mapping[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
+    """``(dotted key, value)`` of a nested config, keys sorted."""
+    pairs: list[tuple[str, Any]] = []
+    for key, value in sorted(config.items()):
+        if isinstance(value, Mapping):
+            pairs.extend(_flat(value, f"{prefix}{key}."))
+        else:
+            pairs.append((f"{prefix}{key}", value))
+    return pairs
 
 
 def _hydra_value(value: Any) -> str:

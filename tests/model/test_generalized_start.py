@@ -8,7 +8,15 @@ from __future__ import annotations
 import pytest
 import torch
 
-from gpnerf_core import ConfigError, GaussianScene, begin_from_start, decode_checked, predict_start, start_overrides
+from gpnerf_core import (
+    ConfigError,
+    DataError,
+    GaussianScene,
+    begin_from_start,
+    decode_checked,
+    predict_start,
+    start_overrides,
+)
 from gpnerf_core.data.frames import FrameCache
 from gpnerf_core.geometry.gaussians import Gaussians, rasterize_gaussians
 from gpnerf_core.geometry.gaussians.harmonics import sh_colours
@@ -264,3 +272,9 @@ def test_a_gnt_start_renders_what_gnt_rendered_at_its_training_frames():
         cosine.append(float(torch.nn.functional.cosine_similarity(own.semantic, given.semantic, dim=0).mean()))
         agree.append(float((own.logits.argmax(1) == given.logits.argmax(1)).float().mean()))
     assert sum(cosine) / 2 > 0.87 and sum(agree) / 2 > 0.62
+
+
+def test_a_start_that_keeps_nothing_is_refused_naming_the_scene_and_frames():
+    with pytest.raises(DataError, match=r"scene 'kit': model=gnt left no Gaussian to start from in training frames "
+                                        r"\[0, 2\]"):
+        start_of(gnt(), num_source_views=1, min_views=1, tolerance=1e-12)

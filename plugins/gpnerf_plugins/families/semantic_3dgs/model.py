@@ -157,8 +157,9 @@ class Semantic3DGS(GaussianFamily):
     @torch.inference_mode()
     def predict(self, camera: TargetCamera, sources: SourceViews | None, *, stride: int, chunk_rays: int,
                 features: object = None) -> Prediction:
-        """The view rasterized on a ``stride`` grid (0: every pixel), the features on ``feature_stride``'s; ``sources``, ``chunk_rays`` and ``features``
-        are unused (a per-scene model renders from its own Gaussians in one call)."""
+        """The view rasterized on a ``stride`` grid (0: every pixel), the features on ``feature_stride``'s;
+        ``sources``, ``chunk_rays`` and ``features`` are unused (a per-scene model renders from its own Gaussians in one
+        call)."""
         stride = stride or 1
         decodes = self.head is not None or self.classifier is not None
         together = decodes and self.feature_stride == 1
