@@ -19,7 +19,8 @@ from gpnerf_core import (
 )
 from gpnerf_core.data.frames import FrameCache
 from gpnerf_core.geometry.gaussians import Gaussians, rasterize_gaussians
-from gpnerf_core.geometry.gaussians.harmonics import sh_colours
+from gpnerf_core.geometry.gaussians.harmonics import colour_to_dc, sh_colours
+from gpnerf_core.geometry.point_fusion import backproject, rendered_view
 from gpnerf_core.model.generalized_start import (
     CELL_SCALE,
     OPACITY_FLOOR,
@@ -58,10 +59,10 @@ def mvsplat(head: bool):
                                                                   parts=KIT_PARTS)).eval()
 
 
-def gnt():
+def gnt(head: bool = True):
     torch.manual_seed(0)
     return get_registry().build("model", {"name": "gnt", **KIT_SAMPLES},
-                                parts=kit_parts(get_registry(), "gnt", head=True, parts=KIT_PARTS)).eval()
+                                parts=kit_parts(get_registry(), "gnt", head=head, parts=KIT_PARTS)).eval()
 
 
 def started(start, *, head: bool, classes=None):
@@ -278,3 +279,23 @@ def test_a_start_that_keeps_nothing_is_refused_naming_the_scene_and_frames():
     with pytest.raises(DataError, match=r"scene 'kit': model=gnt left no Gaussian to start from in training frames "
                                         r"\[0, 2\]"):
         start_of(gnt(), num_source_views=1, min_views=1, tolerance=1e-12)
+
+
+def test_a_gnt_start_without_semantics_is_its_cells_colour_and_geometry():
+    model = gnt(head=False)  # GP-NeRF's semantics are its head's: without one, colour and depth only
+    start = start_of(model, num_source_views=1, min_views=0, every=2)  # frame 0 alone, rendered from frame 2
+    assert start.semantics == "none" and start.gaussians.features is None and start_overrides(start) == []
+    camera, frames, scene = camera_of(0)
+    given = model.predict(camera, frames.source_views(scene, [2]), stride=0, chunk_rays=4096)
+    view = rendered_view(given, camera)
+    cells = backproject(view)
+    rows = torch.cdist(start.gaussians.means, cells).argmin(dim=1)  # each kept Gaussian's own cell
+    assert torch.allclose(start.gaussians.means, cells[rows], atol=1e-5)
+    assert torch.allclose(start.gaussians.harmonics[:, :, 0], colour_to_dc(given.rgb.clamp(0, 1).reshape(-1, 3)[rows]),
+                          atol=1e-5)
+    footprint = CELL_SCALE * view.depth.reshape(-1)[rows] * given.stride / float(camera.intrinsics[0, 0])
+    assert torch.allclose(start.gaussians.scales[:, 1], footprint, rtol=1e-4)
+    family = get_registry().build("model", {"name": "semantic_3dgs", "feature_dim": 4, "sh_degree": 1},
+                                  parts=kit_parts(get_registry(), "semantic_3dgs", head=False))
+    assert begin_from_start(family, start, CLASSES) == [] and family.gaussians.size == start.gaussians.count
+    assert not torch.equal(family.classifier.weight[:, :, 0, 0], torch.eye(3, 4))  # no start to begin it from
