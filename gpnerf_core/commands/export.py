@@ -35,6 +35,7 @@ from gpnerf_core.engine.launching import Handover, launch_from_checkpoint
 from gpnerf_core.engine.opening import open_trained
 from gpnerf_core.engine.runs import claim_run_folder
 from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.geometry.point_fusion import cell_scores, inside_bounds
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.runtime.staging import Write, write_staged
 
@@ -189,22 +190,15 @@ def family_where(owner: str) -> str:
 def rendered_points(prediction: Any, camera: Any, output: Any) -> tuple[Any, Any]:
     """The rendered grid of one view as a ``DepthView`` and a ``PointCloud`` (one point per cell, row-major)."""
     from gpnerf_core.evaluation.instances import slot_predictions
-    from gpnerf_core.geometry.point_fusion import DepthView, PointCloud, backproject
-    from gpnerf_core.geometry.rays import pixel_grid
+    from gpnerf_core.geometry.point_fusion import PointCloud, backproject, rendered_view
     from gpnerf_core.interfaces.head import Predicts
 
-    stride = prediction.stride
-    depth = prediction.depth.detach().float().cpu()
-    view = DepthView(depth=depth, pixels=pixel_grid(camera.height, camera.width, stride),
-                     intrinsics=camera.intrinsics.float().cpu(), c2w=camera.c2w.float().cpu(),
-                     height=camera.height, width=camera.width)
+    view = rendered_view(prediction, camera)
     rgb = prediction.rgb.detach().float().cpu().clamp(0, 1).reshape(-1, 3)
     if prediction.logits is None or output is None:
         label = torch.full((rgb.shape[0],), -1, dtype=torch.long)
     else:
-        scores = torch.nan_to_num(prediction.logits.detach().float().cpu())
-        cells = torch.nn.functional.avg_pool2d(scores, stride)[0] if stride > 1 else scores[0]  # a cell's mean score
-        cells = cells[:, : depth.shape[0], : depth.shape[1]]
+        cells = cell_scores(prediction)
         if output.predicts is Predicts.INSTANCES:
             label = slot_predictions(cells, output.slot_activation)[0].reshape(-1).long()
         else:
@@ -240,13 +234,6 @@ def depth_errors(views: list[Any], sensor: list[torch.Tensor], keeps: list[torch
                 "within_5cm": round(float((error <= 0.05).float().mean()), 4)}
 
     return {"all": summary(torch.ones_like(kept)), "kept": summary(kept)}
-
-
-def inside_bounds(depth: torch.Tensor, scene: Any) -> torch.Tensor:
-    """``[N]`` bool: a finite depth strictly inside the scene's sampling bounds (a ray that met nothing renders a
-    depth at the far bound)."""
-    margin = 1e-3 * (scene.far - scene.near)
-    return torch.isfinite(depth) & (depth > scene.near + margin) & (depth < scene.far - margin)
 
 
 def cloud_subset(cloud: Any, keep: torch.Tensor) -> Any:

@@ -8,11 +8,13 @@ parameter of ``geometry.rays``).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
 
 from gpnerf_core.geometry.projection import project_points
+from gpnerf_core.geometry.rays import pixel_grid
 
 
 @dataclass(frozen=True)
@@ -40,6 +42,31 @@ def backproject(view: DepthView) -> Tensor:
     rays = torch.cat([view.pixels, ones], dim=-1) @ torch.linalg.inv(view.intrinsics).T  # camera z = 1
     camera_points = rays * view.depth.reshape(-1, 1)
     return camera_points @ view.c2w[:3, :3].T + view.c2w[:3, 3]
+
+
+def rendered_view(prediction: Any, camera: Any) -> DepthView:
+    """A ``Prediction``'s depth on its stride grid as the ``DepthView`` of ``camera`` (a ``TargetCamera``), on the
+    CPU."""
+    return DepthView(depth=prediction.depth.detach().float().cpu(),
+                     pixels=pixel_grid(camera.height, camera.width, prediction.stride),
+                     intrinsics=camera.intrinsics.float().cpu(), c2w=camera.c2w.float().cpu(),
+                     height=camera.height, width=camera.width)
+
+
+def cell_scores(prediction: Any) -> Tensor:
+    """``[K, h, w]`` each rendered cell's mean score (``prediction.logits`` ``[1, K, H, W]`` pooled over the cell's
+    ``stride`` x ``stride`` pixels, NaN as 0), on the CPU, the rendered grid's shape."""
+    stride, depth = prediction.stride, prediction.depth
+    scores = torch.nan_to_num(prediction.logits.detach().float().cpu())
+    cells = torch.nn.functional.avg_pool2d(scores, stride)[0] if stride > 1 else scores[0]
+    return cells[:, : depth.shape[0], : depth.shape[1]]
+
+
+def inside_bounds(depth: Tensor, scene: Any) -> Tensor:
+    """``[N]`` bool: a finite depth strictly inside the scene's sampling bounds (a ray that met nothing renders a
+    depth at the far bound)."""
+    margin = 1e-3 * (scene.far - scene.near)
+    return torch.isfinite(depth) & (depth > scene.near + margin) & (depth < scene.far - margin)
 
 
 def depth_agreement(points: Tensor, other: DepthView, tolerance: float) -> Tensor:

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 import sys
-from typing import ClassVar, Mapping, Sequence
+from typing import Any, ClassVar, Mapping, Sequence
 
 import torch
 from torch import Tensor, nn
@@ -60,10 +60,14 @@ class GaussianHooks(FamilyHooks):
     def initialise(self, scene: Scene) -> None:
         """The Gaussians from the scene's points (``starting_points``): colour from the points, isotropic scales from
         the three nearest, opacity ``init_opacity``, each channel uniform as Gaussian Grouping's identities
-        (``RGB2SH(U(0, 1))``); unless weights were loaded already."""
+        (``RGB2SH(U(0, 1))``); from ``family.start`` instead when one is set (``initialise_from_start``); unless
+        weights were loaded already."""
         family = self.family
         gaussians, setup = family.gaussians, family.setup
         if gaussians.size:
+            return
+        if getattr(family, "start", None) is not None:
+            self.initialise_from_start(scene)
             return
         points, _ = starting_points(scene, setup.init_points, setup.init_depth_stride)
         check = getattr(setup.strategy, "check_start", None)
@@ -75,6 +79,24 @@ class GaussianHooks(FamilyHooks):
             rows[name] = colour_to_dc(torch.rand(points.count, width))
         gaussians.set_rows({name: value.to(gaussians.means.device) for name, value in rows.items()})
         gaussians.extent.fill_(scene_extent(scene))
+
+    def initialise_from_start(self, scene: Scene) -> None:
+        """The Gaussians and decoder from ``family.start`` (``generalized_start.begin_from_start``), its notes said
+        once on stderr. With a budget (``model.density=budgeted``) a start above ``max_gaussians`` keeps its most
+        opaque Gaussians (a point start is refused instead: ``check_start``)."""
+        import dataclasses
+
+        from gpnerf_core.model.generalized_start import begin_from_start, most_opaque
+
+        family = self.family
+        start = family.start
+        budget = getattr(family.setup.strategy, "budget", None)  # BudgetedStrategy's: model.max_gaussians
+        if budget is not None:
+            kept, note = most_opaque(start.gaussians, int(budget))
+            if note is not None:
+                start = dataclasses.replace(start, gaussians=kept, notes=(*start.notes, note))
+        for note in begin_from_start(family, start, family.start_classes):
+            print(f"note: {note}", file=sys.stderr)
 
     def resize_to(self, weights: Mapping[str, Tensor], source: str) -> None:
         self.family.gaussians.take_sizes(weights, "gaussians.", source)
@@ -151,6 +173,9 @@ class GaussianFamily(ModelFamily):
 
     name: ClassVar[str] = "gaussians"
     """The family's registry name, for messages (each subclass sets its own)."""
+    start_channel: ClassVar[str | None] = None
+    """The channel a generalizable model's start fills with its features or class scores
+    (``gpnerf_core.model.generalized_start``); None: the family takes a start's geometry and colour only."""
     capabilities = Capabilities(generalizable=False, trains_on=TrainingBatch.IMAGES, source_encoding=None,
                                 changes_size=True, gaussians=True, hooks=GaussianHooks)
 
@@ -162,8 +187,21 @@ class GaussianFamily(ModelFamily):
         self.setup = setup
         self.empty_source: str | None = None  # the checkpoint that gave it 0 Gaussians, named when it renders
         self.schedule_noted = False  # the strategy's schedule note is printed once per run
+        self.start: Any = None  # a GaussianStart initialise begins from (use_start), None: the scene's points
+        self.start_classes: tuple[str, ...] | None = None  # the scene's class names, checked against the start's
         self.strategy = setup.strategy
         self.strategy.initialize_state(self.gaussians)
+
+    def use_start(self, start: Any, scene_classes: tuple[str, ...] | None = None) -> None:
+        """Begin from ``start`` (a ``GaussianStart``) instead of the scene's points when initialised (weights already
+        loaded still win); ``scene_classes``: the scene's class names (None: not checked against the start's)."""
+        self.start = start
+        self.start_classes = tuple(scene_classes) if scene_classes is not None else None
+
+    def begin_decoder(self, start: Any) -> bool:
+        """Begin the family's decoder from ``start`` (a ``GaussianStart`` whose features fill ``start_channel``);
+        False when the family has no decoder to begin (this base class: none)."""
+        return False
 
     def row_groups(self) -> dict[str, str]:
         """Each Gaussian row -> its learning-rate group: 3DGS's (``BASE_ROWS``), and each channel under its own name."""

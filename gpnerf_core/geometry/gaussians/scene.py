@@ -35,6 +35,8 @@ class GaussianScene:
         harmonics: ``[G, 3, (degree + 1)^2]`` colour coefficients in world directions (``sh_colours``'s convention:
             colour = max(0, sum_k Y_k(d) c_k + 0.5)).
         labels: ``[G]`` int64 class id or instance slot, -1 where none.
+        features: ``[G, C]`` what a family's decoder reads of each Gaussian (semantic features a head decodes, or K
+            class scores), or None; not written to the PLY.
     """
 
     means: Tensor
@@ -43,10 +45,18 @@ class GaussianScene:
     opacities: Tensor
     harmonics: Tensor
     labels: Tensor
+    features: Tensor | None = None
 
     @property
     def count(self) -> int:
         return int(self.means.shape[0])
+
+    def subset(self, index: Tensor) -> "GaussianScene":
+        """The Gaussians ``index`` picks (``[G]`` bool or ``[N]`` int64 rows), every column alike."""
+        features = self.features[index] if self.features is not None else None
+        return GaussianScene(means=self.means[index], scales=self.scales[index], rotations=self.rotations[index],
+                             opacities=self.opacities[index], harmonics=self.harmonics[index],
+                             labels=self.labels[index], features=features)
 
     def ply_columns(self) -> dict[str, np.ndarray]:
         """The standard 3DGS PLY's properties (the module docstring), then ``label``, as float32 / int32 arrays."""
@@ -105,6 +115,10 @@ def scene_problem(scene: object, num_outputs: int | None = None) -> str | None:
                 return f"its harmonics is {list(value.shape)}, expected [{count}, 3, (degree + 1)^2]"
         elif rest != trailing[name]:
             return f"its {name} is {list(value.shape)}, expected {[count, *trailing[name]]}"
+    features = scene.features
+    if features is not None and (not isinstance(features, Tensor) or features.dim() != 2
+                                 or int(features.shape[0]) != count):
+        return f"its features are {_described(features)}, expected None or a [{count}, C] tensor"
     labels = scene.labels
     if labels.is_floating_point() or labels.dtype == torch.bool:
         return f"its labels are {labels.dtype}, expected integers (int64: a class id or instance slot, -1 for none)"

@@ -243,7 +243,8 @@ class MVSplat(LabelsOrHead):
         """The Gaussians of ``sources`` in the world frame, each labelled with the class the model predicts at its
         own source pixel: its class scores' argmax (label rendering), or the head's class in the source view
         rendered from the set (decoded: the head needs the image context, so a label is a pixel's of a decoded view);
-        -1 without semantics."""
+        -1 without semantics. The scene's ``features`` column: each Gaussian's semantic feature (with a head) or its class scores (label
+        rendering), None without semantics."""
         if sources is None and features is None:
             raise ConfigError("mvsplat predicts Gaussians from source views; none were given")
         gaussians = features if features is not None else self.encode_sources(sources, near=near, far=far)
@@ -259,5 +260,6 @@ class MVSplat(LabelsOrHead):
                 per_view.append(logits[0].argmax(dim=0).reshape(-1))
             labels = torch.cat(per_view)
         harmonics = rotate_harmonics(gaussians.harmonics, gaussians.source_rotations, gaussians.view_of)
+        own = gaussians.semantic if self.head is not None else gaussians.scores  # what the decoder reads
         return GaussianScene(means=gaussians.means, scales=gaussians.scales, rotations=gaussians.rotations,
-                             opacities=gaussians.opacities, harmonics=harmonics, labels=labels)
+                             opacities=gaussians.opacities, harmonics=harmonics, labels=labels, features=own)

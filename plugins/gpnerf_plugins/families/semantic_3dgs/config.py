@@ -32,5 +32,13 @@ class Semantic3DGSConfig(GaussianSceneConfig):
     feature_dim: int = 16
     """Channels of each Gaussian's semantic feature, rasterized beside the colour and decoded per pixel by a 1 x 1
     convolution to the classes, or by the ``+head`` (Gaussian Grouping: a 16-channel identity encoding)."""
+    feature_levels: int = 1
+    """Equal channel blocks of each Gaussian's semantic feature as the ``+head`` reads them, finest first (a divisor of
+    ``feature_dim``); a start from a generalizable model takes its extractor's ``semantic_levels``
+    (``gpnerf_core.start_overrides``)."""
+    feature_stride: int = 1
+    """Pixels per cell of the rendered feature map the decoder reads: 1 renders it with the colour in one
+    rasterization; above 1 it is rasterized again on that stride's grid and decoded to the full image. A start from a
+    generalizable model takes its head's stride (the head was trained on maps at that resolution)."""
     lr: Semantic3DGSLearningRates = field(default_factory=Semantic3DGSLearningRates)
     """Learning rates (``model.lr.<group>``)."""

@@ -37,9 +37,11 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from gpnerf_core import (
+    ConfigError,
     GaussianFamily,
     GaussianScene,
     GaussianSetup,
+    GaussianStart,
     ImageOutput,
     PerceptionHead,
     Prediction,
@@ -62,16 +64,49 @@ class Semantic3DGS(GaussianFamily):
         num_classes: K (0 without a head: colour and depth only).
         feature_dim: channels of each Gaussian's semantic feature (``features``).
         setup: the checked options of ``Semantic3DGSConfig`` (``gpnerf_core.gaussian_setup``).
+        feature_stride: pixels per cell of the rendered feature map the decoder reads (1: rendered with the colour).
     """
 
     name = "semantic_3dgs"
+    start_channel = "features"
 
     def __init__(self, *, head: PerceptionHead | None, num_classes: int, feature_dim: int,
-                 setup: GaussianSetup) -> None:
+                 setup: GaussianSetup, feature_stride: int = 1) -> None:
         decoded = head is not None or int(num_classes) > 0
         super().__init__(channels={"features": feature_dim if decoded else 0}, setup=setup, head=head)
         self.num_classes = 0 if head is not None else int(num_classes)
+        self.feature_stride = int(feature_stride)
         self.classifier = nn.Conv2d(feature_dim, self.num_classes, 1) if head is None and self.num_classes else None
+
+    def begin_decoder(self, start: GaussianStart) -> bool:
+        """The decoder begun from a start: the head's weights loaded strictly from ``start.head_state``
+        ("features"), or the 1 x 1 classifier set to the identity ("scores": decoded logits equal the rendered
+        scores). A ``ConfigError`` naming the keys when the start does not fit the decoder."""
+        if start.semantics == "features":
+            if self.head is None or start.head_state is None:
+                raise ConfigError(f"model=semantic_3dgs: the start from model={start.family} decodes its features with "
+                                  "a head; expected +head=<its head> (gpnerf_core.start_overrides)")
+            try:
+                self.head.load_state_dict(start.head_state, strict=True)
+            except RuntimeError as error:
+                first = str(error).strip().splitlines()[0]
+                raise ConfigError(f"model=semantic_3dgs: the +head does not take the weights of the start's head from "
+                                  f"model={start.family} ({first}); expected head.<key> as the start's "
+                                  "(gpnerf_core.start_overrides)") from None
+            return True
+        if start.semantics == "scores":
+            if self.classifier is None:
+                raise ConfigError(f"model=semantic_3dgs: the start from model={start.family} carries class scores, "
+                                  "decoded by the 1 x 1 classifier; expected no +head")
+            if self.classifier.in_channels != self.classifier.out_channels:
+                raise ConfigError(f"model=semantic_3dgs: the start carries {self.classifier.in_channels} class scores "
+                                  f"for {self.classifier.out_channels} classes; expected model.feature_dim="
+                                  f"{self.classifier.out_channels}")
+            with torch.no_grad():  # the identity: decoded logits equal the rendered scores
+                self.classifier.weight.copy_(torch.eye(self.num_classes)[:, :, None, None])
+                self.classifier.bias.zero_()
+            return True
+        return False
 
     # ---- what the model is ------------------------------------------------------------------------------------------
 
@@ -88,6 +123,12 @@ class Semantic3DGS(GaussianFamily):
             groups["head"] = list(decoder.parameters())
         return groups
 
+    def check_image_size(self, height: int, width: int) -> None:
+        """The feature map's stride divides both sides of the image."""
+        if height % self.feature_stride or width % self.feature_stride:
+            raise ConfigError(f"model.feature_stride={self.feature_stride}: image size {height}x{width} (HxW); "
+                              "expected a stride that divides both sides")
+
     # ---- rendering --------------------------------------------------------------------------------------------------
 
     def _decode(self, semantic_map: Tensor, size: tuple[int, int]) -> Tensor:
@@ -103,9 +144,11 @@ class Semantic3DGS(GaussianFamily):
 
     def _forward_view(self, target: TargetView, semantics: bool) -> ImageOutput:
         decodes = semantics and (self.head is not None or self.classifier is not None)
-        output, semantic_map = self.render_view(target.camera, channels=decodes)
+        output, semantic_map = self.render_view(target.camera, channels=decodes and self.feature_stride == 1)
         if not decodes:
             return output
+        if self.feature_stride > 1:  # the feature map on its own grid: a second rasterization
+            semantic_map = self.render(target.camera, self.feature_stride, channels=True)[3]
         logits = self._decode(semantic_map, target.camera.image_size)
         if self.head is None:  # label rendering: the per-pixel scores
             return dataclasses.replace(output, scores=logits)
@@ -114,11 +157,15 @@ class Semantic3DGS(GaussianFamily):
     @torch.inference_mode()
     def predict(self, camera: TargetCamera, sources: SourceViews | None, *, stride: int, chunk_rays: int,
                 features: object = None) -> Prediction:
-        """The view rasterized on a ``stride`` grid (0: every pixel); ``sources``, ``chunk_rays`` and ``features``
-        are unused (a per-scene model renders from its own Gaussians in one call)."""
+        """The view rasterized on a ``stride`` grid (0: every pixel), the features on ``feature_stride``'s;
+        ``sources``, ``chunk_rays`` and ``features`` are unused (a per-scene model renders from its own Gaussians in one
+        call)."""
         stride = stride or 1
         decodes = self.head is not None or self.classifier is not None
-        rgb, depth, _, semantic_map, _ = self.render(camera, stride, channels=decodes)
+        together = decodes and self.feature_stride == 1
+        rgb, depth, _, semantic_map, _ = self.render(camera, stride, channels=together)
+        if decodes and not together:  # the feature map on its own grid (``feature_stride``)
+            semantic_map = self.render(camera, self.feature_stride, channels=True)[3]
         logits = self._decode(semantic_map, camera.image_size) if decodes else None
         semantic = semantic_map.permute(2, 0, 1) if semantic_map is not None else None
         return Prediction(rgb=rgb, depth=depth, semantic=semantic, logits=logits, stride=stride)
