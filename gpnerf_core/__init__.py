@@ -12,7 +12,11 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
-from gpnerf_core.runtime.versions import __version__
+from gpnerf_core.runtime.openmp import passive_wait
+
+passive_wait()  # before torch loads OpenMP (runtime/openmp.py says why)
+
+from gpnerf_core.runtime.versions import __version__  # noqa: E402  (imports torch)
 
 _PUBLIC: dict[str, tuple[str, ...]] = {
     # registering plugins

@@ -12,6 +12,10 @@ images, views and rays, each beside GP-NeRF in the same run (the ``<family> / GP
 
 ``bench sweep=rays|views|samples|image [size=demo]`` measures one size over a range of one quantity instead
 (``gpnerf_core.tools.bench.sweeps``): ``sweep_<name>.csv``, ``.png`` (log-log, the fitted slope of each cost) and ``.json``.
+
+``bench refine=<Gaussians> [refine_threads=1,2]`` measures the refinement step instead: one training step of the
+per-scene Gaussian family at that count, at each thread count side by side in one process, split into forward,
+backward, density statistics, optimizer and checks (``gpnerf_core.tools.bench.refine``); ``bench.json``'s ``refine``.
 """
 
 from __future__ import annotations
@@ -41,7 +45,7 @@ from gpnerf_core.runtime.io import atomic_write_json, atomic_write_text
 from gpnerf_core.engine.setup import compose_checked
 from gpnerf_core.runtime.run_folder import RunFolder
 
-OWN_KEYS = ("size", "repeats", "warmup", "out_dir", "phases", "sweep", "families")
+OWN_KEYS = ("size", "repeats", "warmup", "out_dir", "phases", "sweep", "families", "refine", "refine_threads")
 PHASES = ("train", "render")
 
 
@@ -79,6 +83,8 @@ def main(argv: list[str]) -> int:
     phases = [p.strip() for p in own.get("phases", ",".join(PHASES)).split(",") if p.strip()]
     if not phases or any(p not in PHASES for p in phases):
         raise ConfigError(f"bench phases={own['phases']!r}: expected some of {', '.join(PHASES)}")
+    if "refine" in own:
+        return run_refine(own, overrides, warmup, repeats)
     if "sweep" in own:
         if len(sizes) != 1:
             raise ConfigError(f"bench sweep={own['sweep']}: one size at a time, got size={own.get('size')}")
@@ -130,6 +136,38 @@ def main(argv: list[str]) -> int:
         more = f" ({len(failed) - 1} more in bench.json)" if len(failed) > 1 else ""
         print(f"error: bench: {size} {variant} {phase} failed: {error}{more}", file=sys.stderr)
     return 1 if failed else 0
+
+
+def run_refine(own: dict[str, str], overrides: list[str], warmup: int, repeats: int) -> int:
+    """``bench refine=<count>``: the refinement step at each of ``refine_threads`` (``tools.bench.refine``)."""
+    from gpnerf_core.tools.bench.refine import format_refine, measure_refine, refine_overrides
+
+    count = _count(own, "refine", 0, 1)
+    try:
+        threads = [int(t) for t in own.get("refine_threads", "1,2").split(",") if t.strip()]
+    except ValueError:
+        threads = []
+    if not threads or min(threads) < 1:
+        raise ConfigError(f"bench refine_threads={own['refine_threads']!r}: expected thread counts >= 1 "
+                          "(comma-separated)")
+    run_overrides = refine_overrides(count, overrides)
+    cfg = compose_checked(run_overrides)
+    out_dir = Path(own.get("out_dir") or Path("outputs") / "bench" / f"refine_{time.strftime('%Y-%m-%d_%H-%M-%S')}")
+    with RunFolder(out_dir) as folder:
+        folder.claim(resuming=False, overwrite=False)
+        print(f"measuring the refinement step at {count} Gaussians, threads {', '.join(map(str, threads))} ...",
+              flush=True)
+        result = measure_refine(cfg, threads, warmup, repeats)
+        machine = machine_info()
+        machine.pop("torch_threads")  # each row names its own
+        report = {"overrides": run_overrides, "warmup": warmup, "repeats": repeats, "machine": machine,
+                  "refine": result}
+        atomic_write_json(out_dir / "bench.json", report)
+        print(f"CPU: {machine['cpu_model']} ({machine['cpus']} CPUs); {result['gaussians']['start']} Gaussians, "
+              f"image {result['image'][0]} x {result['image'][1]}, rasterizer {result['rasterizer']}")
+        print(format_refine(result))
+        print(f"bench.json: {(out_dir / 'bench.json').resolve()}")
+    return 0
 
 
 def flop_notes(report: dict[str, Any]) -> list[str]:

@@ -29,6 +29,7 @@ from gpnerf_core.interfaces.head import PerceptionHead
 from gpnerf_core.interfaces.model import Capabilities, FamilyHooks, ModelFamily, TrainingBatch
 from gpnerf_core.interfaces.training import GroupOptions, TrainingCallback, TrainingPhase, TrainingState
 from gpnerf_core.model.gaussian_config import GaussianSetup
+from gpnerf_core.runtime.finite import all_finite
 from gpnerf_core.types import ImageOutput, Scene, TargetCamera
 
 ADAM_EPS = 1e-15
@@ -154,6 +155,8 @@ class GaussianHooks(FamilyHooks):
         """NaN or Inf in a Gaussian parameter stops training, naming the family, the parameter and the step."""
         gaussians = self.family.gaussians
         for name, tensor in gaussians.rows().items():
+            if all_finite(tensor.detach()):  # one aminmax pass; the mask only to count a bad one
+                continue
             finite = torch.isfinite(tensor.detach())
             if not bool(finite.all()):
                 bad = int((~finite).reshape(finite.shape[0], -1).any(dim=1).sum()) if tensor.ndim else 1

@@ -219,3 +219,26 @@ def test_a_registered_family_without_preset_gets_the_loss_of_what_it_predicts():
 
     base = (*SIZES["demo"].common, "model=semantic_3dgs")  # no preset: model= alone
     assert family_loss(base, "semantic_3dgs") == "image" and loss_options(base) == ()
+
+
+def test_bench_refine_times_the_gaussian_step_at_each_thread_count_in_one_run(tmp_path):
+    """``bench refine=<count>``: the per-scene Gaussian family's step from the unseen layout's depth points at that
+    count, each thread count's steps and parts in bench.json with the CPU model; no timing is asserted."""
+    result = bench("refine=300", "refine_threads=1,2", "repeats=2", "warmup=1", "dataset.height=32",
+                   "dataset.width=48", f"out_dir={tmp_path / 'r'}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    report = json.loads((tmp_path / "r" / "bench.json").read_text())
+    refine = report["refine"]
+    assert refine["gaussians"] == {"start": 300, "end": 300, "steps": 6} and refine["image"] == [32, 48]
+    assert set(refine["threads"]) == {"1", "2"} and report["machine"]["cpu_model"]
+    for entry in refine["threads"].values():
+        assert len(entry["seconds"]) == 2
+        assert set(entry["parts_median"]) == {"forward", "backward", "density", "optimizer", "checks"}
+    assert "model.init_points=300" in report["overrides"] and "forward ms" in result.stdout
+
+
+def test_bench_refine_bad_counts_are_one_line(tmp_path):
+    zero = bench("refine=0", cwd=tmp_path)
+    assert zero.returncode == 2 and zero.stderr.strip() == "error: bench refine=0: expected an integer >= 1"
+    threads = bench("refine=100", "refine_threads=two", cwd=tmp_path)
+    assert threads.returncode == 2 and threads.stderr.strip().startswith("error: bench refine_threads='two'")

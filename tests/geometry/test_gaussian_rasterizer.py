@@ -289,6 +289,54 @@ def test_numba_is_deterministic_whatever_the_thread_count():
 
 
 @pytest.mark.parametrize("tile_size", [5, 16])
+def test_the_numba_forward_keeps_the_tables_and_lists_each_tile_builds_for_its_backward(tile_size):
+    """A forward with ``keep`` leaves each tile's local table and block lists (a tile of 5 px has partial blocks) where
+    the backward reads them: the same as the tile builds without keeping them; a forward that keeps none renders the
+    same, and a second backward through one graph gives the same gradients."""
+    pytest.importorskip("numba")
+    import numpy as np
+
+    from gpnerf_core.geometry.gaussians.binning import bin_gaussians
+    from gpnerf_core.geometry.gaussians.numba_backend import fill_tiles_numba, kernels
+
+    gaussians, intrinsics, c2w = scene(150, 3, seed=6, dtype=torch.float32)
+    projected = project_gaussians(gaussians, intrinsics, c2w, HEIGHT, WIDTH, 0.2)
+    bins = bin_gaussians(projected, HEIGHT, WIDTH, tile_size, fill_tiles_numba)
+    arrays = [t.detach().contiguous().numpy() for t in (projected.means2d, projected.conics, projected.opacities,
+                                                        gaussians.features, projected.depths, bins.offsets, bins.ids)]
+    tiles, per_tile = bins.offsets.shape[0] - 1, kernels().blocks_per_tile(tile_size)
+    kept = (np.full((bins.count, 7), np.nan), np.full(bins.count * per_tile, -1, dtype=np.int32),
+            np.full((tiles, per_tile), -1, dtype=np.int64))
+    outputs = [np.empty((HEIGHT, WIDTH, 3), np.float32), *(np.empty((HEIGHT, WIDTH), t) for t in
+                                                           (np.float32, np.float32, np.int32))]
+    kernels().forward_tiles(np.arange(tiles), *arrays, HEIGHT, WIDTH, tile_size, *outputs, True, *kept)
+    empty = (np.empty((0, 7)), np.empty(0, dtype=np.int32), np.empty((0, 0), dtype=np.int64))
+    means2d, conics, opacities, _, _, offsets, ids = arrays
+    tiles_x = -(-WIDTH // tile_size)
+    for tile in range(tiles):
+        y0, x0 = (tile // tiles_x) * tile_size, (tile % tiles_x) * tile_size
+        columns, rows = min(tile_size, WIDTH - x0), min(tile_size, HEIGHT - y0)
+        start, end = offsets[tile], offsets[tile + 1]
+        table, lists, counts = kernels()._tile_lists(means2d, conics, opacities, ids, start, end, x0, y0, columns,
+                                                     rows, tile, False, *empty)
+        blocks = counts.shape[0]
+        assert np.array_equal(kept[0][start:end], table)
+        assert np.array_equal(kept[2][tile, :blocks], counts)
+        held = kept[1][start * per_tile:start * per_tile + blocks * (end - start)].reshape(blocks, end - start)
+        for block in range(blocks):
+            assert np.array_equal(held[block, :counts[block]], lists[block, :counts[block]])
+    leaves = Gaussians(*(getattr(gaussians, name).clone().requires_grad_() for name in FIELDS))
+    out = render(leaves, intrinsics, c2w, "numba", tile_size=tile_size)
+    loss = out.features.sum() + out.depth.sum() + out.alpha.sum()
+    first = torch.autograd.grad(loss, [leaves.means, leaves.features], retain_graph=True)
+    second = torch.autograd.grad(loss, [leaves.means, leaves.features])
+    assert all(torch.equal(a, b) for a, b in zip(first, second))
+    unkept = [np.empty_like(output) for output in outputs]
+    kernels().forward_tiles(np.arange(tiles), *arrays, HEIGHT, WIDTH, tile_size, *unkept, False, *empty)
+    assert all(np.array_equal(a, b) for a, b in zip(outputs, unkept))
+
+
+@pytest.mark.parametrize("tile_size", [5, 16])
 def test_the_numba_counting_sort_lists_what_the_torch_binning_lists(tile_size):
     pytest.importorskip("numba")
     from gpnerf_core.geometry.gaussians.binning import bin_gaussians, fill_tiles

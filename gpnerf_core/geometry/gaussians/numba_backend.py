@@ -4,7 +4,8 @@ The Function's inputs are the projected centres, conics, opacities, features and
 still come from autograd. The forward keeps each pixel's final transmittance and how far down its list it walked; the
 backward walks back to front from there (as the official backward does) and writes one gradient row per (tile,
 Gaussian) intersection from the kernel's threads, which ``index_add_`` sums per Gaussian: no two threads write one
-place.
+place. A forward that a backward will follow keeps each tile's local table and block lists (about 16 int32 and 7
+float64 per intersection), so the backward does not build them again (the same arrays: the same results).
 
 Threads: the kernels release the GIL and run here on a thread pool of ``torch.get_num_threads()`` threads, tiles
 dealt out from the most crowded down, a few chunks per thread. Not numba's ``parallel=True``: with its default OpenMP
@@ -76,12 +77,17 @@ class _Composite(torch.autograd.Function):
         out_depth = np.empty((height, width), dtype=dtype)
         out_transmittance = np.empty((height, width), dtype=dtype)
         walked = np.empty((height, width), dtype=np.int32)
+        keep = any(ctx.needs_input_grad[:5])  # a backward will follow: it reads the tiles' tables and lists
+        per_tile = kernels().blocks_per_tile(tile_size) if keep else 0
+        kept = (np.empty((ids.shape[0] if keep else 0, 7)), np.empty(ids.shape[0] * per_tile, dtype=np.int32),
+                np.empty((offsets.shape[0] - 1 if keep else 0, per_tile), dtype=np.int64))
         _over_tiles(kernels().forward_tiles, offsets,
                     *map(_array, (means2d, conics, opacities, features, depths, offsets, ids)), height, width,
-                    tile_size, out_features, out_depth, out_transmittance, walked)
+                    tile_size, out_features, out_depth, out_transmittance, walked, keep, *kept)
         transmittance, walked = torch.from_numpy(out_transmittance), torch.from_numpy(walked)
         ctx.save_for_backward(means2d, conics, opacities, features, depths, offsets, ids, transmittance, walked)
         ctx.size = (height, width, tile_size)
+        ctx.kept = kept
         return torch.from_numpy(out_features), torch.from_numpy(out_depth), 1.0 - transmittance
 
     @staticmethod
@@ -94,7 +100,7 @@ class _Composite(torch.autograd.Function):
         _over_tiles(
             kernels().backward_tiles, offsets,
             *map(_array, (means2d, conics, opacities, features, depths, offsets, ids)), *ctx.size,
-            _array(transmittance), _array(walked), *map(_array, (grad_features, grad_depth, grad_alpha)),
+            _array(transmittance), _array(walked), *ctx.kept, *map(_array, (grad_features, grad_depth, grad_alpha)),
             *(grad.numpy() for grad in per_intersection))
         grads = [torch.zeros_like(tensor).index_add_(0, ids, grad)
                  for tensor, grad in zip((means2d, conics, opacities, features, depths), per_intersection)]

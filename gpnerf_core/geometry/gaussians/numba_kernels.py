@@ -43,9 +43,9 @@ CHANNEL_MATH = {"reassoc", "contract"}
 
 
 @njit(nogil=True, cache=True)
-def _table(means2d, conics, opacities, ids, start, end):
-    """``[n, 7]`` float64: u, v, conic a, b, c, opacity and the power cut of the tile's Gaussians ``ids[start:end]``."""
-    table = np.empty((end - start, 7))
+def _table(means2d, conics, opacities, ids, start, end, table):
+    """Fill ``table [n, 7]`` float64 (and return it): u, v, conic a, b, c, opacity and the power cut of the tile's
+    Gaussians ``ids[start:end]``."""
     for j in range(end - start):
         gaussian = ids[start + j]
         opacity = opacities[gaussian]
@@ -57,15 +57,13 @@ def _table(means2d, conics, opacities, ids, start, end):
 
 
 @njit(nogil=True, cache=True)
-def _blocks(table, x0, y0, columns, rows):
-    """``(lists [blocks, n] int64, counts [blocks])``: per ``BLOCK`` x ``BLOCK`` block of the tile's ``rows`` x
+def _blocks(table, x0, y0, columns, rows, lists, counts):
+    """Fill ``lists [blocks, n]`` int32 and ``counts [blocks]`` (and return them): per ``BLOCK`` x ``BLOCK`` block of the tile's ``rows`` x
     ``columns`` pixels from (x0, y0), row-major, the local Gaussians (in order) whose footprint box touches it: the box
     of ``d^T conic d <= 2 ln(255 o)``, half-widths ``sqrt(2 ln(255 o) Sigma'_uu)`` (``Sigma' = conic^-1``) widened
     as ``projection`` widens them."""
     across = (columns + BLOCK - 1) // BLOCK
-    count = across * ((rows + BLOCK - 1) // BLOCK)
-    lists = np.empty((count, table.shape[0]), dtype=np.int64)
-    counts = np.zeros(count, dtype=np.int64)
+    counts[:] = 0
     for j in range(table.shape[0]):
         reach = 2.0 * (-table[j, CUT] - SURELY_BELOW)  # 2 ln(255 o): k^2
         if reach < 0.0:
@@ -85,6 +83,32 @@ def _blocks(table, x0, y0, columns, rows):
                 lists[block, counts[block]] = j
                 counts[block] += 1
     return lists, counts
+
+
+def blocks_per_tile(tile_size: int) -> int:
+    """How many ``BLOCK`` x ``BLOCK`` blocks a tile has at most: the rows of ``kept_counts`` a forward keeps."""
+    return ((tile_size + BLOCK - 1) // BLOCK) ** 2
+
+
+@njit(nogil=True, cache=True)
+def _tile_lists(means2d, conics, opacities, ids, start, end, x0, y0, columns, rows, tile, keep, kept_table,
+                kept_lists, kept_counts):
+    """The tile's table and block lists (``_table``, ``_blocks``): built in the ``kept_*`` arrays when ``keep``
+    (table rows ``start:end``, lists from ``start * blocks_per_tile``, counts in row ``tile``), so the backward reads
+    them instead of building them again; in fresh arrays otherwise."""
+    blocks = ((columns + BLOCK - 1) // BLOCK) * ((rows + BLOCK - 1) // BLOCK)
+    n = end - start
+    if keep:
+        table = kept_table[start:end]
+        lists = kept_lists[start * kept_counts.shape[1]:start * kept_counts.shape[1] + blocks * n].reshape((blocks, n))
+        counts = kept_counts[tile, :blocks]
+    else:
+        table = np.empty((n, 7))
+        lists = np.empty((blocks, n), dtype=np.int32)
+        counts = np.empty(blocks, dtype=np.int64)
+    _table(means2d, conics, opacities, ids, start, end, table)
+    _blocks(table, x0, y0, columns, rows, lists, counts)
+    return table, lists, counts
 
 
 @njit(nogil=True, cache=True, fastmath=CHANNEL_MATH)
@@ -153,10 +177,12 @@ def _alpha(table, j, px, py):
 
 @njit(nogil=True, cache=True)
 def forward_tiles(tiles, means2d, conics, opacities, features, depths, offsets, ids, height, width, tile_size,
-                  out_features, out_depth, out_transmittance, out_walked):
+                  out_features, out_depth, out_transmittance, out_walked, keep, kept_table, kept_lists, kept_counts):
     """Composite the ``tiles`` (indices) into ``out_features [H, W, C]``, ``out_depth [H, W]``, the final
     transmittance ``[H, W]`` and ``out_walked [H, W]`` int32: how far down its block's list the pixel's last
-    composited Gaussian is (1-based; 0: none)."""
+    composited Gaussian is (1-based; 0: none). With ``keep``, each tile's table and block lists are left in
+    ``kept_table [N, 7]`` float64, ``kept_lists [N * blocks_per_tile]`` int32 and ``kept_counts [T,
+    blocks_per_tile]`` int64 for ``backward_tiles`` (``_tile_lists``); without, those may be empty."""
     tiles_x = (width + tile_size - 1) // tile_size
     channels = features.shape[1]
     accumulated = np.empty(channels)
@@ -164,9 +190,9 @@ def forward_tiles(tiles, means2d, conics, opacities, features, depths, offsets, 
     for tile in tiles:
         start, end = offsets[tile], offsets[tile + 1]
         y0, x0 = (tile // tiles_x) * tile_size, (tile % tiles_x) * tile_size
-        table = _table(means2d, conics, opacities, ids, start, end)
         columns, rows = min(tile_size, width - x0), min(tile_size, height - y0)
-        lists, counts = _blocks(table, x0, y0, columns, rows)
+        table, lists, counts = _tile_lists(means2d, conics, opacities, ids, start, end, x0, y0, columns, rows, tile,
+                                           keep, kept_table, kept_lists, kept_counts)
         across = (columns + BLOCK - 1) // BLOCK
         for py in range(y0, y0 + rows):
             for px in range(x0, x0 + columns):
@@ -204,14 +230,15 @@ def forward_tiles(tiles, means2d, conics, opacities, features, depths, offsets, 
 
 @njit(nogil=True, cache=True)
 def backward_tiles(tiles, means2d, conics, opacities, features, depths, offsets, ids, height, width, tile_size,
-                   transmittance, walked, grad_features, grad_depth, grad_alpha,
+                   transmittance, walked, kept_table, kept_lists, kept_counts, grad_features, grad_depth, grad_alpha,
                    out_means2d, out_conics, out_opacities, out_features, out_depths):
     """Per-intersection gradients (row k of each ``out_*`` belongs to ``ids[k]``; zero-filled by the caller) of the
     loss whose gradients on the outputs are ``grad_features [H, W, C]``, ``grad_depth [H, W]``, ``grad_alpha [H, W]``.
 
     Walks each pixel's block list back to front from its last composited Gaussian, recovering
     ``T_i = T_{i+1} / (1 - a_i)`` and the normalised rest behind it ``S_{i+1}``: ``dL/da_i = T_i (g_F . (f_i - S_{i+1}) + g_D (z_i - SD_{i+1}))
-    + g_A T_final / (1 - a_i)``; then through ``a = o exp(power)`` (zero where the 0.99 cap binds).
+    + g_A T_final / (1 - a_i)``; then through ``a = o exp(power)`` (zero where the 0.99 cap binds). Each tile's
+    table and block lists are the forward's (``forward_tiles`` with ``keep``).
     """
     tiles_x = (width + tile_size - 1) // tile_size
     channels = features.shape[1]
@@ -221,9 +248,12 @@ def backward_tiles(tiles, means2d, conics, opacities, features, depths, offsets,
     for tile in tiles:
         start = offsets[tile]
         y0, x0 = (tile // tiles_x) * tile_size, (tile % tiles_x) * tile_size
-        table = _table(means2d, conics, opacities, ids, start, offsets[tile + 1])
+        end = offsets[tile + 1]
         columns, rows = min(tile_size, width - x0), min(tile_size, height - y0)
-        lists, _ = _blocks(table, x0, y0, columns, rows)
+        blocks, n = ((columns + BLOCK - 1) // BLOCK) * ((rows + BLOCK - 1) // BLOCK), end - start
+        table = kept_table[start:end]
+        base = start * kept_counts.shape[1]
+        lists = kept_lists[base:base + blocks * n].reshape((blocks, n))
         across = (columns + BLOCK - 1) // BLOCK
         for py in range(y0, y0 + rows):
             for px in range(x0, x0 + columns):
