@@ -172,8 +172,8 @@ def fit_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handover()
                 for note in (*fit_start.notes, *plan.notes, *trainer.notes):
                     print(f"note: {note}", file=sys.stderr)
                 origin = f"checkpoint {fit_start.checkpoint}" if fit_start.kind == "checkpoint" else "its points"
-                print(f"fit: scene {scene!r} from {origin} ({family.gaussians.size} Gaussians); {_rules_text(cfg)}",
-                      file=sys.stderr)
+                count = curve[0]["gaussians"] if curve else family.gaussians.size
+                print(f"fit: scene {scene!r} from {origin} ({count} Gaussians); {_rules_text(cfg)}", file=sys.stderr)
             if first is not None:
                 record_point(first)
 

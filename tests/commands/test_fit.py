@@ -177,3 +177,22 @@ def test_a_model_that_is_not_a_per_scene_gaussian_family_is_refused(work, capsys
     assert code == 2 and err[-1].startswith("error: fit: model.name=semantic_nerf is not a per-scene Gaussian family; "
                                             "expected one of "), err[-3:]
     assert "semantic_3dgs" in err[-1] and not (work / "refused").exists()
+
+
+def test_a_resumed_fit_keeps_its_points_and_ends_as_the_uninterrupted_one(work, capsys):
+    import shutil
+
+    steps = ["train.steps=4", "fit.eval_every=2", "train.checkpoint_every=2"]
+    code, whole, _ = fitted(work, "whole", *steps)
+    assert code == 0, capsys.readouterr().err[-2000:]
+    shutil.copytree(work / "whole", work / "cut")  # as if interrupted after the checkpoint at step 2
+    (work / "cut" / "checkpoints" / "step_0000004.pt").unlink()
+    (work / "cut" / "metrics.json").unlink()
+    code, resumed, curve = fitted(work, "cut", *steps, "train.resume=auto")
+    assert code == 0, capsys.readouterr().err[-2000:]
+
+    def kept(points):
+        return [{key: value for key, value in point.items() if "seconds" not in key} for point in points]
+
+    assert [p["step"] for p in curve] == [0, 2, 4] and kept(curve) == kept(whole["fit"]["curve"])
+    assert resumed["fit"]["stopped"]["reason"] == "steps" and resumed["fit"]["start"] == whole["fit"]["start"]
