@@ -69,10 +69,10 @@ def check_fit_metric(metric: str, held_out: dict[str, Any], needed: bool, scene:
         isinstance(value, (int, float)) and not isinstance(value, bool)))
     if metric not in held_out or metric not in scalars:
         given = ", ".join(key for key in scalars if held_out[key] is not None)
-        raise ConfigError(f"fit.metric={metric}: the evaluation of scene {scene!r}'s held-out frames gives no such "
-                          f"value; expected one of: {given}")
+        raise ConfigError(f"fit.metric={metric}: the evaluation of the held-out frames of scene {scene!r} gives no "
+                          f"such value; expected one of: {given}")
     if needed and held_out[metric] is None:
         why = held_out.get("labels/unavailable_reason") or "it is not scored on these frames"
-        raise ConfigError(f"fit.metric={metric}: scene {scene!r}'s held-out frames give no value of it ({why}), so "
+        raise ConfigError(f"fit.metric={metric}: the held-out frames of scene {scene!r} give no value of it ({why}), so "
                           "fit.target and fit.patience cannot read it; expected a metric they give, e.g. "
                           "fit.metric=psnr/clamped")

@@ -158,8 +158,8 @@ def test_a_checkpoint_start_is_asked_of_starting_point(work, monkeypatch, capsys
     (["fit.eval_every=0", "fit.target=0.5"], r"fit.target=0.5: .* fit.eval_every=0"),
     (["fit.start_opacity=1.5"], r"fit.start_opacity=1.5: expected an opacity in \(0, 1\)"),
     (["dataset.eval_every=0", "fit.patience=2"], r"eval.splits=\[train\] select no frame of dataset 'embedded'"),
-    (["fit.metric=miou/nope", "train.steps=2"], r"fit.metric=miou/nope: the evaluation of scene 'layout_00''s "
-                                                r"held-out frames gives no such value; expected one of: .*psnr/clamped"),
+    (["fit.metric=miou/nope", "train.steps=2"], r"fit.metric=miou/nope: the evaluation of the held-out frames of "
+                                                r"scene 'layout_00' gives no such value; expected one of: .*psnr/clamped"),
     (["checkpoint=/nowhere/gen.pt"], r"checkpoint=/nowhere/gen.pt: no such file; expected a generalizable run's"),
 ])
 def test_bad_input_is_refused_in_one_line_before_the_run_folder(work, capsys, overrides, message):
@@ -196,3 +196,18 @@ def test_a_resumed_fit_keeps_its_points_and_ends_as_the_uninterrupted_one(work, 
 
     assert [p["step"] for p in curve] == [0, 2, 4] and kept(curve) == kept(whole["fit"]["curve"])
     assert resumed["fit"]["stopped"]["reason"] == "steps" and resumed["fit"]["start"] == whole["fit"]["start"]
+
+
+def test_a_metric_a_scene_without_labels_does_not_score_is_refused_where_a_rule_reads_it():
+    from gpnerf_core.evaluation.curves import check_fit_metric
+
+    held_out = {"miou/image_mean_present": None, "psnr/clamped": 21.0, "count/images": 2,
+                "labels/unavailable_reason": "scene 'room' has no labels", "timing": {"seconds_per_frame": 0.1}}
+    check_fit_metric("psnr/clamped", held_out, True, "room")
+    check_fit_metric("miou/image_mean_present", held_out, False, "room")  # recorded on the curve, read by no rule
+    with pytest.raises(ConfigError, match=r"^fit.metric=miou/image_mean_present: the held-out frames of scene 'room' "
+                                          r"give no value of it \(scene 'room' has no labels\), so fit.target and "
+                                          r"fit.patience cannot read it; expected .* fit.metric=psnr/clamped$"):
+        check_fit_metric("miou/image_mean_present", held_out, True, "room")
+    with pytest.raises(ConfigError, match=r"gives no such value; expected one of: count/images, psnr/clamped$"):
+        check_fit_metric("timing", held_out, False, "room")
