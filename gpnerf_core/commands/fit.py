@@ -28,8 +28,8 @@ from gpnerf_core.engine.fit_start import FitStart, apply_start, checkpoint_of, g
 from gpnerf_core.engine.guarding import job
 from gpnerf_core.engine.launching import Handover, launch
 from gpnerf_core.engine.resuming import plan_resume
-from gpnerf_core.engine.runs import claim_run_folder, run_record, shared_run_dir
-from gpnerf_core.engine.setup import check_config, start
+from gpnerf_core.engine.runs import claim_run_folder, run_record, shared_run_dir, task_overrides
+from gpnerf_core.engine.setup import start
 from gpnerf_core.engine.validation import check_data
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.evaluation.curves import check_fit_metric, eval_scalars, fit_entry
@@ -103,9 +103,7 @@ def fit_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handover()
     rules = stop_rules(cfg)
     checkpoint = checkpoint_of(cfg)
     fit_start = FitStart() if checkpoint is None else starting_point(cfg, checkpoint, dist)
-    if fit_start.overrides:
-        apply_start(cfg, fit_start)
-        check_config(cfg)
+    cfg = apply_start(cfg, fit_start, list(task_overrides()))
     plan = plan_resume(cfg, dist)
     components = build_components(cfg)
     scenes = components.dataset.scenes("train")

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.runtime.distributed import Distributed
@@ -30,8 +30,8 @@ class FitStart:
         seconds: wall seconds the start took before training (a checkpoint's prediction; 0 for ``points``): the
             curve's ``seconds`` are these plus the training seconds.
         notes: lines to print once (classes that differ, a budget below the start's count, ...).
-        overrides: config overrides the start needs (``key=value``, dotted keys of the config), applied before the
-            family is built (``apply_start``).
+        overrides: Hydra overrides the start needs (``start_overrides``: ``model.feature_dim=C``, ``+head=<name>``,
+            ...), composed after the command's before the family is built (``apply_start``).
         start: what the family takes as ``family.start`` before the trainer initialises its Gaussians (None: the
             family's own start from the scene's points).
     """
@@ -74,11 +74,27 @@ def starting_point(cfg: DictConfig, checkpoint: Path, dist: Distributed) -> FitS
                               "(gpnerf_core.model.generalized_start) is not wired in yet")
 
 
-def apply_start(cfg: DictConfig, start: FitStart) -> None:
-    """The start's config ``overrides`` merged into ``cfg`` (each ``key=value`` as Hydra's dotted override without
-    ``+``; a key the config does not have is refused by the validation that follows)."""
-    if start.overrides:
-        cfg.merge_with(OmegaConf.from_dotlist(list(start.overrides)))
+def apply_start(cfg: DictConfig, start: FitStart, given: list[str]) -> DictConfig:
+    """``cfg`` itself where the start needs no overrides; else the config composed again from the command's overrides
+    (``given``: the job's, ``runs.task_overrides``) and the start's after them (group choices such as ``+head=<name>``
+    included; a key both set takes the start's value), validated."""
+    if not start.overrides:
+        return cfg
+    from gpnerf_core.config.overrides import override_key
+    from gpnerf_core.engine.setup import compose_checked
+
+    from hydra.core.global_hydra import GlobalHydra
+
+    keys = {override_key(o) for o in start.overrides}
+    job = GlobalHydra.instance()
+    running = job.hydra if job.is_initialized() else None
+    job.clear()  # inside a Hydra job: compose beside it, then give the job its Hydra back
+    try:
+        return compose_checked([*(o for o in given if override_key(o) not in keys), *start.overrides])
+    finally:
+        if running is not None:
+            GlobalHydra.instance().clear()
+            GlobalHydra.instance().initialize(running)
 
 
 def give_start(family: Any, start: FitStart) -> None:

@@ -134,7 +134,8 @@ def test_a_checkpoint_start_is_asked_of_starting_point(work, monkeypatch, capsys
 
     def starting_point(cfg, path, dist):
         asked.append((path, int(cfg.fit.start_every)))
-        return FitStart(kind="checkpoint", checkpoint=str(path), seconds=1.5, notes=("a start note",))
+        return FitStart(kind="checkpoint", checkpoint=str(path), seconds=1.5, notes=("a start note",),
+                        overrides=("model.feature_dim=6", "model.sh_degree=0"))
 
     monkeypatch.setattr(fit_command, "starting_point", starting_point)
     code, metrics, curve = fitted(work, "started", f"checkpoint={checkpoint}", "train.steps=1", "fit.start_every=2")
@@ -145,6 +146,8 @@ def test_a_checkpoint_start_is_asked_of_starting_point(work, monkeypatch, capsys
     assert (start["kind"], start["checkpoint"], start["seconds"], start["notes"]) == (
         "checkpoint", str(checkpoint), 1.5, ["a start note"])
     assert curve[0]["seconds"] == 1.5 and curve[-1]["seconds"] == round(1.5 + curve[-1]["train_seconds"], 2)
+    config = (work / "started" / "config.yaml").read_text()  # the start's overrides composed after the command's
+    assert "feature_dim: 6" in config and "sh_degree: 0" in config and "init_points: 300" in config
 
 
 @pytest.mark.parametrize("overrides, message", [
