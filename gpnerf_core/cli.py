@@ -23,6 +23,8 @@ commands:
   eval      evaluate a checkpoint with the config it was trained with: `eval checkpoint=<path> [overrides]`
   finetune  fine-tune a checkpoint on some scenes, evaluating their held-out frames along the way:
             `finetune checkpoint=<path> dataset.scenes=[<scene>] train.steps=N [finetune.points=4]`
+  fit       fit one scene's per-scene Gaussian model until it has enough (steps, seconds, a target, a plateau),
+            recording its curve: `fit [checkpoint=<path>] 'dataset.scenes=[<scene>]' [fit.patience=3] [fit.seconds=60]`
   render    render a novel-view trajectory to MP4, GIF and PNG frames (RGB, depth, semantics side by side):
             `render checkpoint=<path> [render.scene=<name>] [render.path=interpolate|spiral] [render.frames=N]`
   export    the points the model sees in a scene's frames, fused over views, as a PLY point cloud (colour, class):
@@ -43,7 +45,7 @@ commands:
 
 
 COMMANDS = (
-    "run", "eval", "finetune", "render", "export", "label", "view", "report", "stress", "size", "bench", "data",
+    "run", "eval", "finetune", "fit", "render", "export", "label", "view", "report", "stress", "size", "bench", "data",
     "plugins",
 )
 """The commands, in the order ``--help`` lists them; each is ``gpnerf_core.commands.<name>``."""

@@ -128,6 +128,33 @@ class FinetuneConfig:
 
 
 @dataclass
+class FitConfig:
+    """``fit``: one scene's per-scene Gaussian model fitted until it has enough (docs/fit.md). The step budget is
+    ``train.steps``."""
+
+    eval_every: int = 100
+    """Training steps between evaluations of the held-out frames, the curve's points (also evaluated at step 0, the
+    start, and at the last step); 0 = only at the start and the end (then no ``target`` nor ``patience``)."""
+    seconds: float = 0.0
+    """Training-seconds budget: the fit stops after the first step that reaches it (0 = none). Wall time: a stop by it
+    is not reproducible step for step."""
+    target: Optional[float] = None
+    """Stop at the first evaluation whose ``metric`` on the held-out frames reaches this value (null = none)."""
+    metric: str = "miou/image_mean_present"
+    """The held-out metric ``target`` and ``patience`` read (a key the evaluation gives the split ``train_heldout``;
+    a scene without labels: ``psnr/clamped``). ``depth/*`` and ``lpips/*`` are lower-is-better, the others higher."""
+    patience: int = 0
+    """Plateau: stop after this many evaluations in a row without a gain of at least ``min_delta`` over the best so
+    far (0 = no plateau rule)."""
+    min_delta: float = 0.005
+    """The smallest gain of ``metric`` that counts as an improvement for ``patience`` (in the metric's units)."""
+    start_every: int = 1
+    """A checkpoint start: every ``start_every``-th training frame of the scene gives the start's Gaussians."""
+    start_opacity: float = 0.5
+    """A checkpoint start: the opacity of every started Gaussian where the checkpoint gives none, in (0, 1)."""
+
+
+@dataclass
 class RenderConfig:
     scene: str = ""
     """``render``: the scene to render ("" = the first unseen scene, else the first training scene; a per-scene model's
@@ -228,6 +255,7 @@ class RootConfig:
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
+    fit: FitConfig = field(default_factory=FitConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     view: ViewConfig = field(default_factory=ViewConfig)
     export: ExportConfig = field(default_factory=ExportConfig)
@@ -237,4 +265,5 @@ class RootConfig:
     overwrite: bool = False
     """Replace the run a non-empty ``out_dir`` holds (its checkpoints, metrics and pictures are deleted)."""
     checkpoint: Optional[str] = None
-    """Checkpoint the ``eval`` command evaluates, ``finetune`` starts from and ``render`` renders."""
+    """Checkpoint the ``eval`` command evaluates, ``finetune`` starts from and ``render`` renders; ``fit``: the
+    generalizable run whose prediction starts the per-scene model (none: the scene's points)."""

@@ -41,6 +41,10 @@ def _non_negative(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0
 
 
+def _finite(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
 def _fraction(v: Any) -> bool:
     return _positive(v) and v <= 1
 
@@ -83,6 +87,15 @@ RULES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("eval.max_views_per_scene", _count(0), f"{COUNT0} (0 = all)"),
     ("eval.save_images", _count(0), COUNT0),
     ("eval.every_steps", _count(0), f"{COUNT0} (0 = only at the end of training)"),
+    ("fit.eval_every", _count(0), f"{COUNT0} (training steps between evaluations; 0 = only the start and the end)"),
+    ("fit.seconds", _non_negative, "a finite training-seconds budget >= 0 (0 = none)"),
+    ("fit.target", lambda v: v is None or _finite(v), "null or a finite value of fit.metric"),
+    ("fit.metric", lambda v: isinstance(v, str) and v != "", "a metric name of the held-out frames "
+     "(miou/image_mean_present; psnr/clamped on a scene without labels)"),
+    ("fit.patience", _count(0), f"{COUNT0} (evaluations without a gain before a stop; 0 = no plateau rule)"),
+    ("fit.min_delta", _non_negative, "a finite gain >= 0 of fit.metric"),
+    ("fit.start_every", _count(1), f"{COUNT} (every k-th training frame gives the start)"),
+    ("fit.start_opacity", lambda v: _positive(v) and v < 1, "an opacity in (0, 1)"),
     ("view.port", _port, "a TCP port in [0, 65535] (0 = any free port)"),
     ("view.stride", _count(1), COUNT),
     ("view.preview_stride", _count(1), COUNT),
@@ -122,10 +135,21 @@ def validate_config(cfg: DictConfig) -> None:
     if cfg.model.num_source_views == 0 and family is not None and family().num_source_views > 0:
         raise ConfigError(f"model.num_source_views=0: model {cfg.model.name!r} renders from source views; expected an "
                           "integer >= 1 (0 only for a per-scene family)")
+    _check_fit_cadence(cfg)
     bad_splits = [s for s in cfg.eval.splits if s not in SPLITS]
     if bad_splits:
         raise ConfigError(f"eval.splits contains {bad_splits[0]!r}; expected some of {', '.join(SPLITS)}")
     check_loggers(list(cfg.train.loggers))
+
+
+def _check_fit_cadence(cfg: DictConfig) -> None:
+    """A stop rule on the held-out metric (``fit.target``, ``fit.patience``) needs evaluations during the fit."""
+    if int(cfg.fit.eval_every) > 0:
+        return
+    for key, value, unset in (("fit.patience", cfg.fit.patience, 0), ("fit.target", cfg.fit.target, None)):
+        if value != unset:
+            raise ConfigError(f"{key}={value}: a stop rule on the held-out metric needs evaluations while fitting, but "
+                              f"fit.eval_every=0; expected fit.eval_every >= 1 (training steps between evaluations)")
 
 
 def _refuse_unknown_keys(node: DictConfig, schema: type, prefix: str, component: bool = False) -> None:

@@ -45,3 +45,34 @@ def eval_scalars(evaluation: dict[str, Any]) -> dict[str, float]:
             if isinstance(value, (int, float)):
                 scalars[f"eval/{split}/timing/{key}"] = float(value)
     return scalars
+
+
+FIT_KEYS = ("miou/image_mean_present", "miou/dataset", "psnr/clamped")
+"""Metrics of the held-out frames a ``fit`` curve point keeps (those the evaluation gives), besides ``fit.metric``."""
+
+
+def fit_entry(step: int, train_seconds: float, start_seconds: float, gaussians: int, held_out: dict[str, Any],
+              metric: str) -> dict[str, Any]:
+    """One point of a ``fit`` curve: the step, the training seconds, ``seconds`` (the start's seconds plus the
+    training seconds, from the start: 0 for a start from the scene's points), the family's Gaussian count and the
+    held-out frames' ``FIT_KEYS`` and ``metric`` that the evaluation gave."""
+    entry: dict[str, Any] = {"step": int(step), "train_seconds": round(train_seconds, 2),
+                             "seconds": round(start_seconds + train_seconds, 2), "gaussians": int(gaussians)}
+    entry.update({key: held_out[key] for key in (*FIT_KEYS, metric) if key in held_out})
+    return entry
+
+
+def check_fit_metric(metric: str, held_out: dict[str, Any], needed: bool, scene: str) -> None:
+    """Refuse ``fit.metric`` when the held-out evaluation gives no such value (naming those it gives), or, where a
+    stop rule reads it (``needed``), gives None (a scene without labels: ``psnr/clamped`` advised)."""
+    scalars = sorted(key for key, value in held_out.items() if value is None or (
+        isinstance(value, (int, float)) and not isinstance(value, bool)))
+    if metric not in held_out or metric not in scalars:
+        given = ", ".join(key for key in scalars if held_out[key] is not None)
+        raise ConfigError(f"fit.metric={metric}: the evaluation of the held-out frames of scene {scene!r} gives no "
+                          f"such value; expected one of: {given}")
+    if needed and held_out[metric] is None:
+        why = held_out.get("labels/unavailable_reason") or "it is not scored on these frames"
+        raise ConfigError(f"fit.metric={metric}: the held-out frames of scene {scene!r} give no value of it ({why}), so "
+                          "fit.target and fit.patience cannot read it; expected a metric they give, e.g. "
+                          "fit.metric=psnr/clamped")

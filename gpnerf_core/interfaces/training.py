@@ -54,6 +54,9 @@ class TrainingState:
         seconds: training seconds so far (earlier runs of a resumed run included; off-the-clock callbacks excluded).
         checkpoint: writes a checkpoint at this point and returns its path (rank 0; every process must call it), for a
             command's callback whose work must survive an interruption; None where the loop offers none.
+        request_stop: ``request_stop(reason)`` ends ``Trainer.fit`` cleanly after this step (its checkpoint written at
+            this step, ``TrainResult.stopped`` = ``reason``, one line): a command's stop rule
+            (``training.stopping``); None where the loop offers none.
     """
 
     step: int
@@ -63,6 +66,7 @@ class TrainingState:
     outputs: StepOutput | None = None
     seconds: float = 0.0
     checkpoint: Callable[[], Path | None] | None = None
+    request_stop: Callable[[str], None] | None = None
 
     @property
     def steps_done(self) -> int:

@@ -51,7 +51,8 @@ class TrainResult:
     """What ``Trainer.fit`` did.
 
     Attributes:
-        steps: the step reached; seconds: training time including earlier runs of a resumed run.
+        steps: the step reached (where a callback stopped the loop: that step); seconds: training time including
+            earlier runs of a resumed run.
         rays_per_second: rays over all processes per second of this run.
         world_size, targets_per_rank, rays_per_step: the layout of the global batch (``rays_per_step`` is
             summed over processes and target views).
@@ -65,6 +66,8 @@ class TrainResult:
     rays_per_step: int
     history: list[dict[str, float]] = field(default_factory=list)
     checkpoint: Path | None = None
+    stopped: str | None = None
+    """Why the loop ended before ``until`` (``Trainer.request_stop``'s reason, one line); None: it reached it."""
 
 
 def loss_inputs(view: TargetView, output: ViewOutput | ImageOutput, ignore_index: int) -> LossInputs | ImageLossInputs:
@@ -232,6 +235,8 @@ class Trainer:
         self._clock: _Clock | None = None
         """The ``fit`` in progress's training time (callbacks' time is not counted)."""
         self.notes: list[str] = []
+        self._stop_reason: str | None = None
+        """Why a callback asked ``fit`` to end after the current step (``request_stop``); None: go on."""
         self.loss_names: list[str] = []
         """Names of the loss set's terms, known after the first step."""
         if dist.enabled:
@@ -366,7 +371,8 @@ class Trainer:
     def _state(self, batch: StepBatch | None, output: StepOutput | None) -> TrainingState:
         """What a callback or a family term is told at this point of the step."""
         return TrainingState(step=self.step, total_steps=int(self.cfg.train.steps), optimizer=self.optimizer,
-                             batch=batch, outputs=output, seconds=self.training_seconds, checkpoint=self.checkpoint)
+                             batch=batch, outputs=output, seconds=self.training_seconds, checkpoint=self.checkpoint,
+                             request_stop=self.request_stop)
 
     def _run_family_callbacks(self, phase: TrainingPhase, state: TrainingState) -> bool:
         """The callbacks of ``phase`` that are due at this step and count as training time: the family's
@@ -493,6 +499,9 @@ class Trainer:
                 phase after the family's; those with ``timed=False`` (``evaluate_at``: an evaluation) after the step and
                 its checkpoint, off the training clock, with the model back in training mode after them.
 
+        A callback may end the loop early (``request_stop``, ``TrainingState.request_stop``): after the step it was
+        asked at (that step logged), the final checkpoint is written at that step and ``TrainResult.stopped`` says why.
+
         Raises:
             TrainingInterrupted: on SIGINT/SIGTERM, after a checkpoint at the current step.
         """
@@ -503,6 +512,7 @@ class Trainer:
         rays_done = 0
         self._clock = _Clock()
         untimed = [c for c in callbacks if not c.timed]
+        self._stop_reason = None
         family = self.callbacks
         self.callbacks = {phase: [*family[phase], *(c for c in callbacks if c.timed and c.phase is phase)]
                           for phase in TrainingPhase}
@@ -527,6 +537,10 @@ class Trainer:
                         self._checkpoint(self.training_seconds)
                     if untimed:
                         self._run_callbacks(untimed, stop)
+                    if self._stop_agreed(agree=bool(callbacks)):
+                        if not self.history or self.history[-1]["step"] != self.step:
+                            self._log(terms, rays_done, run_seconds, self.elapsed + run_seconds, loggers)
+                        break
         finally:
             self.callbacks = family
             if bar is not None:
@@ -545,7 +559,25 @@ class Trainer:
             rays_per_step=self.rays_per_view() * int(cfg.targets_per_step),
             history=self.history,
             checkpoint=checkpoint,
+            stopped=self._stop_reason,
         )
+
+    def request_stop(self, reason: str) -> None:
+        """Ask ``fit`` to end after the current step (``reason``: one line, ``TrainResult.stopped``); the first
+        reason asked is kept."""
+        if self._stop_reason is None:
+            self._stop_reason = str(reason)
+
+    def _stop_agreed(self, agree: bool) -> bool:
+        """Whether the loop ends after this step: a stop was asked here, or (``agree``: the command gave callbacks,
+        which may ask on one process alone, as a seconds budget) on any process."""
+        asked = self._stop_reason is not None
+        if not (agree and self.dist.enabled):
+            return asked
+        anywhere = float(self.dist.all_reduce(torch.tensor(float(asked), device=self.device), op="max")) > 0
+        if anywhere and not asked:
+            self._stop_reason = "another process asked to stop"
+        return anywhere
 
     def rays_per_view(self) -> int:
         """``train.rays``, or a whole-image batch's pixels (the first training scene's image size)."""

@@ -15,7 +15,7 @@ def test_help_lists_commands(capsys):
 
 def test_unknown_command(capsys):
     assert main(["trian"]) == 2
-    assert "known commands: run, eval, finetune, render, export, label, view, report, stress, size, bench, data, plugins" in capsys.readouterr().err
+    assert "known commands: run, eval, finetune, fit, render, export, label, view, report, stress, size, bench, data, plugins" in capsys.readouterr().err
 
 
 def test_data_lists_tools_and_rejects_unknown(capsys):
