@@ -114,7 +114,7 @@ def fit_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handover()
     scene = scenes[0]
     check_data(cfg, components, training=True)
     check_splits_have_frames(cfg, components)  # a stop rule on held-out frames that do not exist: refused here
-    give_start(components.model, fit_start)
+    give_start(components.model, fit_start, tuple(components.classes.names) or None)
     record = run_record(cfg, components.model_sections)
     run_dir = shared_run_dir(cfg, dist)
     trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record, resume_from=plan.take_read())

@@ -150,8 +150,9 @@ class FitConfig:
     """The smallest gain of ``metric`` that counts as an improvement for ``patience`` (in the metric's units)."""
     start_every: int = 1
     """A checkpoint start: every ``start_every``-th training frame of the scene gives the start's Gaussians."""
-    start_opacity: float = 0.5
-    """A checkpoint start: the opacity of every started Gaussian where the checkpoint gives none, in (0, 1)."""
+    start_opacity: float = 0.8
+    """A checkpoint start from a ray family: the opacity of each rendered cell's Gaussian, in (0, 1) (a feed-forward
+    Gaussian family predicts its own; ``generalized_start.START_OPACITY`` says why 0.8)."""
 
 
 @dataclass

@@ -7,11 +7,12 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.runtime.distributed import Distributed
@@ -64,14 +65,61 @@ def checkpoint_of(cfg: DictConfig) -> Path | None:
 def starting_point(cfg: DictConfig, checkpoint: Path, dist: Distributed) -> FitStart:
     """The start a generalizable model's checkpoint predicts for the fit's one scene (``dataset.scenes``).
 
-    Called after the process is set up (threads, seed, device: ``dist.device``) and before the per-scene family is
-    built. Returns a ``FitStart`` with ``kind="checkpoint"``, ``checkpoint=str(checkpoint)``, the wall ``seconds`` the
-    prediction took, its ``notes``, the config ``overrides`` the start needs (``start_overrides``) and the ``start``
-    the family takes (``family.start = start``; a ``GaussianStart``); options: ``fit.start_every``,
-    ``fit.start_opacity``.
+    The checkpoint is opened on the fit's data (its own config with the fit's ``dataset``, ``view_selector`` and
+    process keys: ``open_trained``), its model predicts the scene's Gaussians (``generalized_start.predict_start``:
+    every ``fit.start_every``-th training frame, ray families' cells at ``fit.start_opacity``, at most
+    ``model.max_gaussians``), and the per-scene family's config is sized to carry them (``start_overrides``). Called
+    after the process is set up and before the family is built; ``seconds`` is the wall time of opening and
+    predicting (the curve's ``seconds`` add it to the training seconds).
+
+    Raises:
+        ConfigError: the checkpoint's family is per-scene, or predicts no Gaussians and renders no depth
+            (``predict_start`` names it).
     """
-    raise NotImplementedError(f"fit checkpoint={checkpoint}: the start from a generalizable model "
-                              "(gpnerf_core.model.generalized_start) is not wired in yet")
+    import time
+
+    from gpnerf_core.config.overrides import override_key
+    from gpnerf_core.data.frames import FrameCache
+    from gpnerf_core.engine.opening import open_trained
+    from gpnerf_core.engine.runs import task_overrides
+    from gpnerf_core.model.generalized_start import predict_start, start_overrides
+    from gpnerf_core.model.trained import load_trained
+
+    started = time.perf_counter()
+    trained = load_trained(checkpoint)
+    data = [o for o in task_overrides() if override_key(o).split(".")[0] in OPENED_KEYS]
+    with beside_the_job():
+        opened = open_trained(trained, data, command="fit", device=dist.device, other_data=True,
+                              source="fit checkpoint={path}")
+    model = opened.components.model.eval()
+    frames = FrameCache(opened.components.dataset, dist.device)
+    scene = frames.scene(opened.components.dataset.scenes("train")[0])
+    head = opened.cfg.get("head")
+    start = predict_start(
+        model, frames, opened.components.view_selector, scene, num_source_views=int(opened.cfg.model.num_source_views),
+        budget=int(cfg.model.max_gaussians), every=int(cfg.fit.start_every), opacity=float(cfg.fit.start_opacity),
+        chunk_rays=int(cfg.eval.chunk_rays), family=trained.family, classes=tuple(opened.components.classes.names),
+        head_config=OmegaConf.to_container(head, resolve=True) if head is not None else None)
+    notes = (*opened.notes, f"the start: {start.gaussians.count} Gaussians of model {trained.family!r} from "
+             f"{len(start.frames)} training frames ({start.predicted} predicted before merging where views overlap; "
+             f"semantics: {start.semantics})", *start.notes)
+    typed = {override_key(o) for o in task_overrides()}
+    schedule = [] if "model.opacity_reset_every" in typed else [f"model.opacity_reset_every={KEEP_OPACITIES}"]
+    return FitStart(kind="checkpoint", checkpoint=str(checkpoint), seconds=time.perf_counter() - started,
+                    notes=notes, overrides=(*start_overrides(start), *schedule), start=start)
+
+
+KEEP_OPACITIES = 10**9
+"""``model.opacity_reset_every`` of a started fit unless the command sets it: no opacity reset. 3DGS caps every
+opacity at 0.01 every 3000 of its 30k steps to clear floaters grown from a sparse start; a started fit begins from
+Gaussians whose opacities are the generalizable model's answer (AnySplat's post-optimisation turns density control off,
+InstantSplat densifies nothing), and a reset would throw that answer away at the first one (every 200 steps of a
+2000-step fit). Densification within ``model.max_gaussians`` and opacity pruning stay."""
+
+
+OPENED_KEYS = ("dataset", "view_selector", "device", "threads", "seed")
+"""The fit's overrides that the generalizable checkpoint is opened with (its own config otherwise): the data it
+predicts and the process it runs in."""
 
 
 def apply_start(cfg: DictConfig, start: FitStart, given: list[str]) -> DictConfig:
@@ -83,21 +131,30 @@ def apply_start(cfg: DictConfig, start: FitStart, given: list[str]) -> DictConfi
     from gpnerf_core.config.overrides import override_key
     from gpnerf_core.engine.setup import compose_checked
 
+    keys = {override_key(o) for o in start.overrides}
+    with beside_the_job():
+        return compose_checked([*(o for o in given if override_key(o) not in keys), *start.overrides])
+
+
+@contextmanager
+def beside_the_job() -> Iterator[None]:
+    """Compose configs inside a Hydra job (the checkpoint's, the start's): Hydra's global state is cleared for the
+    block and the job's given back after it."""
     from hydra.core.global_hydra import GlobalHydra
 
-    keys = {override_key(o) for o in start.overrides}
     job = GlobalHydra.instance()
     running = job.hydra if job.is_initialized() else None
-    job.clear()  # inside a Hydra job: compose beside it, then give the job its Hydra back
+    job.clear()
     try:
-        return compose_checked([*(o for o in given if override_key(o) not in keys), *start.overrides])
+        yield
     finally:
         if running is not None:
             GlobalHydra.instance().clear()
             GlobalHydra.instance().initialize(running)
 
 
-def give_start(family: Any, start: FitStart) -> None:
-    """Hand a checkpoint start to the built family (``family.start``), before the trainer initialises it."""
+def give_start(family: Any, start: FitStart, scene_classes: tuple[str, ...] | None) -> None:
+    """Hand a checkpoint start to the built family (``GaussianFamily.use_start``), before the trainer initialises it;
+    ``scene_classes``: the fit's dataset's class names (a start of other classes keeps only its geometry and colour)."""
     if start.start is not None:
-        family.start = start.start
+        family.use_start(start.start, scene_classes)

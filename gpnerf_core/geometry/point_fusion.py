@@ -69,12 +69,8 @@ def inside_bounds(depth: Tensor, scene: Any) -> Tensor:
     return torch.isfinite(depth) & (depth > scene.near + margin) & (depth < scene.far - margin)
 
 
-def depth_agreement(points: Tensor, other: DepthView, tolerance: float) -> Tensor:
-    """``[N]`` bool: the point is in front of ``other``'s camera, inside its image, and ``other``'s rendered depth at
-    the nearest grid cell is within ``tolerance`` (relative) of the point's depth there.
-
-    The grid is ``other.pixels``' regular stride grid; a point is looked up at the cell whose centre is nearest.
-    """
+def _looked_up(points: Tensor, other: DepthView) -> tuple[Tensor, Tensor, Tensor]:
+    """``(inside [N] bool, the point's depth in other [N], other's rendered depth at its nearest cell [N])``."""
     pixels, depth = project_points(points, other.intrinsics[None], other.c2w[None])
     pixels, depth = pixels[0], depth[0]
     grid_h, grid_w = other.depth.shape
@@ -82,7 +78,38 @@ def depth_agreement(points: Tensor, other: DepthView, tolerance: float) -> Tenso
     col = torch.floor((pixels[:, 0] + 0.5) / stride).long()  # pixel centres are at integer coordinates
     row = torch.floor((pixels[:, 1] + 0.5) / stride).long()
     inside = (depth > 0) & (col >= 0) & (col < grid_w) & (row >= 0) & (row < grid_h)
-    seen = other.depth[row.clamp(0, grid_h - 1), col.clamp(0, grid_w - 1)]
+    return inside, depth, other.depth[row.clamp(0, grid_h - 1), col.clamp(0, grid_w - 1)]
+
+
+def free_space_conflict(points: Tensor, other: DepthView, tolerance: float) -> Tensor:
+    """``[N]`` bool: the point lies inside ``other``'s image in front of the surface ``other`` rendered there by more
+    than ``tolerance`` (relative): ``other`` sees through it, so it is a floater in ``other``'s free space."""
+    inside, depth, seen = _looked_up(points, other)
+    return inside & (seen > 0) & (depth < (1.0 - tolerance) * seen)
+
+
+def conflicting_views(views: list[DepthView], tolerance: float) -> list[Tensor]:
+    """Per view, ``[h * w]`` int: how many of the other views see through each of its points
+    (``free_space_conflict``): the visibility check of depth-map fusion, which removes floaters a point's agreement
+    with other views (``agreeing_views``) keeps when two views err alike."""
+    points = [backproject(view) for view in views]
+    counts = []
+    for index, own in enumerate(points):
+        count = torch.zeros(own.shape[0], dtype=torch.long, device=own.device)
+        for other_index, other in enumerate(views):
+            if other_index != index:
+                count += free_space_conflict(own, other, tolerance).long()
+        counts.append(count)
+    return counts
+
+
+def depth_agreement(points: Tensor, other: DepthView, tolerance: float) -> Tensor:
+    """``[N]`` bool: the point is in front of ``other``'s camera, inside its image, and ``other``'s rendered depth at
+    the nearest grid cell is within ``tolerance`` (relative) of the point's depth there.
+
+    The grid is ``other.pixels``' regular stride grid; a point is looked up at the cell whose centre is nearest.
+    """
+    inside, depth, seen = _looked_up(points, other)
     return inside & ((depth - seen).abs() <= tolerance * seen.abs())
 
 

@@ -23,6 +23,7 @@ are the Hydra overrides that size the per-scene family's config to carry the sta
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Mapping
@@ -35,7 +36,16 @@ from gpnerf_core.geometry.gaussians.harmonics import colour_to_dc
 from gpnerf_core.geometry.gaussians.initialisation import scene_extent
 from gpnerf_core.geometry.gaussians.parameters import rows_from_gaussians
 from gpnerf_core.geometry.gaussians.scene import GaussianScene
-from gpnerf_core.geometry.point_fusion import agreeing_views, backproject, cell_scores, inside_bounds, rendered_view
+from gpnerf_core.geometry.point_fusion import (
+    DepthView,
+    agreeing_views,
+    backproject,
+    cell_scores,
+    conflicting_views,
+    inside_bounds,
+    rendered_view,
+)
+from gpnerf_core.geometry.rays import pixel_grid
 from gpnerf_core.types import Scene
 
 if TYPE_CHECKING:
@@ -59,8 +69,16 @@ more (no blur beyond what was predicted)."""
 MIN_VIEWS = 1
 """Other views that must render a surface at a cell's depth for its Gaussian to stay (``export.min_views``'s
 default)."""
-TOLERANCE = 0.05
-"""Relative depth tolerance of that agreement (``export.tolerance``'s default)."""
+TOLERANCE = 0.1
+"""Relative depth tolerance of that agreement and of seeing through (``export.tolerance`` is 0.05: a start keeps more
+of a surface whose predicted depth errs, and the per-scene fit corrects it)."""
+MAX_CONFLICTS = 3
+"""Other views that may see through a Gaussian (their rendered surface behind it) before it is dropped as a floater:
+predicted depth errs by a few per cent in every view (GP-NeRF's median error on the unseen layout is about 0.25 m), so
+a surface seen by thirty views is seen through by a few of them; at 0 too much of it goes (holes), above 5 the
+floaters stay (measured on the unseen layout's held-out frames, docs/fit.md)."""
+MERGED_OPACITY_LIMIT = 0.99
+"""Most opacity a merged Gaussian takes from its voxel's coverage (below 1: its sigmoid keeps a gradient)."""
 SEMANTICS = ("features", "scores", "none")
 """``GaussianStart.semantics``: features a head decodes, K class scores, or nothing."""
 
@@ -112,7 +130,8 @@ class GaussianStart:
 
 def predict_start(model: Any, frames: "FrameCache", selector: "ViewSelector", scene: Scene, *, num_source_views: int,
                   budget: int, every: int = 1, opacity: float = START_OPACITY, min_views: int = MIN_VIEWS,
-                  tolerance: float = TOLERANCE, chunk_rays: int = 4096, family: str | None = None,
+                  tolerance: float = TOLERANCE, max_conflicts: int = MAX_CONFLICTS, chunk_rays: int = 4096,
+                  family: str | None = None,
                   classes: tuple[str, ...] = (), head_config: Mapping[str, Any] | None = None) -> GaussianStart:
     """The start a generalizable ``model`` predicts for ``scene`` (the module docstring).
 
@@ -124,7 +143,7 @@ def predict_start(model: Any, frames: "FrameCache", selector: "ViewSelector", sc
         budget: most Gaussians kept (``model.max_gaussians``), >= 1.
         every: every ``every``-th training frame is predicted.
         opacity: a ray family's cell Gaussians' opacity in (0, 1) (``START_OPACITY``).
-        min_views, tolerance: a ray family's multi-view agreement (``export.min_views``, ``export.tolerance``).
+        min_views, tolerance, max_conflicts: the depth-map fusion that keeps a frame's Gaussians (``consistent``).
         chunk_rays: rays a ray family renders at once.
         family: the model's family name for messages and the start (default: its module's package).
         classes: the model's class names (the checkpoint's dataset classes).
@@ -138,18 +157,21 @@ def predict_start(model: Any, frames: "FrameCache", selector: "ViewSelector", sc
                           "checkpoint of one")
     _check_options(budget, every, opacity, num_source_views)
     chosen = tuple(scene.train_frames[::every])
+    if min_views > len(chosen) - 1:
+        raise ConfigError(f"min_views={min_views}: only {len(chosen)} training frame(s) are predicted, so a Gaussian "
+                          f"can agree with at most {len(chosen) - 1} other view(s); lower it or predict more frames")
     if caps.gaussians:
         parts = [frame_gaussians(model, frames, selector, scene, index, num_source_views) for index in chosen]
     else:
-        parts = ray_gaussians(model, frames, selector, scene, chosen, num_source_views=num_source_views,
-                              opacity=opacity, min_views=min_views, tolerance=tolerance, chunk_rays=chunk_rays,
-                              family=name)
-    predicted = concatenate(parts)
+        parts = [ray_gaussians(model, frames, selector, scene, index, num_source_views=num_source_views,
+                               opacity=opacity, chunk_rays=chunk_rays, family=name) for index in chosen]
+    predicted = concatenate(consistent(parts, scene, min_views=min_views, tolerance=tolerance,
+                                       max_conflicts=max_conflicts))
     if not predicted.count:
         raise DataError(f"scene {scene.name!r}: model={name} left no Gaussian to start from in training frames "
-                        f"{list(chosen)} (opacity <= {OPACITY_FLOOR}, or no cell within the depth bounds seen by "
-                        f"{min_views} other view(s) within {tolerance:g}); expected a checkpoint fitted to such "
-                        "scenes, or a lower min_views")
+                        f"{list(chosen)} (opacity <= {OPACITY_FLOOR}, outside the depth bounds, seen by fewer than "
+                        f"{min_views} other view(s) or seen through by more than {max_conflicts} within {tolerance:g});"
+                        " expected a checkpoint fitted to such scenes, or looser fit.start_* options")
     merged = voxel_keep_opaque(predicted, median_footprint(predicted))
     kept, note = most_opaque(merged, budget)
     semantics, head_state, levels, stride = _semantics(model, predicted, frames, scene)
@@ -202,9 +224,10 @@ def _head_stride(model: Any, frames: "FrameCache", scene: Scene) -> int:
 
 
 def frame_gaussians(model: Any, frames: "FrameCache", selector: "ViewSelector", scene: Scene, index: int,
-                    num_views: int) -> GaussianScene:
-    """A feed-forward Gaussian family's Gaussians of frame ``index``'s own pixels, predicted from the frame and its
-    ``num_views - 1`` nearest other training frames, opacity above ``OPACITY_FLOOR``."""
+                    num_views: int) -> tuple[GaussianScene, DepthView]:
+    """A feed-forward Gaussian family's Gaussians of frame ``index``'s own pixels (one per pixel, row-major), predicted
+    from the frame and its ``num_views - 1`` nearest other training frames, and the frame's depth they make (their
+    centres' camera z on the full pixel grid), on the CPU."""
     from gpnerf_core.data.frames import sources_at_pose
 
     others = sources_at_pose(selector, scene, scene.c2w[index], num_views - 1, index) if num_views > 1 else []
@@ -218,38 +241,54 @@ def frame_gaussians(model: Any, frames: "FrameCache", selector: "ViewSelector", 
         else:
             gaussians = model.scene_gaussians(sources, near=scene.near, far=scene.far)
     per_view = gaussians.count // len(indices)
-    if per_view * len(indices) != gaussians.count:
+    if per_view != scene.height * scene.width or per_view * len(indices) != gaussians.count:
         raise DataError(f"scene {scene.name!r} frame {index}: the model predicted {gaussians.count} Gaussians for "
-                        f"{len(indices)} source views, expected as many per view (one per pixel, view-major)")
-    own = gaussians.subset(torch.arange(per_view, device=gaussians.means.device))
-    return _on_cpu(own.subset(own.opacities > OPACITY_FLOOR))
+                        f"{len(indices)} source views of {scene.height}x{scene.width}, expected one per pixel of "
+                        "each (view-major, row-major)")
+    own = _on_cpu(gaussians.subset(torch.arange(per_view, device=gaussians.means.device)))
+    c2w = scene.c2w[index].float().cpu()
+    depth = ((own.means - c2w[:3, 3]) @ c2w[:3, :3])[:, 2].reshape(scene.height, scene.width)
+    view = DepthView(depth=depth, pixels=pixel_grid(scene.height, scene.width, 1),
+                     intrinsics=scene.intrinsics[index].float().cpu(), c2w=c2w, height=scene.height, width=scene.width)
+    return own, view
 
 
-def ray_gaussians(model: Any, frames: "FrameCache", selector: "ViewSelector", scene: Scene, chosen: tuple[int, ...], *,
-                  num_source_views: int, opacity: float, min_views: int, tolerance: float, chunk_rays: int,
-                  family: str) -> list[GaussianScene]:
-    """A ray family's cell Gaussians of each chosen frame rendered from the other training frames, where ``export``'s
-    agreement (``min_views`` other chosen views within ``tolerance``) and depth bounds keep them."""
+def ray_gaussians(model: Any, frames: "FrameCache", selector: "ViewSelector", scene: Scene, index: int, *,
+                  num_source_views: int, opacity: float, chunk_rays: int, family: str
+                  ) -> tuple[GaussianScene, DepthView]:
+    """A ray family's cell Gaussians of frame ``index`` rendered from the other training frames as ``export`` renders
+    it (``cell_gaussians``), and the rendered depth they stand on."""
     from gpnerf_core.model.view_inputs import view_inputs
 
-    if min_views > len(chosen) - 1:
-        raise ConfigError(f"min_views={min_views}: only {len(chosen)} training frame(s) are predicted, so a cell can "
-                          f"agree with at most {len(chosen) - 1} other view(s); lower it or predict more frames")
-    views, cells = [], []
-    for index in chosen:
-        frame = frames.frame(scene, index)
-        camera = frames.camera(scene, frame)
-        given = view_inputs(model, frames, selector, scene, camera.c2w, num_source_views, exclude=index)
-        with torch.no_grad():
-            prediction = model.predict(camera, given.sources, stride=0, chunk_rays=chunk_rays, features=given.features)
-        if prediction.depth is None:
-            raise ConfigError(f"model={family} predicts no Gaussians and renders no depth: a start needs one of them")
-        view = rendered_view(prediction, camera)  # export's rendered_points, without the labels a start ignores
-        views.append(view)
-        cells.append(cell_gaussians(prediction, camera, backproject(view), opacity, head=getattr(model, "head", None)))
-    agreeing = agreeing_views(views, tolerance)
-    return [gaussians.subset((count >= min_views) & inside_bounds(view.depth.reshape(-1), scene))
-            for gaussians, count, view in zip(cells, agreeing, views)]
+    frame = frames.frame(scene, index)
+    camera = frames.camera(scene, frame)
+    given = view_inputs(model, frames, selector, scene, camera.c2w, num_source_views, exclude=index)
+    with torch.no_grad():
+        prediction = model.predict(camera, given.sources, stride=0, chunk_rays=chunk_rays, features=given.features)
+    if prediction.depth is None:
+        raise ConfigError(f"model={family} predicts no Gaussians and renders no depth: a start needs one of them")
+    view = rendered_view(prediction, camera)  # export's rendered_points, without the labels a start ignores
+    return cell_gaussians(prediction, camera, backproject(view), opacity, head=getattr(model, "head", None)), view
+
+
+def consistent(parts: list[tuple[GaussianScene, DepthView]], scene: Scene, *, min_views: int, tolerance: float,
+               max_conflicts: int) -> list[GaussianScene]:
+    """Each frame's Gaussians kept where depth-map fusion keeps a point: inside the scene's depth bounds, opacity above
+    ``OPACITY_FLOOR``, seen at the same depth (``tolerance``, relative) by at least ``min_views`` other frames
+    (``agreeing_views``: MVSGaussian's reprojection check), and in front of the surface of at most ``max_conflicts``
+    other frames (``conflicting_views``: a Gaussian another view sees through is a floater; predicted depth errs, and
+    one floater in front of a surface hides it from every view behind)."""
+    views = [view for _, view in parts]
+    agreeing = agreeing_views(views, tolerance) if min_views > 0 else [None] * len(views)
+    conflicts = conflicting_views(views, tolerance)
+    kept = []
+    for (gaussians, view), agree, conflict in zip(parts, agreeing, conflicts):
+        keep = inside_bounds(view.depth.reshape(-1), scene) & (gaussians.opacities > OPACITY_FLOOR)
+        keep &= conflict <= max_conflicts
+        if agree is not None:
+            keep &= agree >= min_views
+        kept.append(gaussians.subset(keep))
+    return kept
 
 
 def cell_gaussians(prediction: Any, camera: Any, xyz: Tensor, opacity: float, *, head: Any) -> GaussianScene:
@@ -309,8 +348,11 @@ def median_footprint(gaussians: GaussianScene) -> float:
 
 
 def voxel_keep_opaque(gaussians: GaussianScene, voxel: float) -> GaussianScene:
-    """The most opaque Gaussian of each ``voxel``-metre cell of a grid from the world origin (ties: the first),
-    in their order; all of them when ``voxel`` is 0. Deterministic."""
+    """The most opaque Gaussian of each ``voxel``-metre cell of a grid from the world origin (ties: the first), in their
+    order, carrying the voxel's coverage as its opacity: ``1 - prod(1 - opacity)`` over the voxel's Gaussians, at most
+    ``MERGED_OPACITY_LIMIT`` (views overlap: a surface element several views predicted semi-transparent, each covering
+    it in part, is covered by their union; keeping one of them at its own opacity would leave holes). All of them, as
+    they are, when ``voxel`` is 0. Deterministic."""
     if voxel <= 0 or gaussians.count <= 1:
         return gaussians
     keys = torch.floor(gaussians.means.double() / voxel).long()
@@ -322,7 +364,12 @@ def voxel_keep_opaque(gaussians: GaussianScene, voxel: float) -> GaussianScene:
     top = gaussians.opacities == best[cell]
     first = torch.full((cells,), gaussians.count, dtype=torch.long).scatter_reduce(
         0, cell[top], rows[top], reduce="amin")
-    return gaussians.subset(first.sort().values)
+    transmitted = torch.zeros(cells, dtype=torch.float64).index_add_(
+        0, cell, torch.log1p(-gaussians.opacities.double().clamp_max(1 - 1e-6)))
+    coverage = (1 - transmitted.exp()).clamp_max(MERGED_OPACITY_LIMIT).to(gaussians.opacities.dtype)
+    order = torch.argsort(first)
+    kept = gaussians.subset(first[order])
+    return dataclasses.replace(kept, opacities=torch.maximum(kept.opacities, coverage[order]))
 
 
 def most_opaque(gaussians: GaussianScene, budget: int) -> tuple[GaussianScene, str | None]:
