@@ -19,7 +19,6 @@ import time
 from typing import Any
 
 import numpy as np
-import torch
 from omegaconf import DictConfig
 
 from gpnerf_core.engine.guarding import job
@@ -28,40 +27,25 @@ from gpnerf_core.engine.opening import open_trained
 from gpnerf_core.engine.runs import claim_run_folder
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.runtime.distributed import Distributed
-from gpnerf_core.runtime.staging import Write, write_staged
+from gpnerf_core.model.predicted_labels import LABELS_FILE, LABELS_FOLDER, frame_label_writes, labels_record
+from gpnerf_core.runtime.staging import write_staged
 
 STAGING_PREFIX = ".label.partial-"
 """The folder inside the run folder that ``label`` writes into before renaming its outputs into place."""
-LABELS_FOLDER = "labels"
-LABELS_FILE = "labels.json"
 
 
 def main(argv: list[str]) -> int:
     return launch_from_checkpoint(label_task, argv, "label")
 
 
-def label_file(index: int) -> str:
-    """Where frame ``index``'s labels are, inside the run folder."""
-    return f"{LABELS_FOLDER}/{index:05d}.png"
-
-
-def _write_png(path: Any, labels: np.ndarray) -> None:
-    from PIL import Image
-
-    Image.fromarray(labels).save(path, format="PNG")
-
-
 @job
 def label_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handover()) -> dict[str, Any]:
     from functools import partial
-
-    from tqdm import tqdm
 
     from gpnerf_core.data.dataset import chosen_scene
     from gpnerf_core.data.frames import FrameCache
     from gpnerf_core.evaluation.evaluator import component_names
     from gpnerf_core.interfaces.head import Predicts
-    from gpnerf_core.model.view_inputs import view_inputs
     from gpnerf_core.runtime.io import atomic_write_json
 
     loaded = open_trained(handover.trained, cfg=cfg, command="label", validated=handover.validated,
@@ -84,24 +68,12 @@ def label_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handover
         for note in loaded.notes:
             print(f"note: {note}", file=sys.stderr)
         started = time.perf_counter()
-        writes: list[tuple[str, Write]] = []
-        for index in tqdm(range(scene.num_frames), desc="label", unit="frame", file=sys.stderr, dynamic_ncols=True):
-            camera = frames.camera(scene, frames.frame(scene, index))
-            given = view_inputs(model, frames, components.view_selector, scene, camera.c2w,
-                                int(cfg.model.num_source_views), exclude=index)
-            with torch.no_grad():
-                prediction = model.predict(camera, given.sources, stride=0, chunk_rays=int(cfg.eval.chunk_rays),
-                                           features=given.features)
-            prediction.check_finite(owners, f"label: scene {name!r} frame {index}")
-            labels = prediction.logits[0].argmax(dim=0).to("cpu", torch.int64).numpy().astype(dtype)
-            writes.append((label_file(index), partial(_write_png, labels=labels)))
-        result = {
-            "scene": name, "frames": scene.num_frames, "size": [scene.height, scene.width],
-            "classes": list(classes.names), "ignore_index": int(components.dataset.ignore_index),
-            "checkpoint": str(loaded.trained.path), "model": str(cfg.model.name),
-            "source_views": int(cfg.model.num_source_views) if model.capabilities.generalizable else 0,
-            "seconds": round(time.perf_counter() - started, 3),
-        }
+        writes = frame_label_writes(model, frames, components.view_selector, scene, int(cfg.model.num_source_views),
+                                    int(cfg.eval.chunk_rays), owners, dtype)
+        result = labels_record(scene, classes, int(components.dataset.ignore_index), str(loaded.trained.path),
+                               str(cfg.model.name),
+                               int(cfg.model.num_source_views) if model.capabilities.generalizable else 0,
+                               time.perf_counter() - started)
         writes.append((LABELS_FILE, partial(atomic_write_json, obj=result)))
         write_staged(folder.path, writes, STAGING_PREFIX)
         print(f"labelled {scene.num_frames} frames of {name} with {cfg.model.name} to {folder.path / LABELS_FOLDER}")

@@ -105,8 +105,57 @@ def starting_point(cfg: DictConfig, checkpoint: Path, dist: Distributed) -> FitS
              f"semantics: {start.semantics})", *start.notes)
     typed = {override_key(o) for o in task_overrides()}
     schedule = [] if "model.opacity_reset_every" in typed else [f"model.opacity_reset_every={KEEP_OPACITIES}"]
+    targets: list[str] = []
+    if opened.components.classes.from_checkpoint and "labels_from" in cfg.dataset and not cfg.dataset.labels_from:
+        folder = predicted_labels(checkpoint, opened, model, frames, scene)
+        targets = [f"dataset.labels_from={folder}"]
+        notes = (*notes, f"scene {scene.name!r} has no labels: model {trained.family!r}'s labels of its "
+                 f"{scene.num_frames} frames are the fit's targets and the start's classes ({folder})")
     return FitStart(kind="checkpoint", checkpoint=str(checkpoint), seconds=time.perf_counter() - started,
-                    notes=notes, overrides=(*start_overrides(start), *schedule), start=start)
+                    notes=notes, overrides=(*start_overrides(start), *schedule, *targets), start=start)
+
+
+def predicted_labels(checkpoint: Path, opened: Any, model: Any, frames: Any, scene: Any) -> Path:
+    """The generalizable model's labels of every frame of ``scene`` (``label``'s files, which a capture's
+    ``dataset.labels_from`` reads), in ``$GPNERF_CACHE/labels/<key>`` (default ``~/.cache/gpnerf``), keyed by the
+    checkpoint file (path, size, modification time), the data and the image size: written once, all or none, and
+    read again by the next fit of that scene from that checkpoint (the three seeds of one capture, say)."""
+    import hashlib
+    import os
+    import time
+    from functools import partial
+
+    import numpy as np
+
+    from gpnerf_core.evaluation.evaluator import component_names
+    from gpnerf_core.model.predicted_labels import LABELS_FILE, frame_label_writes, labels_record
+    from gpnerf_core.runtime.io import atomic_write_json
+    from gpnerf_core.runtime.staging import write_staged
+
+    stat = checkpoint.resolve().stat()
+    data = OmegaConf.to_container(opened.cfg.dataset, resolve=True)
+    key = hashlib.sha256(repr((str(checkpoint.resolve()), stat.st_size, stat.st_mtime_ns, data, scene.name,
+                               scene.height, scene.width)).encode()).hexdigest()[:16]
+    base = Path(os.environ.get("GPNERF_CACHE") or Path.home() / ".cache" / "gpnerf").expanduser() / "labels"
+    folder = base / f"{scene.name}-{key}"
+    if (folder / LABELS_FILE).is_file():
+        return folder
+    if (folder / "labels").is_dir():  # an interrupted write of this cache entry: written again
+        import shutil
+
+        shutil.rmtree(folder / "labels")
+    folder.mkdir(parents=True, exist_ok=True)
+    classes = opened.components.classes
+    started = time.perf_counter()
+    writes = frame_label_writes(model, frames, opened.components.view_selector, scene,
+                                int(opened.cfg.model.num_source_views), int(opened.cfg.eval.chunk_rays),
+                                model.hooks.output_owners(component_names(opened.cfg)),
+                                np.uint8 if classes.num_classes <= 255 else np.uint16)
+    record = labels_record(scene, classes, int(opened.components.dataset.ignore_index), str(checkpoint),
+                           str(opened.cfg.model.name), int(opened.cfg.model.num_source_views),
+                           time.perf_counter() - started)
+    write_staged(folder, [*writes, (LABELS_FILE, partial(atomic_write_json, obj=record))], ".labels.partial-")
+    return folder
 
 
 KEEP_OPACITIES = 10**9

@@ -214,3 +214,27 @@ def test_a_metric_a_scene_without_labels_does_not_score_is_refused_where_a_rule_
         check_fit_metric("miou/image_mean_present", held_out, True, "room")
     with pytest.raises(ConfigError, match=r"gives no such value; expected one of: count/images, psnr/clamped$"):
         check_fit_metric("timing", held_out, False, "room")
+
+
+def test_a_generalizable_checkpoint_starts_the_fit(work, capsys):
+    from pipeline_check import TINY_CLI
+
+    base = work / "gpnerf"
+    assert in_process("run", "+head=unet", "+loss=dgs", *TINY_CLI, "train.steps=2", "dataset.scenes=[layout_00]",
+                      f"dataset.root={work / 'scenes'}", f"out_dir={base}") == 0, capsys.readouterr().err[-2000:]
+    checkpoint = base / "checkpoints" / "step_0000002.pt"
+    code, metrics, curve = fitted(work, "from_gpnerf", f"checkpoint={checkpoint}", "train.steps=1",
+                                  "fit.eval_every=0")
+    err = capsys.readouterr().err
+    assert code == 0, err[-2000:]
+    start = metrics["fit"]["start"]
+    assert start["kind"] == "checkpoint" and start["checkpoint"] == str(checkpoint) and start["seconds"] > 0
+    assert start["gaussians"] > 0 and curve[0]["seconds"] == round(start["seconds"], 2)
+    assert any("the start: " in note and "model 'gnt'" in note for note in start["notes"])
+    config = (work / "from_gpnerf" / "config.yaml").read_text()
+    assert "feature_stride: " in config and "name: unet" in config  # GP-NeRF's head carried with its features
+    assert "opacity_reset_every: 1000000000" in config  # a started fit keeps the start's opacities
+    # a per-scene checkpoint starts nothing: refused naming its family
+    per_scene = sorted((work / "from_gpnerf" / "checkpoints").glob("*.pt"))[-1]
+    code, _, _ = fitted(work, "from_per_scene", f"checkpoint={per_scene}", "train.steps=1")
+    assert code == 2 and "model=semantic_3dgs is a per-scene family" in capsys.readouterr().err

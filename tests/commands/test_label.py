@@ -82,3 +82,25 @@ def test_labels_of_another_size_or_scene_and_a_capture_without_points_or_depth_a
     assert small == 2 and "labels of 6 frames at 32x48, capture 'room' has 6 frames loaded at 16x32" in err
     assert nothing == 2 and "scene 'bare' has no sparse points" in err and "and no depth in its training frames" in err
     assert not (work / "refused").exists()
+
+
+def test_fit_from_a_checkpoint_on_a_capture_without_labels_takes_the_models_labels(labelled, tmp_path, monkeypatch,
+                                                                                   capsys):
+    work, _, capture_data, checkpoint = labelled
+    monkeypatch.setenv("GPNERF_CACHE", str(tmp_path / "cache"))
+    out = work / "fit"
+    assert cli_main(["fit", f"checkpoint={checkpoint}", *capture_data, *SPLATS, "train.steps=1", "fit.eval_every=0",
+                     f"out_dir={out}"]) == 0, capsys.readouterr().err[-2000:]
+    err = capsys.readouterr().err
+    assert "has no labels: model 'gnt''s labels of its 6 frames are the fit's targets" in err
+    cached = next((tmp_path / "cache" / "labels").glob("room-*"))
+    for name in [f"{i:05d}.png" for i in range(6)]:  # what `label` writes, frame by frame
+        assert np.array_equal(np.asarray(Image.open(cached / "labels" / name)),
+                              np.asarray(Image.open(work / "labels" / "labels" / name)))
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert 0.0 <= metrics["eval"]["train_heldout"]["miou/image_mean_present"] <= 1.0  # scored against those labels
+    assert f"labels_from: {cached}" in (out / "config.yaml").read_text()
+    again = work / "fit_again"  # the next fit of the scene from the checkpoint reads the cache
+    assert cli_main(["fit", f"checkpoint={checkpoint}", *capture_data, *SPLATS, "train.steps=1", "fit.eval_every=0",
+                     f"out_dir={again}"]) == 0
+    assert f"labels_from: {cached}" in (again / "config.yaml").read_text()

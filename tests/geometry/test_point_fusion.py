@@ -11,7 +11,8 @@ import torch
 import trimesh
 
 from gpnerf_core.geometry.point_fusion import (
-    DepthView, PointCloud, agreeing_views, backproject, depth_agreement, voxel_merge,
+    DepthView, PointCloud, agreeing_views, backproject, conflicting_views, depth_agreement, free_space_conflict,
+    voxel_merge,
 )
 from gpnerf_core.geometry.rays import pixel_grid
 from gpnerf_core.runtime.ply import encode_ply, write_ply
@@ -101,3 +102,17 @@ def test_ply_refuses_ragged_columns_and_types_it_has_no_name_for():
         encode_ply({"x": np.zeros(2, np.float32), "y": np.zeros(3, np.float32)})
     with pytest.raises(ValueError, match="'label' has dtype int64"):
         encode_ply({"label": np.zeros(2, np.int64)})
+
+
+def test_a_floater_in_front_of_another_views_surface_is_seen_through_and_the_surface_is_not():
+    left, right = _wall_view(0.0), _wall_view(0.3)
+    bumped = DepthView(**{**left.__dict__, "depth": left.depth.clone()})
+    bumped.depth[4:8, 4:8] = 2.0  # a floater 1 m in front of the wall, in the left view only
+    seen_through = free_space_conflict(backproject(bumped), right, tolerance=0.05).reshape(bumped.depth.shape)
+    expected = torch.zeros_like(seen_through)
+    expected[4:8, 4:8] = True  # the right camera sees the wall behind it, so it sees through the floater
+    assert torch.equal(seen_through, expected)
+    behind = DepthView(**{**left.__dict__, "depth": torch.full_like(left.depth, 4.0)})  # a point behind the wall
+    assert not free_space_conflict(backproject(behind), right, tolerance=0.05).any()  # occluded, not a conflict
+    counts = conflicting_views([bumped, right, _wall_view(-0.3)], tolerance=0.05)
+    assert int(counts[0].reshape(bumped.depth.shape)[4:8, 4:8].min()) == 2 and int(counts[1].max()) == 0
