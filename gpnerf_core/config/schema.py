@@ -153,6 +153,16 @@ class FitConfig:
     start_opacity: float = 0.8
     """A checkpoint start from a ray family: the opacity of each rendered cell's Gaussian, in (0, 1) (a feed-forward
     Gaussian family predicts its own; ``generalized_start.START_OPACITY`` says why 0.8)."""
+    start_min_views: int = 1
+    """A checkpoint start's depth-map fusion: a frame's Gaussian stays where at least this many other frames' predicted
+    depth agrees with it within ``start_tolerance`` (0 = no agreement needed)."""
+    start_conflicts: int = 3
+    """... and where at most this many other frames see through it (their predicted surface behind it: a floater)."""
+    start_tolerance: float = 0.1
+    """Relative depth tolerance of that agreement and of seeing through."""
+    start_semantics: bool = True
+    """Whether the start's semantics (its features with the generalizable model's head, or its class scores) begin the
+    per-scene decoder; false keeps only its geometry and colour, the decoder and features starting as from points."""
 
 
 @dataclass

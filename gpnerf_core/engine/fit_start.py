@@ -98,8 +98,12 @@ def starting_point(cfg: DictConfig, checkpoint: Path, dist: Distributed) -> FitS
     start = predict_start(
         model, frames, opened.components.view_selector, scene, num_source_views=int(opened.cfg.model.num_source_views),
         budget=int(cfg.model.max_gaussians), every=int(cfg.fit.start_every), opacity=float(cfg.fit.start_opacity),
-        chunk_rays=int(cfg.eval.chunk_rays), family=trained.family, classes=tuple(opened.components.classes.names),
+        min_views=int(cfg.fit.start_min_views), max_conflicts=int(cfg.fit.start_conflicts),
+        tolerance=float(cfg.fit.start_tolerance), chunk_rays=int(cfg.eval.chunk_rays), family=trained.family,
+        classes=tuple(opened.components.classes.names),
         head_config=OmegaConf.to_container(head, resolve=True) if head is not None else None)
+    if not bool(cfg.fit.start_semantics):
+        start = without_semantics(start)
     notes = (*opened.notes, f"the start: {start.gaussians.count} Gaussians of model {trained.family!r} from "
              f"{len(start.frames)} training frames ({start.predicted} predicted before merging where views overlap; "
              f"semantics: {start.semantics})", *start.notes)
@@ -113,6 +117,15 @@ def starting_point(cfg: DictConfig, checkpoint: Path, dist: Distributed) -> FitS
                  f"{scene.num_frames} frames are the fit's targets and the start's classes ({folder})")
     return FitStart(kind="checkpoint", checkpoint=str(checkpoint), seconds=time.perf_counter() - started,
                     notes=notes, overrides=(*start_overrides(start), *schedule, *targets), start=start)
+
+
+def without_semantics(start: Any) -> Any:
+    """``start`` with its geometry and colour only (``fit.start_semantics=false``): no features, no head."""
+    import dataclasses
+
+    return dataclasses.replace(start, gaussians=dataclasses.replace(start.gaussians, features=None),
+                               semantics="none", head_state=None, head_config=None, feature_levels=1,
+                               feature_stride=1)
 
 
 def predicted_labels(checkpoint: Path, opened: Any, model: Any, frames: Any, scene: Any) -> Path:

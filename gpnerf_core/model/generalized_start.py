@@ -77,6 +77,8 @@ MAX_CONFLICTS = 3
 predicted depth errs by a few per cent in every view (GP-NeRF's median error on the unseen layout is about 0.25 m), so
 a surface seen by thirty views is seen through by a few of them; at 0 too much of it goes (holes), above 5 the
 floaters stay (measured on the unseen layout's held-out frames, docs/fit.md)."""
+SPARSE_START = 0.1
+"""A start that keeps under this share of the Gaussians predicted says why (``fusion_note``)."""
 MERGED_OPACITY_LIMIT = 0.99
 """Most opacity a merged Gaussian takes from its voxel's coverage (below 1: its sigmoid keeps a gradient)."""
 SEMANTICS = ("features", "scores", "none")
@@ -167,6 +169,8 @@ def predict_start(model: Any, frames: "FrameCache", selector: "ViewSelector", sc
                                opacity=opacity, chunk_rays=chunk_rays, family=name) for index in chosen]
     predicted = concatenate(consistent(parts, scene, min_views=min_views, tolerance=tolerance,
                                        max_conflicts=max_conflicts))
+    sparse = fusion_note(parts, predicted.count, scene, min_views=min_views, tolerance=tolerance,
+                         max_conflicts=max_conflicts)
     if not predicted.count:
         raise DataError(f"scene {scene.name!r}: model={name} left no Gaussian to start from in training frames "
                         f"{list(chosen)} (opacity <= {OPACITY_FLOOR}, outside the depth bounds, seen by fewer than "
@@ -179,7 +183,7 @@ def predict_start(model: Any, frames: "FrameCache", selector: "ViewSelector", sc
                          feature_stride=stride, classes=tuple(classes), family=name, frames=chosen,
                          predicted=predicted.count, extent=scene_extent(scene),
                          head_config=dict(head_config) if head_config is not None and semantics == "features" else None,
-                         notes=(note,) if note else ())
+                         notes=tuple(n for n in (sparse, note) if n))
 
 
 def family_of(model: Any) -> str:
@@ -289,6 +293,23 @@ def consistent(parts: list[tuple[GaussianScene, DepthView]], scene: Scene, *, mi
             keep &= agree >= min_views
         kept.append(gaussians.subset(keep))
     return kept
+
+
+def fusion_note(parts: list[tuple[GaussianScene, DepthView]], kept: int, scene: Scene, *, min_views: int,
+                tolerance: float, max_conflicts: int) -> str | None:
+    """A note when the fusion keeps under ``SPARSE_START`` of the predicted Gaussians, with how many each rule
+    dropped (a model whose depth fails on the data: every pixel at a depth bound, or views that disagree)."""
+    total = sum(gaussians.count for gaussians, _ in parts)
+    if not total or kept >= SPARSE_START * total:
+        return None
+    views = [view for _, view in parts]
+    at_bounds = sum(int((~inside_bounds(view.depth.reshape(-1), scene)).sum()) for view in views)
+    seen_through = sum(int((count > max_conflicts).sum()) for count in conflicting_views(views, tolerance))
+    alone = sum(int((count < min_views).sum()) for count in agreeing_views(views, tolerance)) if min_views else 0
+    return (f"the start keeps {kept} of the {total} Gaussians predicted in scene {scene.name!r}'s training frames: "
+            f"{at_bounds} at a depth bound (near {scene.near:g}, far {scene.far:g}: the model's depth failed there), "
+            f"{seen_through} seen through by more than {max_conflicts} other frame(s) (fit.start_conflicts), {alone} "
+            f"agreed by fewer than {min_views} (fit.start_min_views), within {tolerance:g} (fit.start_tolerance)")
 
 
 def cell_gaussians(prediction: Any, camera: Any, xyz: Tensor, opacity: float, *, head: Any) -> GaussianScene:

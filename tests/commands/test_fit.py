@@ -160,6 +160,8 @@ def test_a_checkpoint_start_is_asked_of_starting_point(work, monkeypatch, capsys
                                               r"while fitting, but fit.eval_every=0"),
     (["fit.eval_every=0", "fit.target=0.5"], r"fit.target=0.5: .* fit.eval_every=0"),
     (["fit.start_opacity=1.5"], r"fit.start_opacity=1.5: expected an opacity in \(0, 1\)"),
+    (["fit.start_tolerance=1.5"], r"fit.start_tolerance=1.5: expected a relative depth tolerance in \(0, 1\)"),
+    (["fit.start_conflicts=-1"], r"fit.start_conflicts=-1: expected an integer >= 0"),
     (["dataset.eval_every=0", "fit.patience=2"], r"eval.splits=\[train\] select no frame of dataset 'embedded'"),
     (["fit.metric=miou/nope", "train.steps=2"], r"fit.metric=miou/nope: the evaluation of the held-out frames of "
                                                 r"scene 'layout_00' gives no such value; expected one of: .*psnr/clamped"),

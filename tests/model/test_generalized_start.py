@@ -307,3 +307,30 @@ def test_a_gnt_start_without_semantics_is_its_cells_colour_and_geometry():
                                   parts=kit_parts(get_registry(), "semantic_3dgs", head=False))
     assert begin_from_start(family, start, CLASSES) == [] and family.gaussians.size == start.gaussians.count
     assert not torch.equal(family.classifier.weight[:, :, 0, 0], torch.eye(3, 4))  # no start to begin it from
+
+
+def test_a_start_that_keeps_little_says_which_rule_dropped_it():
+    from types import SimpleNamespace
+
+    from gpnerf_core.geometry.point_fusion import DepthView
+    from gpnerf_core.geometry.rays import pixel_grid
+    from gpnerf_core.model.generalized_start import fusion_note
+
+    scene = SimpleNamespace(name="room", near=0.5, far=6.0)
+    k = torch.tensor([[20.0, 0, 7.5], [0, 20.0, 5.5], [0, 0, 1]])
+
+    def part(depth: float, x: float):
+        c2w = torch.eye(4)
+        c2w[0, 3] = x
+        view = DepthView(depth=torch.full((12, 16), depth), pixels=pixel_grid(12, 16, 1), intrinsics=k, c2w=c2w,
+                         height=12, width=16)
+        gaussians = GaussianScene(means=torch.zeros(192, 3), scales=torch.ones(192, 3), rotations=torch.randn(192, 4),
+                                  opacities=torch.full((192,), 0.5), harmonics=torch.zeros(192, 3, 1),
+                                  labels=torch.full((192,), -1))
+        return gaussians, view
+
+    at_far = [part(6.0, 0.0), part(6.0, 0.1)]  # every pixel at the far bound: the model's depth failed
+    note = fusion_note(at_far, 0, scene, min_views=1, tolerance=0.1, max_conflicts=3)
+    assert note.startswith("the start keeps 0 of the 384 Gaussians") and "384 at a depth bound" in note
+    assert fusion_note([part(3.0, 0.0), part(3.0, 0.1)], 384, scene, min_views=1, tolerance=0.1,
+                       max_conflicts=3) is None
