@@ -78,7 +78,7 @@ def stop_rules(cfg: DictConfig) -> StopRules:
     """``fit.*`` as stop rules (``train.steps`` is the step budget, which ``Trainer.fit`` keeps)."""
     fit = cfg.fit
     return StopRules(metric=str(fit.metric), target=None if fit.target is None else float(fit.target),
-                     patience=int(fit.patience), min_delta=float(fit.min_delta), seconds=float(fit.seconds))
+                     patience=int(fit.patience), min_delta=float(fit.min_delta), seconds=float(fit.seconds or 0.0))
 
 
 def curve_steps(every: int, total: int, after: int) -> list[int]:
@@ -239,7 +239,7 @@ def _rules_text(cfg: DictConfig) -> str:
     """The fit's budget and stop rules in words, for its first line."""
     fit = cfg.fit
     parts = [f"at most {int(cfg.train.steps)} steps"]
-    if float(fit.seconds) > 0:
+    if fit.seconds is not None:
         parts.append(f"{float(fit.seconds):g} training seconds")
     if fit.target is not None:
         parts.append(f"until {fit.metric} reaches {float(fit.target):g}")

@@ -135,9 +135,9 @@ class FitConfig:
     eval_every: int = 100
     """Training steps between evaluations of the held-out frames, the curve's points (also evaluated at step 0, the
     start, and at the last step); 0 = only at the start and the end (then no ``target`` nor ``patience``)."""
-    seconds: float = 0.0
-    """Training-seconds budget: the fit stops after the first step that reaches it (0 = none). Wall time: a stop by it
-    is not reproducible step for step."""
+    seconds: Optional[float] = None
+    """Training-seconds budget: the fit stops after the first step that reaches it (null = none; 0 or less is
+    refused). Wall time: a stop by it is not reproducible step for step."""
     target: Optional[float] = None
     """Stop at the first evaluation whose ``metric`` on the held-out frames reaches this value (null = none)."""
     metric: str = "miou/image_mean_present"

@@ -88,7 +88,8 @@ RULES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("eval.save_images", _count(0), COUNT0),
     ("eval.every_steps", _count(0), f"{COUNT0} (0 = only at the end of training)"),
     ("fit.eval_every", _count(0), f"{COUNT0} (training steps between evaluations; 0 = only the start and the end)"),
-    ("fit.seconds", _non_negative, "a finite training-seconds budget >= 0 (0 = none)"),
+    ("fit.seconds", lambda v: v is None or (_positive(v) and _finite(v)),
+     "null (no budget) or a finite training-seconds budget > 0"),
     ("fit.target", lambda v: v is None or _finite(v), "null or a finite value of fit.metric"),
     ("fit.metric", lambda v: isinstance(v, str) and v != "", "a metric name of the held-out frames "
      "(miou/image_mean_present; psnr/clamped on a scene without labels)"),

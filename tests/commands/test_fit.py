@@ -154,8 +154,9 @@ def test_a_checkpoint_start_is_asked_of_starting_point(work, monkeypatch, capsys
     (["dataset.num_train_scenes=2", "dataset.scenes=[layout_00,layout_01]"],
      r"fit fits one scene: expected 'dataset.scenes=\[<one scene>\]'; dataset.scenes gives 2: layout_00, layout_01"),
     (["train.steps=0"], r"train.steps=0: expected an integer >= 1"),
-    (["fit.seconds=-1"], r"fit.seconds=-1.0: expected a finite training-seconds budget >= 0 \(0 = none\)"),
-    (["fit.seconds=inf"], r"fit.seconds=inf: expected a finite training-seconds budget"),
+    (["fit.seconds=-1"], r"fit.seconds=-1.0: expected null \(no budget\) or a finite training-seconds budget > 0"),
+    (["fit.seconds=0"], r"fit.seconds=0.0: expected null \(no budget\) or a finite training-seconds budget > 0"),
+    (["fit.seconds=inf"], r"fit.seconds=inf: expected null \(no budget\) or a finite training-seconds budget"),
     (["fit.eval_every=0", "fit.patience=2"], r"fit.patience=2: a stop rule on the held-out metric needs evaluations "
                                               r"while fitting, but fit.eval_every=0"),
     (["fit.eval_every=0", "fit.target=0.5"], r"fit.target=0.5: .* fit.eval_every=0"),
