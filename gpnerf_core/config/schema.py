@@ -153,6 +153,9 @@ class FitConfig:
     start_opacity: float = 0.8
     """A checkpoint start from a ray family: the opacity of each rendered cell's Gaussian, in (0, 1) (a feed-forward
     Gaussian family predicts its own; ``generalized_start.START_OPACITY`` says why 0.8)."""
+    start_budget: int = 0
+    """A checkpoint start keeps at most this many Gaussians, the most opaque (0 = ``model.max_gaussians``): below the
+    budget, density control has room to grow where the start is thin."""
     start_min_views: int = 1
     """A checkpoint start's depth-map fusion: a frame's Gaussian stays where at least this many other frames' predicted
     depth agrees with it within ``start_tolerance`` (0 = no agreement needed)."""

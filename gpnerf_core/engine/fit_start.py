@@ -97,7 +97,7 @@ def starting_point(cfg: DictConfig, checkpoint: Path, dist: Distributed) -> FitS
     head = opened.cfg.get("head")
     start = predict_start(
         model, frames, opened.components.view_selector, scene, num_source_views=int(opened.cfg.model.num_source_views),
-        budget=int(cfg.model.max_gaussians), every=int(cfg.fit.start_every), opacity=float(cfg.fit.start_opacity),
+        budget=int(cfg.fit.start_budget) or int(cfg.model.max_gaussians), every=int(cfg.fit.start_every), opacity=float(cfg.fit.start_opacity),
         min_views=int(cfg.fit.start_min_views), max_conflicts=int(cfg.fit.start_conflicts),
         tolerance=float(cfg.fit.start_tolerance), chunk_rays=int(cfg.eval.chunk_rays), family=trained.family,
         classes=tuple(opened.components.classes.names),

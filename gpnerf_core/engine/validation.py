@@ -97,6 +97,7 @@ RULES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("fit.min_delta", _non_negative, "a finite gain >= 0 of fit.metric"),
     ("fit.start_every", _count(1), f"{COUNT} (every k-th training frame gives the start)"),
     ("fit.start_opacity", lambda v: _positive(v) and v < 1, "an opacity in (0, 1)"),
+    ("fit.start_budget", _count(0), f"{COUNT0} (Gaussians a start keeps; 0 = model.max_gaussians)"),
     ("fit.start_min_views", _count(0), f"{COUNT0} (other frames that must agree with a start's Gaussian)"),
     ("fit.start_conflicts", _count(0), f"{COUNT0} (other frames that may see through a start's Gaussian)"),
     ("fit.start_tolerance", lambda v: _positive(v) and v < 1, "a relative depth tolerance in (0, 1)"),
