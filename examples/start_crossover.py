@@ -26,23 +26,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
-import time
 from pathlib import Path
+
+from capture_adaptation import command
 
 ROWS = ("zero_shot", "zero_shot_mvsplat", "finetune", "grid", "splat_points", "splat_gpnerf", "splat_mvsplat")
 SCORES = {"miou": "miou/image_mean_present", "miou_dataset": "miou/dataset", "psnr": "psnr/clamped"}
-
-
-def command(work: Path, name: str, args: list[str]) -> float:
-    """``python -m gpnerf_core <args>`` with its log in ``<work>/<name>.log``; its wall seconds (a failure exits)."""
-    started = time.perf_counter()
-    with open(work / f"{name}.log", "w") as log:
-        done = subprocess.run([sys.executable, "-m", "gpnerf_core", *args], stdout=log, stderr=subprocess.STDOUT)
-    if done.returncode != 0:
-        sys.exit(f"{name} failed (exit {done.returncode}); see {work / f'{name}.log'}")
-    return time.perf_counter() - started
 
 
 def row_commands(args: argparse.Namespace, work: Path) -> dict[str, list[str]]:
@@ -112,7 +102,7 @@ def main() -> int:
     commands = row_commands(args, work)
     for row in rows:
         if not (work / row / "metrics.json").is_file():
-            command(work, row, [*commands[row], f"out_dir={work / row}", "overwrite=true"])
+            command(work, row, *commands[row], f"out_dir={work / row}", "overwrite=true")
     scene = args.name or (args.capture.resolve().name if args.capture else "unseen_00")
     result = {"seed": args.seed, "scene": scene,
               **{row: curve(row, json.loads((work / row / "metrics.json").read_text()))

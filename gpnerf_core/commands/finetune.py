@@ -12,18 +12,16 @@ with a loss set that needs none (``+loss=label_free``): the label metrics of the
 
 from __future__ import annotations
 
-import json
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, open_dict
 
 from gpnerf_core.runtime.device import machine_info
 from gpnerf_core.runtime.distributed import Distributed
-from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_core.evaluation.curves import CURVE_KEYS, curve_points
+from gpnerf_core.errors import ConfigError
+from gpnerf_core.evaluation.curves import CURVE_KEYS, curve_points, curve_so_far
 from gpnerf_core.runtime.io import atomic_write_json
 from gpnerf_core.config.overrides import foreign_dataset_note
 from gpnerf_core.engine.guarding import job
@@ -84,7 +82,7 @@ def finetune_task(cfg: DictConfig, dist: Distributed, handover: Handover = Hando
             print(f"finetune: {', '.join(scenes)} from {checkpoint} (step {trained.step}, {which} weights); "
                   f"evaluating at steps {', '.join(map(str, points))}", file=sys.stderr)
         started = time.perf_counter()
-        curve = _curve_so_far(run_dir, trainer.step) if plan.resuming else []
+        curve = curve_so_far(run_dir / CURVE_FILE, trainer.step, "fine-tuning") if plan.resuming else []
         evaluation: dict[str, Any] = {}
 
         def evaluate_point() -> dict[str, Any]:
@@ -137,16 +135,3 @@ def finetune_task(cfg: DictConfig, dist: Distributed, handover: Handover = Hando
 
 CURVE_FILE = "finetune_curve.json"
 """The curve's points evaluated so far, rewritten after each: a resumed fine-tuning keeps them."""
-
-
-def _curve_so_far(run_dir: Path, step: int) -> list[dict[str, Any]]:
-    """The points an interrupted fine-tuning evaluated up to ``step`` (the checkpoint it resumes from)."""
-    path = run_dir / CURVE_FILE
-    if not path.is_file():
-        return []
-    try:
-        saved = json.loads(path.read_text())
-    except ValueError:
-        raise DataError(f"{path}: not a fine-tuning curve (damaged JSON); delete it to evaluate those points again") from None
-    return [entry for entry in saved if isinstance(entry, dict) and int(entry.get("step", -1)) <= step]
-

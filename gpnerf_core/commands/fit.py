@@ -16,10 +16,8 @@ happens before the run folder is claimed.
 
 from __future__ import annotations
 
-import json
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig
@@ -31,8 +29,8 @@ from gpnerf_core.engine.resuming import plan_resume
 from gpnerf_core.engine.runs import claim_run_folder, run_record, shared_run_dir, task_overrides
 from gpnerf_core.engine.setup import start
 from gpnerf_core.engine.validation import check_data
-from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_core.evaluation.curves import check_fit_metric, eval_scalars, fit_entry
+from gpnerf_core.errors import ConfigError
+from gpnerf_core.evaluation.curves import check_fit_metric, curve_so_far, eval_scalars, fit_entry
 from gpnerf_core.interfaces.model import parameter_counts
 from gpnerf_core.runtime.device import machine_info
 from gpnerf_core.runtime.distributed import Distributed
@@ -119,7 +117,7 @@ def fit_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handover()
     run_dir = shared_run_dir(cfg, dist)
     trainer = Trainer(cfg, components, dist=dist, run_dir=run_dir, record=record, resume_from=plan.take_read())
     family = components.model
-    curve = curve_so_far(run_dir, trainer.step) if plan.resuming else []
+    curve = curve_so_far(run_dir / CURVE_FILE, trainer.step, "fit") if plan.resuming else []
     stopper = Stopper(rules)
     for entry in curve:  # a resumed fit's rules see its earlier points again
         stopper.observe(int(entry["step"]), entry.get(rules.metric))
@@ -207,19 +205,7 @@ def fit_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handover()
                     "stopped": {"reason": reason, "step": final_step, "train_seconds": round(result.seconds, 2),
                                 "said": said},
                 },
-                "train": {
-                    "steps": result.steps,
-                    "seconds": round(result.seconds, 2),
-                    "rays_per_second": round(result.rays_per_second, 1),
-                    "final_loss": result.history[-1]["loss"] if result.history else None,
-                    "checkpoint": str(result.checkpoint) if result.checkpoint else None,
-                    "world_size": result.world_size,
-                    "targets_per_step": int(cfg.train.targets_per_step),
-                    "targets_per_rank": result.targets_per_rank,
-                    "rays_per_step": result.rays_per_step,
-                    "backend": dist.backend,
-                    "precision": str(cfg.train.precision),
-                },
+                "train": result.metrics(cfg.train, dist.backend),
                 "evaluated_weights": weights,
                 "parameters": parameter_counts(family),
                 **evaluation,
@@ -248,17 +234,3 @@ def _rules_text(cfg: DictConfig) -> str:
     every = int(fit.eval_every)
     cadence = f"evaluating every {every} steps" if every else "evaluating at the start and the end"
     return f"{', '.join(parts)}; {cadence}"
-
-
-def curve_so_far(run_dir: Path, step: int) -> list[dict[str, Any]]:
-    """The points an interrupted fit evaluated up to ``step`` (the checkpoint it resumes from)."""
-    path = run_dir / CURVE_FILE
-    if not path.is_file():
-        return []
-    try:
-        saved = json.loads(path.read_text())
-    except ValueError:
-        raise DataError(f"{path}: not a fit curve (damaged JSON); delete it to evaluate those points again") from None
-    if not isinstance(saved, list):
-        raise DataError(f"{path}: not a fit curve (expected a list of points); delete it to evaluate them again")
-    return [entry for entry in saved if isinstance(entry, dict) and int(entry.get("step", -1)) <= step]

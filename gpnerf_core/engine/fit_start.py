@@ -100,13 +100,14 @@ def starting_point(cfg: DictConfig, checkpoint: Path, dist: Distributed) -> FitS
         budget=int(cfg.fit.start_budget) or int(cfg.model.max_gaussians), every=int(cfg.fit.start_every), opacity=float(cfg.fit.start_opacity),
         min_views=int(cfg.fit.start_min_views), max_conflicts=int(cfg.fit.start_conflicts),
         tolerance=float(cfg.fit.start_tolerance), chunk_rays=int(cfg.eval.chunk_rays), family=trained.family,
+        budget_key="fit.start_budget" if int(cfg.fit.start_budget) else "model.max_gaussians",
         classes=tuple(opened.components.classes.names),
         head_config=OmegaConf.to_container(head, resolve=True) if head is not None else None)
     if not bool(cfg.fit.start_semantics):
         start = without_semantics(start)
     notes = (*opened.notes, f"the start: {start.gaussians.count} Gaussians of model {trained.family!r} from "
              f"{len(start.frames)} training frames ({start.predicted} predicted before merging where views overlap; "
-             f"semantics: {start.semantics})", *start.notes)
+             f"semantics: {start.semantics})")  # the start's own notes: said once when the family begins from it
     typed = {override_key(o) for o in task_overrides()}
     schedule = [] if "model.opacity_reset_every" in typed else [f"model.opacity_reset_every={KEEP_OPACITIES}"]
     targets: list[str] = []

@@ -3,9 +3,11 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
 from typing import Any
 
-from gpnerf_core.errors import ConfigError
+from gpnerf_core.errors import ConfigError, DataError
 
 CURVE_KEYS = (
     "miou/image_mean_present",
@@ -76,3 +78,17 @@ def check_fit_metric(metric: str, held_out: dict[str, Any], needed: bool, scene:
         raise ConfigError(f"fit.metric={metric}: the held-out frames of scene {scene!r} give no value of it ({why}), so "
                           "fit.target and fit.patience cannot read it; expected a metric they give, e.g. "
                           "fit.metric=psnr/clamped")
+
+
+def curve_so_far(path: Path, step: int, what: str) -> list[dict[str, Any]]:
+    """The points of a ``what`` curve (``fine-tuning``, ``fit``) an interrupted command evaluated up to ``step`` (the
+    checkpoint it resumes from), read from ``path``; none when there is no file. A damaged file is refused naming it."""
+    if not path.is_file():
+        return []
+    try:
+        saved = json.loads(path.read_text())
+    except ValueError:
+        raise DataError(f"{path}: not a {what} curve (damaged JSON); delete it to evaluate those points again") from None
+    if not isinstance(saved, list):
+        raise DataError(f"{path}: not a {what} curve (expected a list of points); delete it to evaluate them again")
+    return [entry for entry in saved if isinstance(entry, dict) and int(entry.get("step", -1)) <= step]

@@ -92,13 +92,18 @@ def conflicting_views(views: list[DepthView], tolerance: float) -> list[Tensor]:
     """Per view, ``[h * w]`` int: how many of the other views see through each of its points
     (``free_space_conflict``): the visibility check of depth-map fusion, which removes floaters a point's agreement
     with other views (``agreeing_views``) keeps when two views err alike."""
+    return counted_over_views(views, lambda points, other: free_space_conflict(points, other, tolerance))
+
+
+def counted_over_views(views: list[DepthView], test: Any) -> list[Tensor]:
+    """Per view, ``[h * w]`` int: for how many of the other views ``test(its points, other view)`` holds."""
     points = [backproject(view) for view in views]
     counts = []
     for index, own in enumerate(points):
         count = torch.zeros(own.shape[0], dtype=torch.long, device=own.device)
         for other_index, other in enumerate(views):
             if other_index != index:
-                count += free_space_conflict(own, other, tolerance).long()
+                count += test(own, other).long()
         counts.append(count)
     return counts
 
@@ -115,15 +120,7 @@ def depth_agreement(points: Tensor, other: DepthView, tolerance: float) -> Tenso
 
 def agreeing_views(views: list[DepthView], tolerance: float) -> list[Tensor]:
     """Per view, ``[h * w]`` int: how many of the other views agree with each of its points (``depth_agreement``)."""
-    points = [backproject(view) for view in views]
-    counts = []
-    for index, own in enumerate(points):
-        count = torch.zeros(own.shape[0], dtype=torch.long, device=own.device)
-        for other_index, other in enumerate(views):
-            if other_index != index:
-                count += depth_agreement(own, other, tolerance).long()
-        counts.append(count)
-    return counts
+    return counted_over_views(views, lambda points, other: depth_agreement(points, other, tolerance))
 
 
 @dataclass(frozen=True)

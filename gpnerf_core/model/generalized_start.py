@@ -133,7 +133,7 @@ class GaussianStart:
 def predict_start(model: Any, frames: "FrameCache", selector: "ViewSelector", scene: Scene, *, num_source_views: int,
                   budget: int, every: int = 1, opacity: float = START_OPACITY, min_views: int = MIN_VIEWS,
                   tolerance: float = TOLERANCE, max_conflicts: int = MAX_CONFLICTS, chunk_rays: int = 4096,
-                  family: str | None = None,
+                  family: str | None = None, budget_key: str = "model.max_gaussians",
                   classes: tuple[str, ...] = (), head_config: Mapping[str, Any] | None = None) -> GaussianStart:
     """The start a generalizable ``model`` predicts for ``scene`` (the module docstring).
 
@@ -142,7 +142,7 @@ def predict_start(model: Any, frames: "FrameCache", selector: "ViewSelector", sc
         frames, selector: the dataset's frames and the run's view selector (the source views).
         num_source_views: source views per prediction (``model.num_source_views``): a Gaussian family's set holds the
             frame itself and its nearest others; a ray family renders each frame from that many others.
-        budget: most Gaussians kept (``model.max_gaussians``), >= 1.
+        budget: most Gaussians kept (``model.max_gaussians``), >= 1; ``budget_key``: the key that set it, for the note.
         every: every ``every``-th training frame is predicted.
         opacity: a ray family's cell Gaussians' opacity in (0, 1) (``START_OPACITY``).
         min_views, tolerance, max_conflicts: the depth-map fusion that keeps a frame's Gaussians (``consistent``).
@@ -177,7 +177,7 @@ def predict_start(model: Any, frames: "FrameCache", selector: "ViewSelector", sc
                         f"{min_views} other view(s) or seen through by more than {max_conflicts} within {tolerance:g});"
                         " expected a checkpoint fitted to such scenes, or looser fit.start_* options")
     merged = voxel_keep_opaque(predicted, median_footprint(predicted))
-    kept, note = most_opaque(merged, budget)
+    kept, note = most_opaque(merged, budget, budget_key)
     semantics, head_state, levels, stride = _semantics(model, predicted, frames, scene)
     return GaussianStart(gaussians=kept, semantics=semantics, head_state=head_state, feature_levels=levels,
                          feature_stride=stride, classes=tuple(classes), family=name, frames=chosen,
@@ -393,14 +393,15 @@ def voxel_keep_opaque(gaussians: GaussianScene, voxel: float) -> GaussianScene:
     return dataclasses.replace(kept, opacities=torch.maximum(kept.opacities, coverage[order]))
 
 
-def most_opaque(gaussians: GaussianScene, budget: int) -> tuple[GaussianScene, str | None]:
+def most_opaque(gaussians: GaussianScene, budget: int, key: str = "model.max_gaussians"
+                ) -> tuple[GaussianScene, str | None]:
     """At most ``budget`` Gaussians: the most opaque (ties: the first), in their order, and the note said once when some
     were dropped (None when all fit)."""
     if gaussians.count <= budget:
         return gaussians, None
     order = torch.sort(-gaussians.opacities, stable=True).indices[:budget]
     note = (f"a Gaussian budget below the start's count keeps the most opaque {budget} of its {gaussians.count} "
-            f"Gaussians (model.max_gaussians={budget}); raise model.max_gaussians to keep them all")
+            f"Gaussians ({key}={budget}); raise {key} to keep them all")
     return gaussians.subset(order.sort().values), note
 
 

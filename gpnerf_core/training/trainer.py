@@ -69,6 +69,23 @@ class TrainResult:
     stopped: str | None = None
     """Why the loop ended before ``until`` (``Trainer.request_stop``'s reason, one line); None: it reached it."""
 
+    def metrics(self, train: Any, backend: str | None) -> dict[str, Any]:
+        """The ``train`` section of a run's ``metrics.json`` (``train``: the config's ``train`` group; ``backend``:
+        the process group's, None in one process)."""
+        return {
+            "steps": self.steps,
+            "seconds": round(self.seconds, 2),
+            "rays_per_second": round(self.rays_per_second, 1),
+            "final_loss": self.history[-1]["loss"] if self.history else None,
+            "checkpoint": str(self.checkpoint) if self.checkpoint else None,
+            "world_size": self.world_size,
+            "targets_per_step": int(train.targets_per_step),
+            "targets_per_rank": self.targets_per_rank,
+            "rays_per_step": self.rays_per_step,
+            "backend": backend,
+            "precision": str(train.precision),
+        }
+
 
 def loss_inputs(view: TargetView, output: ViewOutput | ImageOutput, ignore_index: int) -> LossInputs | ImageLossInputs:
     """What a loss set reads for one target view: a ray family's outputs with the ground truth at its rays
