@@ -49,6 +49,9 @@ OWN_KEYS = ("size", "repeats", "warmup", "out_dir", "phases", "sweep", "families
 PHASES = ("train", "render")
 
 
+REFINE_EXPERIMENT = "baselines/semantic_3dgs"
+"""The per-scene Gaussian family whose training step ``bench refine=<count>`` times (issue 54's refinement step)."""
+
 def _parse(argv: list[str]) -> tuple[dict[str, str], list[str]]:
     own, overrides = {}, []
     for argument in argv:
@@ -150,7 +153,7 @@ def run_refine(own: dict[str, str], overrides: list[str], warmup: int, repeats: 
     if not threads or min(threads) < 1:
         raise ConfigError(f"bench refine_threads={own['refine_threads']!r}: expected thread counts >= 1 "
                           "(comma-separated)")
-    run_overrides = refine_overrides(count, overrides)
+    run_overrides = refine_overrides(count, REFINE_EXPERIMENT, overrides)
     cfg = compose_checked(run_overrides)
     out_dir = Path(own.get("out_dir") or Path("outputs") / "bench" / f"refine_{time.strftime('%Y-%m-%d_%H-%M-%S')}")
     with RunFolder(out_dir) as folder:

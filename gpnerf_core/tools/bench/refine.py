@@ -1,5 +1,5 @@
-"""The refinement step: one training step of the per-scene Gaussian family (``semantic_3dgs``) at a given Gaussian
-count, timed part by part at each thread count in one process (``bench refine=<count>``).
+"""The refinement step: one training step of a per-scene Gaussian family (the experiment ``bench refine`` names) at a
+given Gaussian count, timed part by part at each thread count in one process (``bench refine=<count>``).
 
 A step is ``Trainer.train_step`` as ``run`` makes it: rasterize one 96 x 128 training view with SH colour and the
 16-channel feature, decode by the 1 x 1 convolution, 0.8 L1 + 0.2 D-SSIM + cross-entropy, backward through the
@@ -33,11 +33,12 @@ PARTS = ("forward", "backward", "density", "optimizer", "checks")
 """The parts of a step, in the order they run."""
 
 
-def refine_overrides(count: int, overrides: list[str]) -> list[str]:
-    """``run``'s overrides of the refinement step at ``count`` Gaussians (the module docstring), then ``overrides``."""
+def refine_overrides(count: int, experiment: str, overrides: list[str]) -> list[str]:
+    """``run``'s overrides of the refinement step of ``experiment`` (a per-scene Gaussian family's) at ``count``
+    Gaussians (the module docstring), then ``overrides``."""
     if count < 1:
         raise ConfigError(f"bench refine={count}: expected a Gaussian count >= 1")
-    return ["+experiment=baselines/semantic_3dgs", "dataset.scenes=[unseen_00]", f"model.init_points={count}",
+    return [f"+experiment={experiment}", "dataset.scenes=[unseen_00]", f"model.init_points={count}",
             f"model.max_gaussians={count}", "train.steps=30000", "model.sh_degree_every=1", *overrides]
 
 
