@@ -241,3 +241,19 @@ def test_a_generalizable_checkpoint_starts_the_fit(work, capsys):
     per_scene = sorted((work / "from_gpnerf" / "checkpoints").glob("*.pt"))[-1]
     code, _, _ = fitted(work, "from_per_scene", f"checkpoint={per_scene}", "train.steps=1")
     assert code == 2 and "model=semantic_3dgs is a per-scene family" in capsys.readouterr().err
+
+
+def test_the_handoff_tool_measures_a_start_frame_by_frame(work, monkeypatch, capsys):
+    from gpnerf_core.tools import start_handoff
+
+    checkpoint = work / "gpnerf" / "checkpoints" / "step_0000002.pt"  # test_a_generalizable_checkpoint_starts_the_fit's
+    if not checkpoint.is_file():
+        pytest.skip("needs the tiny GP-NeRF run of test_a_generalizable_checkpoint_starts_the_fit (same module)")
+    monkeypatch.setattr("sys.argv", ["start_handoff", "--checkpoint", str(checkpoint), "--frames", "1", "--threads", "1",
+                                     "--min-views", "0", *TINY_SCENES, "dataset.scenes=[layout_00]",
+                                     f"dataset.root={work / 'scenes'}"])
+    assert start_handoff.main() == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("start: ") and "of model 'gnt', scene 'layout_00'" in out[0]
+    row = out[2].split(" | ")
+    assert len(row) == 6 and all(math.isfinite(float(value)) for value in row[1:4])  # PSNRs and coverage

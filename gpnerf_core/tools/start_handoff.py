@@ -1,7 +1,7 @@
 """What a generalized start loses at the hand-off, frame by frame (docs/fit.md, docs/results_detail.md "Generalized
 start, per-scene finish").
 
-    python examples/start_handoff.py --checkpoint <generalizable run's .pt> [--frames 3] [--opacity 0.8] \
+    python -m gpnerf_core.tools.start_handoff --checkpoint <generalizable run's .pt> [--frames 3] [--opacity 0.8] \
         [--min-views 1] [--tolerance 0.1] [--conflicts 3] [dataset overrides, e.g. 'dataset.scenes=[unseen_00]']
 
 Predicts the start of the scene (``generalized_start.predict_start`` with the given fusion options, at most 200,000
