@@ -13,7 +13,9 @@ kept, so an interrupted batch goes on where it stopped):
   scored every 250);
 - ``splat_points``: Semantic 3DGS from the scene's sparse points or depth (``fit``, 2000 steps, scored every 50);
 - ``splat_gpnerf`` / ``splat_mvsplat``: Semantic 3DGS started from GP-NeRF's / MVSplat's prediction (``fit
-  checkpoint=...``, the same steps and scoring).
+  checkpoint=...``, the same steps and scoring);
+- ``splat_points_gpnerf``: Semantic 3DGS from the scene's points with GP-NeRF's semantics (``fit checkpoint=...
+  fit.start_geometry=points``: the geometry of ``splat_points``, the features and head of ``splat_gpnerf``).
 
 The scene is the embedded unseen layout (``unseen_00``) or, with ``--capture``, a labelled capture at the main job's
 96 x 128 (``examples/capture_adaptation.py`` makes the unseen layout filmed and another layout from photos). Every row
@@ -31,7 +33,8 @@ from pathlib import Path
 
 from capture_adaptation import command
 
-ROWS = ("zero_shot", "zero_shot_mvsplat", "finetune", "grid", "splat_points", "splat_gpnerf", "splat_mvsplat")
+ROWS = ("zero_shot", "zero_shot_mvsplat", "finetune", "grid", "splat_points", "splat_gpnerf", "splat_mvsplat",
+        "splat_points_gpnerf")
 SCORES = {"miou": "miou/image_mean_present", "miou_dataset": "miou/dataset", "psnr": "psnr/clamped"}
 
 
@@ -57,6 +60,7 @@ def row_commands(args: argparse.Namespace, work: Path) -> dict[str, list[str]]:
         "splat_points": fit,
         "splat_gpnerf": [*fit, f"checkpoint={args.gpnerf.resolve()}"],
         "splat_mvsplat": [*fit, f"checkpoint={args.mvsplat.resolve()}"],
+        "splat_points_gpnerf": [*fit, f"checkpoint={args.gpnerf.resolve()}", "fit.start_geometry=points"],
     }
 
 

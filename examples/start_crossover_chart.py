@@ -30,6 +30,7 @@ LABELS = {
     "splat_points": "Semantic 3DGS from points",
     "splat_gpnerf": "Semantic 3DGS started from GP-NeRF",
     "splat_mvsplat": "Semantic 3DGS started from MVSplat + head",
+    "splat_points_gpnerf": "Semantic 3DGS from points, GP-NeRF's semantics",
 }
 """Each row's name on the chart and in the table, in drawing order."""
 

@@ -62,7 +62,8 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     "gpnerf_core.model.whole_view": ("render_whole_view",),
     "gpnerf_core.model.gaussian_config": ("GaussianRates", "GaussianSceneConfig", "GaussianSetup", "gaussian_setup"),
     "gpnerf_core.model.gaussian_family": ("GaussianFamily", "GaussianHooks"),
-    "gpnerf_core.model.generalized_start": ("GaussianStart", "begin_from_start", "predict_start", "start_overrides"),
+    "gpnerf_core.model.generalized_start": ("GaussianStart", "begin_from_start", "points_start", "predict_start",
+                                            "start_overrides"),
     "gpnerf_core.model.context_decoding": (
         "LabelsOrHead", "cells_of_pixels", "decode_checked", "decoded_view_output", "fuse_rendered", "gather_cells",
         "labels_or_head_output", "pixel_cells",
@@ -203,7 +204,13 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
     from gpnerf_core.model.whole_view import render_whole_view
     from gpnerf_core.model.gaussian_config import GaussianRates, GaussianSceneConfig, GaussianSetup, gaussian_setup
     from gpnerf_core.model.gaussian_family import GaussianFamily, GaussianHooks
-    from gpnerf_core.model.generalized_start import GaussianStart, begin_from_start, predict_start, start_overrides
+    from gpnerf_core.model.generalized_start import (
+        GaussianStart,
+        begin_from_start,
+        points_start,
+        predict_start,
+        start_overrides,
+    )
     from gpnerf_core.model.context_decoding import (
         LabelsOrHead,
         cells_of_pixels,

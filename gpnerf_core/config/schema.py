@@ -163,6 +163,10 @@ class FitConfig:
     """... and where at most this many other frames see through it (their predicted surface behind it: a floater)."""
     start_tolerance: float = 0.1
     """Relative depth tolerance of that agreement and of seeing through."""
+    start_geometry: str = "predicted"
+    """A checkpoint start's Gaussians: "predicted" (the model's predicted Gaussians or rendered depth, fused as above)
+    or "points" (the scene's own points, as a fit without a checkpoint starts, each given the model's semantics where
+    it falls in the training frames: for a model whose labels hold where its depth does not)."""
     start_semantics: bool = True
     """Whether the start's semantics (its features with the generalizable model's head, or its class scores) begin the
     per-scene decoder; false keeps only its geometry and colour, the decoder and features starting as from points."""

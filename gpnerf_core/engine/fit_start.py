@@ -95,21 +95,29 @@ def starting_point(cfg: DictConfig, checkpoint: Path, dist: Distributed) -> FitS
     frames = FrameCache(opened.components.dataset, dist.device)
     scene = frames.scene(opened.components.dataset.scenes("train")[0])
     head = opened.cfg.get("head")
-    start = predict_start(
-        model, frames, opened.components.view_selector, scene, num_source_views=int(opened.cfg.model.num_source_views),
-        budget=int(cfg.fit.start_budget) or int(cfg.model.max_gaussians), every=int(cfg.fit.start_every), opacity=float(cfg.fit.start_opacity),
-        min_views=int(cfg.fit.start_min_views), max_conflicts=int(cfg.fit.start_conflicts),
-        tolerance=float(cfg.fit.start_tolerance), chunk_rays=int(cfg.eval.chunk_rays), family=trained.family,
-        budget_key="fit.start_budget" if int(cfg.fit.start_budget) else "model.max_gaussians",
-        classes=tuple(opened.components.classes.names),
-        head_config=OmegaConf.to_container(head, resolve=True) if head is not None else None)
-    if not bool(cfg.fit.start_semantics):
-        start = without_semantics(start)
-    notes = (*opened.notes, f"the start: {start.gaussians.count} Gaussians of model {trained.family!r} from "
-             f"{len(start.frames)} training frames ({start.predicted} predicted before merging where views overlap; "
-             f"semantics: {start.semantics})")  # the start's own notes: said once when the family begins from it
+    common = dict(num_source_views=int(opened.cfg.model.num_source_views), every=int(cfg.fit.start_every),
+                  tolerance=float(cfg.fit.start_tolerance), chunk_rays=int(cfg.eval.chunk_rays), family=trained.family,
+                  classes=tuple(opened.components.classes.names),
+                  head_config=OmegaConf.to_container(head, resolve=True) if head is not None else None)
     typed = {override_key(o) for o in task_overrides()}
-    schedule = [] if "model.opacity_reset_every" in typed else [f"model.opacity_reset_every={KEEP_OPACITIES}"]
+    if str(cfg.fit.start_geometry) == "points":
+        start, origin = start_at_points(cfg, model, frames, opened.components.view_selector, scene, common)
+        notes = (*opened.notes, f"the start: the scene's {start.gaussians.count} {origin} points with the semantics "
+                 f"model {trained.family!r} predicts for them in {len(start.frames)} training frames (semantics: "
+                 f"{start.semantics})")
+        schedule = []  # a start from points keeps the family's own schedule (its opacity resets clear their floaters)
+    else:
+        start = predict_start(
+            model, frames, opened.components.view_selector, scene, **common,
+            budget=int(cfg.fit.start_budget) or int(cfg.model.max_gaussians), opacity=float(cfg.fit.start_opacity),
+            min_views=int(cfg.fit.start_min_views), max_conflicts=int(cfg.fit.start_conflicts),
+            budget_key="fit.start_budget" if int(cfg.fit.start_budget) else "model.max_gaussians")
+        if not bool(cfg.fit.start_semantics):
+            start = without_semantics(start)
+        notes = (*opened.notes, f"the start: {start.gaussians.count} Gaussians of model {trained.family!r} from "
+                 f"{len(start.frames)} training frames ({start.predicted} predicted before merging where views "
+                 f"overlap; semantics: {start.semantics})")  # the start's own notes: said once when the family begins
+        schedule = [] if "model.opacity_reset_every" in typed else [f"model.opacity_reset_every={KEEP_OPACITIES}"]
     targets: list[str] = []
     if opened.components.classes.from_checkpoint and "labels_from" in cfg.dataset and not cfg.dataset.labels_from:
         folder = predicted_labels(checkpoint, opened, model, frames, scene)
@@ -118,6 +126,27 @@ def starting_point(cfg: DictConfig, checkpoint: Path, dist: Distributed) -> FitS
                  f"{scene.num_frames} frames are the fit's targets and the start's classes ({folder})")
     return FitStart(kind="checkpoint", checkpoint=str(checkpoint), seconds=time.perf_counter() - started,
                     notes=notes, overrides=(*start_overrides(start), *schedule, *targets), start=start)
+
+
+def start_at_points(cfg: DictConfig, model: Any, frames: Any, selector: Any, scene: Any, common: dict
+                    ) -> tuple[Any, str]:
+    """``fit.start_geometry=points``: the scene's own points as the fit's family would start from them
+    (``starting_points`` with its ``model.init_points`` and ``model.init_depth_stride``, opacity ``model.init_opacity``;
+    drawn on a forked random stream, so the fit's own stream is as without a start) with the model's semantics
+    (``points_start``), and where the points came from (``sparse points`` or ``depth``)."""
+    import torch
+
+    from gpnerf_core.geometry.gaussians.initialisation import starting_points
+    from gpnerf_core.model.generalized_start import points_start
+
+    if not bool(cfg.fit.start_semantics):
+        raise ConfigError("fit.start_geometry=points with fit.start_semantics=false takes nothing from the checkpoint "
+                          "(the scene's points, the model's semantics); expected fit.start_semantics=true, or no "
+                          "checkpoint= to start from the scene's points alone")
+    with torch.random.fork_rng(devices=[]):
+        points, origin = starting_points(scene, int(cfg.model.init_points), int(cfg.model.init_depth_stride))
+    return points_start(model, frames, selector, scene, points, opacity=float(cfg.model.init_opacity), origin=origin,
+                        **common), origin
 
 
 def without_semantics(start: Any) -> Any:

@@ -101,6 +101,8 @@ RULES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("fit.start_min_views", _count(0), f"{COUNT0} (other frames that must agree with a start's Gaussian)"),
     ("fit.start_conflicts", _count(0), f"{COUNT0} (other frames that may see through a start's Gaussian)"),
     ("fit.start_tolerance", lambda v: _positive(v) and v < 1, "a relative depth tolerance in (0, 1)"),
+    ("fit.start_geometry", lambda v: v in ("predicted", "points"), "predicted or points (where a start's Gaussians "
+     "stand: the model's depth, or the scene's own points)"),
     ("fit.start_semantics", lambda v: isinstance(v, bool), "true or false"),
     ("view.port", _port, "a TCP port in [0, 65535] (0 = any free port)"),
     ("view.stride", _count(1), COUNT),

@@ -69,16 +69,23 @@ def inside_bounds(depth: Tensor, scene: Any) -> Tensor:
     return torch.isfinite(depth) & (depth > scene.near + margin) & (depth < scene.far - margin)
 
 
-def _looked_up(points: Tensor, other: DepthView) -> tuple[Tensor, Tensor, Tensor]:
-    """``(inside [N] bool, the point's depth in other [N], other's rendered depth at its nearest cell [N])``."""
-    pixels, depth = project_points(points, other.intrinsics[None], other.c2w[None])
+def nearest_cells(points: Tensor, view: DepthView) -> tuple[Tensor, Tensor, Tensor]:
+    """``(inside [N] bool, the point's depth in view [N], the row-major index of its nearest grid cell [N])``: the
+    cell whose centre is nearest the point's projection (clamped to the grid where the point falls outside it)."""
+    pixels, depth = project_points(points, view.intrinsics[None], view.c2w[None])
     pixels, depth = pixels[0], depth[0]
-    grid_h, grid_w = other.depth.shape
-    stride = other.height / grid_h
+    grid_h, grid_w = view.depth.shape
+    stride = view.height / grid_h
     col = torch.floor((pixels[:, 0] + 0.5) / stride).long()  # pixel centres are at integer coordinates
     row = torch.floor((pixels[:, 1] + 0.5) / stride).long()
     inside = (depth > 0) & (col >= 0) & (col < grid_w) & (row >= 0) & (row < grid_h)
-    return inside, depth, other.depth[row.clamp(0, grid_h - 1), col.clamp(0, grid_w - 1)]
+    return inside, depth, row.clamp(0, grid_h - 1) * grid_w + col.clamp(0, grid_w - 1)
+
+
+def _looked_up(points: Tensor, other: DepthView) -> tuple[Tensor, Tensor, Tensor]:
+    """``(inside [N] bool, the point's depth in other [N], other's rendered depth at its nearest cell [N])``."""
+    inside, depth, cell = nearest_cells(points, other)
+    return inside, depth, other.depth.reshape(-1)[cell]
 
 
 def free_space_conflict(points: Tensor, other: DepthView, tolerance: float) -> Tensor:

@@ -16,6 +16,10 @@ Views overlap, so Gaussians of several views describe one surface: they are merg
 Gaussian's footprint, keeping the most opaque Gaussian of each voxel (a kept Gaussian stays one coherent Gaussian, not
 an average of several), then cut to the ``budget`` most opaque (``most_opaque``, said once).
 
+``points_start`` keeps the scene's own points instead (its structure from motion or depth, where a per-scene family
+starts without a checkpoint) and takes only their semantics from the model: each point's features read where it falls
+in the frames the model predicted (``point_features``), for a model whose labels hold where its depth does not.
+
 ``begin_from_start`` then gives a per-scene ``GaussianFamily`` its Gaussians and decoder from a start; the family's
 ``GaussianHooks.initialise`` calls it when ``family.start`` is set (``GaussianFamily.use_start``). ``start_overrides``
 are the Hydra overrides that size the per-scene family's config to carry the start.
@@ -33,7 +37,7 @@ from torch import Tensor
 
 from gpnerf_core.errors import ConfigError, DataError
 from gpnerf_core.geometry.gaussians.harmonics import colour_to_dc
-from gpnerf_core.geometry.gaussians.initialisation import scene_extent
+from gpnerf_core.geometry.gaussians.initialisation import neighbour_scales, scene_extent
 from gpnerf_core.geometry.gaussians.parameters import rows_from_gaussians
 from gpnerf_core.geometry.gaussians.scene import GaussianScene
 from gpnerf_core.geometry.point_fusion import (
@@ -43,10 +47,11 @@ from gpnerf_core.geometry.point_fusion import (
     cell_scores,
     conflicting_views,
     inside_bounds,
+    nearest_cells,
     rendered_view,
 )
 from gpnerf_core.geometry.rays import pixel_grid
-from gpnerf_core.types import Scene
+from gpnerf_core.types import Scene, ScenePoints
 
 if TYPE_CHECKING:
     from gpnerf_core.data.frames import FrameCache
@@ -81,6 +86,9 @@ SPARSE_START = 0.1
 """A start that keeps under this share of the Gaussians predicted says why (``fusion_note``)."""
 MERGED_OPACITY_LIMIT = 0.99
 """Most opacity a merged Gaussian takes from its voxel's coverage (below 1: its sigmoid keeps a gradient)."""
+GEOMETRIES = ("predicted", "points")
+"""``fit.start_geometry``: the model's predicted geometry (``predict_start``) or the scene's own points with the
+model's semantics (``points_start``)."""
 SEMANTICS = ("features", "scores", "none")
 """``GaussianStart.semantics``: features a head decodes, K class scores, or nothing."""
 
@@ -105,6 +113,8 @@ class GaussianStart:
         predicted: Gaussians before merging (after the opacity floor or the agreement).
         extent: the scene's extent (``scene_extent``, metres), what a per-scene family's ``gaussians.extent`` holds.
         notes: what the start says once (the budget's cut).
+        geometry: where the Gaussians stand: "predicted" (the model's depth or Gaussians, ``predict_start``) or
+            "points" (the scene's own points, the model giving their semantics: ``points_start``).
     """
 
     gaussians: GaussianScene
@@ -119,6 +129,7 @@ class GaussianStart:
     extent: float = 1.0
     head_config: dict[str, Any] | None = None
     notes: tuple[str, ...] = ()
+    geometry: str = "predicted"
 
     @property
     def feature_dim(self) -> int:
@@ -162,11 +173,8 @@ def predict_start(model: Any, frames: "FrameCache", selector: "ViewSelector", sc
     if min_views > len(chosen) - 1:
         raise ConfigError(f"min_views={min_views}: only {len(chosen)} training frame(s) are predicted, so a Gaussian "
                           f"can agree with at most {len(chosen) - 1} other view(s); lower it or predict more frames")
-    if caps.gaussians:
-        parts = [frame_gaussians(model, frames, selector, scene, index, num_source_views) for index in chosen]
-    else:
-        parts = [ray_gaussians(model, frames, selector, scene, index, num_source_views=num_source_views,
-                               opacity=opacity, chunk_rays=chunk_rays, family=name) for index in chosen]
+    parts = frame_predictions(model, frames, selector, scene, chosen, num_source_views=num_source_views,
+                              opacity=opacity, chunk_rays=chunk_rays, family=name)
     predicted = concatenate(consistent(parts, scene, min_views=min_views, tolerance=tolerance,
                                        max_conflicts=max_conflicts))
     sparse = fusion_note(parts, predicted.count, scene, min_views=min_views, tolerance=tolerance,
@@ -184,6 +192,93 @@ def predict_start(model: Any, frames: "FrameCache", selector: "ViewSelector", sc
                          predicted=predicted.count, extent=scene_extent(scene),
                          head_config=dict(head_config) if head_config is not None and semantics == "features" else None,
                          notes=tuple(n for n in (sparse, note) if n))
+
+
+def points_start(model: Any, frames: "FrameCache", selector: "ViewSelector", scene: Scene, points: ScenePoints, *,
+                 num_source_views: int, opacity: float, every: int = 1, tolerance: float = TOLERANCE,
+                 chunk_rays: int = 4096, family: str | None = None, classes: tuple[str, ...] = (),
+                 head_config: Mapping[str, Any] | None = None, origin: str = "points") -> GaussianStart:
+    """The scene's own ``points`` (its structure-from-motion points or depth, ``starting_points``: the geometry a
+    per-scene family starts from without a checkpoint) with the semantics a generalizable ``model`` predicts for them
+    (``fit.start_geometry=points``).
+
+    Each point is a Gaussian as 3DGS starts one (its colour, the scale of its three nearest neighbours, no rotation,
+    opacity ``opacity``: the family's ``model.init_opacity``); its features are the model's, read where the point
+    falls in every ``every``-th training frame as ``predict_start`` renders or predicts it (``point_features``). Where
+    the model's depth errs (a capture) its labels still hold: the geometry comes from the scene, the classes from the
+    model. The start then renders what a start from points renders, not what the model rendered (no hand-off of its
+    image); the decoder begins from the model's head. ``origin`` names where the points came from, for the note.
+    """
+    name = family or family_of(model)
+    if not model.capabilities.generalizable:
+        raise ConfigError(f"model={name} is a per-scene family: a start is predicted by a generalizable model; "
+                          "expected a checkpoint of one")
+    _check_options(max(points.count, 1), every, opacity, num_source_views)
+    if not points.count:
+        raise DataError(f"scene {scene.name!r} gave no points to start from ({origin})")
+    chosen = tuple(scene.train_frames[::every])
+    parts = frame_predictions(model, frames, selector, scene, chosen, num_source_views=num_source_views,
+                              opacity=START_OPACITY, chunk_rays=chunk_rays, family=name)
+    gaussians = points_as_gaussians(points, opacity, point_features(points.xyz.float(), parts, tolerance))
+    semantics, head_state, levels, stride = _semantics(model, gaussians, frames, scene)
+    return GaussianStart(gaussians=gaussians, semantics=semantics, head_state=head_state, feature_levels=levels,
+                         feature_stride=stride, classes=tuple(classes), family=name, frames=chosen,
+                         predicted=points.count, extent=scene_extent(scene),
+                         head_config=dict(head_config) if head_config is not None and semantics == "features" else None,
+                         geometry="points")
+
+
+def frame_predictions(model: Any, frames: "FrameCache", selector: "ViewSelector", scene: Scene,
+                      chosen: tuple[int, ...], *, num_source_views: int, opacity: float, chunk_rays: int, family: str
+                      ) -> list[tuple[GaussianScene, DepthView]]:
+    """Per chosen training frame, the model's Gaussians of its pixels or cells (row-major, every one) and the depth
+    they stand on: a feed-forward Gaussian family's own (``frame_gaussians``), a ray family's rendered cells
+    (``ray_gaussians``)."""
+    if model.capabilities.gaussians:
+        return [frame_gaussians(model, frames, selector, scene, index, num_source_views) for index in chosen]
+    return [ray_gaussians(model, frames, selector, scene, index, num_source_views=num_source_views, opacity=opacity,
+                          chunk_rays=chunk_rays, family=family) for index in chosen]
+
+
+def point_features(xyz: Tensor, parts: list[tuple[GaussianScene, DepthView]], tolerance: float) -> Tensor | None:
+    """``[P, C]`` each point's feature from the frames' predictions (``frame_predictions``; None when they carry
+    none): the mean of the features of its nearest cell over the frames that see it (inside the image and not behind
+    the frame's predicted surface by more than ``tolerance``, relative); over the frames it falls inside where none
+    sees it (predicted depth that errs short hides it everywhere); the mean of every cell where it falls in none."""
+    if not parts or any(gaussians.features is None for gaussians, _ in parts):
+        return None
+    count, width = xyz.shape[0], int(parts[0][0].features.shape[1])
+    seen, seen_count = torch.zeros(count, width), torch.zeros(count)
+    inside_sum, inside_count = torch.zeros(count, width), torch.zeros(count)
+    for gaussians, view in parts:
+        inside, depth, cell = nearest_cells(xyz, view)
+        features = gaussians.features.float()[cell]
+        visible = inside & (depth <= (1.0 + tolerance) * view.depth.reshape(-1)[cell])
+        seen += features * visible[:, None]
+        seen_count += visible
+        inside_sum += features * inside[:, None]
+        inside_count += inside
+    overall = torch.cat([gaussians.features.float() for gaussians, _ in parts]).mean(dim=0)
+    features = overall.expand(count, width).clone()
+    some = inside_count > 0
+    features[some] = inside_sum[some] / inside_count[some, None]
+    visible = seen_count > 0
+    features[visible] = seen[visible] / seen_count[visible, None]
+    return features
+
+
+def points_as_gaussians(points: ScenePoints, opacity: float, features: Tensor | None) -> GaussianScene:
+    """3DGS's start from ``points`` (``parameters.rows_from_points``) as Gaussians: centres, colours as the degree-0
+    harmonic, isotropic scales of the three nearest neighbours (``neighbour_scales``, metres), no rotation, every
+    opacity ``opacity``; ``features`` ``[P, C]`` or None."""
+    count = points.count
+    rotations = torch.zeros(count, 4)
+    rotations[:, 0] = 1.0
+    xyz = points.xyz.float()
+    return GaussianScene(means=xyz, scales=neighbour_scales(xyz)[:, None].repeat(1, 3), rotations=rotations,
+                         opacities=torch.full((count,), float(opacity)),
+                         harmonics=colour_to_dc(points.rgb.float().clamp(0, 1))[..., None],
+                         labels=torch.full((count,), -1, dtype=torch.long), features=features)
 
 
 def family_of(model: Any) -> str:

@@ -163,6 +163,7 @@ def test_a_checkpoint_start_is_asked_of_starting_point(work, monkeypatch, capsys
     (["fit.start_opacity=1.5"], r"fit.start_opacity=1.5: expected an opacity in \(0, 1\)"),
     (["fit.start_tolerance=1.5"], r"fit.start_tolerance=1.5: expected a relative depth tolerance in \(0, 1\)"),
     (["fit.start_conflicts=-1"], r"fit.start_conflicts=-1: expected an integer >= 0"),
+    (["fit.start_geometry=depth"], r"fit.start_geometry='depth': expected predicted or points"),
     (["dataset.eval_every=0", "fit.patience=2"], r"eval.splits=\[train\] select no frame of dataset 'embedded'"),
     (["fit.metric=miou/nope", "train.steps=2"], r"fit.metric=miou/nope: the evaluation of the held-out frames of "
                                                 r"scene 'layout_00' gives no such value; expected one of: .*psnr/clamped"),
@@ -237,6 +238,20 @@ def test_a_generalizable_checkpoint_starts_the_fit(work, capsys):
     config = (work / "from_gpnerf" / "config.yaml").read_text()
     assert "feature_stride: " in config and "name: unet" in config  # GP-NeRF's head carried with its features
     assert "opacity_reset_every: 1000000000" in config  # a started fit keeps the start's opacities
+    # the scene's own points with GP-NeRF's semantics: the family's schedule kept, its head carried
+    code, metrics, _ = fitted(work, "points_gpnerf", f"checkpoint={checkpoint}", "train.steps=1", "fit.eval_every=0",
+                              "fit.start_geometry=points")
+    assert code == 0, capsys.readouterr().err[-2000:]
+    start = metrics["fit"]["start"]
+    assert any("the start: the scene's" in note and "depth points with the semantics model 'gnt'" in note
+               for note in start["notes"]), start["notes"]
+    config = (work / "points_gpnerf" / "config.yaml").read_text()
+    assert "name: unet" in config and "opacity_reset_every: 1000000000" not in config
+    code, _, _ = fitted(work, "points_nothing", f"checkpoint={checkpoint}", "fit.start_geometry=points",
+                        "fit.start_semantics=false")
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err[-1].startswith("error: fit.start_geometry=points with fit.start_semantics=false takes "
+                                            "nothing from the checkpoint"), err[-3:]
     # a per-scene checkpoint starts nothing: refused naming its family
     per_scene = sorted((work / "from_gpnerf" / "checkpoints").glob("*.pt"))[-1]
     code, _, _ = fitted(work, "from_per_scene", f"checkpoint={per_scene}", "train.steps=1")

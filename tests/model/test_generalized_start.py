@@ -334,3 +334,57 @@ def test_a_start_that_keeps_little_says_which_rule_dropped_it():
     assert note.startswith("the start keeps 0 of the 384 Gaussians") and "384 at a depth bound" in note
     assert fusion_note([part(3.0, 0.0), part(3.0, 0.1)], 384, scene, min_views=1, tolerance=0.1,
                        max_conflicts=3) is None
+
+
+# ---- the scene's own points, the model's semantics ---------------------------------------------------------------------
+
+
+def test_a_point_takes_the_features_of_the_frames_that_see_it():
+    from gpnerf_core.geometry.point_fusion import DepthView
+    from gpnerf_core.geometry.rays import pixel_grid
+    from gpnerf_core.model.generalized_start import point_features
+
+    k = torch.tensor([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+
+    def frame(depth: float, feature: float):  # one 2 x 2 cell at the origin looking down +z, a surface at ``depth``
+        view = DepthView(depth=torch.full((1, 1), depth), pixels=pixel_grid(2, 2, 2), intrinsics=k, c2w=torch.eye(4),
+                         height=2, width=2)
+        features = torch.full((1, 2), feature)
+        return GaussianScene(means=torch.zeros(1, 3), scales=torch.ones(1, 3), rotations=torch.tensor([[1.0, 0, 0, 0]]),
+                             opacities=torch.ones(1), harmonics=torch.zeros(1, 3, 1),
+                             labels=torch.full((1,), -1, dtype=torch.long), features=features), view
+
+    parts = [frame(2.0, 1.0), frame(0.5, 3.0)]  # the second frame's surface is in front of the first point
+    points = torch.tensor([[0.5, 0.5, 1.0], [0.5, 0.5, 5.0], [100.0, 0.0, 1.0]])
+    features = point_features(points, parts, tolerance=0.1)
+    assert torch.equal(features[0], torch.tensor([1.0, 1.0]))  # seen by the first frame only
+    assert torch.equal(features[1], torch.tensor([2.0, 2.0]))  # behind both surfaces: every frame it falls in
+    assert torch.equal(features[2], torch.tensor([2.0, 2.0]))  # in no frame: the mean of every cell
+    import dataclasses
+
+    parts[1] = (dataclasses.replace(parts[1][0], features=None), parts[1][1])
+    assert point_features(points, parts, tolerance=0.1) is None  # a model without semantics gives none
+
+
+def test_a_points_start_is_the_scenes_points_with_the_models_features():
+    from gpnerf_core.geometry.gaussians.initialisation import neighbour_scales, starting_points
+    from gpnerf_core.model.generalized_start import points_start
+
+    model = gnt()
+    frames, selector, scene = inputs()
+    torch.manual_seed(0)
+    points, origin = starting_points(scene, 400, 2)
+    start = points_start(model, frames, selector, scene, points, num_source_views=1, opacity=0.1, classes=CLASSES,
+                         head_config=KIT_HEAD, origin=origin)
+    g = start.gaussians
+    assert start.geometry == "points" and start.semantics == "features" and start.predicted == points.count
+    assert torch.equal(g.means, points.xyz.float()) and torch.allclose(g.opacities, torch.full((g.count,), 0.1))
+    assert torch.equal(g.scales[:, 0], neighbour_scales(points.xyz.float()))
+    assert torch.equal(g.scales[:, 0], g.scales[:, 2])
+    assert torch.allclose(sh_colours(g.harmonics, g.means)[:, :3], points.rgb.float().clamp(0, 1), atol=1e-6)
+    assert g.features.shape == (points.count, model.extractor.semantic_dim) and torch.isfinite(g.features).all()
+    assert g.features.std(dim=0).max() > 0  # each point its own frames' features, not one mean
+    family, notes = started(start, head=True, classes=CLASSES)
+    assert notes == [] and family.gaussians.size == points.count
+    for key, value in model.head.state_dict().items():
+        assert torch.equal(family.head.state_dict()[key], value), key
