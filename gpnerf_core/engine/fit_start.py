@@ -102,9 +102,9 @@ def starting_point(cfg: DictConfig, checkpoint: Path, dist: Distributed) -> FitS
     typed = {override_key(o) for o in task_overrides()}
     if str(cfg.fit.start_geometry) == "points":
         start, origin = start_at_points(cfg, model, frames, opened.components.view_selector, scene, common)
-        notes = (*opened.notes, f"the start: the scene's {start.gaussians.count} {origin} points with the semantics "
-                 f"model {trained.family!r} predicts for them in {len(start.frames)} training frames (semantics: "
-                 f"{start.semantics})")
+        notes = (*opened.notes, f"the start: {start.gaussians.count} Gaussians at the scene's {origin} with the "
+                 f"semantics model {trained.family!r} predicts for them in {len(start.frames)} training frames "
+                 f"(semantics: {start.semantics})")
         schedule = []  # a start from points keeps the family's own schedule (its opacity resets clear their floaters)
     else:
         start = predict_start(

@@ -243,7 +243,7 @@ def test_a_generalizable_checkpoint_starts_the_fit(work, capsys):
                               "fit.start_geometry=points")
     assert code == 0, capsys.readouterr().err[-2000:]
     start = metrics["fit"]["start"]
-    assert any("the start: the scene's" in note and "depth points with the semantics model 'gnt'" in note
+    assert any("the start: " in note and "Gaussians at the scene's depth with the semantics model 'gnt'" in note
                for note in start["notes"]), start["notes"]
     config = (work / "points_gpnerf" / "config.yaml").read_text()
     assert "name: unet" in config and "opacity_reset_every: 1000000000" not in config
