@@ -82,7 +82,6 @@ class MaskRCNN(nn.Module):
         second = self.roi_heads.losses(levels, self.backbone.strides, proposals, targets, generator)
         return {"rpn_objectness": rpn_obj, "rpn_box": rpn_box, **second}
 
-    @torch.no_grad()
     def detect(self, images: Tensor) -> list[Detections]:
         """Each image's detections (``Detections``: at most ``detections_per_image``, best first)."""
         size = (images.shape[-2], images.shape[-1])

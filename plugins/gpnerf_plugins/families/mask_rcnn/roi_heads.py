@@ -161,12 +161,12 @@ class RoIHeads(nn.Module):
             mask_loss = mask_logits.sum() * 0
         return {"box_class": cls_loss, "box_regression": box_loss, "mask": mask_loss}
 
-    @torch.no_grad()
     def detect(self, levels: list[Tensor], strides: list[int], proposals: list[Tensor],
                image_size: tuple[int, int]) -> list[Detections]:
         """Each image's detections: class-specific boxes decoded and clipped, background dropped, scores above
         ``score_threshold``, tiny boxes removed, NMS per class, the ``detections_per_image`` best, and their masks'
-        probabilities in the predicted class's channel."""
+        probabilities in the predicted class's channel (differentiable in the heads' weights; ``predict`` runs it under
+        inference mode)."""
         s = self.settings
         class_logits, deltas = self.box_head(self._pool(levels[:4], strides[:4], _rois(proposals), s.box_pool))
         scores_all = F.softmax(class_logits, dim=1)
