@@ -1,6 +1,12 @@
-"""The detector's backbone: ResNet-34 (the project's own ``BasicBlock``: InstanceNorm, reflect padding) or Swin-T
-(``swin.py``), each with an FPN (the project's ``FPN``: 1x1 laterals, top-down nearest-upsample-and-add, 3x3 outputs)
-and a max-pooled P6 for the RPN (torchvision's ``LastLevelMaxPool``)."""
+"""The detector's backbone: ResNet-34 or Swin-T (``swin.py``), each with an FPN (the project's ``FPN``: 1x1 laterals,
+top-down nearest-upsample-and-add, 3x3 outputs) and a max-pooled P6 for the RPN (torchvision's ``LastLevelMaxPool``).
+
+The ResNet is torchvision's ResNet-34 (zero padding, a 3x3 max-pool after the stem) with GroupNorm of 32 groups in
+place of BatchNorm: the norm of Mask R-CNN trained from scratch (Wu and He, ECCV 2018; He et al., "Rethinking
+ImageNet Pre-training", 2019), which one frame a step cannot feed BatchNorm statistics. The project's extractor
+blocks do not fit: their reflect padding fails on the one-cell-high C5 of a 32-pixel frame, and InstanceNorm
+normalises each 3 x 4 C5 map on its own.
+"""
 
 from __future__ import annotations
 
@@ -9,7 +15,6 @@ from torch import Tensor, nn
 
 from gpnerf_core import ConfigError
 from gpnerf_plugins.extractors.fpn import FPN
-from gpnerf_plugins.extractors.resunet import BasicBlock
 from gpnerf_plugins.families.mask_rcnn.swin import SwinTransformer
 
 RESNET34_BLOCKS = (3, 4, 6, 3)
@@ -18,27 +23,54 @@ STRIDES = (4, 8, 16, 32, 64)
 """Pixels per cell of P2, P3, P4, P5 and P6."""
 
 
+def group_norm(channels: int) -> nn.GroupNorm:
+    return nn.GroupNorm(32, channels)
+
+
+class BasicBlock(nn.Module):
+    """Two 3x3 convs with GroupNorm and a residual (a 1x1 projection where the shape changes); the first conv carries
+    the stride."""
+
+    def __init__(self, in_channels: int, out_channels: int, stride: int = 1) -> None:
+        super().__init__()
+        self.conv1 = nn.Conv2d(in_channels, out_channels, 3, stride=stride, padding=1, bias=False)
+        self.bn1 = group_norm(out_channels)
+        self.conv2 = nn.Conv2d(out_channels, out_channels, 3, padding=1, bias=False)
+        self.bn2 = group_norm(out_channels)
+        self.downsample: nn.Module | None = None
+        if stride != 1 or in_channels != out_channels:
+            self.downsample = nn.Sequential(nn.Conv2d(in_channels, out_channels, 1, stride=stride, bias=False),
+                                            group_norm(out_channels))
+
+    def forward(self, x: Tensor) -> Tensor:
+        out = self.bn2(self.conv2(F.relu(self.bn1(self.conv1(x)))))
+        return F.relu(out + (x if self.downsample is None else self.downsample(x)))
+
+
 class ResNet34(nn.Module):
-    """ResNet-34's four stages (3, 4, 6, 3 basic blocks of 64, 128, 256, 512 channels) after a 7x7 stride-2 stem; as
-    in the project's extractor, the stride-2 step into stage 1 is its first block's (no max-pool).
+    """ResNet-34: a 7x7 stride-2 stem and a 3x3 stride-2 max-pool, then four stages of 3, 4, 6, 3 basic blocks of 64,
+    128, 256, 512 channels (stages 2-4 start with stride 2).
 
     Returns C2-C5 at strides 4, 8, 16, 32 (``channels``)."""
 
     def __init__(self) -> None:
         super().__init__()
-        self.conv1 = nn.Conv2d(3, 64, 7, stride=2, padding=3, bias=False, padding_mode="reflect")
-        self.bn1 = nn.InstanceNorm2d(64, affine=True)
+        self.conv1 = nn.Conv2d(3, 64, 7, stride=2, padding=3, bias=False)
+        self.bn1 = group_norm(64)
         stages, previous = [], 64
-        for blocks, width in zip(RESNET34_BLOCKS, RESNET34_WIDTHS):
-            stages.append(nn.Sequential(BasicBlock(previous, width, stride=2),
+        for i, (blocks, width) in enumerate(zip(RESNET34_BLOCKS, RESNET34_WIDTHS)):
+            stages.append(nn.Sequential(BasicBlock(previous, width, stride=1 if i == 0 else 2),
                                         *(BasicBlock(width, width) for _ in range(1, blocks))))
             previous = width
         self.stages = nn.ModuleList(stages)
         self.channels = list(RESNET34_WIDTHS)
+        for module in self.modules():
+            if isinstance(module, nn.Conv2d):
+                nn.init.kaiming_normal_(module.weight, mode="fan_out", nonlinearity="relu")
 
     def forward(self, images: Tensor) -> list[Tensor]:
         """``[N, 3, H, W]`` (H, W multiples of 32) -> C2..C5 ``[N, c_k, H / 2^(k+2), W / 2^(k+2)]``."""
-        x = F.relu(self.bn1(self.conv1(images)))
+        x = F.max_pool2d(F.relu(self.bn1(self.conv1(images))), 3, stride=2, padding=1)
         taps = []
         for stage in self.stages:
             x = stage(x)
