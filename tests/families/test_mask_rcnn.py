@@ -307,7 +307,7 @@ def test_a_run_scores_the_real_held_out_image_and_eval_and_report_read_it(tmp_pa
     assert "Mask R-CNN (2D)" in (tmp_path / "chart" / "speed_accuracy.csv").read_text()
     with pytest.raises(SystemExit) as refused:  # a 2D model renders no trajectory
         cli_main(["render", f"checkpoint={checkpoint}", "render.frames=1", f"out_dir={tmp_path / 'video'}"])
-    assert refused.value.code == 2 and "segments a real image" in capsys.readouterr().err
+    assert refused.value.code == 2 and "render renders novel views, and model=mask_rcnn is a 2D model" in capsys.readouterr().err
 
 
 def test_the_swin_t_experiment_builds_swin_t():
