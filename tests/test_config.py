@@ -83,7 +83,8 @@ def test_every_experiment_composes(registry, experiment):
     assert (cfg.loss is None) == own_terms
     if own_terms:
         assert cfg.model.name == "mask_rcnn" and cfg.get("head") is None
-        assert cfg.model.backbone == ("swin_t" if experiment.endswith("swin_t") else "resnet34")
+        backbones = {"baselines/mask_rcnn_swin_t": "swin_t", "baselines/mask_rcnn_torchvision": "resnet50"}
+        assert cfg.model.backbone == backbones.get(experiment, "resnet34")
         return
     label_rendering_families = ("baselines/semantic_ray", "baselines/neuray", "baselines/mvsnerf",
                                 "baselines/semantic_nerf", "baselines/semantic_nerf_grid")

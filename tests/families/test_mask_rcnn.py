@@ -242,6 +242,46 @@ def test_weights_saved_to_a_file_load_into_a_fresh_model_with_the_same_detection
     assert torch.equal(a.boxes, b.boxes) and torch.equal(a.masks, b.masks)
 
 
+def test_torchvisions_checkpoint_from_a_local_file_loads_key_for_key(tmp_path):
+    """torchvision's names (v2 wrappers for the FPN and RPN convs, v1's ``mask_fcn<k>`` for the mask head: both
+    occur) written by the test; ``model.init`` maps them onto the family, and the detections follow the weights."""
+    from gpnerf_core.model.weights import init_weights
+    from gpnerf_plugins.families.mask_rcnn.torchvision_keys import candidates
+
+    options = dict(backbone="resnet50", classes=3, fpn_channels=8, box_hidden=16, mask_hidden=8,
+                   anchor_sizes=[4.0, 8.0, 16.0, 24.0, 32.0], aligned=False)
+    torch.manual_seed(3)
+    source = build_mask_rcnn(parts=NoParts(), **options).eval()
+    assert sum(p.numel() for p in build_mask_rcnn(  # torchvision's maskrcnn_resnet50_fpn has 44,401,393
+        parts=NoParts(), backbone="resnet50", classes=90, fpn_channels=256, box_hidden=1024, mask_hidden=256).parameters()
+               ) == 44_401_393
+    written = {}
+    for key, value in source.state_dict().items():
+        names = candidates(key)
+        assert names, key
+        written[names[-1] if ".mask_head.convs." in key else names[0]] = value.clone()
+    assert "roi_heads.mask_head.mask_fcn1.weight" in written and "rpn.head.conv.0.0.weight" in written
+    torch.save(written, tmp_path / "maskrcnn_resnet50_fpn.pth")
+    torch.manual_seed(4)
+    target = build_mask_rcnn(parts=NoParts(), **options).eval()
+    report = init_weights(target, tmp_path / "maskrcnn_resnet50_fpn.pth")
+    assert report.fmt == "torchvision_maskrcnn" and not report.missing and not report.unexpected
+    image = two_objects()[0][None]
+    for name, tensor in source.state_dict().items():
+        assert torch.equal(tensor, target.state_dict()[name]), name
+    a, b = source.detector.detect(image)[0], target.detector.detect(image)[0]
+    assert torch.equal(a.scores, b.scores) and torch.equal(a.masks, b.masks)
+
+
+def test_torchvisions_resizing_scales_the_detections_back_to_the_frame():
+    torch.manual_seed(5)
+    family = build_mask_rcnn(parts=NoParts(), **{**TINY, "min_size": 64, "score_threshold": 0.0}).eval()
+    resized, ratios = family.detector._resized(two_objects()[0][None])
+    assert tuple(resized.shape[-2:]) == (64, 96) and ratios == (2.0, 2.0)
+    found = family.detector.detect(two_objects()[0][None])[0]
+    assert len(found.boxes) and float(found.boxes[:, 2].max()) <= 48.0 and float(found.boxes[:, 3].max()) <= 32.0
+
+
 # ---- bad input --------------------------------------------------------------------------------------------------------
 
 def test_anchors_larger_than_the_image_are_refused_naming_the_key():

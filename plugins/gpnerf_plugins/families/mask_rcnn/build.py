@@ -29,7 +29,8 @@ def build_mask_rcnn(*, parts: ModelParts, backbone: str = C.backbone, fpn_channe
                     rpn_batch_size_per_image: int = C.rpn_batch_size_per_image,
                     roi_batch_size_per_image: int = C.roi_batch_size_per_image, box_hidden: int = C.box_hidden,
                     mask_hidden: int = C.mask_hidden, slots: int = C.slots, score_threshold: float = C.score_threshold,
-                    aligned: bool = C.aligned, drop_path: float = C.drop_path) -> MaskRCNNFamily:
+                    aligned: bool = C.aligned, drop_path: float = C.drop_path, classes: int = C.classes,
+                    min_size: int = C.min_size, max_size: int = C.max_size) -> MaskRCNNFamily:
     """Mask R-CNN from ``MaskRCNNConfig``'s fields (the list fields default to the config's); a configured ``+head``
     is refused (the detector's mask head makes its masks)."""
     if parts.configured("head"):
@@ -45,9 +46,12 @@ def build_mask_rcnn(*, parts: ModelParts, backbone: str = C.backbone, fpn_channe
             _positive(key, value)
     for key, value in (("fpn_channels", fpn_channels), ("rpn_batch_size_per_image", rpn_batch_size_per_image),
                        ("roi_batch_size_per_image", roi_batch_size_per_image), ("box_hidden", box_hidden),
-                       ("mask_hidden", mask_hidden), ("slots", slots)):
+                       ("mask_hidden", mask_hidden), ("slots", slots), ("classes", classes),
+                       ("max_size", max_size)):
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ConfigError(f"model.{key}={value!r}: expected an integer >= 1")
+    if isinstance(min_size, bool) or not isinstance(min_size, int) or min_size < 0:
+        raise ConfigError(f"model.min_size={min_size!r}: expected 0 (no resizing) or a shorter side in pixels")
     if not 0.0 <= score_threshold < 1.0:
         raise ConfigError(f"model.score_threshold={score_threshold!r}: expected a class score in [0, 1)")
     rpn = RPNSettings(pre_nms_top_n=_pair("rpn_pre_nms_top_n", list(rpn_pre_nms_top_n or defaults.rpn_pre_nms_top_n)),
@@ -58,5 +62,6 @@ def build_mask_rcnn(*, parts: ModelParts, backbone: str = C.backbone, fpn_channe
                       score_threshold=float(score_threshold), aligned=bool(aligned))
     settings = DetectorSettings(backbone=backbone, fpn_channels=fpn_channels, anchor_sizes=tuple(anchor_sizes),
                                 aspect_ratios=tuple(aspect_ratios), rpn=rpn, roi=roi, box_hidden=box_hidden,
-                                mask_hidden=mask_hidden, drop_path=float(drop_path))
+                                mask_hidden=mask_hidden, classes=classes, drop_path=float(drop_path),
+                                min_size=min_size, max_size=max_size)
     return MaskRCNNFamily(settings=settings)

@@ -41,8 +41,16 @@ class MaskRCNNConfig(ModelConfig):
     num_source_views: int = 0
     """None: a 2D model reads only the target image."""
     backbone: str = "resnet34"
-    """``resnet34`` (the project's ResNet-34 blocks; Mask R-CNN: ResNet-50 from ImageNet) or ``swin_t`` (Swin-T:
-    embedding 96, depths 2-2-6-2, heads 3-6-12-24, window 7)."""
+    """``resnet34`` (ResNet-34 with GroupNorm, from scratch; Mask R-CNN: ResNet-50 from ImageNet), ``swin_t`` (Swin-T:
+    embedding 96, depths 2-2-6-2, heads 3-6-12-24, window 7) or ``resnet50`` (torchvision's, frozen BatchNorm: the
+    backbone of its COCO checkpoint, ``+experiment=baselines/mask_rcnn_torchvision``)."""
+    classes: int = 1
+    """Object classes besides the background: 1, class-agnostic (the instance protocols score no classes); 90 for
+    torchvision's COCO checkpoint."""
+    min_size: int = 0
+    """Resize every image so its shorter side is this many pixels (torchvision: 800; 0 keeps the frames' size)."""
+    max_size: int = 1333
+    """... unless its longer side would exceed this (torchvision: 1333)."""
     fpn_channels: int = 64
     """Channels of every FPN level and of the RPN (256)."""
     anchor_sizes: list[float] = field(default_factory=lambda: [8.0, 16.0, 32.0, 64.0, 128.0])

@@ -38,6 +38,10 @@ class DetectorSettings:
     mask_hidden: int
     classes: int = 1
     drop_path: float = 0.2
+    min_size: int = 0
+    """Images are resized so that their shorter side is ``min_size`` (torchvision: 800), unless the longer would exceed
+    ``max_size`` (1333); 0 keeps the frames' size. Detections are scaled back to the frame."""
+    max_size: int = 1333
 
 
 class MaskRCNN(nn.Module):
@@ -58,6 +62,17 @@ class MaskRCNN(nn.Module):
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
 
+    def _resized(self, images: Tensor) -> tuple[Tensor, tuple[float, float]]:
+        """``images`` resized as torchvision's ``GeneralizedRCNNTransform`` (bilinear), and the (y, x) ratios of the
+        resized to the original size; unchanged with ``min_size`` 0."""
+        if not self.settings.min_size:
+            return images, (1.0, 1.0)
+        height, width = images.shape[-2:]
+        scale = min(self.settings.min_size / min(height, width), self.settings.max_size / max(height, width))
+        resized = F.interpolate(images, scale_factor=scale, mode="bilinear", align_corners=False,
+                                recompute_scale_factor=True)
+        return resized, (resized.shape[-2] / height, resized.shape[-1] / width)
+
     def _features(self, images: Tensor) -> tuple[list[Tensor], list[Tensor], list[Tensor], list[Tensor]]:
         """``[N, 3, H, W]`` in [0, 1] -> FPN levels, the anchors of each level, RPN objectness and deltas per level."""
         height, width = images.shape[-2:]
@@ -74,6 +89,11 @@ class MaskRCNN(nn.Module):
                generator: torch.Generator | None = None) -> dict[str, Tensor]:
         """The five unweighted loss terms (``LOSS_NAMES``) of images ``[N, 3, H, W]`` in [0, 1] and their targets;
         ``generator`` draws the sampled anchors and proposals."""
+        images, (ry, rx) = self._resized(images)
+        if (ry, rx) != (1.0, 1.0):  # the targets follow the image (masks: nearest, as torchvision)
+            scale = torch.tensor([rx, ry, rx, ry], device=images.device)
+            targets = [InstanceTargets(t.boxes * scale, t.labels, F.interpolate(t.masks[:, None],
+                       size=images.shape[-2:], mode="nearest")[:, 0]) for t in targets]
         size = (images.shape[-2], images.shape[-1])
         levels, anchors, objectness, deltas = self._features(images)
         proposals = select_proposals(anchors, objectness, deltas, self.rpn_coder, size, self.settings.rpn, True)
@@ -83,8 +103,14 @@ class MaskRCNN(nn.Module):
         return {"rpn_objectness": rpn_obj, "rpn_box": rpn_box, **second}
 
     def detect(self, images: Tensor) -> list[Detections]:
-        """Each image's detections (``Detections``: at most ``detections_per_image``, best first)."""
+        """Each image's detections (``Detections``: at most ``detections_per_image``, best first; boxes in the
+        pixels of ``images``)."""
+        images, (ry, rx) = self._resized(images)
         size = (images.shape[-2], images.shape[-1])
         levels, anchors, objectness, deltas = self._features(images)
         proposals = select_proposals(anchors, objectness, deltas, self.rpn_coder, size, self.settings.rpn, False)
-        return self.roi_heads.detect(levels, self.backbone.strides, proposals, size)
+        found = self.roi_heads.detect(levels, self.backbone.strides, proposals, size)
+        if (ry, rx) == (1.0, 1.0):
+            return found
+        scale = torch.tensor([1 / rx, 1 / ry, 1 / rx, 1 / ry], device=images.device)
+        return [Detections(d.boxes * scale, d.scores, d.labels, d.masks) for d in found]

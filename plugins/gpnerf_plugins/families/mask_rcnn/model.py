@@ -8,7 +8,7 @@ their losses); no loss set is configured."""
 from __future__ import annotations
 
 import logging
-from typing import Mapping
+from typing import Any, Mapping
 
 import torch
 from torch import Tensor, nn
@@ -19,6 +19,7 @@ from gpnerf_core import (
     DataError,
     FamilyHooks,
     ImageOutput,
+    ImportedWeights,
     ModelFamily,
     Prediction,
     Predicts,
@@ -35,6 +36,7 @@ from gpnerf_core import (
 from gpnerf_plugins.families.mask_rcnn.detector import LOSS_NAMES, DetectorSettings, MaskRCNN
 from gpnerf_plugins.families.mask_rcnn.roi_heads import Detections
 from gpnerf_plugins.families.mask_rcnn.targets import paste_masks, slot_logits, targets_from_ids
+from gpnerf_plugins.families.mask_rcnn.torchvision_keys import FORMAT, is_torchvision, map_torchvision
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +59,8 @@ class MaskRCNNFamily(ModelFamily):
     """
 
     capabilities = Capabilities(generalizable=False, accepts_head=False, trains_on=TrainingBatch.IMAGES,
-                                source_encoding=None, segments_image=True, loss_terms=LOSS_NAMES, hooks=MaskRCNNHooks)
+                                source_encoding=None, segments_image=True, loss_terms=LOSS_NAMES, hooks=MaskRCNNHooks,
+                                foreign_weights=True)
 
     def __init__(self, *, settings: DetectorSettings) -> None:
         super().__init__()
@@ -75,11 +78,23 @@ class MaskRCNNFamily(ModelFamily):
         return {"detector": list(self.detector.parameters())}
 
     def check_image_size(self, height: int, width: int) -> None:
-        """Anchors larger than the image's longer side are refused (no box of the image can match them)."""
-        largest = max(self.anchor_sizes)
-        if largest > max(height, width):
+        """Anchors larger than the image's longer side (as resized: ``model.min_size``) are refused: no box of the
+        image can match them."""
+        largest, settings = max(self.anchor_sizes), self.detector.settings
+        side = max(height, width)
+        if settings.min_size:
+            side = side * min(settings.min_size / min(height, width), settings.max_size / side)
+        if largest > side:
             raise ConfigError(f"model.anchor_sizes={list(self.anchor_sizes)}: an anchor of {largest:g} px is larger "
-                              f"than the {height} x {width} images; expected sizes up to {max(height, width)} px")
+                              f"than the {height} x {width} images; expected sizes up to {int(side)} px")
+
+    def read_foreign(self, checkpoint: Mapping[str, Any]) -> ImportedWeights | None:
+        """torchvision's ``maskrcnn_resnet50_fpn`` state dict (its COCO checkpoint, read from a local file), for
+        ``model.backbone=resnet50`` with its widths and ``model.classes=90`` (``torchvision_keys``)."""
+        if not is_torchvision(checkpoint):
+            return None
+        tensors = map_torchvision(list(self.state_dict()), checkpoint)
+        return ImportedWeights(tensors=tensors, format=FORMAT, offered=tuple(checkpoint))
 
     # ---- training ---------------------------------------------------------------------------------------------------
 
