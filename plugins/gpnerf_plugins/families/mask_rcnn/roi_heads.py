@@ -117,14 +117,12 @@ class RoIHeads(nn.Module):
         s = self.settings
         return multiscale_roi_align(levels, strides, rois, size, s.sampling_ratio, s.aligned)
 
-    def losses(self, levels: list[Tensor], strides: list[int], proposals: list[Tensor], targets: list[InstanceTargets],
-               generator: torch.Generator | None) -> dict[str, Tensor]:
-        """The box head's classification CE and box smooth-L1 (beta 1/9, summed over the positives and divided by the
-        sampled proposals) and the mask BCE on each positive's own class channel against its ground-truth mask cut
-        out by RoIAlign at 28 x 28 (torchvision's ``project_masks_on_boxes``), over proposals with the ground-truth
-        boxes added, sampled per image."""
+    def _sample(self, proposals: list[Tensor], targets: list[InstanceTargets],
+                generator: torch.Generator | None) -> tuple[list[Tensor], list[Tensor], list[Tensor]]:
+        """Per image, the sampled proposals ``[S, 4]`` (the GT boxes added to the candidates), their class labels
+        ``[S]`` (0: background) and the index of their matched GT box ``[S]`` (meaningless where the label is 0)."""
         s = self.settings
-        sampled, labels, box_targets, matched = [], [], [], []
+        sampled, labels, matched = [], [], []
         for props, target in zip(proposals, targets):
             props = torch.cat([props, target.boxes])
             matches = match(box_iou(target.boxes, props), s.fg_iou, s.bg_iou, allow_low_quality=False)
@@ -134,29 +132,40 @@ class RoIHeads(nn.Module):
             keep = torch.cat([pos, neg])
             sampled.append(props[keep])
             labels.append(label[keep])
-            gt = matches.clamp(min=0)[keep]
-            box_targets.append(self.coder.encode(target.boxes[gt], props[keep]))
-            matched.append(gt)
+            matched.append(matches.clamp(min=0)[keep])
+        return sampled, labels, matched
+
+    def losses(self, levels: list[Tensor], strides: list[int], proposals: list[Tensor], targets: list[InstanceTargets],
+               generator: torch.Generator | None) -> dict[str, Tensor]:
+        """The box head's classification CE and box smooth-L1 (beta 1/9, summed over the positives and divided by the
+        sampled proposals) and the mask BCE on each positive's own class channel against its ground-truth mask cut
+        out by RoIAlign at 28 x 28 (torchvision's ``project_masks_on_boxes``), over proposals sampled per image
+        (``_sample``).
+
+        Args:
+            levels: FPN maps P2-P6 ``[N, C, h, w]`` at ``strides``; proposals: per image ``[P, 4]`` (detached);
+                targets: per image.
+        """
+        s = self.settings
+        sampled, labels, matched = self._sample(proposals, targets, generator)
         rois = _rois(sampled)
         class_logits, deltas = self.box_head(self._pool(levels[:4], strides[:4], rois, s.box_pool))
         label = torch.cat(labels)
         positive = torch.where(label > 0)[0]
+        box_targets = torch.cat([self.coder.encode(t.boxes[m], b) for t, m, b in zip(targets, matched, sampled)])
         cls_loss = F.cross_entropy(class_logits, label)
         deltas = deltas.reshape(deltas.shape[0], -1, 4)[positive, label[positive]]
-        box_loss = F.smooth_l1_loss(deltas, torch.cat(box_targets)[positive], beta=1 / 9, reduction="sum")
-        box_loss = box_loss / max(1, label.numel())
-        mask_rois = rois[positive]
-        mask_logits = self.mask_head(self._pool(levels[:4], strides[:4], mask_rois, s.mask_pool))
+        box_loss = F.smooth_l1_loss(deltas, box_targets[positive], beta=1 / 9, reduction="sum") / max(1, label.numel())
+        mask_logits = self.mask_head(self._pool(levels[:4], strides[:4], rois[positive], s.mask_pool))
         size = mask_logits.shape[-1]
-        cut = []
-        for i, (gt, lab, target) in enumerate(zip(matched, labels, targets)):
+        cut = []  # each positive's GT mask inside its proposal, at the mask head's size
+        for gt, lab, boxes, target in zip(matched, labels, sampled, targets):
             own = torch.where(lab > 0)[0]
-            boxes = torch.cat([gt[own, None].to(mask_rois), sampled[i][own]], dim=1)
-            cut.append(roi_align(target.masks[:, None], boxes, size, 1.0, s.sampling_ratio, s.aligned)[:, 0])
-        mask_targets = torch.cat(cut)
+            cut_rois = torch.cat([gt[own, None].to(boxes), boxes[own]], dim=1)
+            cut.append(roi_align(target.masks[:, None], cut_rois, size, 1.0, s.sampling_ratio, s.aligned)[:, 0])
         if positive.numel():
             mask_loss = F.binary_cross_entropy_with_logits(
-                mask_logits[torch.arange(positive.numel()), label[positive]], mask_targets)
+                mask_logits[torch.arange(positive.numel()), label[positive]], torch.cat(cut))
         else:
             mask_loss = mask_logits.sum() * 0
         return {"box_class": cls_loss, "box_regression": box_loss, "mask": mask_loss}
