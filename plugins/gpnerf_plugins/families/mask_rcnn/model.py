@@ -35,7 +35,7 @@ from gpnerf_core import (
 )
 from gpnerf_plugins.families.mask_rcnn.detector import LOSS_NAMES, DetectorSettings, MaskRCNN
 from gpnerf_plugins.families.mask_rcnn.roi_heads import Detections
-from gpnerf_plugins.families.mask_rcnn.targets import paste_masks, slot_logits, targets_from_ids
+from gpnerf_plugins.families.mask_rcnn.targets import InstanceTargets, paste_masks, slot_logits, targets_from_ids
 from gpnerf_plugins.families.mask_rcnn.torchvision_keys import FORMAT, is_torchvision, map_torchvision
 
 log = logging.getLogger(__name__)
@@ -98,7 +98,9 @@ class MaskRCNNFamily(ModelFamily):
 
     # ---- training ---------------------------------------------------------------------------------------------------
 
-    def _targets(self, view: TargetView):
+    def _targets(self, view: TargetView) -> InstanceTargets:
+        """The view's ground truth from its instance ids (every id one object); more ids than ``model.slots`` is said
+        once."""
         if view.instances is None:
             raise DataError(f"scene {view.scene!r} frame {view.frame}: no instance ids to train model=mask_rcnn on; "
                             "use a dataset with instance ids")
