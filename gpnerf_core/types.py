@@ -165,6 +165,8 @@ class TargetCamera:
         c2w: ``[4, 4]`` camera-to-world pose (OpenCV).
         height, width: image size in pixels.
         near, far: depth bounds in metres for ray sampling.
+        image: ``[H, W, 3]`` the target frame's real RGB in [0, 1], given only to a family that segments images
+            (``Capabilities.segments_image``: a 2D baseline) where a real frame exists (evaluation); None otherwise.
     """
 
     intrinsics: Tensor
@@ -173,6 +175,7 @@ class TargetCamera:
     width: int
     near: float
     far: float
+    image: Tensor | None = None
 
     @property
     def image_size(self) -> tuple[int, int]:

@@ -79,7 +79,13 @@ def test_a_part_is_chosen_and_sized_under_the_model(registry):
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
 def test_every_experiment_composes(registry, experiment):
     cfg = compose_with([f"+experiment={experiment}"])
-    assert cfg.loss is not None
+    own_terms = experiment.startswith("baselines/mask_rcnn")  # a 2D detector trains on its own terms: no loss set
+    assert (cfg.loss is None) == own_terms
+    if own_terms:
+        assert cfg.model.name == "mask_rcnn" and cfg.get("head") is None
+        backbones = {"baselines/mask_rcnn_swin_t": "swin_t", "baselines/mask_rcnn_torchvision": "resnet50"}
+        assert cfg.model.backbone == backbones.get(experiment, "resnet34")
+        return
     label_rendering_families = ("baselines/semantic_ray", "baselines/neuray", "baselines/mvsnerf",
                                 "baselines/semantic_nerf", "baselines/semantic_nerf_grid")
     assert (cfg.get("head") is None) == (experiment in ("baselines/gnt", "baselines/dm_nerf", "baselines/mvsplat",

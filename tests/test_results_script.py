@@ -64,7 +64,7 @@ def test_a_failed_run_fails_what_needs_it_and_stops_before_the_report(tmp_path):
 def test_an_unknown_stage_is_one_line_listing_the_known(tmp_path):
     result, journal = regenerate(tmp_path, "table4 tabel5")
     assert result.returncode == 2 and journal == []
-    assert result.stderr == "unknown stage 'tabel5' (known: table4 methods baselines grid gaussians samplers per_scene per_scene_gaussians gaussian_grouping layouts protocol stress instance finetune report records)\n"
+    assert result.stderr == "unknown stage 'tabel5' (known: table4 methods baselines grid gaussians samplers per_scene per_scene_gaussians gaussian_grouping mask_rcnn layouts protocol stress instance finetune report records)\n"
 
 
 def test_the_protocol_shares_its_gp_nerf_runs_with_the_layouts_curve(tmp_path):

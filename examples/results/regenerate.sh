@@ -35,6 +35,8 @@
 #   gaussian_grouping  the third-party Gaussian Grouping family (examples/gpnerf-gaussian-grouping, installed first)
 #             on layout_00 x seeds 0-2, 2000 steps, its instances against DM-NeRF and the instance head; its stress
 #             suite (not in the default stages)
+#   mask_rcnn Table 2's 2D rows: Mask R-CNN and its Swin-T variant (baselines/mask_rcnn, mask_rcnn_swin_t) fitted on
+#             layout_00 x seeds 0-2, 2000 steps each, scoring the real held-out frames (not in the default stages)
 #   stress    the stress suite of IDs 1 and 5 (3 seeds each), one process per method, merged   (needs table4's runs)
 #   instance  the instance head on layout_00 x seeds 0-2, and the connected-components baseline on ID 5's runs
 #   finetune  ID 5's three runs fine-tuned on the unseen layout (300 steps)                      (needs table4's runs)
@@ -64,7 +66,7 @@ PROTOCOL_FAMILIES=${PROTOCOL_FAMILIES:-semantic_ray neuray mvsnerf}  # the compa
 RECORDS=${RECORDS:-$(cd "$(dirname "$0")" && pwd)/records}
 POLL_SECONDS=${POLL_SECONDS:-10}
 RUNS="$WORK/runs"
-KNOWN="table4 methods baselines grid gaussians samplers per_scene per_scene_gaussians gaussian_grouping layouts protocol stress instance finetune report records"
+KNOWN="table4 methods baselines grid gaussians samplers per_scene per_scene_gaussians gaussian_grouping mask_rcnn layouts protocol stress instance finetune report records"
 for stage in $STAGES; do
   [[ " $KNOWN " == *" $stage "* ]] || { echo "unknown stage '$stage' (known: $KNOWN)" >&2; exit 2; }
 done
@@ -152,6 +154,12 @@ stage_jobs() {
       job stress_gaussian_grouping "gaussian_grouping_l0_s0,gaussian_grouping_l0_s1,gaussian_grouping_l0_s2" stress \
         "$RUNS"/gaussian_grouping_l0_s{0,1,2} --views-per-scene 1 --threads 1 --overwrite \
         --out "$WORK/stress/gaussian_grouping" ;;
+    mask_rcnn)
+      for s in 0 1 2; do
+        train_job "mask_rcnn_l0_s$s" $s +experiment=baselines/mask_rcnn "'dataset.scenes=[layout_00]'" eval.save_images=0
+        train_job "mask_rcnn_swin_t_l0_s$s" $s +experiment=baselines/mask_rcnn_swin_t "'dataset.scenes=[layout_00]'" \
+          eval.save_images=0
+      done ;;
     per_scene)
       for s in 0 1 2; do
         train_job "semantic_nerf_unseen_s$s" $s +experiment=baselines/semantic_nerf "'dataset.scenes=[unseen_00]'" \

@@ -61,6 +61,10 @@ class OpenedModel:
     fitted: FittedScenes | None
 
 
+RENDERING_COMMANDS = ("render", "view", "export", "label")
+"""Commands that render poses without a real image: a 2D model (``Capabilities.segments_image``) is refused by them."""
+
+
 def open_trained(
     trained: TrainedModel | None,
     overrides: Sequence[str] | None = None,
@@ -115,6 +119,9 @@ def open_trained(
     notes = restore_trained_settings(cfg, trained, own, command)
     resolved = start(cfg, validated=validated)
     components = build_components(cfg, classes=trained.classes)
+    if components.model.capabilities.segments_image and command in RENDERING_COMMANDS:
+        raise ConfigError(f"{command} renders novel views, and model={cfg.model.name} is a 2D model that segments a "
+                          "real image (Capabilities.segments_image); score its held-out frames with eval")
     fitted = fitted_scenes(cfg, components, trained)
     if not other_data:
         asked = OmegaConf.select(cfg, f"{command}.scene", default="")

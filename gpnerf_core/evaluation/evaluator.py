@@ -12,6 +12,8 @@ are the model's (``Components.classes``: a checkpoint's where the dataset has no
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import sys
 import time
 from dataclasses import dataclass, field
@@ -254,11 +256,15 @@ def _evaluate_view(
         )
     else:
         sources = None
+    camera = frames.camera(scene, target)
+    segments_image = model.capabilities.segments_image
+    if segments_image:  # a 2D model segments the real held-out image: the one place it is given one
+        camera = dataclasses.replace(camera, image=target.rgb.to(frames.device))
     started = time.perf_counter()
     where = f"scene {scene.name!r} frame {index}"
     try:
         prediction = model.predict(
-            frames.camera(scene, target),
+            camera,
             sources,
             stride=int(cfg.eval.render_stride),
             chunk_rays=int(cfg.eval.chunk_rays),
@@ -273,8 +279,11 @@ def _evaluate_view(
     seconds = time.perf_counter() - started
     gt_rgb = _area_downsample(target.rgb, prediction.stride)
     rendered_rgb = prediction.rgb.cpu()
-    quality = {M.PSNR_CLAMPED: M.psnr(rendered_rgb, gt_rgb), M.SSIM_GAUSSIAN11: M.ssim(rendered_rgb, gt_rgb)}
-    depth = M.depth_errors(prediction.depth.cpu(), target.depth)
+    if segments_image:  # renders no colour or depth: nothing to score (null in metrics.json, never a number)
+        quality, depth = {M.PSNR_CLAMPED: math.nan, M.SSIM_GAUSSIAN11: math.nan}, None
+    else:
+        quality = {M.PSNR_CLAMPED: M.psnr(rendered_rgb, gt_rgb), M.SSIM_GAUSSIAN11: M.ssim(rendered_rgb, gt_rgb)}
+        depth = M.depth_errors(prediction.depth.cpu(), target.depth)
     confusion = teacher_confusion = baseline_confusion = None
     instances = teacher_instances = instance_baseline = None
     instance_picture = None

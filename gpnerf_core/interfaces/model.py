@@ -268,6 +268,10 @@ class Capabilities:
         loss_terms: the names of its own loss terms (``hooks.loss_terms``), each weighted by
             ``model.loss_weights.<name>``.
         hooks: its ``FamilyHooks`` subclass (the default does nothing).
+        segments_image: a 2D model, not a renderer: ``predict`` segments the target's real image
+            (``TargetCamera.image``), which evaluation gives it and nothing else does; it renders no colour or depth
+            (evaluation scores none) and no novel pose (``render``, ``view`` refuse it). A per-scene 2D baseline (Mask
+            R-CNN) says True: its scores are a 2D segmenter's on the true image, like ``teacher_2d``, never a rendering.
     """
 
     generalizable: bool = True
@@ -282,6 +286,7 @@ class Capabilities:
     foreign_weights: bool = False
     loss_terms: tuple[str, ...] = ()
     hooks: type[FamilyHooks] = FamilyHooks
+    segments_image: bool = False
 
 
 class ModelFamily(nn.Module, ABC):
@@ -435,7 +440,7 @@ def capability_problems(family: type) -> list[str]:
     if not (isinstance(hooks, type) and issubclass(hooks, FamilyHooks)):
         return [f"{name}.capabilities.hooks is {hooks!r}, expected a subclass of gpnerf_core.FamilyHooks"]
     for flag in ("generalizable", "accepts_head", "changes_size", "gaussians", "teacher", "preview", "compiled",
-                 "foreign_weights"):
+                 "foreign_weights", "segments_image"):
         if not isinstance(getattr(caps, flag), bool):
             problems.append(f"{name}.capabilities.{flag} is {getattr(caps, flag)!r}, expected True or False")
     if not isinstance(caps.trains_on, TrainingBatch):
@@ -446,6 +451,9 @@ def capability_problems(family: type) -> list[str]:
     if caps.generalizable and caps.source_encoding is None:
         problems.append(f"{name} is generalizable but capabilities.source_encoding is None: a family that renders from "
                         "source views encodes them (SourceEncoding.PER_VIEW or SOURCE_SET)")
+    if caps.segments_image and caps.generalizable:
+        problems.append(f"{name} segments images (capabilities.segments_image) but is generalizable: a 2D model is "
+                        "fitted per scene and reads no source views (generalizable=False)")
     if not caps.generalizable and caps.source_encoding is not None:
         problems.append(f"{name} is per-scene (generalizable=False) but capabilities.source_encoding is "
                         f"{caps.source_encoding.value}: it encodes no sources (source_encoding=None)")

@@ -207,7 +207,7 @@ class Trainer:
         record: RunRecord,
         resume_from: TrainedModel | None = None,
     ) -> None:
-        if components.loss is None:
+        if components.loss is None and not components.model.capabilities.loss_terms:
             raise ConfigError("training needs a loss set: add +loss=<name> (e.g. +loss=dgs)")
         check_precision(cfg.train.precision)
         self.cfg = cfg
@@ -217,7 +217,8 @@ class Trainer:
         self.record = record
         self.model = components.model.to(self.device)
         self.classes = components.classes
-        self.loss = components.loss.to(self.device)
+        # None: the family trains on its own loss terms alone (a 2D detector's, computed where it samples its boxes)
+        self.loss = components.loss.to(self.device) if components.loss is not None else None
         self.ignore_index = components.dataset.ignore_index
         self.frames = FrameCache(components.dataset, self.device)
         capabilities = self.model.capabilities
@@ -298,7 +299,7 @@ class Trainer:
         batch = self.sampler.next_batch()
         with autocast(self.device, self.cfg.train.precision):
             output = self.model(
-                batch, semantics=self.loss.needs_semantics, sample_semantics=self.loss.needs_sample_semantics
+                batch, semantics=self._semantics, sample_semantics=self._sample_semantics
             )
             terms = self._loss_terms(batch, output) | self._family_terms(self._state(batch, output))
             total = sum(terms.values())
@@ -325,9 +326,9 @@ class Trainer:
         try:
             with autocast(self.device, self.cfg.train.precision):
                 output = self.wrapped(
-                    batch, semantics=self.loss.needs_semantics, sample_semantics=self.loss.needs_sample_semantics
+                    batch, semantics=self._semantics, sample_semantics=self._sample_semantics
                 )
-                check_step_output(self.model, batch, output, self.loss.needs_semantics, self._where("model"))
+                check_step_output(self.model, batch, output, self._semantics, self._where("model"))
                 with stage("loss"):
                     terms = self._loss_terms(batch, output)
                     family_terms = self._family_terms(self._state(batch, output))
@@ -402,8 +403,20 @@ class Trainer:
                 callback.run(state)
         return True
 
+    @property
+    def _semantics(self) -> bool:
+        """The loss set reads semantic outputs (False without a loss set)."""
+        return self.loss is not None and self.loss.needs_semantics
+
+    @property
+    def _sample_semantics(self) -> bool:
+        return self.loss is not None and self.loss.needs_sample_semantics
+
     def _loss_terms(self, batch: StepBatch, output: StepOutput) -> dict[str, Tensor]:
-        """Each term averaged over this process's target views (so DDP's mean over processes is the global mean)."""
+        """Each term averaged over this process's target views (so DDP's mean over processes is the global mean); none
+        without a loss set."""
+        if self.loss is None:
+            return {}
         per_view = [
             self.loss(loss_inputs(view, out, self.ignore_index)) for view, out in zip(batch.views, output.views)
         ]

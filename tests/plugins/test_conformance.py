@@ -19,6 +19,9 @@ SMALL = {
     "head/per_pixel": {"hidden_dim": 16},
     # the kit makes 3DGS's density control act within its steps itself (KIT_DENSITY)
     "model/semantic_3dgs": {"init_points": 300, "feature_dim": 4, "sh_degree": 1},
+    # anchors that fit the kit's 32 x 48 frames; narrow heads
+    "model/mask_rcnn": {"anchor_sizes": [4.0, 8.0, 16.0, 24.0, 32.0], "fpn_channels": 8, "box_hidden": 16,
+                        "mask_hidden": 8, "roi_batch_size_per_image": 16, "slots": 8},
 }
 
 

@@ -229,6 +229,12 @@ def check_forward(subject: Subject) -> None:
             outputs |= {f"view {index} {name}": tensor for name, tensor in found.items()}
         expect_finite(outputs, "in training mode")
         differentiable = {k: v for k, v in outputs.items() if not k.endswith((".depth", ".alpha"))}
+        if model.capabilities.segments_image and model.capabilities.loss_terms:
+            # a 2D model renders nothing to differentiate: what trains it is its own loss terms
+            state = TrainingState(step=0, total_steps=1, optimizer=None, batch=batch, outputs=result)
+            own = call("hooks.loss_terms after forward", model.hooks.loss_terms, state,
+                       frozenset(model.capabilities.loss_terms))
+            differentiable |= {f"loss term {name}": value for name, value in own.items()}
         scalar = total(differentiable)
         expect(isinstance(scalar, Tensor) and scalar.requires_grad, "no output of forward requires grad")
         call("backward of the sum of the outputs", scalar.backward)
@@ -245,6 +251,8 @@ def check_forward(subject: Subject) -> None:
 
 def _prediction(model: ModelFamily, stride: int) -> Prediction:
     camera, sources = model_view(sources=model.capabilities.generalizable)
+    if model.capabilities.segments_image:  # a 2D model segments the real image, which evaluation gives it
+        camera = dataclasses.replace(camera, image=model_scene().load_frame(1).rgb)
     what = f"predict(camera {camera.height}x{camera.width}, {'2 source views' if sources else 'no sources'}, stride={stride})"
     prediction = call(what, model.predict, camera, sources, stride=stride, chunk_rays=97)
     expect(isinstance(prediction, Prediction), f"{what} returned {type(prediction).__name__}, expected Prediction")

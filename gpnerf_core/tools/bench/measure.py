@@ -10,6 +10,7 @@ measurement killed for memory still says how far it got.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import statistics
 import subprocess
@@ -152,7 +153,10 @@ def view_renderer(cfg: Any, model: Any, frames: FrameCache, selector: Any, scene
     if model.capabilities.generalizable:
         chosen = choose_sources(selector, scene, index, int(cfg.model.num_source_views), None)
         sources = frames.source_views(scene, chosen)
-    camera = frames.camera(scene, frames.frame(scene, index))
+    frame = frames.frame(scene, index)
+    camera = frames.camera(scene, frame)
+    if model.capabilities.segments_image:  # a 2D model segments the real held-out image, as evaluation gives it
+        camera = dataclasses.replace(camera, image=frame.rgb.to(frames.device))
     stride, chunk = int(cfg.eval.render_stride), int(cfg.eval.chunk_rays)
     return lambda: model.predict(camera, sources, stride=stride, chunk_rays=chunk)
 

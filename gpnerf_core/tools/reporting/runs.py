@@ -495,7 +495,8 @@ def method_labels(groups: list[RowGroup]) -> list[str]:
     for group in groups:
         first = group.runs[0]
         head = (first.config.get("head") or {}).get("name")
-        loss = (first.config.get("loss") or {}).get("name", "no loss")
+        # without a loss set a run trained on its family's own terms alone (a 2D detector's)
+        loss = (first.config.get("loss") or {}).get("name", "own loss terms")
         switches = first.paper_switches()
         paper = PAPER_TABLE4.get(switches) if switches else None
         # The semantic field's variants are named by head and loss (Table 4's rows); another method's name says its head

@@ -9,6 +9,8 @@ from gpnerf_plugins.families.dm_nerf.build import build_dm_nerf
 from gpnerf_plugins.families.dm_nerf.config import DMNeRFConfig
 from gpnerf_plugins.families.gnt.build import build_gnt
 from gpnerf_plugins.families.gnt.config import GNTModelConfig
+from gpnerf_plugins.families.mask_rcnn.build import build_mask_rcnn
+from gpnerf_plugins.families.mask_rcnn.config import MaskRCNNConfig
 from gpnerf_plugins.families.mvsnerf.build import build_mvsnerf
 from gpnerf_plugins.families.mvsnerf.config import MVSNeRFConfig
 from gpnerf_plugins.families.mvsplat.build import build_mvsplat
@@ -40,6 +42,12 @@ def with_semantic_head(method: str) -> Callable[[Mapping[str, Any]], str]:
 def semantic_nerf_name(config: Mapping[str, Any]) -> str:
     """Semantic-NeRF; its hash-grid option (``model.field=grid``) is not the paper's network."""
     return "Semantic-NeRF grid" if (config.get("model") or {}).get("field", "mlp") == "grid" else "Semantic-NeRF"
+
+
+def mask_rcnn_name(config: Mapping[str, Any]) -> str:
+    """Mask R-CNN, or its Swin-T variant (``model.backbone=swin_t``): Table 2's "Mask R-CNN" and "Swin-T" rows."""
+    backbone = (config.get("model") or {}).get("backbone", "resnet34")
+    return "Mask R-CNN Swin-T (2D)" if backbone == "swin_t" else "Mask R-CNN (2D)"
 
 
 @hookimpl
@@ -102,5 +110,12 @@ def gpnerf_register_models() -> list[ComponentSpec]:
             DMNeRFConfig,
             "DM-NeRF, per scene: NeRF field + object field on detached features, sigmoid slots, instance AP",
             display_name="DM-NeRF",
+        ),
+        ComponentSpec(
+            "mask_rcnn",
+            build_mask_rcnn,
+            MaskRCNNConfig,
+            "Mask R-CNN, per scene, 2D: segments the real held-out image (ResNet-34 or Swin-T + FPN), instance AP",
+            display_name=mask_rcnn_name,
         ),
     ]
