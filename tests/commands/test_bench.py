@@ -180,9 +180,12 @@ def test_bench_takes_baseline_experiments_and_registered_families():
     from gpnerf_core.tools.bench.sizes import SIZES, checked_families, variant_overrides
 
     assert checked_families("mvsplat,semantic_ray") == ["mvsplat", "semantic_ray"]
-    with pytest.raises(ConfigError, match="the baseline experiments and the registered model families"):
+    with pytest.raises(ConfigError, match="the baseline experiments, the registered model families and the project's"):
         checked_families("mini")
     assert "+experiment=baselines/mvsplat" in variant_overrides(SIZES["demo"], "mvsplat", [])
+    # the project's own experiment (GP-NeRF's instance head): on the size's images and rays, without its semantic head
+    instance = variant_overrides(SIZES["demo"], "instance", [])
+    assert "+experiment=instance" in instance and "+head=unet" not in instance
 
 
 def test_a_per_scene_family_is_measured_with_its_preset_its_gaussians_and_no_flop_figure(tmp_path):

@@ -109,15 +109,24 @@ def registered_families() -> list[str]:
     return [name for name in get_registry().names("model") if name != default]
 
 
+def project_experiments() -> list[str]:
+    """The project's own experiments (``conf/experiment/<name>.yaml``: ``instance``, ``table4_id1``...): GP-NeRF with
+    another head or loss set, measured beside GP-NeRF as ``+experiment=<name>`` on the size's images, views and rays."""
+    from gpnerf_core.config.compose import config_dir
+
+    return sorted(p.stem for p in (Path(config_dir()) / "experiment").glob("*.yaml"))
+
+
 def checked_families(value: str) -> list[str]:
-    """``bench families=<a,b>``: each a compared method's experiment (``baselines/<name>``) or a registered model
-    family (a third party's, measured as ``model=<name>``), refused in one line when one is neither."""
+    """``bench families=<a,b>``: each a compared method's experiment (``baselines/<name>``), a registered model family
+    (a third party's, measured as ``model=<name>``) or one of the project's own experiments (``instance``), refused in
+    one line when one is none of them."""
     names = [n.strip() for n in value.split(",") if n.strip()]
-    known = sorted({*baseline_families(), *registered_families()})
+    known = sorted({*baseline_families(), *registered_families(), *project_experiments()})
     unknown = [n for n in names if n not in known]
     if not names or unknown:
         raise ConfigError(f"bench families={value!r}: expected some of {', '.join(known)} (comma-separated: the "
-                          "baseline experiments and the registered model families)")
+                          "baseline experiments, the registered model families and the project's experiments)")
     return names
 
 
@@ -153,7 +162,8 @@ def check_family_overrides(overrides: list[str]) -> None:
 def variant_overrides(size: Size, variant: str, overrides: list[str]) -> list[str]:
     """The overrides of ``variant`` at ``size``, the user's last (they win): ``gpnerf``, ``gnt_only``, a baseline
     family (its ``+experiment=baselines/<variant>`` on the size's common overrides: the same images, views and rays),
-    a registered family with a plugin's preset (``+experiment=<variant>``, ``plugin_experiment``), or another registered
+    a registered family with a plugin's preset or one of the project's experiments (``+experiment=<variant>``,
+    ``plugin_experiment``, ``project_experiments``), or another registered
     family (``model=<variant>`` and ``family_defaults``' loss set on them). A per-scene family is evaluated on its
     scene's held-out frames (``eval.splits=[train]``). The user's overrides a family does not take are left out for it
     (``dropped_overrides`` names them)."""
@@ -176,7 +186,7 @@ def family_common(size: Size, variant: str) -> tuple[str, ...]:
     """A family variant's overrides before the user's (the size's, its preset or model, its loss set and splits)."""
     if variant in baseline_families():  # the size's scale sizes the family as it sizes its own (scale/<scale>/<model>)
         common = (*size.common, f"+experiment=baselines/{variant}")
-    elif plugin_experiment(variant):
+    elif plugin_experiment(variant) or variant in project_experiments():
         common = (*size.common, f"+experiment={variant}")
     else:
         base = (*size.common, f"model={variant}")
