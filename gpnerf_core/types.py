@@ -508,6 +508,8 @@ class Prediction:
         logits: ``[1, K, H, W]`` per-pixel scores at the full image size (a head's on the rendered map, or label
             rendering's), or None.
         stride: pixels of the full image per rendered cell (h = H / stride).
+        features: ``[C, h, w]`` the rendered feature field: a feature provider's 2D features distilled into the model,
+            in the provider's own channels (decoded where the model keeps them compressed), or None (no feature field).
     """
 
     rgb: Tensor
@@ -515,16 +517,18 @@ class Prediction:
     semantic: Tensor | None
     logits: Tensor | None
     stride: int
+    features: Tensor | None = None
 
     def check_finite(self, owners: Mapping[str, str], where: str) -> None:
         """Raise NonFiniteError when an output holds NaN or Inf, naming the part that made it first.
 
         Args:
             owners: who made each output, by name (``colour``, ``depth``, ``semantic map``, ``logits``):
-                ``ModelFamily.output_owners``.
+                ``ModelFamily.output_owners``; ``feature field`` defaults to the model.
             where: the view, for the message (``scene 'x' frame 3``).
         """
-        parts = (("colour", self.rgb), ("depth", self.depth), ("semantic map", self.semantic), ("logits", self.logits))
+        parts = (("colour", self.rgb), ("depth", self.depth), ("semantic map", self.semantic), ("logits", self.logits),
+                 ("feature field", self.features))
         for output, value in parts:
             if value is not None and not all_finite(value):
                 owner = owners.get(output, "model")
