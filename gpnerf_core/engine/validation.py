@@ -329,8 +329,9 @@ def _require_instances(cfg: DictConfig, components: Components, scenes: list[str
         if scene.load_frame(first).instance is None:
             raise ConfigError(
                 f"dataset {cfg.dataset.name!r} has no instance ids (scene {name!r}, frame {first}), but "
-                f"{_scores_owner(cfg)} predicts instances; use a dataset with instance ids (embedded, replica_instance, "
-                f"replica with semantic_instance/ folders, scannet with instance-filt/ folders)"
+                f"{_scores_owner(cfg)} predicts instances; use a dataset with instance ids (dataset=embedded, "
+                f"dataset=replica_instance, dataset=replica with semantic_instance/ folders, dataset=scannet with "
+                f"instance-filt/ folders)"
             )
     slots = output.slots if output is not None else None
     if not training or not isinstance(slots, int):
