@@ -122,10 +122,11 @@ class FeatureCache:
         self.scene = dataset.load_scene(scene) if isinstance(scene, str) else scene
         self.batch = int(batch)
         self.device = torch.device(device) if device is not None else torch.device("cpu")
-        self.channels = int(provider.channels)
-        if self.channels < 1 or int(provider.stride) < 1:
-            raise PluginError(f"feature provider {self.name}: channels={provider.channels}, stride={provider.stride}; "
-                              "expected positive integers")
+        channels, stride = getattr(provider, "channels", None), getattr(provider, "stride", None)
+        if not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in (channels, stride)):
+            raise PluginError(f"feature provider {self.name}: channels={channels!r}, stride={stride!r}; expected "
+                              "positive integers (FeatureProvider's attributes)")
+        self.channels = int(channels)
         self.size = provider.feature_size(self.scene.height, self.scene.width)
         frame_bytes = self.channels * self.size[0] * self.size[1] * np.dtype(STORED_DTYPE).itemsize
         self.shard_frames = int(min(MAX_SHARD_FRAMES, max(1, SHARD_BYTES // frame_bytes)))
