@@ -81,10 +81,11 @@ def scene_identity(dataset: SceneDataset, scene: Scene) -> str:
     return digest.hexdigest()
 
 
-def cache_key(fingerprint: str, identity: str, height: int, width: int) -> str:
-    """The folder name of one (provider fingerprint, scene identity, frame size): 24 hex digits of a SHA-256."""
-    text = json.dumps({"format": FORMAT, "provider": fingerprint, "scene": identity, "size": [height, width]},
-                      sort_keys=True)
+def cache_key(fingerprint: str, identity: str, height: int, width: int, shard_frames: int) -> str:
+    """The folder name of one (provider fingerprint, scene identity, frame size) in one layout (``FORMAT``, frames per
+    shard): 24 hex digits of a SHA-256."""
+    text = json.dumps({"format": FORMAT, "provider": fingerprint, "scene": identity, "size": [height, width],
+                       "shard_frames": shard_frames}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:24]
 
 
@@ -132,7 +133,7 @@ class FeatureCache:
         self.shard_frames = int(min(MAX_SHARD_FRAMES, max(1, SHARD_BYTES // frame_bytes)))
         self.fingerprint = str(provider.fingerprint())
         self.identity = scene_identity(dataset, self.scene)
-        self.key = cache_key(self.fingerprint, self.identity, self.scene.height, self.scene.width)
+        self.key = cache_key(self.fingerprint, self.identity, self.scene.height, self.scene.width, self.shard_frames)
         self.folder = Path(root).expanduser() if root is not None else cache_root()
         self.folder = self.folder / self.key
         self.computed = 0
