@@ -187,10 +187,10 @@ class FeatureCache:
                     self._read_into(out, shard, positions, frames)
                     break
                 except CorruptShard as exc:
-                    self._discard(shard, str(exc))
                     if attempt:
                         raise DataError(f"{self.shard_path(shard)}: corrupt again right after it was written ({exc}); "
                                         f"the cache folder {self.folder} is not usable") from None
+                    self._discard(shard, str(exc))
         return out
 
     def _read_into(self, out: Tensor, shard: int, positions: list[int], frames: list[int]) -> None:
@@ -237,15 +237,19 @@ class FeatureCache:
         return array
 
     def _discard(self, shard: int, why: str) -> None:
-        """Say that shard ``shard`` is corrupt (one line naming its file), forget it and delete the file."""
+        """Shard ``shard`` was found corrupt: say so in one line naming its file, forget it and delete the file; unless
+        another process rewrote it (and its manifest entry) since this one read them, then only read it again."""
         path = self.shard_path(shard)
-        log.warning("corrupt feature cache shard %s (%s): deleted, computing it again", path, why)
+        judged = (self._manifest or {}).get("shards", {}).get(str(shard))
         self._open.pop(shard, None)
         with self._locked():
             manifest = self._load_manifest()
+            self._manifest = manifest
+            if manifest["shards"].get(str(shard)) != judged:
+                return  # rewritten meanwhile: the next read checks the new file against its new checksums
+            log.warning("corrupt feature cache shard %s (%s): deleted, computing it again", path, why)
             manifest["shards"].pop(str(shard), None)
             atomic_write_json(self.folder / MANIFEST, manifest)
-            self._manifest = manifest
             with contextlib.suppress(FileNotFoundError):
                 path.unlink()
 
