@@ -24,6 +24,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("data", ("gpnerf_core.data",)),
     ("registry", ("gpnerf_core.registry",)),
     ("config", ("gpnerf_core.config",)),
+    ("features", ("gpnerf_core.features",)),
     ("model", ("gpnerf_core.model",)),
     ("training", ("gpnerf_core.training",)),
     ("evaluation", ("gpnerf_core.evaluation",)),

@@ -1,0 +1,1 @@
+"""Feature providers' 2D features and the feature fields distilled from them (docs/features.md)."""
