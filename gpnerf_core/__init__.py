@@ -32,8 +32,8 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
         "MAX_FAR", "DatasetBase", "DatasetConfig", "check_depth_range", "check_image_size", "from_launch_dir",
     ),
     "gpnerf_core.interfaces": (
-        "DepthSource", "FeatureExtractor", "FieldAggregator", "ImportedWeights", "ImportsWeights", "LossSet",
-        "PerceptionHead", "RayAggregator", "StressCase", "ViewSelector",
+        "DepthSource", "FeatureExtractor", "FeatureProvider", "FieldAggregator", "ImportedWeights", "ImportsWeights",
+        "LossSet", "PerceptionHead", "RayAggregator", "StressCase", "ViewSelector",
     ),
     "gpnerf_core.interfaces.stress": ("ChooseSources",),
     "gpnerf_core.interfaces.head": ("Predicts",),
@@ -101,6 +101,8 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     "gpnerf_core.runtime.profiling": ("stage",),
     "gpnerf_core.runtime.device": ("checked_compile_backend",),
     "gpnerf_core.evaluation.instances": ("hungarian", "instance_masks"),
+    # a feature provider's per-frame features, through the on-disk cache
+    "gpnerf_core.features": ("FeatureCache", "build_feature_provider", "frame_features"),
     # composing and building from a script or notebook
     "gpnerf_core.config.compose": ("compose",),
     "gpnerf_core.model.build": ("build_components",),
@@ -233,6 +235,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
     from gpnerf_core.interfaces import (
         DepthSource,
         FeatureExtractor,
+        FeatureProvider,
         FieldAggregator,
         ImportedWeights,
         ImportsWeights,
@@ -259,6 +262,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
     from gpnerf_core.geometry.gaussians.rows import resize_parameter
     from gpnerf_core.interfaces.stress import ChooseSources
     from gpnerf_core.model.build import build_components
+    from gpnerf_core.features import FeatureCache, build_feature_provider, frame_features
     from gpnerf_core.registry.components import get_registry
     from gpnerf_core.registry.hookspecs import hookimpl
     from gpnerf_core.registry.declarations import (
