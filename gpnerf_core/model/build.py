@@ -12,7 +12,7 @@ from gpnerf_core.data.dataset import SceneDataset
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.features.build import build_feature_provider
 from gpnerf_core.features.cache import frame_features
-from gpnerf_core.features.field import FeatureField, FeatureFieldOptions
+from gpnerf_core.features.field import FeatureField, FeatureFieldOptions, quiet_rng
 from gpnerf_core.interfaces import LossSet, PerceptionHead, ViewSelector
 from gpnerf_core.interfaces.head import Predicts
 from gpnerf_core.interfaces.model import ModelFamily, ModelParts
@@ -122,7 +122,8 @@ class ConfiguredParts(ModelParts):
         if provider_cfg is None:
             return None
         if self.built_feature_field is None:
-            provider = build_feature_provider(self._cfg, self._registry)
+            with quiet_rng():  # a provider's layers draw nothing the model's own would have drawn
+                provider = build_feature_provider(self._cfg, self._registry)
             self.built_feature_field = FeatureField(
                 provider, FeatureFieldOptions.from_config(self._cfg.get("features")),
                 name=str(provider_cfg.get("name")), dataset=self._dataset, reader=frame_features)
