@@ -44,9 +44,9 @@ class FeatureFieldOptions:
     loss: str = "cosine"
     weight: float = 1.0
     channels: int = 16
-    autoencoder_steps: int = 300
-    autoencoder_hidden: int = 64
-    autoencoder_lr: float = 1e-3
+    autoencoder_steps: int = 1000
+    autoencoder_hidden: int = 128
+    autoencoder_lr: float = 2e-3
     autoencoder_samples: int = 65536
 
     @classmethod
