@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from omegaconf import OmegaConf
 
 from gpnerf_core import (
     ConfigError, DataError, DefaultStrategy, FeatureAutoencoder, FeatureField, FeatureFieldOptions, TargetView,
@@ -21,10 +22,12 @@ from gpnerf_core.evaluation import metrics as M
 from gpnerf_core.evaluation.evaluator import evaluate
 from gpnerf_core.features.field import distillation_term, view_term
 from gpnerf_core.model.build import build_components
+from gpnerf_core.model.checkpoint import RunRecord
 from gpnerf_core.registry.components import get_registry
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.testing.inputs import kit_parts, model_scene, model_view
 from gpnerf_core.training.optimizer import make_optimizer
+from gpnerf_core.training.trainer import Trainer
 from pipeline_check import KIT_PARTS, TINY_MODEL, TINY_SCENES, make_trainer
 
 
@@ -62,11 +65,11 @@ def plane_field(provided: int = 6, stride: int = 4, colour: bool = True, **optio
 
 def test_the_autoencoder_gives_low_rank_features_back_and_keeps_its_error():
     generator = torch.Generator().manual_seed(0)
-    features = torch.randn(1024, 4, generator=generator) @ torch.randn(4, 32, generator=generator)  # rank 4 in 32
+    features = torch.randn(512, 4, generator=generator) @ torch.randn(4, 32, generator=generator)  # rank 4 in 32
     codec = FeatureAutoencoder(32, 8, hidden=64)
     assert not any(p.requires_grad for p in codec.parameters())  # never trained with the model
     assert codec.reconstruction() is None
-    error = codec.fit(features, steps=150, lr=3e-3)
+    error = codec.fit(features, steps=100, lr=3e-3)
     assert error.cosine > 0.99 and error.relative_l2 < 0.1, error
     assert not any(p.requires_grad for p in codec.parameters()) and bool(codec.fitted)
     again = FeatureAutoencoder(32, 8, hidden=64)
@@ -270,3 +273,29 @@ def test_maps_of_another_channel_count_are_refused_naming_the_provider():
     with pytest.raises(DataError, match=r"feature provider 'plane' gave maps \[1, 6, 8, 12\] for 1 image\(s\); "
                                         r"expected \[1, 5, h, w\]"):
         field.maps(None, None, torch.zeros(1, 3, 32, 48))
+
+
+def field_trainer(cfg, run_dir) -> Trainer:
+    """A Trainer whose run record names the model's sections, as ``run`` writes it (the field's among them)."""
+    components = build_components(cfg)
+    record = RunRecord(config_yaml=OmegaConf.to_yaml(cfg, resolve=True), overrides=(), components={},
+                       model_sections=components.model_sections)
+    return Trainer(cfg, components, dist=Distributed.single(), run_dir=run_dir, record=record)
+
+
+def test_a_run_with_a_field_resumes_bit_for_bit_and_refuses_other_field_settings(cache):
+    overrides = [*SPLAT, "+feature_provider=xfeat", "features.autoencoder_steps=20", "train.steps=4",
+                 "train.checkpoint_every=2"]
+    cfg = compose(overrides)
+    torch.manual_seed(0)
+    straight = field_trainer(cfg, cache / "straight")
+    assert straight.record.model_sections[-2:] == ("feature_provider", "features")
+    straight.fit(progress=False)
+    middle = cache / "straight" / "checkpoints" / "step_0000002.pt"
+    resumed = field_trainer(compose([*overrides, f"train.resume={middle}"]), cache / "resumed")
+    assert bool(resumed.model.feature_codec.fitted)  # the checkpoint's autoencoder, not fitted again
+    resumed.fit(progress=False)
+    assert resumed.history[-1]["feature_field"] == straight.history[-1]["feature_field"]
+    assert resumed.history[-1]["loss"] == straight.history[-1]["loss"]
+    with pytest.raises(ConfigError, match=r"another model or loss config \(features.channels: 16 -> 8\)"):
+        field_trainer(compose([*overrides, f"train.resume={middle}", "features.channels=8"]), cache / "other")
