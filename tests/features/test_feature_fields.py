@@ -14,7 +14,7 @@ from omegaconf import OmegaConf
 
 from gpnerf_core import (
     ConfigError, DataError, DefaultStrategy, FeatureAutoencoder, FeatureField, FeatureFieldOptions, TargetView,
-    at_pixels, lift_to_pixels, to_grid,
+    at_pixels, lift_to_pixels, project_points, to_grid,
 )
 from gpnerf_core.config.compose import compose
 from gpnerf_core.engine.validation import validate_config
@@ -157,6 +157,24 @@ def test_semantic_3dgs_renders_the_field_beside_its_semantics_and_densification_
     scene = model.scene_gaussians(None, near=0.1, far=5.0)
     assert torch.allclose(scene.feature_field, model.feature_codec.decode(column), atol=1e-6)
     assert scene.subset(torch.arange(3)).feature_field.shape == (3, 20)
+
+
+def test_semantic_3dgs_starts_each_gaussians_field_from_the_first_frame_that_sees_it():
+    field = plane_field(provided=6, stride=4, colour=False)  # 6 channels: carried as they are
+    model = small_3dgs(field)
+    scene = model_scene()
+    model.hooks.initialise(scene)
+    assert model.feature_codec is None and model.gaussians.feature_field.shape[1] == 6
+    frame = scene.load_frame(scene.train_frames[0])
+    means = model.gaussians.means.detach()
+    pixels, depth = project_points(means, frame.intrinsics[None], frame.c2w[None])
+    u, v = pixels[0, :, 0], pixels[0, :, 1]
+    inside = (depth[0] > 0) & (u >= 1.5) & (u <= frame.width - 2.5) & (v >= 1.5) & (v <= frame.height - 2.5)
+    surface = frame.depth[v.round().long().clamp(0, frame.height - 1), u.round().long().clamp(0, frame.width - 1)]
+    seen = inside & ((depth[0] - surface).abs() <= 0.05 * surface + 0.01)
+    assert int(seen.sum()) > 20
+    expected = torch.einsum("cd,nd->nc", field.provider.coefficients, torch.stack([u, v, torch.ones_like(u)], -1))
+    assert torch.allclose(model.gaussians.feature_field[seen], expected[seen], atol=1e-3)
 
 
 def test_mvsplat_lifts_each_gaussians_feature_from_its_source_pixel():
