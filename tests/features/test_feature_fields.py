@@ -13,7 +13,8 @@ import torch.nn.functional as F
 from omegaconf import OmegaConf
 
 from gpnerf_core import (
-    ConfigError, DataError, DefaultStrategy, FeatureAutoencoder, FeatureField, FeatureFieldOptions, TargetView,
+    ConfigError, DataError, DefaultStrategy, FeatureAutoencoder, FeatureField, FeatureFieldOptions, StepBatch,
+    TargetView,
     at_pixels, lift_to_pixels, project_points, to_grid,
 )
 from gpnerf_core.config.compose import compose
@@ -111,17 +112,17 @@ def test_pixels_sample_the_map_where_they_lie_and_renders_pool_to_its_cells():
 
 # ---- the families ------------------------------------------------------------------------------------------------
 
-def small_3dgs(field: FeatureField):
+def small_3dgs(field: FeatureField, **extra):
     parts = kit_parts(get_registry(), "semantic_3dgs", head=False, parts=KIT_PARTS)
     parts.feature_field = lambda: field
     options = {"name": "semantic_3dgs", "init_points": 300, "feature_dim": 4, "sh_degree": 1,
-               "schedule_steps": 2000}
+               "schedule_steps": 2000, **extra}
     return get_registry().build("model", options, parts=parts)
 
 
 def test_semantic_3dgs_renders_the_field_beside_its_semantics_and_densification_carries_the_column():
     field = plane_field(provided=20, channels=8, autoencoder_steps=50)
-    model = small_3dgs(field)
+    model = small_3dgs(field, feature_stride=2)  # the semantic map on its own grid: a second rasterization
     model.hooks.initialise(model_scene())  # the autoencoder first (20 -> 8), then the Gaussians
     assert bool(model.feature_codec.fitted) and field.autoencoder is model.feature_codec
     gaussians = model.gaussians
@@ -151,6 +152,11 @@ def test_semantic_3dgs_renders_the_field_beside_its_semantics_and_densification_
     assert any(p is column for group in optimizer.param_groups for p in group["params"])
     assert optimizer.state[column]["exp_avg"].shape == (gaussians.size, 8)
     camera, _ = model_view()
+    view = TargetView(scene="s", frame=0, camera=camera, image=torch.rand(3, 32, 48), depth=torch.ones(32, 48),
+                      labels=torch.zeros(32, 48, dtype=torch.long), sources=None, pixels=None, render_seed=1,
+                      whole_image=True)
+    output = model(StepBatch((view,)), semantics=True).views[0]
+    assert output.features.shape == (1, 20, 32, 48) and output.scores.shape == (1, 3, 32, 48)
     model.eval()
     prediction = model.predict(camera, None, stride=2, chunk_rays=0)
     assert prediction.features.shape == (20, 16, 24) and prediction.logits is not None  # both: field and classes
