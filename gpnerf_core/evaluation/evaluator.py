@@ -33,6 +33,7 @@ from gpnerf_core.evaluation import metrics as M
 from gpnerf_core.evaluation import pictures as P
 from gpnerf_core.evaluation import visualize as vis
 from gpnerf_core.data.frames import FrameCache, choose_sources
+from gpnerf_core.features.field import image_cosine
 from gpnerf_core.registry.kinds import KINDS, section
 from gpnerf_core.runtime.io import atomic_save_png
 from gpnerf_core.interfaces.head import Predicts
@@ -83,6 +84,9 @@ class ViewRecord:
     depth: dict[str, float] | None = None
     references: bool = False
     """The class references (majority class, the 2D reference where the model has one) were scored on this view."""
+    feature_cosine: float | None = None
+    """:data:`metrics.FEATURE_COSINE` of this view (the rendered feature field against the provider's features of the
+    real frame), or None without a feature field."""
 
 
 def predicts(components: Components) -> Predicts | None:
@@ -167,8 +171,11 @@ def evaluate(
             _write_pictures(run_dir / "images" / label, records)
         results[label] = summarize(records, components.classes.num_classes, dataset.ignore_index, semantics,
                                    float(memory), instance_head=instance_head)
+    field = components.feature_field
+    compression = field.autoencoder.reconstruction() if field is not None and field.autoencoder is not None else None
     return {
         "eval": results,
+        **({"feature_compression": compression.as_metrics()} if compression is not None else {}),
         "baseline_class": None if baseline_class is None else components.classes.names[baseline_class],
         "lpips": M.lpips_vgg_status(),
         "eval_world_size": dist.world_size,
@@ -272,6 +279,11 @@ def _evaluate_view(
     except NonFiniteError as exc:  # a component's output check (registry.guards) names the component, not the view
         raise NonFiniteError(f"{where}: {exc}; nothing was scored") from None
     prediction.check_finite(model.hooks.output_owners(component_names(cfg)), where)
+    feature_cosine = None
+    if prediction.features is not None and components.feature_field is not None:
+        image = target.rgb.permute(2, 0, 1)[None].to(frames.device)
+        provided = components.feature_field.maps(scene.name, [index], image)
+        feature_cosine = image_cosine(prediction.features, provided[0])
     instance_head = predicts(components) is Predicts.INSTANCES
     classes = None
     if prediction.logits is not None and not instance_head:
@@ -337,6 +349,7 @@ def _evaluate_view(
         labelled=labelled,
         depth=depth,
         references=scored_references,
+        feature_cosine=feature_cosine,
     )
 
 
@@ -380,6 +393,11 @@ def summarize(
             baseline.add_confusion(record.baseline_confusion, group=record.scene)
     result: dict[str, Any] = dict(quality.compute())
     result.update(depth.compute())
+    fidelity = M.FeatureAccumulator()
+    for record in records:
+        if record.feature_cosine is not None:
+            fidelity.add(record.feature_cosine, group=record.scene)
+    result.update(fidelity.compute())
     unlabelled = list(dict.fromkeys(r.scene for r in records if not r.labelled))
     if not any(r.labelled for r in records):
         if semantics or instance_head:
@@ -509,6 +527,8 @@ def print_summary(metrics: dict[str, Any], run_dir: Path) -> None:
         else:
             parts += _label_parts(values)
         parts.append(f"| PSNR {_fmt(values.get(M.PSNR_CLAMPED), 2)} SSIM {_fmt(values.get(M.SSIM_GAUSSIAN11))}")
+        if M.FEATURE_COSINE in values:
+            parts.append(f"| feature field cosine {_fmt(values.get(M.FEATURE_COSINE))}")
         timing = values.get("timing", {})
         parts.append(f"| {timing.get('seconds_per_frame', float('nan')):.2f} s/frame")
         lines.append(" ".join(parts))

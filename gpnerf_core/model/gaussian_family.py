@@ -20,6 +20,8 @@ import torch
 from torch import Tensor, nn
 
 from gpnerf_core.errors import ConfigError, DataError, NonFiniteError
+from gpnerf_core.features.field import at_pixels
+from gpnerf_core.geometry.projection import project_points
 from gpnerf_core.geometry.gaussians.density import ViewInfo, scaled_step
 from gpnerf_core.geometry.gaussians.harmonics import colour_to_dc, sh_colours
 from gpnerf_core.geometry.gaussians.initialisation import neighbour_scales, scene_extent, starting_points
@@ -46,6 +48,9 @@ BASE_ROWS: dict[str, str] = {
 (``GaussianFamily.row_groups``)."""
 INFO = "raster"
 """``ImageOutput.extras`` key of what the rasterizer reported of a training view (``ViewInfo``)."""
+FIELD_CHANNEL = "feature_field"
+"""The per-Gaussian channel of a feature field (``+feature_provider``): the provider's channels, or the autoencoder's
+codes where they are compressed; its learning-rate group has the same name (``model.lr.feature_field``)."""
 
 
 def rasterized(state: TrainingState) -> list[ViewInfo]:
@@ -65,6 +70,9 @@ class GaussianHooks(FamilyHooks):
         weights were loaded already."""
         family = self.family
         gaussians, setup = family.gaussians, family.setup
+        codec = getattr(family, "feature_codec", None)
+        if codec is not None and not bool(codec.fitted):  # LangSplat: the compression first, on the training frames
+            family.feature_source.fit_autoencoder(codec, scene)
         if gaussians.size:
             return
         if getattr(family, "start", None) is not None:
@@ -77,9 +85,13 @@ class GaussianHooks(FamilyHooks):
         rows = rows_from_points(points.xyz, points.rgb, neighbour_scales(points.xyz), sh_degree=gaussians.sh_degree,
                                 opacity=setup.init_opacity)
         for name, width in gaussians.channels.items():
+            if name == FIELD_CHANNEL:  # lifted from the frames below (no draw: the global RNG as without a field)
+                rows[name] = torch.zeros(points.count, width)
+                continue
             rows[name] = colour_to_dc(torch.rand(points.count, width))
         gaussians.set_rows({name: value.to(gaussians.means.device) for name, value in rows.items()})
         gaussians.extent.fill_(scene_extent(scene))
+        family.start_feature_field(scene)
 
     def initialise_from_start(self, scene: Scene) -> None:
         """The Gaussians and decoder from ``family.start`` (``generalized_start.begin_from_start``), its notes said
@@ -98,6 +110,7 @@ class GaussianHooks(FamilyHooks):
                 start = dataclasses.replace(start, gaussians=kept, notes=(*start.notes, note))
         for note in begin_from_start(family, start, family.start_classes):
             print(f"note: {note}", file=sys.stderr)
+        family.start_feature_field(scene)
 
     def resize_to(self, weights: Mapping[str, Tensor], source: str) -> None:
         self.family.gaussians.take_sizes(weights, "gaussians.", source)
@@ -172,6 +185,11 @@ class GaussianFamily(ModelFamily):
         channels: the family's per-Gaussian channels, by name (a width 0 keeps the name with no channel).
         setup: the checked options (``gaussian_setup`` of the family's ``GaussianSceneConfig``).
         head: the ``+head`` decoding the rendered channels, or None.
+        feature_field: the configured feature provider (``ModelParts.feature_field``), or None: with one, each
+            Gaussian also carries the channel ``feature_field`` (``FIELD_CHANNEL``: the provider's channels, or
+            ``features.channels`` autoencoder codes, ``feature_codec``, fitted on the scene's training frames before
+            the Gaussians start), rasterized with the others and decoded to the provider's channels
+            (``field_map``, ``field_rows``).
     """
 
     name: ClassVar[str] = "gaussians"
@@ -183,10 +201,15 @@ class GaussianFamily(ModelFamily):
                                 changes_size=True, gaussians=True, hooks=GaussianHooks)
 
     def __init__(self, *, channels: Mapping[str, int], setup: GaussianSetup,
-                 head: PerceptionHead | None = None) -> None:
+                 head: PerceptionHead | None = None, feature_field: Any = None) -> None:
         super().__init__()
         self.head = head
-        self.gaussians = GaussianParameters(setup.sh_degree, dict(channels))
+        channels = dict(channels)
+        self.feature_source = feature_field  # a plain object (the provider is not a submodule: never saved)
+        if feature_field is not None:
+            channels[FIELD_CHANNEL] = int(feature_field.carried)
+        self.feature_codec = feature_field.make_autoencoder() if feature_field is not None else None
+        self.gaussians = GaussianParameters(setup.sh_degree, channels)
         self.setup = setup
         self.empty_source: str | None = None  # the checkpoint that gave it 0 Gaussians, named when it renders
         self.schedule_noted = False  # the strategy's schedule note is printed once per run
@@ -241,6 +264,68 @@ class GaussianFamily(ModelFamily):
         channel_map = out.features[..., 3:] if features.shape[1] > 3 else None
         info = ViewInfo(means2d=out.means2d, radii=out.radii, height=height, width=width)
         return out.features[..., :3], depth, out.alpha, channel_map, info
+
+    def split_channels(self, channel_map: Tensor) -> dict[str, Tensor]:
+        """``render``'s ``[h, w, C]`` channel map cut into each channel's ``[h, w, width]`` (in ``channels`` order)."""
+        parts, start = {}, 0
+        for name, width in self.gaussians.channels.items():
+            parts[name] = channel_map[..., start:start + width]
+            start += width
+        return parts
+
+    def decode_field(self, codes: Tensor) -> Tensor:
+        """``[..., k]`` feature-field codes -> ``[..., C]`` the provider's channels (``feature_codec``'s decoder; the
+        codes themselves without compression)."""
+        return self.feature_codec.decode(codes) if self.feature_codec is not None else codes
+
+    def field_map(self, channel_map: Tensor) -> Tensor | None:
+        """``[1, C, h, w]`` the feature field of ``render``'s channel map, decoded; None without a field."""
+        if self.feature_source is None:
+            return None
+        return self.decode_field(self.split_channels(channel_map)[FIELD_CHANNEL]).permute(2, 0, 1)[None]
+
+    def field_rows(self) -> Tensor | None:
+        """``[G, C]`` each Gaussian's feature-field vector in the provider's channels (decoded); None without a
+        field (``GaussianScene.feature_field``)."""
+        if self.feature_source is None:
+            return None
+        return self.decode_field(getattr(self.gaussians, FIELD_CHANNEL))
+
+    @torch.no_grad()
+    def start_feature_field(self, scene: Scene) -> None:
+        """Start each Gaussian's feature-field channel from the provider's features (nothing without a field): the
+        feature of the first training frame that sees its centre (in front of the camera, inside the image, and within
+        5 % + 1 cm of the frame's depth where it has one), sampled bilinearly at its projection
+        (``gpnerf_core.at_pixels``), encoded to codes where compressed; a Gaussian no frame sees takes the mean of the
+        others. A start this close leaves the distillation the details to fit, not the whole field from noise."""
+        field = self.feature_source
+        if field is None or not self.gaussians.size:
+            return
+        means = self.gaussians.means.detach()
+        lifted = means.new_zeros(means.shape[0], field.channels)
+        found = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
+        for index in scene.train_frames:
+            frame = scene.load_frame(index)
+            height, width = frame.height, frame.width
+            pixels, depth = project_points(means, frame.intrinsics[None].to(means), frame.c2w[None].to(means))
+            pixels, depth = pixels[0], depth[0]
+            seen = (~found & (depth > 1e-3) & (pixels[:, 0] > -0.5) & (pixels[:, 0] < width - 0.5)
+                    & (pixels[:, 1] > -0.5) & (pixels[:, 1] < height - 0.5))
+            rows = pixels[:, 1].round().clamp(0, height - 1).long()
+            cols = pixels[:, 0].round().clamp(0, width - 1).long()
+            surface = frame.depth.to(means)[rows, cols]
+            seen &= (surface <= 0) | ((depth - surface).abs() <= 0.05 * surface + 0.01)
+            if not bool(seen.any()):
+                continue
+            maps = field.maps(scene.name, [index], frame.rgb.permute(2, 0, 1)[None].to(means))
+            lifted[seen] = at_pixels(maps, pixels[seen], (height, width))
+            found |= seen
+            if bool(found.all()):
+                break
+        if bool(found.any()) and not bool(found.all()):
+            lifted[~found] = lifted[found].mean(dim=0)
+        codes = self.feature_codec.encode(lifted) if self.feature_codec is not None else lifted
+        getattr(self.gaussians, FIELD_CHANNEL).copy_(codes)
 
     def render_view(self, camera: TargetCamera, *, channels: bool) -> tuple[ImageOutput, Tensor | None]:
         """A training view rendered whole: ``ImageOutput`` with ``rgb``, ``depth``, ``alpha`` and, in training mode,

@@ -28,6 +28,7 @@ from gpnerf_core.runtime.device import autocast, check_precision, peak_memory_mb
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError, NonFiniteError, PluginError
 from gpnerf_core.data.frames import FrameCache
+from gpnerf_core.features.field import TERM as FEATURE_TERM, distillation_term
 from gpnerf_core.runtime.profiling import stage
 from gpnerf_core.model.output_checks import check_step_output
 from gpnerf_core.model.checkpoint import RunRecord, check_resume_config, checkpoint_sections, save_checkpoint
@@ -239,6 +240,8 @@ class Trainer:
         if capabilities.changes_size:
             _check_size_changes(cfg.model.name, decay, dist.world_size)
         self.term_weights = family_term_weights(str(cfg.model.name), self.model, cfg.model.get("loss_weights"))
+        self.feature_field = components.feature_field
+        """The feature provider the model's feature field is distilled from (``+feature_provider``), or None."""
         if not capabilities.generalizable and not cfg.train.resume:
             with stage("model initialisation"):
                 self.model.hooks.initialise(self.frames.scene(self.sampler.scene_names[0]))
@@ -301,7 +304,8 @@ class Trainer:
             output = self.model(
                 batch, semantics=self._semantics, sample_semantics=self._sample_semantics
             )
-            terms = self._loss_terms(batch, output) | self._family_terms(self._state(batch, output))
+            terms = (self._loss_terms(batch, output) | self._family_terms(self._state(batch, output))
+                     | self._feature_terms(batch, output))
             total = sum(terms.values())
         total.backward()
         unused = [name for name, p in self.model.named_parameters() if p.requires_grad and p.grad is None]
@@ -331,7 +335,7 @@ class Trainer:
                 check_step_output(self.model, batch, output, self._semantics, self._where("model"))
                 with stage("loss"):
                     terms = self._loss_terms(batch, output)
-                    family_terms = self._family_terms(self._state(batch, output))
+                    family_terms = self._family_terms(self._state(batch, output)) | self._feature_terms(batch, output)
         except NonFiniteError as exc:  # a component's output (registry.guards), named where it was made
             self._stop_everywhere(f"{exc} ({_views(batch)})")
         stop_signal = self._check_and_agree(terms, family_terms, batch, stop, output)
@@ -445,6 +449,16 @@ class Trainer:
             weighted[name] = weight * value.reshape(()).float()
         return weighted
 
+    def _feature_terms(self, batch: StepBatch, output: StepOutput) -> dict[str, Tensor]:
+        """The feature-field distillation term of this step (``train/feature_field``: ``features.weight`` times
+        ``gpnerf_core.features.field.distillation_term``); none without ``+feature_provider``, with a weight of 0, or
+        when the family rendered no field this step."""
+        field = self.feature_field
+        if field is None or not field.options.weight:
+            return {}
+        term = distillation_term(field, batch, output)
+        return {} if term is None else {FEATURE_TERM: float(field.options.weight) * term.reshape(()).float()}
+
     def _check_and_agree(
         self, terms: dict[str, Tensor], family_terms: dict[str, Tensor], batch: StepBatch, stop: StopRequest | None,
         output: StepOutput,
@@ -497,13 +511,13 @@ class Trainer:
             inputs = loss_inputs(view, out, self.ignore_index)
             if isinstance(inputs, ImageLossInputs):
                 named = {f"image.{f}": getattr(inputs.output, f) for f in (
-                    "rgb", "depth", "alpha", "scores", "semantic", "teacher_map", "logits")}
+                    "rgb", "depth", "alpha", "scores", "semantic", "teacher_map", "logits", "features")}
             else:
                 named = {"logits": inputs.logits, "teacher_at_rays": inputs.teacher_at_rays}
                 for rays_name, rays in (("coarse", inputs.coarse), ("fine", inputs.fine)):
                     if isinstance(rays, RenderedRays):
                         named |= {f"{rays_name}.{f}": getattr(rays, f, None)
-                                  for f in ("rgb", "depth", "semantic", "sample_semantic", "logits")}
+                                  for f in ("rgb", "depth", "semantic", "sample_semantic", "logits", "features")}
             fields += [name for name, value in named.items() if isinstance(value, Tensor) and value.is_floating_point()
                        and not all_finite(value.detach()) and name not in fields]
         if not fields:
