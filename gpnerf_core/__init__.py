@@ -97,6 +97,11 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     "gpnerf_core.runtime.profiling": ("stage",),
     "gpnerf_core.runtime.device": ("checked_compile_backend",),
     "gpnerf_core.evaluation.instances": ("hungarian", "instance_masks"),
+    # queries against features (by example, by embedding, by prototype) and their selections as PLY
+    "gpnerf_core.features.queries": (
+        "class_prototypes", "example_embedding", "nearest_prototype", "select_gaussians", "similarity_map",
+        "write_gaussian_selection", "write_point_selection",
+    ),
     # composing and building from a script or notebook
     "gpnerf_core.config.compose": ("compose",),
     "gpnerf_core.model.build": ("build_components",),
@@ -144,6 +149,15 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
     )
     from gpnerf_core.errors import ConfigError, DataError, GpnerfError, NonFiniteError, PluginError
     from gpnerf_core.evaluation.instances import hungarian, instance_masks
+    from gpnerf_core.features.queries import (
+        class_prototypes,
+        example_embedding,
+        nearest_prototype,
+        select_gaussians,
+        similarity_map,
+        write_gaussian_selection,
+        write_point_selection,
+    )
     from gpnerf_core.geometry import (
         EXPECTED_RIGID,
         Projector,
