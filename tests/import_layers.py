@@ -25,6 +25,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("registry", ("gpnerf_core.registry",)),
     ("config", ("gpnerf_core.config",)),
     ("model", ("gpnerf_core.model",)),
+    ("features", ("gpnerf_core.features",)),
     ("training", ("gpnerf_core.training",)),
     ("evaluation", ("gpnerf_core.evaluation",)),
     ("engine", ("gpnerf_core.engine",)),

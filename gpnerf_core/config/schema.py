@@ -118,6 +118,12 @@ class EvalConfig:
     every_steps: int = 0
     """``run``: also evaluate every this many training steps (0 = only at the end); ``metrics.json`` gets
     ``eval_curve``, accuracy against steps and training seconds, which ``report --chart`` draws."""
+    query_protocol: bool = False
+    """Also score the query protocol (``query/nearest_prototype``, docs/features.md): nearest-prototype segmentation
+    of the held-out frames from ``prototype_frames`` labelled training frames per class, per feature source, beside
+    the class head's mIoU. It renders those training frames too."""
+    prototype_frames: int = 1
+    """The query protocol's labelled training frames per class (drawn by ``seed``), an integer >= 1."""
 
 
 @dataclass
