@@ -32,8 +32,8 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
         "MAX_FAR", "DatasetBase", "DatasetConfig", "check_depth_range", "check_image_size", "from_launch_dir",
     ),
     "gpnerf_core.interfaces": (
-        "DepthSource", "FeatureExtractor", "FieldAggregator", "ImportedWeights", "ImportsWeights", "LossSet",
-        "PerceptionHead", "RayAggregator", "StressCase", "ViewSelector",
+        "DepthSource", "FeatureExtractor", "FeatureProvider", "FieldAggregator", "ImportedWeights", "ImportsWeights",
+        "LossSet", "PerceptionHead", "RayAggregator", "StressCase", "ViewSelector",
     ),
     "gpnerf_core.interfaces.stress": ("ChooseSources",),
     "gpnerf_core.interfaces.head": ("Predicts",),
@@ -102,6 +102,8 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
         "class_prototypes", "example_embedding", "nearest_prototype", "select_gaussians", "similarity_map",
         "write_gaussian_selection", "write_point_selection",
     ),
+    # a feature provider's per-frame features, through the on-disk cache
+    "gpnerf_core.features": ("FeatureCache", "build_feature_provider", "frame_features"),
     # composing and building from a script or notebook
     "gpnerf_core.config.compose": ("compose",),
     "gpnerf_core.model.build": ("build_components",),
@@ -239,6 +241,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
     from gpnerf_core.interfaces import (
         DepthSource,
         FeatureExtractor,
+        FeatureProvider,
         FieldAggregator,
         ImportedWeights,
         ImportsWeights,
@@ -265,6 +268,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
     from gpnerf_core.geometry.gaussians.rows import resize_parameter
     from gpnerf_core.interfaces.stress import ChooseSources
     from gpnerf_core.model.build import build_components
+    from gpnerf_core.features import FeatureCache, build_feature_provider, frame_features
     from gpnerf_core.registry.components import get_registry
     from gpnerf_core.registry.hookspecs import hookimpl
     from gpnerf_core.registry.declarations import (

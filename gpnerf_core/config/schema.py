@@ -284,6 +284,9 @@ class RootConfig:
     depth_source: Any = None
     """Add-on group: ``+depth_source=<name>``: where ``model.sampler=depth`` takes each ray's cheap depth from (none:
     the family's own first pass)."""
+    feature_provider: Any = None
+    """Add-on group: ``+feature_provider=<name>``: the frozen 2D model whose per-frame features a feature field distils
+    and queries compare against (``gpnerf_core.features``; none: no feature field)."""
     seed: int = 0
     device: str = "auto"
     """``auto`` (CUDA when available), ``cpu`` or ``cuda[:N]``."""

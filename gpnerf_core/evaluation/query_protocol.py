@@ -191,10 +191,10 @@ def query_protocol(cfg: Any, components: Any, frames: FrameCache) -> QueryProtoc
 
 def provider_features_of(cfg: Any, components: Any) -> ProviderFeatures | None:
     """A configured feature provider's features of the real frames (``+feature_provider=<name>``), read through its
-    cache; None without a provider."""
-    if cfg.get("feature_provider") is None:
-        return None
-    from gpnerf_core.features import frame_features, provider_of
+    on-disk cache (``frame_features``); None without a provider."""
+    from gpnerf_core.features import build_feature_provider, frame_features
 
-    provider = provider_of(cfg)
-    return lambda scene, indices: frame_features(provider, components.dataset, scene.name, indices)
+    provider = build_feature_provider(cfg)
+    if provider is None:
+        return None
+    return lambda scene, indices: frame_features(provider, components.dataset, scene, list(indices))

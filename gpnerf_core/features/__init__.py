@@ -1,2 +1,10 @@
-"""Features of any 2D model in 3D (issue 57): feature providers and their on-disk cache, and queries against a
-rendered feature map or a per-Gaussian / per-point feature matrix (``queries``)."""
+"""A feature provider's per-frame features (``+feature_provider=<name>``): the provider a config selects
+(``build_feature_provider``) and its features read through the on-disk cache (``frame_features``, ``FeatureCache``:
+memory-mapped shards under ``$GPNERF_CACHE/features/<key>/``). Unrelated to ``gpnerf_core.model.feature_cache``, which
+keeps encoded source views of a render. Queries against any feature map or per-Gaussian / per-point feature matrix
+(by example, by text, by class prototype) are ``gpnerf_core.features.queries``."""
+
+from gpnerf_core.features.build import build_feature_provider
+from gpnerf_core.features.cache import FeatureCache, cache_root, frame_features, scene_identity
+
+__all__ = ["FeatureCache", "build_feature_provider", "cache_root", "frame_features", "scene_identity"]

@@ -3,6 +3,7 @@ the dataset base)."""
 
 from gpnerf_core.interfaces.depth_source import DepthSource
 from gpnerf_core.interfaces.feature_extractor import FeatureExtractor
+from gpnerf_core.interfaces.feature_provider import FeatureProvider
 from gpnerf_core.interfaces.field_aggregator import FieldAggregator
 from gpnerf_core.interfaces.head import PerceptionHead
 from gpnerf_core.interfaces.loss import LossSet
@@ -15,6 +16,7 @@ from gpnerf_core.interfaces.weights import ImportedWeights, ImportsWeights
 __all__ = [
     "DepthSource",
     "FeatureExtractor",
+    "FeatureProvider",
     "FieldAggregator",
     "ImportedWeights",
     "ImportsWeights",

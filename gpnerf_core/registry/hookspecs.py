@@ -125,6 +125,24 @@ def gpnerf_register_depth_sources() -> list[ComponentSpec]:
 
 
 @hookspec
+def gpnerf_register_feature_providers() -> list[ComponentSpec]:
+    """Feature providers, implementing ``gpnerf_core.FeatureProvider``: frozen 2D models giving each frame a dense
+    feature map ``[C, h, w]`` (XFeat's descriptors, a user's CLIP or LSeg maps read from files, a trained checkpoint's
+    extractor), which a feature field distils and queries compare against.
+
+    Called once per registry build. Each spec's factory is called with the config fields (minus ``name``) as keyword
+    arguments and nothing else; a provider whose package or weights file is missing refuses in its constructor with a
+    ``ConfigError`` naming the path and the extra to install. The core reads its features through the on-disk cache
+    (``gpnerf_core.frame_features``), keyed by ``FeatureProvider.fingerprint()``: ``compute`` runs once per frame and
+    config, from ``python -m gpnerf_core data features`` or at first use.
+
+    Returns:
+        Specs for the Hydra group ``feature_provider`` (an add-on group: select with ``+feature_provider=<name>``,
+        options ``feature_provider.<field>``).
+    """
+
+
+@hookspec
 def gpnerf_register_data_tools() -> list[DataTool]:
     """Subcommands of ``python -m gpnerf_core data`` (checkers, converters, generators).
 

@@ -80,6 +80,7 @@ KINDS: dict[str, ComponentKind] = {
         ComponentKind("view_selector", "gpnerf_register_view_selectors", I.ViewSelector),
         ComponentKind("depth_source", "gpnerf_register_depth_sources", I.DepthSource, add_on=True,
                       defines_model=True),
+        ComponentKind("feature_provider", "gpnerf_register_feature_providers", I.FeatureProvider, add_on=True),
     )
 }
 """Every component kind by name, in the order ``plugins`` lists them."""

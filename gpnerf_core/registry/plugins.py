@@ -33,6 +33,7 @@ BUILTIN_PLUGINS: tuple[str, ...] = (
     "gpnerf_plugins.datasets.plugin",
     "gpnerf_plugins.view_selectors.plugin",
     "gpnerf_plugins.depth_sources.plugin",
+    "gpnerf_plugins.feature_providers.plugin",
     "gpnerf_plugins.stress.plugin",
 )
 
