@@ -126,12 +126,16 @@ class SourceViews:
         depth: ``[V, H, W]`` float32 metres (camera z), 0 where unknown, or None where none was loaded. Read only by
             families that take source-view depth as input (Semantic-Ray and NeuRay's depth variant), and by GP-NeRF's
             ``model.depth_source=source_depth`` sampler.
+        scene, frames: the scene and frame indices the views are (``FrameCache.source_views``), or None for views
+            that are no dataset's frames; a feature provider reads a frame's features by them (its on-disk cache).
     """
 
     rgb: Tensor
     intrinsics: Tensor
     c2w: Tensor
     depth: Tensor | None = None
+    scene: str | None = None
+    frames: tuple[int, ...] | None = None
 
     @property
     def num_views(self) -> int:
@@ -406,6 +410,8 @@ class RenderedRays:
         weights: ``[R, S]`` per-sample weights along each ray, or None for a family without samples.
         samples: the samples the pass used, or None for a family without samples.
         semantic: ``[R, C_sem]`` rendered semantic features, or None when the semantic field is off.
+        features: ``[R, C]`` the rendered feature field at the rays (a feature provider's channels, decoded), or None
+            (no feature field: ``+feature_provider`` not configured).
         sample_semantic: ``[R, S, C_sem]`` per-sample semantic features (for the D.G loss), or None.
         logits: ``[R, K]`` per-ray scores of a label-rendering model (``SemanticMode.LABEL_RENDERING``: per-sample
             scores composited along the ray, or per-primitive scores composited per pixel), or None.
@@ -418,6 +424,7 @@ class RenderedRays:
     semantic: Tensor | None = None
     sample_semantic: Tensor | None = None
     logits: Tensor | None = None
+    features: Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -482,6 +489,9 @@ class ImageOutput:
         logits: ``[1, K, H, W]`` the head's output on ``semantic``, or None.
         extras: what the family's own hooks and loss terms read from this view (the rasterizer's projected centres
             ``means2d`` and footprints ``radii``: ``TrainingState.outputs``); the core never reads it.
+        features: ``[1, C, h, w]`` the rendered feature field in a feature provider's channels (decoded where the model
+            keeps them compressed), at any grid the provider's grid divides (the image's, say): the distillation term
+            averages it over each provider cell (``gpnerf_core.features.distillation``); None without a field.
     """
 
     rgb: Tensor
@@ -492,6 +502,7 @@ class ImageOutput:
     teacher_map: Tensor | None = None
     logits: Tensor | None = None
     extras: Mapping[str, Any] = field(default_factory=dict)
+    features: Tensor | None = None
 
     @property
     def image_size(self) -> tuple[int, int]:

@@ -271,6 +271,30 @@ class ViewConfig:
 
 
 @dataclass
+class FeaturesConfig:
+    """Feature fields (docs/features.md, "Feature fields"): with ``+feature_provider=<name>`` a family that renders a
+    feature field distils the provider's 2D features of its training frames into it. Read only with a provider."""
+
+    loss: str = "cosine"
+    """The distillation term: ``cosine`` (1 - cosine similarity per provider cell or ray) or ``l1`` (mean absolute
+    difference per channel)."""
+    weight: float = 1.0
+    """Weight of the term (logged as ``train/feature_field``); 0 renders the field without training it."""
+    channels: int = 16
+    """At most this many channels per Gaussian (0 to 16; 0 = the provider's own, uncompressed): a provider with more
+    is compressed per scene by an autoencoder fitted on its training frames' features before the field trains
+    (LangSplat), and the field decoded back to the provider's channels."""
+    autoencoder_steps: int = 300
+    """Adam steps of that autoencoder's fit."""
+    autoencoder_hidden: int = 64
+    """Hidden width of its encoder and decoder (one hidden layer each)."""
+    autoencoder_lr: float = 1e-3
+    """Adam's learning rate of its fit."""
+    autoencoder_samples: int = 65536
+    """At most this many feature vectors (provider cells of the training frames, drawn at random) fit it."""
+
+
+@dataclass
 class RootConfig:
     model: Any = MISSING
     """The model family (``model=<name>``; ``ModelConfig`` and the family's own options), with the parts it builds
@@ -304,6 +328,8 @@ class RootConfig:
     view: ViewConfig = field(default_factory=ViewConfig)
     export: ExportConfig = field(default_factory=ExportConfig)
     label: LabelConfig = field(default_factory=LabelConfig)
+    features: FeaturesConfig = field(default_factory=FeaturesConfig)
+    """Feature fields (read only with ``+feature_provider=<name>``)."""
     out_dir: str = ""
     """Run folder; empty = Hydra's output directory. Nothing is written under ``outputs/`` when it is set."""
     overwrite: bool = False

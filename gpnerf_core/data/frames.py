@@ -62,6 +62,8 @@ class FrameCache:
             intrinsics=torch.stack([f.intrinsics for f in frames]).to(self.device),
             c2w=torch.stack([f.c2w for f in frames]).to(self.device),
             depth=torch.stack([f.depth for f in frames]).to(self.device),
+            scene=scene.name,
+            frames=tuple(int(i) for i in indices),
         )
 
     def camera(

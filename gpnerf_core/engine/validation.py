@@ -15,6 +15,7 @@ from typing import Any, Callable
 
 from omegaconf import DictConfig, OmegaConf
 
+from gpnerf_core.features.field import FeatureFieldOptions
 from gpnerf_core.model.build import Components
 from gpnerf_core.config.schema import RootConfig
 from gpnerf_core.data.checks import pose_warnings
@@ -148,6 +149,7 @@ def validate_config(cfg: DictConfig) -> None:
     if bad_splits:
         raise ConfigError(f"eval.splits contains {bad_splits[0]!r}; expected some of {', '.join(SPLITS)}")
     check_loggers(list(cfg.train.loggers))
+    FeatureFieldOptions.from_config(cfg.get("features"))  # features.*: its values, with or without a provider
 
 
 def _check_fit_cadence(cfg: DictConfig) -> None:

@@ -34,6 +34,7 @@ from gpnerf_core.evaluation import pictures as P
 from gpnerf_core.evaluation import query_protocol as Q
 from gpnerf_core.evaluation import visualize as vis
 from gpnerf_core.data.frames import FrameCache, choose_sources
+from gpnerf_core.features.field import image_cosine
 from gpnerf_core.registry.kinds import KINDS, section
 from gpnerf_core.runtime.io import atomic_save_png
 from gpnerf_core.interfaces.head import Predicts
@@ -87,6 +88,9 @@ class ViewRecord:
     queries: dict[str, torch.Tensor] | None = None
     """``eval.query_protocol``: ``{feature source: [K, K] confusion}`` of the nearest-prototype labels
     (``query_protocol``); None when the protocol is off or the scene has no labels."""
+    feature_cosine: float | None = None
+    """:data:`metrics.FEATURE_COSINE` of this view (the rendered feature field against the provider's features of the
+    real frame), or None without a feature field."""
 
 
 def predicts(components: Components) -> Predicts | None:
@@ -174,8 +178,11 @@ def evaluate(
                                    float(memory), instance_head=instance_head)
         if M.QUERY_PROTOTYPE in results[label]:
             results[label][M.QUERY_PROTOTYPE].update(prototype_frames=queries.k, seed=queries.seed)
+    field = components.feature_field
+    compression = field.autoencoder.reconstruction() if field is not None and field.autoencoder is not None else None
     return {
         "eval": results,
+        **({"feature_compression": compression.as_metrics()} if compression is not None else {}),
         "baseline_class": None if baseline_class is None else components.classes.names[baseline_class],
         "lpips": M.lpips_vgg_status(),
         "eval_world_size": dist.world_size,
@@ -280,6 +287,10 @@ def _evaluate_view(
     except NonFiniteError as exc:  # a component's output check (registry.guards) names the component, not the view
         raise NonFiniteError(f"{where}: {exc}; nothing was scored") from None
     prediction.check_finite(model.hooks.output_owners(component_names(cfg)), where)
+    feature_cosine = None
+    if prediction.features is not None and components.feature_field is not None:
+        provided = components.feature_field.maps(scene.name, [index], target.rgb.permute(2, 0, 1)[None].to(frames.device))
+        feature_cosine = image_cosine(prediction.features, provided[0])
     instance_head = predicts(components) is Predicts.INSTANCES
     classes = None
     if prediction.logits is not None and not instance_head:
@@ -348,6 +359,7 @@ def _evaluate_view(
         depth=depth,
         references=scored_references,
         queries=query_confusions,
+        feature_cosine=feature_cosine,
     )
 
 
@@ -391,6 +403,11 @@ def summarize(
             baseline.add_confusion(record.baseline_confusion, group=record.scene)
     result: dict[str, Any] = dict(quality.compute())
     result.update(depth.compute())
+    fidelity = M.FeatureAccumulator()
+    for record in records:
+        if record.feature_cosine is not None:
+            fidelity.add(record.feature_cosine, group=record.scene)
+    result.update(fidelity.compute())
     unlabelled = list(dict.fromkeys(r.scene for r in records if not r.labelled))
     if not any(r.labelled for r in records):
         if semantics or instance_head:

@@ -79,6 +79,16 @@ DEPTH_UNAVAILABLE_REASON = "depth/unavailable_reason"
 COUNT_IMAGES_WITH_DEPTH = "count/images_with_depth"
 """Number of images that entered the depth protocols."""
 
+FEATURE_COSINE = "features/cosine_image_mean"
+"""Feature fidelity of a feature field (``+feature_provider``). Per image: the rendered field (``Prediction.features``,
+in the provider's channels, decoded where compressed) brought to the provider's grid (the mean over each cell's
+pixels, ``gpnerf_core.features.field.to_grid``), the cosine similarity with the provider's features of the real
+held-out frame cell by cell, averaged over the cells; averaged within groups (scenes), then over groups. Absent
+without a feature field."""
+
+COUNT_IMAGES_WITH_FEATURES = "count/images_with_features"
+"""Number of images that entered :data:`FEATURE_COSINE`."""
+
 LABELS_UNAVAILABLE_REASON = "labels/unavailable_reason"
 """Why every label metric of a split is None: none of its scenes has labels (``Scene.labelled`` False, a capture
 without labels). The label metrics are :data:`SEGMENTATION_KEYS` and the ``baseline_majority`` and ``teacher_2d``
@@ -490,6 +500,23 @@ def ssim(pred: Tensor | np.ndarray, gt: Tensor | np.ndarray) -> float:
         channel_axis=-1,
     )
     return float(value)
+
+
+class FeatureAccumulator:
+    """Collects per-image :data:`FEATURE_COSINE` values and averages them within groups, then over groups."""
+
+    def __init__(self) -> None:
+        self._scores: dict[str, list[float]] = {}
+
+    def add(self, cosine: float, group: str = DEFAULT_GROUP) -> None:
+        self._scores.setdefault(group, []).append(float(cosine))
+
+    def compute(self) -> dict[str, Any]:
+        """``{FEATURE_COSINE, COUNT_IMAGES_WITH_FEATURES}``; empty before any image."""
+        if not self._scores:
+            return {}
+        return {FEATURE_COSINE: _finite_or_none(_group_then_mean(self._scores)),
+                COUNT_IMAGES_WITH_FEATURES: sum(len(values) for values in self._scores.values())}
 
 
 class ImageQualityAccumulator:

@@ -194,7 +194,8 @@ def provider_features_of(cfg: Any, components: Any) -> ProviderFeatures | None:
     on-disk cache (``frame_features``); None without a provider."""
     from gpnerf_core.features import build_feature_provider, frame_features
 
-    provider = build_feature_provider(cfg)
+    field = getattr(components, "feature_field", None)
+    provider = field.provider if field is not None else build_feature_provider(cfg)
     if provider is None:
         return None
     return lambda scene, indices: frame_features(provider, components.dataset, scene, list(indices))

@@ -130,6 +130,12 @@ class ModelParts(ABC):
                               "another extractor that makes semantic maps)")
         return self.head(in_dim=extractor.semantic_dim, in_levels=extractor.semantic_levels)
 
+    def feature_field(self) -> Any | None:
+        """The configured feature provider as a feature field (``gpnerf_core.features.field.FeatureField``: its
+        channels and grid, the channels to carry, its maps of any frame), or None without ``+feature_provider``. Called
+        by a family that declares ``Capabilities.feature_field``."""
+        return None
+
     def depth_source(self, sampler: str) -> DepthSource | None:
         """The configured ``+depth_source`` built, or None without one. It places the samples of
         ``model.sampler=depth``, so a family's ``sampler`` must be ``depth`` with it (else a ConfigError naming both)."""
@@ -272,6 +278,10 @@ class Capabilities:
             (``TargetCamera.image``), which evaluation gives it and nothing else does; it renders no colour or depth
             (evaluation scores none) and no novel pose (``render``, ``view`` refuse it). A per-scene 2D baseline (Mask
             R-CNN) says True: its scores are a 2D segmenter's on the true image, like ``teacher_2d``, never a rendering.
+        feature_field: it renders a feature field distilled from a feature provider (``+feature_provider=<name>``):
+            built through ``parts.feature_field()``, rendered as ``ImageOutput.features`` / ``RenderedRays.features``
+            in training and ``Prediction.features`` in evaluation (docs/features.md, "Feature fields"); a family
+            without it refuses a configured provider in one line.
     """
 
     generalizable: bool = True
@@ -287,6 +297,7 @@ class Capabilities:
     loss_terms: tuple[str, ...] = ()
     hooks: type[FamilyHooks] = FamilyHooks
     segments_image: bool = False
+    feature_field: bool = False
 
 
 class ModelFamily(nn.Module, ABC):
@@ -440,7 +451,7 @@ def capability_problems(family: type) -> list[str]:
     if not (isinstance(hooks, type) and issubclass(hooks, FamilyHooks)):
         return [f"{name}.capabilities.hooks is {hooks!r}, expected a subclass of gpnerf_core.FamilyHooks"]
     for flag in ("generalizable", "accepts_head", "changes_size", "gaussians", "teacher", "preview", "compiled",
-                 "foreign_weights", "segments_image"):
+                 "foreign_weights", "segments_image", "feature_field"):
         if not isinstance(getattr(caps, flag), bool):
             problems.append(f"{name}.capabilities.{flag} is {getattr(caps, flag)!r}, expected True or False")
     if not isinstance(caps.trains_on, TrainingBatch):

@@ -3,11 +3,14 @@ its own parts through ``ConfiguredParts``) and the loss set, and checks that the
 
 from __future__ import annotations
 
+import inspect
+import typing
 from dataclasses import dataclass
 from typing import Any
 
 from gpnerf_core.data.dataset import SceneDataset
 from gpnerf_core.errors import ConfigError
+from gpnerf_core.features.field import FeatureField, FeatureFieldOptions
 from gpnerf_core.interfaces import LossSet, PerceptionHead, ViewSelector
 from gpnerf_core.interfaces.head import Predicts
 from gpnerf_core.interfaces.model import ModelFamily, ModelParts
@@ -27,6 +30,8 @@ class Components:
             dataset without a class list (a capture without labels), the checkpoint's the model was trained with.
         model_sections: the config sections that define this model (``model_sections``): written into its
             checkpoints, so resuming, fine-tuning and evaluating compare and restore only those.
+        feature_field: the feature provider the model's feature field is distilled from (``+feature_provider``:
+            the trainer's distillation term and evaluation's feature fidelity read it), or None.
     """
 
     dataset: SceneDataset
@@ -35,6 +40,7 @@ class Components:
     loss: LossSet | None
     classes: ClassList
     model_sections: tuple[str, ...] = ()
+    feature_field: FeatureField | None = None
 
 
 def head_predicts(head_cfg: Any, registry: Registry) -> Predicts:
@@ -60,10 +66,13 @@ class ConfiguredParts(ModelParts):
     A head's or feature extractor's output is checked where it is made (``registry.guards``): the wrong shape or a
     NaN stops the run naming that component and its plugin."""
 
-    def __init__(self, cfg: Any, num_classes: int, registry: Registry) -> None:
+    def __init__(self, cfg: Any, num_classes: int, registry: Registry, dataset: SceneDataset | None = None) -> None:
         self._cfg = cfg
         self._num_classes = int(num_classes)
         self._registry = registry
+        self._dataset = dataset
+        self.built_feature_field: FeatureField | None = None
+        """The feature field the family took (``feature_field``), or None."""
         self.built: list[Any] = []
         """The components built through it, in order."""
         self.built_kinds: set[str] = set()
@@ -104,6 +113,75 @@ class ConfiguredParts(ModelParts):
         outputs = head_outputs(self._cfg.head, self._num_classes, self._registry)
         return self.build("head", in_dim=in_dim, in_levels=in_levels, num_outputs=outputs)
 
+    def feature_field(self) -> FeatureField | None:
+        """The configured ``+feature_provider`` built once, with the ``features`` options and the dataset's frames
+        read through the provider cache (``frame_features``), or None without one."""
+        provider_cfg = self._cfg.get("feature_provider")
+        if provider_cfg is None:
+            return None
+        if self.built_feature_field is None:
+            provider = self._registry.build("feature_provider", provider_cfg)
+            self.built_feature_field = FeatureField(
+                provider, FeatureFieldOptions.from_config(self._cfg.get("features")),
+                name=str(provider_cfg.get("name")), dataset=self._dataset, reader=feature_reader())
+            self.built_kinds.add("feature_provider")
+        return self.built_feature_field
+
+
+def feature_reader() -> Any:
+    """The provider cache's accessor (``gpnerf_core.features``' ``frame_features``), or None where this checkout has
+    none (the maps are then computed from the images)."""
+    import importlib
+
+    for module in ("gpnerf_core.features.cache", "gpnerf_core.features"):
+        try:
+            reader = getattr(importlib.import_module(module), "frame_features", None)
+        except ImportError:
+            continue
+        if reader is not None:
+            return reader
+    return None
+
+
+def family_class(registry: Registry, name: str) -> type | None:
+    """The class the model family ``name`` builds (its factory, or its factory's return annotation), or None."""
+    entry = registry.components.get("model", {}).get(name)
+    if entry is None:
+        return None
+    factory = entry.spec.factory
+    if inspect.isclass(factory):
+        return factory
+    try:
+        returned = typing.get_type_hints(factory).get("return")
+    except Exception:  # an annotation that does not resolve: unknown
+        return None
+    return returned if inspect.isclass(returned) else None
+
+
+def feature_field_families(registry: Registry) -> list[str]:
+    """The registered model families that render a feature field (``Capabilities.feature_field``), by name."""
+    names = []
+    for name in registry.names("model"):
+        cls = family_class(registry, name)
+        if cls is not None and getattr(getattr(cls, "capabilities", None), "feature_field", False):
+            names.append(name)
+    return names
+
+
+def check_feature_field(cfg: Any, registry: Registry) -> None:
+    """A ConfigError in one line when ``+feature_provider`` is configured for a family that renders no feature field,
+    naming the family and those that do."""
+    provider = cfg.get("feature_provider")
+    if provider is None:
+        return
+    family = str(cfg.model.name)
+    cls = family_class(registry, family)
+    if cls is not None and getattr(cls.capabilities, "feature_field", False):
+        return
+    able = ", ".join(feature_field_families(registry)) or "none registered"
+    raise ConfigError(f"+feature_provider={provider.get('name')}: model={family} renders no feature field to distil "
+                      f"it into; expected one of the families that do: {able} (or drop +feature_provider)")
+
 
 MODEL_ADD_ONS = ("head", "depth_source")
 """Add-on kinds a model family builds through its parts: one the config selects and the family never builds would
@@ -121,15 +199,25 @@ def build_model(cfg: Any, num_classes: int, registry: Registry | None = None) ->
 
 def built_model(cfg: Any, num_classes: int, registry: Registry | None = None) -> tuple[ModelFamily, tuple[str, ...]]:
     """``build_model``, and the config sections that define the model built (``model_sections``)."""
-    registry = registry or get_registry()
-    parts = ConfiguredParts(cfg, num_classes, registry)
+    return _built(cfg, num_classes, registry or get_registry())[:2]
+
+
+def _built(cfg: Any, num_classes: int, registry: Registry, dataset: SceneDataset | None = None
+           ) -> tuple[ModelFamily, tuple[str, ...], FeatureField | None]:
+    """``built_model``, and the feature field the family took (None without ``+feature_provider``)."""
+    check_feature_field(cfg, registry)
+    parts = ConfiguredParts(cfg, num_classes, registry, dataset)
     model = registry.build("model", cfg.model, parts=parts)
+    if cfg.get("feature_provider") is not None and parts.built_feature_field is None:
+        raise ConfigError(f"+feature_provider={cfg.feature_provider.get('name')}: model={cfg.model.name} declares a "
+                          "feature field (Capabilities.feature_field) but as configured built none; it would be "
+                          "ignored")
     for kind in MODEL_ADD_ONS:
         if parts.configured(kind) and kind not in parts.built_kinds:
             raise ConfigError(f"+{kind}={parts.name(kind)}: model {cfg.model.name!r} as configured uses no {kind} "
                               f"(it would be ignored); drop +{kind}=..., or choose a model that reads one "
                               f"(docs/configuration.md)")
-    return model, model_sections(parts.built_kinds)
+    return model, model_sections(parts.built_kinds), parts.built_feature_field
 
 
 def model_sections(built_kinds: set[str] | frozenset[str]) -> tuple[str, ...]:
@@ -176,11 +264,11 @@ def build_components(cfg: Any, registry: Registry | None = None, *, classes: Cla
     dataset = registry.build("dataset", cfg.dataset)
     selector = registry.build("view_selector", cfg.view_selector)
     label_space = model_classes(cfg, dataset, classes, registry)
-    model, sections = built_model(cfg, label_space.num_classes, registry)
+    model, sections, feature_field = _built(cfg, label_space.num_classes, registry, dataset)
     loss = None
     if cfg.get("loss") is not None:
         check_predictions_fit(cfg, model, declared_head_predicts(cfg, registry))  # before the loss's own checks
         loss = registry.build("loss", cfg.loss)
         check_loss_fits(cfg, model, loss, num_classes=label_space.num_classes, registry=registry)
     return Components(dataset=dataset, view_selector=selector, model=model, loss=loss, classes=label_space,
-                      model_sections=sections)
+                      model_sections=sections, feature_field=feature_field)

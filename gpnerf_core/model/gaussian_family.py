@@ -46,6 +46,9 @@ BASE_ROWS: dict[str, str] = {
 (``GaussianFamily.row_groups``)."""
 INFO = "raster"
 """``ImageOutput.extras`` key of what the rasterizer reported of a training view (``ViewInfo``)."""
+FIELD_CHANNEL = "feature_field"
+"""The per-Gaussian channel of a feature field (``+feature_provider``): the provider's channels, or the autoencoder's
+codes where they are compressed; its learning-rate group has the same name (``model.lr.feature_field``)."""
 
 
 def rasterized(state: TrainingState) -> list[ViewInfo]:
@@ -65,6 +68,9 @@ class GaussianHooks(FamilyHooks):
         weights were loaded already."""
         family = self.family
         gaussians, setup = family.gaussians, family.setup
+        codec = getattr(family, "feature_codec", None)
+        if codec is not None and not bool(codec.fitted):  # LangSplat: the compression first, on the training frames
+            family.feature_source.fit_autoencoder(codec, scene)
         if gaussians.size:
             return
         if getattr(family, "start", None) is not None:
@@ -172,6 +178,11 @@ class GaussianFamily(ModelFamily):
         channels: the family's per-Gaussian channels, by name (a width 0 keeps the name with no channel).
         setup: the checked options (``gaussian_setup`` of the family's ``GaussianSceneConfig``).
         head: the ``+head`` decoding the rendered channels, or None.
+        feature_field: the configured feature provider (``ModelParts.feature_field``), or None: with one, each
+            Gaussian also carries the channel ``feature_field`` (``FIELD_CHANNEL``: the provider's channels, or
+            ``features.channels`` autoencoder codes, ``feature_codec``, fitted on the scene's training frames before
+            the Gaussians start), rasterized with the others and decoded to the provider's channels
+            (``field_map``, ``field_rows``).
     """
 
     name: ClassVar[str] = "gaussians"
@@ -183,10 +194,15 @@ class GaussianFamily(ModelFamily):
                                 changes_size=True, gaussians=True, hooks=GaussianHooks)
 
     def __init__(self, *, channels: Mapping[str, int], setup: GaussianSetup,
-                 head: PerceptionHead | None = None) -> None:
+                 head: PerceptionHead | None = None, feature_field: Any = None) -> None:
         super().__init__()
         self.head = head
-        self.gaussians = GaussianParameters(setup.sh_degree, dict(channels))
+        channels = dict(channels)
+        self.feature_source = feature_field  # a plain object (the provider is not a submodule: never saved)
+        if feature_field is not None:
+            channels[FIELD_CHANNEL] = int(feature_field.carried)
+        self.feature_codec = feature_field.make_autoencoder() if feature_field is not None else None
+        self.gaussians = GaussianParameters(setup.sh_degree, channels)
         self.setup = setup
         self.empty_source: str | None = None  # the checkpoint that gave it 0 Gaussians, named when it renders
         self.schedule_noted = False  # the strategy's schedule note is printed once per run
@@ -241,6 +257,32 @@ class GaussianFamily(ModelFamily):
         channel_map = out.features[..., 3:] if features.shape[1] > 3 else None
         info = ViewInfo(means2d=out.means2d, radii=out.radii, height=height, width=width)
         return out.features[..., :3], depth, out.alpha, channel_map, info
+
+    def split_channels(self, channel_map: Tensor) -> dict[str, Tensor]:
+        """``render``'s ``[h, w, C]`` channel map cut into each channel's ``[h, w, width]`` (in ``channels`` order)."""
+        parts, start = {}, 0
+        for name, width in self.gaussians.channels.items():
+            parts[name] = channel_map[..., start:start + width]
+            start += width
+        return parts
+
+    def decode_field(self, codes: Tensor) -> Tensor:
+        """``[..., k]`` feature-field codes -> ``[..., C]`` the provider's channels (``feature_codec``'s decoder; the
+        codes themselves without compression)."""
+        return self.feature_codec.decode(codes) if self.feature_codec is not None else codes
+
+    def field_map(self, channel_map: Tensor) -> Tensor | None:
+        """``[1, C, h, w]`` the feature field of ``render``'s channel map, decoded; None without a field."""
+        if self.feature_source is None:
+            return None
+        return self.decode_field(self.split_channels(channel_map)[FIELD_CHANNEL]).permute(2, 0, 1)[None]
+
+    def field_rows(self) -> Tensor | None:
+        """``[G, C]`` each Gaussian's feature-field vector in the provider's channels (decoded); None without a
+        field (``GaussianScene.feature_field``)."""
+        if self.feature_source is None:
+            return None
+        return self.decode_field(getattr(self.gaussians, FIELD_CHANNEL))
 
     def render_view(self, camera: TargetCamera, *, channels: bool) -> tuple[ImageOutput, Tensor | None]:
         """A training view rendered whole: ``ImageOutput`` with ``rgb``, ``depth``, ``alpha`` and, in training mode,

@@ -28,6 +28,7 @@ from gpnerf_core.runtime.device import autocast, check_precision, peak_memory_mb
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.errors import ConfigError, NonFiniteError, PluginError
 from gpnerf_core.data.frames import FrameCache
+from gpnerf_core.features.field import TERM as FEATURE_TERM, distillation_term
 from gpnerf_core.runtime.profiling import stage
 from gpnerf_core.model.output_checks import check_step_output
 from gpnerf_core.model.checkpoint import RunRecord, check_resume_config, checkpoint_sections, save_checkpoint
@@ -239,6 +240,8 @@ class Trainer:
         if capabilities.changes_size:
             _check_size_changes(cfg.model.name, decay, dist.world_size)
         self.term_weights = family_term_weights(str(cfg.model.name), self.model, cfg.model.get("loss_weights"))
+        self.feature_field = components.feature_field
+        """The feature provider the model's feature field is distilled from (``+feature_provider``), or None."""
         if not capabilities.generalizable and not cfg.train.resume:
             with stage("model initialisation"):
                 self.model.hooks.initialise(self.frames.scene(self.sampler.scene_names[0]))
@@ -301,7 +304,8 @@ class Trainer:
             output = self.model(
                 batch, semantics=self._semantics, sample_semantics=self._sample_semantics
             )
-            terms = self._loss_terms(batch, output) | self._family_terms(self._state(batch, output))
+            terms = (self._loss_terms(batch, output) | self._family_terms(self._state(batch, output))
+                     | self._feature_terms(batch, output))
             total = sum(terms.values())
         total.backward()
         unused = [name for name, p in self.model.named_parameters() if p.requires_grad and p.grad is None]
@@ -331,7 +335,7 @@ class Trainer:
                 check_step_output(self.model, batch, output, self._semantics, self._where("model"))
                 with stage("loss"):
                     terms = self._loss_terms(batch, output)
-                    family_terms = self._family_terms(self._state(batch, output))
+                    family_terms = self._family_terms(self._state(batch, output)) | self._feature_terms(batch, output)
         except NonFiniteError as exc:  # a component's output (registry.guards), named where it was made
             self._stop_everywhere(f"{exc} ({_views(batch)})")
         stop_signal = self._check_and_agree(terms, family_terms, batch, stop, output)
@@ -444,6 +448,16 @@ class Trainer:
                 raise PluginError(f"{family}: its loss term {name!r} is {shown}, expected a scalar tensor")
             weighted[name] = weight * value.reshape(()).float()
         return weighted
+
+    def _feature_terms(self, batch: StepBatch, output: StepOutput) -> dict[str, Tensor]:
+        """The feature-field distillation term of this step (``train/feature_field``: ``features.weight`` times
+        ``gpnerf_core.features.field.distillation_term``); none without ``+feature_provider``, with a weight of 0, or
+        when the family rendered no field this step."""
+        field = self.feature_field
+        if field is None or not field.options.weight:
+            return {}
+        term = distillation_term(field, batch, output)
+        return {} if term is None else {FEATURE_TERM: float(field.options.weight) * term.reshape(()).float()}
 
     def _check_and_agree(
         self, terms: dict[str, Tensor], family_terms: dict[str, Tensor], batch: StepBatch, stop: StopRequest | None,

@@ -37,6 +37,9 @@ class GaussianScene:
         labels: ``[G]`` int64 class id or instance slot, -1 where none.
         features: ``[G, C]`` what a family's decoder reads of each Gaussian (semantic features a head decodes, or K
             class scores), or None; not written to the PLY.
+        feature_field: ``[G, C]`` each Gaussian's feature-field vector in a feature provider's channels (decoded where
+            the model keeps them compressed: what a query by example or by embedding compares), or None; not written
+            to the PLY.
     """
 
     means: Tensor
@@ -46,6 +49,7 @@ class GaussianScene:
     harmonics: Tensor
     labels: Tensor
     features: Tensor | None = None
+    feature_field: Tensor | None = None
 
     @property
     def count(self) -> int:
@@ -54,9 +58,10 @@ class GaussianScene:
     def subset(self, index: Tensor) -> "GaussianScene":
         """The Gaussians ``index`` picks (``[G]`` bool or ``[N]`` int64 rows), every column alike."""
         features = self.features[index] if self.features is not None else None
+        field = self.feature_field[index] if self.feature_field is not None else None
         return GaussianScene(means=self.means[index], scales=self.scales[index], rotations=self.rotations[index],
                              opacities=self.opacities[index], harmonics=self.harmonics[index],
-                             labels=self.labels[index], features=features)
+                             labels=self.labels[index], features=features, feature_field=field)
 
     def ply_columns(self) -> dict[str, np.ndarray]:
         """The standard 3DGS PLY's properties (the module docstring), then ``label``, as float32 / int32 arrays."""

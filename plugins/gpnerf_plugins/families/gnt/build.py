@@ -26,14 +26,20 @@ def build_gnt(
     compile: bool = GNTModelConfig.compile,
     compile_backend: str = GNTModelConfig.compile_backend,
 ) -> GeneralizableNeRF:
-    """Extractor, field and ray aggregators, the head (if configured) and the semantic field; each stage's width comes
-    from the stage before it."""
+    """Extractor, field and ray aggregators, the head (if configured) and the semantic field (with a head, or with
+    ``+feature_provider``: the feature field is its embedding projected to the provider's channels); each stage's
+    width comes from the stage before it."""
     semantics = SemanticFieldConfig(**semantic_field) if isinstance(semantic_field, dict) else (
         semantic_field or SemanticFieldConfig())
     extractor = parts.build("feature_extractor")
     field = parts.build("field_aggregator", in_dim=3 + extractor.radiance_dim)
     ray = parts.build("ray_aggregator", in_dim=field.width, num_blocks=field.num_blocks)
     head = semantic = None
+    feature_field = parts.feature_field()
+    if feature_field is not None and extractor.semantic_dim == 0:
+        raise ConfigError(f"+feature_provider={feature_field.name}: model=gnt renders its feature field from its "
+                          f"semantic-embedding field, and feature_extractor {parts.name('feature_extractor')!r} makes "
+                          "no semantic maps (model.feature_extractor.semantic=true, or another extractor)")
     if parts.configured("head"):
         if extractor.semantic_dim == 0:
             raise ConfigError(
@@ -41,15 +47,15 @@ def build_gnt(
                 f"{parts.name('feature_extractor')!r} produces none"
             )
         head = parts.head(in_dim=extractor.semantic_dim, in_levels=extractor.semantic_levels)
-        if semantics.enabled:
-            semantic = SemanticFieldRenderer(
-                semantic_dim=extractor.semantic_dim,
-                attention_channels=field.attention_channels,
-                ray_heads=ray.num_heads,
-                num_blocks=field.num_blocks,
-                joint_attention=semantics.joint_attention,
-                adaptor_relu=semantics.adaptor_relu,
-            )
+    if (head is not None or feature_field is not None) and semantics.enabled:
+        semantic = SemanticFieldRenderer(
+            semantic_dim=extractor.semantic_dim,
+            attention_channels=field.attention_channels,
+            ray_heads=ray.num_heads,
+            num_blocks=field.num_blocks,
+            joint_attention=semantics.joint_attention,
+            adaptor_relu=semantics.adaptor_relu,
+        )
     depth_source = parts.depth_source(sampler)
     return GeneralizableNeRF(
         extractor=extractor,
@@ -66,4 +72,5 @@ def build_gnt(
         checkpoint_blocks=checkpoint_blocks,
         channels_last_maps=channels_last_maps,
         compile_backend=checked_compile_backend(compile_backend) if compile else None,
+        feature_field=feature_field,
     )

@@ -12,6 +12,7 @@ alone.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 from typing import Any, Mapping
 
@@ -114,7 +115,8 @@ class GeneralizableNeRF(ModelFamily):
             (None: eager). Compiled on first use, again for each new shape (coarse and fine passes, last chunk).
     """
 
-    capabilities = Capabilities(teacher=True, preview=True, compiled=True, foreign_weights=True, hooks=GNTHooks)
+    capabilities = Capabilities(teacher=True, preview=True, compiled=True, foreign_weights=True, hooks=GNTHooks,
+                                feature_field=True)
 
     def __init__(
         self,
@@ -133,6 +135,7 @@ class GeneralizableNeRF(ModelFamily):
         checkpoint_blocks: bool,
         channels_last_maps: bool = True,
         compile_backend: str | None = None,
+        feature_field: Any = None,
     ) -> None:
         super().__init__()
         if field.num_blocks != ray.num_blocks:
@@ -164,6 +167,30 @@ class GeneralizableNeRF(ModelFamily):
         self.channels_last_maps = channels_last_maps
         self.projector = Projector()
         self.compile_with(compile_backend)
+        self.feature_source = feature_field  # a plain object: the provider is no submodule (never trained or saved)
+        self.feature_projection: nn.Linear | None = None
+        if feature_field is not None:
+            if semantic is None:
+                raise ConfigError(f"+feature_provider={feature_field.name}: model=gnt renders its feature field from "
+                                  "its semantic-embedding field, which is off; expected model.semantic_field.enabled="
+                                  "true and a feature extractor with semantic maps")
+            self.feature_projection = nn.Linear(semantic.semantic_dim, int(feature_field.channels))
+
+    @property
+    def renders_field(self) -> bool:
+        """It renders a feature field (``+feature_provider``): the semantic embedding per ray, projected to the
+        provider's channels (``feature_projection``)."""
+        return self.feature_projection is not None
+
+    def with_field(self, coarse: RenderedRays, fine: RenderedRays | None
+                   ) -> tuple[RenderedRays, RenderedRays | None]:
+        """The passes with the last one's ``features``: its semantic embedding ``[R, C_sem]`` projected to the
+        provider's ``[R, C]``; unchanged without a feature field."""
+        if self.feature_projection is None:
+            return coarse, fine
+        last = fine if fine is not None else coarse
+        done = dataclasses.replace(last, features=self.feature_projection(last.semantic))
+        return (coarse, done) if fine is not None else (done, None)
 
     @property
     def has_semantics(self) -> bool:
@@ -192,6 +219,8 @@ class GeneralizableNeRF(ModelFamily):
         transformer = list(self.field.parameters()) + list(self.ray.parameters())
         if self.semantic is not None:
             transformer += list(self.semantic.parameters())
+        if self.feature_projection is not None:
+            transformer += list(self.feature_projection.parameters())
         groups = {"feature_extractor": list(self.extractor.parameters()), "transformer": transformer}
         if self.head is not None:
             groups["head"] = list(self.head.parameters())
@@ -241,10 +270,11 @@ class GeneralizableNeRF(ModelFamily):
             sources,
             source_maps,
             randomized=self.training,
-            with_semantic=semantics,
+            with_semantic=semantics or self.renders_field,
             with_sample_semantic=sample_semantics,
             generator=generator,
         )
+        coarse, fine = self.with_field(coarse, fine)
         if not semantics:
             return ViewOutput(coarse=coarse, fine=fine)
         # 3. The fused map (rendered features replace the teacher's in the cells the rays hit), decoded by the
@@ -290,20 +320,22 @@ class GeneralizableNeRF(ModelFamily):
                 features = FeatureMaps(radiance=features.radiance, semantic=maps)
         pixels = pixel_grid(height, width, stride, device=camera.c2w.device)
         rays = rays_through_pixels(pixels, camera.intrinsics, camera.c2w, camera.near, camera.far)
-        rgb, depth, semantic = [], [], []
+        rgb, depth, semantic, field = [], [], [], []
         for start in range(0, rays.num_rays, chunk_rays):
-            coarse, fine = self.render_rays(
+            coarse, fine = self.with_field(*self.render_rays(
                 rays.chunk(start, start + chunk_rays),
                 sources,
                 features,
                 randomized=False,
-                with_semantic=self.has_semantics,
-            )
+                with_semantic=self.has_semantics or self.renders_field,
+            ))
             last = fine if fine is not None else coarse
             rgb.append(last.rgb)
             depth.append(last.depth)
-            if last.semantic is not None:
+            if last.semantic is not None and self.has_semantics:
                 semantic.append(last.semantic)
+            if last.features is not None:
+                field.append(last.features)
         h, w = height // stride, width // stride
         semantic_map = torch.cat(semantic).T.reshape(-1, h, w) if semantic else None
         with stage("head"):
@@ -314,6 +346,7 @@ class GeneralizableNeRF(ModelFamily):
             semantic=semantic_map,
             logits=logits,
             stride=stride,
+            features=torch.cat(field).T.reshape(-1, h, w) if field else None,
         )
 
     @torch.inference_mode()

@@ -43,6 +43,8 @@ class PixelGaussians:
         depth: ``[V, H, W]`` each source pixel's depth, metres; confidence: ``[V, H, W]`` the cost volume's peak
             probability (for pictures and the viewer).
         semantic_stride: pixels per cell of the extractor's semantic map the features came from (0: none).
+        field: ``[G, C]`` a feature provider's features lifted at each Gaussian's source pixel (the feature field,
+            ``+feature_provider``), or None.
     """
 
     means: Tensor
@@ -57,6 +59,7 @@ class PixelGaussians:
     depth: Tensor
     confidence: Tensor
     semantic_stride: int = 0
+    field: Tensor | None = None
 
     @property
     def count(self) -> int:

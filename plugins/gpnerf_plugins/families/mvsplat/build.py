@@ -79,7 +79,8 @@ def build_mvsplat(
     """The extractor the config selects (its 1/4 radiance maps are MVSplat's CNN features) and the family's own
     networks. Without a ``+head`` each Gaussian carries class scores (label rendering); with one it carries the
     extractor's semantic feature at its source pixel, which needs an extractor with semantic maps (refused in one line
-    otherwise)."""
+    otherwise). With ``+feature_provider`` each Gaussian also carries the provider's feature at its source pixel
+    (``parts.feature_field()``)."""
     _check_sh_degree(sh_degree)
     _check(feature_dim, transformer_layers, attention_splits, depth_candidates, cost_unet_dim, depth_unet_dim,
            unet_levels, float(scale_min), float(scale_max), float(background), rasterizer)
@@ -89,4 +90,4 @@ def build_mvsplat(
                    feature_dim=feature_dim, transformer_layers=transformer_layers, attention_splits=attention_splits,
                    depth_candidates=depth_candidates, cost_unet_dim=cost_unet_dim, depth_unet_dim=depth_unet_dim,
                    unet_levels=unet_levels, sh_degree=sh_degree, scale_min=scale_min, scale_max=scale_max,
-                   background=background, rasterizer=rasterizer)
+                   background=background, rasterizer=rasterizer, feature_field=parts.feature_field())

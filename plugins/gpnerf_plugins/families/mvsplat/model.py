@@ -25,6 +25,10 @@ harmonics seen from the target, depth, and the semantics, both ways:
   input as it is (every cell is rendered: nothing of the teacher is fused in), and the S.D loss compares it with the
   target image's own map at every pixel.
 
+With ``+feature_provider`` (a feature field, docs/features.md): each Gaussian also carries the provider's feature of
+its source view at its source pixel (the provider's map lifted bilinearly to every pixel, ``gpnerf_core.lift_to_pixels``;
+nothing is trained), rasterized into ``Prediction.features`` and given as ``GaussianScene.feature_field``.
+
 Training renders whole target images (``TrainingBatch.IMAGES``: one ``ImageOutput`` per target view): MVSplat's loss is
 on images (MSE + 0.05 LPIPS; LPIPS needs weights that cannot be downloaded here, so the ``image`` loss set takes SSIM
 in its place).
@@ -32,6 +36,7 @@ in its place).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -56,6 +61,7 @@ from gpnerf_core import (
     TargetView,
     TrainingBatch,
     decode_checked,
+    lift_to_pixels,
     rasterize_gaussians,
     rotate_harmonics,
     sh_coefficients,
@@ -74,13 +80,14 @@ MAP_STRIDE = 4
 class RenderedImage:
     """One view rasterized on a ``stride`` grid: colour ``[h, w, 3]``, depth ``[h, w]`` (metres, the composited
     depth over the accumulated opacity; 0 where nothing is), accumulated opacity ``[h, w]``, class scores ``[h, w, K]``
-    or None, and the semantic map ``[1, C, h, w]`` or None."""
+    or None, the semantic map ``[1, C, h, w]`` or None, and the feature field ``[1, C_f, h, w]`` or None."""
 
     rgb: Tensor
     depth: Tensor
     alpha: Tensor
     scores: Tensor | None
     semantic: Tensor | None = None
+    features: Tensor | None = None
 
 
 class MVSplat(LabelsOrHead):
@@ -96,16 +103,19 @@ class MVSplat(LabelsOrHead):
         sh_degree, scale_min, scale_max: the Gaussian adapter.
         background: colour where no Gaussian covers a pixel.
         rasterizer: the rasterizer backend (``gpnerf_core.rasterize_gaussians``).
+        feature_field: the configured feature provider (``parts.feature_field()``), or None: with one, each Gaussian
+            carries the provider's feature at its source pixel (``PixelGaussians.field``).
     """
 
     capabilities = Capabilities(trains_on=TrainingBatch.IMAGES, source_encoding=SourceEncoding.SOURCE_SET, gaussians=True,
-                                teacher=True, hooks=MVSplatHooks)
+                                teacher=True, hooks=MVSplatHooks, feature_field=True)
 
     def __init__(self, *, extractor: FeatureExtractor, head: PerceptionHead | None, num_classes: int, feature_dim: int,
                  transformer_layers: int, attention_splits: int, depth_candidates: int, cost_unet_dim: int,
                  depth_unet_dim: int, unet_levels: int, sh_degree: int, scale_min: float, scale_max: float,
-                 background: float, rasterizer: str) -> None:
+                 background: float, rasterizer: str, feature_field: object = None) -> None:
         super().__init__()
+        self.feature_source = feature_field  # a plain object: the provider is no submodule (never trained or saved)
         self.extractor, self.head = extractor, head
         self.num_classes = int(num_classes) if head is None else 0
         self.sh_degree, self.scale_min, self.scale_max = int(sh_degree), float(scale_min), float(scale_max)
@@ -151,9 +161,21 @@ class MVSplat(LabelsOrHead):
         if self.head is not None:
             semantic_stride = sources.image_size[0] // int(maps.semantic.shape[-2])
             semantic = F.interpolate(maps.semantic, size=sources.image_size, mode="bilinear", align_corners=False)
-        return pixel_gaussians(depth.raw, depth.depth, depth.opacity, depth.confidence, sources,
-                               sh_degree=self.sh_degree, scale_min=self.scale_min, scale_max=self.scale_max,
-                               semantic=semantic, semantic_stride=semantic_stride, extras=self.num_classes)
+        gaussians = pixel_gaussians(depth.raw, depth.depth, depth.opacity, depth.confidence, sources,
+                                    sh_degree=self.sh_degree, scale_min=self.scale_min, scale_max=self.scale_max,
+                                    semantic=semantic, semantic_stride=semantic_stride, extras=self.num_classes)
+        if self.feature_source is None:
+            return gaussians
+        return dataclasses.replace(gaussians, field=self.lifted_field(sources))
+
+    def lifted_field(self, sources: SourceViews) -> Tensor:
+        """``[V H W, C]`` the feature provider's map of each source view lifted to every pixel (bilinear, the map's
+        cells covering the image evenly: ``gpnerf_core.lift_to_pixels``), view-major then row-major as the Gaussians
+        (one per source pixel); the maps of a dataset's frames are read through the provider cache. Not trained."""
+        with torch.no_grad():
+            maps = self.feature_source.maps(sources.scene, sources.frames, sources.rgb)  # [V, C, h, w]
+            lifted = lift_to_pixels(maps, sources.image_size)
+        return lifted.permute(0, 2, 3, 1).reshape(-1, int(maps.shape[1]))
 
     # ---- rasterizing ------------------------------------------------------------------------------------------------
 
@@ -167,23 +189,28 @@ class MVSplat(LabelsOrHead):
         return out.features, out.depth, out.alpha
 
     def render_image(self, gaussians: PixelGaussians, camera: TargetCamera, stride: int, *, scores: bool,
-                     semantic: bool = False) -> RenderedImage:
-        """Colour, depth, and (``scores``, label rendering) class scores and (``semantic``) the semantic map of
-        ``camera`` on a ``stride`` grid, in one rasterization."""
+                     semantic: bool = False, field: bool = False) -> RenderedImage:
+        """Colour, depth, and (``scores``, label rendering) class scores, (``semantic``) the semantic map and
+        (``field``) the feature field of ``camera`` on a ``stride`` grid, in one rasterization."""
         parts = [gaussians.colours(camera.c2w[:3, 3])]
         if scores:
             parts.append(gaussians.scores)
         if semantic:
             parts.append(gaussians.semantic)
+        if field:
+            parts.append(gaussians.field)
         features = torch.cat(parts, dim=-1) if len(parts) > 1 else parts[0]
         background = torch.zeros(features.shape[1], dtype=features.dtype, device=features.device)
         background[:3] = self.background
         image, depth, alpha = self._rasterize(gaussians, features, camera, stride, background)
         expected = torch.where(alpha > 1e-6, depth / alpha.clamp_min(1e-6), torch.zeros_like(depth))
         classes = gaussians.scores.shape[1] if scores else 0
+        width = gaussians.semantic.shape[1] if semantic else 0
         return RenderedImage(rgb=image[..., :3], depth=expected, alpha=alpha,
                              scores=image[..., 3:3 + classes] if scores else None,
-                             semantic=image[..., 3 + classes:].permute(2, 0, 1)[None] if semantic else None)
+                             semantic=(image[..., 3 + classes:3 + classes + width].permute(2, 0, 1)[None] if semantic
+                                       else None),
+                             features=image[..., 3 + classes + width:].permute(2, 0, 1)[None] if field else None)
 
     def render_semantic(self, gaussians: PixelGaussians, camera: TargetCamera, stride: int) -> Tensor:
         """``[1, C, h, w]`` the Gaussians' semantic features rasterized on a ``stride`` grid (what the head decodes)."""
@@ -226,7 +253,8 @@ class MVSplat(LabelsOrHead):
                                                                                 far=camera.far)
         labels = self.head is None and self.num_classes > 0
         stride = stride or (gaussians.semantic_stride if self.head is not None else 1)
-        image = self.render_image(gaussians, camera, stride, scores=labels, semantic=self.head is not None)
+        field = gaussians.field is not None
+        image = self.render_image(gaussians, camera, stride, scores=labels, semantic=self.head is not None, field=field)
         semantic = logits = None
         if self.head is not None:
             logits = decode_checked(self.head, image.semantic, camera.image_size).logits
@@ -235,7 +263,9 @@ class MVSplat(LabelsOrHead):
             logits = image.scores.permute(2, 0, 1)[None]
             if stride > 1:
                 logits = F.interpolate(logits, size=camera.image_size, mode="nearest")
-        return Prediction(rgb=image.rgb, depth=image.depth, semantic=semantic, logits=logits, stride=stride)
+        features = image.features[0] if field else None
+        return Prediction(rgb=image.rgb, depth=image.depth, semantic=semantic, logits=logits, stride=stride,
+                          features=features)
 
     @torch.inference_mode()
     def scene_gaussians(self, sources: SourceViews | None, *, near: float, far: float,
@@ -244,7 +274,7 @@ class MVSplat(LabelsOrHead):
         own source pixel: its class scores' argmax (label rendering), or the head's class in the source view
         rendered from the set (decoded: the head needs the image context, so a label is a pixel's of a decoded view);
         -1 without semantics. The scene's ``features`` column: each Gaussian's semantic feature (with a head) or its class scores (label
-        rendering), None without semantics."""
+        rendering), None without semantics; ``feature_field``: the provider's feature at its source pixel, or None."""
         if sources is None and features is None:
             raise ConfigError("mvsplat predicts Gaussians from source views; none were given")
         gaussians = features if features is not None else self.encode_sources(sources, near=near, far=far)
@@ -262,4 +292,5 @@ class MVSplat(LabelsOrHead):
         harmonics = rotate_harmonics(gaussians.harmonics, gaussians.source_rotations, gaussians.view_of)
         own = gaussians.semantic if self.head is not None else gaussians.scores  # what the decoder reads
         return GaussianScene(means=gaussians.means, scales=gaussians.scales, rotations=gaussians.rotations,
-                             opacities=gaussians.opacities, harmonics=harmonics, labels=labels, features=own)
+                             opacities=gaussians.opacities, harmonics=harmonics, labels=labels, features=own,
+                             feature_field=gaussians.field)

@@ -18,6 +18,9 @@ class Semantic3DGSLearningRates(GaussianRates):
     """The semantic feature of each Gaussian (Gaussian Grouping: its identity encoding at ``feature_lr`` 2.5e-3)."""
     head: float = 5e-5
     """The 1 x 1 classifier or the ``+head`` (GP-NeRF's rate for a head)."""
+    feature_field: float = 2.5e-3
+    """Each Gaussian's feature-field vector (``+feature_provider``; the semantic feature's rate, Gaussian Grouping's
+    ``feature_lr``)."""
 
 
 @dataclass

@@ -65,15 +65,20 @@ class Semantic3DGS(GaussianFamily):
         feature_dim: channels of each Gaussian's semantic feature (``features``).
         setup: the checked options of ``Semantic3DGSConfig`` (``gpnerf_core.gaussian_setup``).
         feature_stride: pixels per cell of the rendered feature map the decoder reads (1: rendered with the colour).
+        feature_field: the configured feature provider (``parts.feature_field()``), or None: with one, each Gaussian
+            also carries a feature-field vector (Feature 3DGS), rasterized in the same pass as the colour and the
+            semantic feature, distilled against the provider's features (``ImageOutput.features``).
     """
 
     name = "semantic_3dgs"
     start_channel = "features"
+    capabilities = dataclasses.replace(GaussianFamily.capabilities, feature_field=True)
 
     def __init__(self, *, head: PerceptionHead | None, num_classes: int, feature_dim: int,
-                 setup: GaussianSetup, feature_stride: int = 1) -> None:
+                 setup: GaussianSetup, feature_stride: int = 1, feature_field: object = None) -> None:
         decoded = head is not None or int(num_classes) > 0
-        super().__init__(channels={"features": feature_dim if decoded else 0}, setup=setup, head=head)
+        super().__init__(channels={"features": feature_dim if decoded else 0}, setup=setup, head=head,
+                         feature_field=feature_field)
         self.num_classes = 0 if head is not None else int(num_classes)
         self.feature_stride = int(feature_stride)
         self.classifier = nn.Conv2d(feature_dim, self.num_classes, 1) if head is None and self.num_classes else None
@@ -144,7 +149,12 @@ class Semantic3DGS(GaussianFamily):
 
     def _forward_view(self, target: TargetView, semantics: bool) -> ImageOutput:
         decodes = semantics and (self.head is not None or self.classifier is not None)
-        output, semantic_map = self.render_view(target.camera, channels=decodes and self.feature_stride == 1)
+        field = self.feature_source is not None
+        output, semantic_map = self.render_view(target.camera,
+                                                channels=(decodes and self.feature_stride == 1) or field)
+        if field:  # the feature field, rendered in the same pass, decoded to the provider's channels
+            output = dataclasses.replace(output, features=self.field_map(semantic_map))
+            semantic_map = self.split_channels(semantic_map)["features"]
         if not decodes:
             return output
         if self.feature_stride > 1:  # the feature map on its own grid: a second rasterization
@@ -163,22 +173,32 @@ class Semantic3DGS(GaussianFamily):
         stride = stride or 1
         decodes = self.head is not None or self.classifier is not None
         together = decodes and self.feature_stride == 1
-        rgb, depth, _, semantic_map, _ = self.render(camera, stride, channels=together)
+        field = self.feature_source is not None
+        rgb, depth, _, semantic_map, _ = self.render(camera, stride, channels=together or field)
+        features = None
+        if field:  # the feature field on the rendered grid, in the provider's channels
+            features = self.field_map(semantic_map)[0]
+            semantic_map = self.split_channels(semantic_map)["features"] if together else None
         if decodes and not together:  # the feature map on its own grid (``feature_stride``)
             semantic_map = self.render(camera, self.feature_stride, channels=True)[3]
+            if field:
+                semantic_map = self.split_channels(semantic_map)["features"]
         logits = self._decode(semantic_map, camera.image_size) if decodes else None
         semantic = semantic_map.permute(2, 0, 1) if semantic_map is not None else None
-        return Prediction(rgb=rgb, depth=depth, semantic=semantic, logits=logits, stride=stride)
+        return Prediction(rgb=rgb, depth=depth, semantic=semantic, logits=logits, stride=stride, features=features)
 
     @torch.inference_mode()
     def scene_gaussians(self, sources: SourceViews | None, *, near: float, far: float,
                         features: object = None) -> GaussianScene:
         """The scene's Gaussians, each labelled with the class its own feature is decoded to by the 1 x 1
         convolution (Gaussian Grouping's 3D classification); -1 with a head (it decodes maps, with context) or
-        without semantics."""
+        without semantics. With a feature field, each Gaussian's vector in the provider's channels
+        (``GaussianScene.feature_field``)."""
         field = self.gaussians
         labels = None
         if self.classifier is not None:
             weight = self.classifier.weight[:, :, 0, 0]
             labels = (field.features @ weight.T + self.classifier.bias).argmax(dim=-1)
-        return field.as_scene(labels)
+        scene = field.as_scene(labels)
+        rows = self.field_rows()
+        return scene if rows is None else dataclasses.replace(scene, feature_field=rows)
