@@ -39,7 +39,7 @@ from gpnerf_core.engine.launching import Handover, launch_from_checkpoint
 from gpnerf_core.engine.opening import open_trained
 from gpnerf_core.engine.runs import claim_run_folder
 from gpnerf_core.errors import ConfigError, DataError
-from gpnerf_core.features.queries import prediction_feature_map
+from gpnerf_core.features.queries import prediction_feature_map, prediction_feature_source
 from gpnerf_core.geometry.point_fusion import cell_scores, inside_bounds
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.runtime.staging import Write, write_staged
@@ -107,7 +107,7 @@ def export_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handove
         for note in loaded.notes:
             print(f"note: {note}", file=sys.stderr)
         started = time.perf_counter()
-        views, clouds, sensor_depths, first, feature_maps = [], [], [], None, {}
+        views, clouds, sensor_depths, first, feature_maps, feature_source = [], [], [], None, {}, None
 
         def render_frame(index: int) -> Any:
             camera = frames.camera(scene, frames.frame(scene, index))
@@ -125,6 +125,7 @@ def export_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handove
             first = first or given
             if asked:
                 feature_maps[index] = prediction_feature_map(prediction)
+                feature_source = feature_source or prediction_feature_source(prediction)
             view, cloud = rendered_points(prediction, camera, model.semantic_output)
             views.append(view)
             clouds.append(cloud)
@@ -144,7 +145,8 @@ def export_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handove
             if example not in feature_maps:
                 feature_maps[example] = prediction_feature_map(render_frame(example)[2])
             selection = query_selection(settings.query, scene, feature_maps, example, indices, clouds, keeps,
-                                        [tuple(view.depth.shape) for view in views], splats, float(settings.voxel))
+                                        [tuple(view.depth.shape) for view in views], splats, float(settings.voxel),
+                                        feature_source)
         empty = None
         if len(merged) == 0:  # a Gaussian family's Gaussians are written whatever the fusion keeps
             empty = (f"no point of scene {name!r} is inside its depth bounds and seen by {min_views} other view(s) "
@@ -206,7 +208,7 @@ def query_asked(query: Any, scene: Any) -> dict[str, Any]:
 
 def query_selection(query: Any, scene: Any, feature_maps: dict[int, Any], example: int, indices: list[int],
                     clouds: list[Any], keeps: list[torch.Tensor], grids: list[tuple[int, int]], splats: Any,
-                    voxel: float) -> dict[str, Any]:
+                    voxel: float, source: str | None = None) -> dict[str, Any]:
     """The Gaussians and kept points at least ``export.query.threshold`` similar to the example (its feature map's
     cells, ``features.queries``): ``{"gaussians": (scene, selected, scores) | None, "points": cloud | None,
     "record": export.json's ``query``}``.
@@ -229,7 +231,8 @@ def query_selection(query: Any, scene: Any, feature_maps: dict[int, Any], exampl
     embedding = example_embedding(features.float().cpu(), stride=feature_stride(features, (scene.height,
                                                                                            scene.width)),
                                   **{key: tuple(value) for key, value in where.items()})
-    record: dict[str, Any] = {**where, "frame": example, "threshold": threshold, "channels": int(features.shape[0])}
+    record: dict[str, Any] = {**where, "frame": example, "threshold": threshold, "features": source,
+                              "channels": int(features.shape[0])}
     gaussians = None
     matrix = gaussian_feature_matrix(splats) if splats is not None else None
     if matrix is not None:

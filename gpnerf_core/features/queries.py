@@ -231,6 +231,13 @@ def prediction_feature_map(prediction: object) -> Tensor | None:
     return features if features is not None else getattr(prediction, "semantic", None)
 
 
+def prediction_feature_source(prediction: object) -> str | None:
+    """Which map ``prediction_feature_map`` takes: ``feature_field``, ``semantic_embedding`` or None."""
+    if getattr(prediction, "features", None) is not None:
+        return "feature_field"
+    return "semantic_embedding" if getattr(prediction, "semantic", None) is not None else None
+
+
 def write_gaussian_selection(
     path: str | os.PathLike[str], scene: GaussianScene, selected: Tensor, scores: Tensor | None = None,
     comments: tuple[str, ...] = (),

