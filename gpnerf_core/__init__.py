@@ -108,6 +108,7 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     ),
     # a feature provider's per-frame features, through the on-disk cache
     "gpnerf_core.features": ("FeatureCache", "build_feature_provider", "frame_features"),
+    "gpnerf_core.model.trained_extractor": ("trained_feature_extractor",),
     # composing and building from a script or notebook
     "gpnerf_core.config.compose": ("compose",),
     "gpnerf_core.model.build": ("build_components",),
@@ -277,6 +278,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
     from gpnerf_core.interfaces.stress import ChooseSources
     from gpnerf_core.model.build import build_components
     from gpnerf_core.features import FeatureCache, build_feature_provider, frame_features
+    from gpnerf_core.model.trained_extractor import trained_feature_extractor
     from gpnerf_core.registry.components import get_registry
     from gpnerf_core.registry.hookspecs import hookimpl
     from gpnerf_core.registry.declarations import (

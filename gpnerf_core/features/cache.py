@@ -201,7 +201,7 @@ class FeatureCache:
             if frame_checksum(frame) != sums[row]:
                 raise CorruptShard(f"frame {frames[position]} fails its checksum")
             out[position] = torch.from_numpy(frame.astype(np.float32))
-            self.read += 1
+        self.read += len(positions)  # counted once the shard's frames all passed
 
     def _shard(self, shard: int) -> np.ndarray:
         """Shard ``shard`` memory-mapped (filled first when the manifest has none or its file is missing)."""

@@ -10,7 +10,7 @@ from typing import Any, Callable
 
 from gpnerf_core.testing import inputs
 from gpnerf_core.testing.checks import (
-    aggregators, datasets, depth_sources, extractors, heads, losses, models, selectors,
+    aggregators, datasets, depth_sources, extractors, feature_providers, heads, losses, models, selectors,
 )
 from gpnerf_core.testing.checks.common import CheckFailed, CheckSkipped, Subject
 
@@ -24,6 +24,7 @@ CHECKS: dict[str, dict[str, Callable[[Subject], None]]] = {
     "dataset": datasets.CHECKS,
     "view_selector": selectors.CHECKS,
     "depth_source": depth_sources.CHECKS,
+    "feature_provider": feature_providers.CHECKS,
 }
 
 RUNTIME: dict[str, dict[str, Any]] = {
@@ -36,6 +37,7 @@ RUNTIME: dict[str, dict[str, Any]] = {
     "dataset": {},
     "view_selector": {},
     "depth_source": {},
+    "feature_provider": {},
 }
 
 __all__ = ["CHECKS", "RUNTIME", "CheckFailed", "CheckSkipped", "Subject"]
