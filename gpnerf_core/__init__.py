@@ -64,7 +64,7 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     "gpnerf_core.model.gaussian_family": ("GaussianFamily", "GaussianHooks"),
     # feature fields (+feature_provider): what a family is handed, the distillation's geometry, the compression
     "gpnerf_core.features.field": ("FeatureField", "FeatureFieldOptions", "at_pixels", "feature_distance",
-                                   "lift_to_pixels", "to_grid"),
+                                   "lift_to_pixels", "quiet_rng", "to_grid"),
     "gpnerf_core.features.compression": ("FeatureAutoencoder", "ReconstructionError"),
     "gpnerf_core.model.generalized_start": ("GaussianStart", "begin_from_start", "points_start", "predict_start",
                                             "start_overrides"),
@@ -226,7 +226,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
     from gpnerf_core.model.gaussian_config import GaussianRates, GaussianSceneConfig, GaussianSetup, gaussian_setup
     from gpnerf_core.model.gaussian_family import GaussianFamily, GaussianHooks
     from gpnerf_core.features.field import (
-        FeatureField, FeatureFieldOptions, at_pixels, feature_distance, lift_to_pixels, to_grid,
+        FeatureField, FeatureFieldOptions, at_pixels, feature_distance, lift_to_pixels, quiet_rng, to_grid,
     )
     from gpnerf_core.features.compression import FeatureAutoencoder, ReconstructionError
     from gpnerf_core.model.generalized_start import (

@@ -289,7 +289,8 @@ def _evaluate_view(
     prediction.check_finite(model.hooks.output_owners(component_names(cfg)), where)
     feature_cosine = None
     if prediction.features is not None and components.feature_field is not None:
-        provided = components.feature_field.maps(scene.name, [index], target.rgb.permute(2, 0, 1)[None].to(frames.device))
+        image = target.rgb.permute(2, 0, 1)[None].to(frames.device)
+        provided = components.feature_field.maps(scene.name, [index], image)
         feature_cosine = image_cosine(prediction.features, provided[0])
     instance_head = predicts(components) is Predicts.INSTANCES
     classes = None
@@ -539,6 +540,8 @@ def print_summary(metrics: dict[str, Any], run_dir: Path) -> None:
         else:
             parts += _label_parts(values)
         parts.append(f"| PSNR {_fmt(values.get(M.PSNR_CLAMPED), 2)} SSIM {_fmt(values.get(M.SSIM_GAUSSIAN11))}")
+        if M.FEATURE_COSINE in values:
+            parts.append(f"| feature field cosine {_fmt(values.get(M.FEATURE_COSINE))}")
         timing = values.get("timing", {})
         parts.append(f"| {timing.get('seconds_per_frame', float('nan')):.2f} s/frame")
         lines.append(" ".join(parts))

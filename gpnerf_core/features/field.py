@@ -15,10 +15,11 @@ provider has more, with a per-scene ``FeatureAutoencoder`` the family owns), and
 
 from __future__ import annotations
 
+import contextlib
 import math
 import sys
 from dataclasses import dataclass
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -104,10 +105,12 @@ class FeatureField:
 
     def make_autoencoder(self) -> FeatureAutoencoder | None:
         """A new ``FeatureAutoencoder`` ``C`` -> ``carried`` (None when not ``compressed``), kept as ``autoencoder``;
-        the family owns it (a submodule: saved in its checkpoints) and fits it (``fit_autoencoder``)."""
+        the family owns it (a submodule: saved in its checkpoints) and fits it (``fit_autoencoder``). Its weights
+        start aside from the global RNG (``quiet_rng``), which the model's own start draws from."""
         if not self.compressed:
             return None
-        self.autoencoder = FeatureAutoencoder(self.channels, self.carried, self.options.autoencoder_hidden)
+        with quiet_rng():
+            self.autoencoder = FeatureAutoencoder(self.channels, self.carried, self.options.autoencoder_hidden)
         return self.autoencoder
 
     def maps(self, scene: str | None, frames: Sequence[int] | None, images: Tensor) -> Tensor:
@@ -151,6 +154,18 @@ class FeatureField:
               f"autoencoder fitted on {error.samples} cells of scene {scene.name!r}: reconstruction mean cosine "
               f"{error.cosine:.4f}, mean L2 {error.l2:.4f} (relative {error.relative_l2:.4f})", file=sys.stderr)
         return error
+
+
+@contextlib.contextmanager
+def quiet_rng(seed: int | None = None) -> Iterator[None]:
+    """Within the block the global CPU RNG is seeded ``seed`` (None: the run's seed, ``torch.initial_seed()``, plus
+    57); its state is restored after: what a feature field builds or draws (a provider's layers, an autoencoder, a
+    projection, the Gaussians' field channel) takes nothing the model's other parameters and density control would
+    have drawn, so a run with ``+feature_provider`` starts and densifies every other parameter as one without."""
+    chosen = (torch.initial_seed() + 57) % (2 ** 63) if seed is None else int(seed)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(chosen)
+        yield
 
 
 def to_grid(rendered: Tensor, size: tuple[int, int]) -> Tensor:

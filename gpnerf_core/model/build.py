@@ -10,7 +10,9 @@ from typing import Any
 
 from gpnerf_core.data.dataset import SceneDataset
 from gpnerf_core.errors import ConfigError
-from gpnerf_core.features.field import FeatureField, FeatureFieldOptions
+from gpnerf_core.features.build import build_feature_provider
+from gpnerf_core.features.cache import frame_features
+from gpnerf_core.features.field import FeatureField, FeatureFieldOptions, quiet_rng
 from gpnerf_core.interfaces import LossSet, PerceptionHead, ViewSelector
 from gpnerf_core.interfaces.head import Predicts
 from gpnerf_core.interfaces.model import ModelFamily, ModelParts
@@ -120,27 +122,13 @@ class ConfiguredParts(ModelParts):
         if provider_cfg is None:
             return None
         if self.built_feature_field is None:
-            provider = self._registry.build("feature_provider", provider_cfg)
+            with quiet_rng():  # a provider's layers draw nothing the model's own would have drawn
+                provider = build_feature_provider(self._cfg, self._registry)
             self.built_feature_field = FeatureField(
                 provider, FeatureFieldOptions.from_config(self._cfg.get("features")),
-                name=str(provider_cfg.get("name")), dataset=self._dataset, reader=feature_reader())
+                name=str(provider_cfg.get("name")), dataset=self._dataset, reader=frame_features)
             self.built_kinds.add("feature_provider")
         return self.built_feature_field
-
-
-def feature_reader() -> Any:
-    """The provider cache's accessor (``gpnerf_core.features``' ``frame_features``), or None where this checkout has
-    none (the maps are then computed from the images)."""
-    import importlib
-
-    for module in ("gpnerf_core.features.cache", "gpnerf_core.features"):
-        try:
-            reader = getattr(importlib.import_module(module), "frame_features", None)
-        except ImportError:
-            continue
-        if reader is not None:
-            return reader
-    return None
 
 
 def family_class(registry: Registry, name: str) -> type | None:

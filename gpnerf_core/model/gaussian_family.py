@@ -20,6 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from gpnerf_core.errors import ConfigError, DataError, NonFiniteError
+from gpnerf_core.features.field import quiet_rng
 from gpnerf_core.geometry.gaussians.density import ViewInfo, scaled_step
 from gpnerf_core.geometry.gaussians.harmonics import colour_to_dc, sh_colours
 from gpnerf_core.geometry.gaussians.initialisation import neighbour_scales, scene_extent, starting_points
@@ -83,6 +84,10 @@ class GaussianHooks(FamilyHooks):
         rows = rows_from_points(points.xyz, points.rgb, neighbour_scales(points.xyz), sh_degree=gaussians.sh_degree,
                                 opacity=setup.init_opacity)
         for name, width in gaussians.channels.items():
+            if name == FIELD_CHANNEL:  # drawn aside: the global RNG (density control's splits) as without a field
+                with quiet_rng():
+                    rows[name] = colour_to_dc(torch.rand(points.count, width))
+                continue
             rows[name] = colour_to_dc(torch.rand(points.count, width))
         gaussians.set_rows({name: value.to(gaussians.means.device) for name, value in rows.items()})
         gaussians.extent.fill_(scene_extent(scene))

@@ -55,6 +55,7 @@ from gpnerf_core import (
     one_pass_preview,
     pixel_grid,
     points_along_rays,
+    quiet_rng,
     rays_through_pixels,
     sampling_layout,
     stage,
@@ -174,7 +175,8 @@ class GeneralizableNeRF(ModelFamily):
                 raise ConfigError(f"+feature_provider={feature_field.name}: model=gnt renders its feature field from "
                                   "its semantic-embedding field, which is off; expected model.semantic_field.enabled="
                                   "true and a feature extractor with semantic maps")
-            self.feature_projection = nn.Linear(semantic.semantic_dim, int(feature_field.channels))
+            with quiet_rng():  # the global RNG as without a field (dropout and the rest draw the same)
+                self.feature_projection = nn.Linear(semantic.semantic_dim, int(feature_field.channels))
 
     @property
     def renders_field(self) -> bool:
