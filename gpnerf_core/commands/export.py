@@ -217,7 +217,7 @@ def query_selection(query: Any, scene: Any, feature_maps: dict[int, Any], exampl
         ConfigError: a model without a feature map; a Gaussian feature matrix of another dimension (both named).
     """
     from gpnerf_core.features.queries import (
-        example_embedding, feature_stride, gaussian_feature_matrix, relevancy, select_gaussians, similarity_map,
+        example_embedding, gaussian_feature_matrix, relevancy, select_gaussians, similarity_map,
     )
     from gpnerf_core.geometry.point_fusion import concatenate, voxel_merge
 
@@ -228,8 +228,7 @@ def query_selection(query: Any, scene: Any, feature_maps: dict[int, Any], exampl
     asked = query_asked(query, scene)
     threshold = float(query.threshold)
     where = {key: asked[key] for key in ("pixel", "box") if key in asked}
-    embedding = example_embedding(features.float().cpu(), stride=feature_stride(features, (scene.height,
-                                                                                           scene.width)),
+    embedding = example_embedding(features.float().cpu(), image_size=(scene.height, scene.width),
                                   **{key: tuple(value) for key, value in where.items()})
     record: dict[str, Any] = {**where, "frame": example, "threshold": threshold, "features": source,
                               "channels": int(features.shape[0])}

@@ -28,6 +28,7 @@ import zlib
 from typing import Any, Callable
 
 import torch
+import torch.nn.functional as F
 
 from gpnerf_core.data.frames import FrameCache, choose_sources
 from gpnerf_core.errors import ConfigError
@@ -69,11 +70,11 @@ def prototype_frames(scene: Scene, labels: dict[int, torch.Tensor], num_classes:
 
 
 def labels_at_image(cells: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
-    """``[h, w]`` labels of a feature grid at the ``(H, W)`` image (each cell's label on each of its pixels)."""
-    factor = size[0] // int(cells.shape[0])
-    if factor * int(cells.shape[0]) != size[0] or factor * int(cells.shape[1]) != size[1]:
-        raise ValueError(f"a {tuple(cells.shape)} grid does not divide the {size[0]}x{size[1]} image")
-    return cells.repeat_interleave(factor, 0).repeat_interleave(factor, 1)
+    """``[h, w]`` labels of a feature grid at the ``(H, W)`` image: each pixel takes the label of the cell it falls in
+    (nearest; a grid that divides the image gives each cell's label to each of its pixels)."""
+    if tuple(cells.shape) == tuple(size):
+        return cells
+    return F.interpolate(cells[None, None].float(), size=tuple(size), mode="nearest")[0, 0].long()
 
 
 @dataclasses.dataclass

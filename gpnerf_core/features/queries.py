@@ -8,7 +8,9 @@ without their canonical negatives (a query by example needs no text to compare a
 prototype is the mean of the L2-normalised features it covers (not normalised again: cosine ignores its norm).
 
 Pixels are full-image pixel coordinates ``(x, y)`` (x to the right, y down, pixel centres at integers, as the datasets'
-intrinsics have them); a feature map of stride ``s`` covers pixel ``(x, y)`` with cell ``(y // s, x // s)``.
+intrinsics have them); a feature map of stride ``s`` covers pixel ``(x, y)`` with cell ``(y // s, x // s)``, and an
+``h x w`` map of an ``H x W`` image (a provider's grid need not divide the image: ``FeatureProvider.feature_size``
+rounds) with cell ``(floor(y h / H), floor(x w / W))``.
 """
 
 from __future__ import annotations
@@ -75,12 +77,11 @@ def feature_stride(features: Tensor, image_size: tuple[int, int]) -> int:
     return image_size[0] // height
 
 
-def _cell(x: float, y: float, stride: int, grid: tuple[int, int]) -> tuple[int, int]:
-    row, col = int(y // stride), int(x // stride)
-    if not (0 <= row < grid[0] and 0 <= col < grid[1]):
-        raise ConfigError(f"query pixel ({x:g}, {y:g}) is outside the {grid[0] * stride}x{grid[1] * stride} image "
+def _cell(x: float, y: float, image: tuple[int, int], grid: tuple[int, int]) -> tuple[int, int]:
+    if not (0 <= x < image[1] and 0 <= y < image[0]):
+        raise ConfigError(f"query pixel ({x:g}, {y:g}) is outside the {image[0]}x{image[1]} image "
                           "(x in [0, width), y in [0, height))")
-    return row, col
+    return min(int(y * grid[0] // image[0]), grid[0] - 1), min(int(x * grid[1] // image[1]), grid[1] - 1)
 
 
 def example_embedding(
@@ -89,6 +90,7 @@ def example_embedding(
     pixel: tuple[float, float] | None = None,
     box: tuple[float, float, float, float] | None = None,
     stride: int = 1,
+    image_size: tuple[int, int] | None = None,
 ) -> Tensor:
     """The query of an example in one view: ``[C]``, the mean of the normalised features of the cells the example
     covers.
@@ -98,6 +100,7 @@ def example_embedding(
         pixel: ``(x, y)`` full-image pixel: the cell holding it.
         box: ``(x0, y0, x1, y1)`` full-image pixels, corners included: every cell holding a pixel of the box.
         stride: image pixels per feature cell (``feature_stride``).
+        image_size: ``(H, W)`` of the image instead of ``stride``, for a grid that does not divide it.
 
     Raises:
         ConfigError: neither or both of ``pixel`` and ``box``, a pixel or a box outside the image, a box whose corners
@@ -106,29 +109,31 @@ def example_embedding(
     if (pixel is None) == (box is None):
         raise ConfigError("a query example is a pixel (x, y) or a box (x0, y0, x1, y1); expected exactly one of them")
     grid = (int(features.shape[-2]), int(features.shape[-1]))
+    image = tuple(image_size) if image_size is not None else (grid[0] * stride, grid[1] * stride)
     unit = normalised(features, dim=0)
     if pixel is not None:
-        row, col = _cell(float(pixel[0]), float(pixel[1]), stride, grid)
+        row, col = _cell(float(pixel[0]), float(pixel[1]), image, grid)
         return unit[:, row, col]
     x0, y0, x1, y1 = (float(v) for v in box)
     if x1 < x0 or y1 < y0:
         raise ConfigError(f"query box ({x0:g}, {y0:g}, {x1:g}, {y1:g}): expected x0 <= x1 and y0 <= y1")
-    top, left = _cell(x0, y0, stride, grid)
-    bottom, right = _cell(x1, y1, stride, grid)
+    top, left = _cell(x0, y0, image, grid)
+    bottom, right = _cell(x1, y1, image, grid)
     return unit[:, top:bottom + 1, left:right + 1].reshape(unit.shape[0], -1).mean(dim=1)
 
 
 def cell_labels(labels: Tensor, grid: tuple[int, int], num_classes: int, ignore_index: int | None = None) -> Tensor:
     """Full-image labels ``[H, W]`` on a feature grid ``(h, w)``: each cell's most frequent label (``ignore_index``
-    where the ignored pixels are the most frequent); ``[h, w]`` int64."""
+    where the ignored pixels are the most frequent; a grid that does not divide the image takes the pixels under each
+    cell as adaptive pooling does); ``[h, w]`` int64."""
     labels = labels.long()
     height, width = int(labels.shape[-2]), int(labels.shape[-1])
     if (height, width) == tuple(grid):
         return labels
-    stride = feature_stride(labels.new_zeros(1, *grid), (height, width))
     valid = (labels >= 0) & (labels < num_classes)
     buckets = torch.where(valid, labels, torch.full_like(labels, num_classes))  # the last bucket: ignored
-    counts = F.avg_pool2d(F.one_hot(buckets, num_classes + 1).permute(2, 0, 1)[None].float(), stride)[0]
+    one_hot = F.one_hot(buckets, num_classes + 1).permute(2, 0, 1)[None].float()
+    counts = F.adaptive_avg_pool2d(one_hot, tuple(grid))[0]
     cells = counts.argmax(dim=0)
     fill = ignore_index if ignore_index is not None else -1
     return torch.where(cells == num_classes, torch.full_like(cells, fill), cells)

@@ -72,6 +72,16 @@ def test_cell_labels_take_each_cells_most_frequent_label():
     assert cell_labels(labels, (1, 2), 2, 255).tolist() == [[0, 255]]
 
 
+def test_a_grid_that_does_not_divide_the_image_maps_pixels_and_labels_proportionally():
+    features, labels = regions()  # 6 x 8 cells, as a provider rounds a 50 x 66 frame at stride 8
+    query = example_embedding(features, pixel=(65.0, 49.0), image_size=(50, 66))  # the last cell
+    assert torch.allclose(query, features[:, 5, 7] / features[:, 5, 7].norm(), atol=1e-6)
+    full = torch.nn.functional.interpolate(labels[None, None].float(), size=(50, 66), mode="nearest")[0, 0].long()
+    assert torch.equal(cell_labels(full, (6, 8), 3), labels)
+    prototypes = class_prototypes([features], [full], num_classes=3)
+    assert torch.equal(nearest_prototype(features, prototypes), labels)
+
+
 def test_a_query_of_another_dimension_is_refused_naming_both():
     features, _ = regions(channels=8)
     with pytest.raises(ConfigError, match=r"^the query embedding has 5 dimensions and the feature field has 8 "

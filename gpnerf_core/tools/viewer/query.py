@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.evaluation import visualize as vis
 from gpnerf_core.features.queries import (
-    example_embedding, feature_stride, prediction_feature_map, similarity_map,
+    example_embedding, prediction_feature_map, similarity_map,
 )
 from gpnerf_core.types import Prediction
 
@@ -72,8 +72,7 @@ def click_query(prediction: Prediction | None, screen_pos: tuple[float, float]) 
     height, width = image_size(prediction)
     x = min(max(float(screen_pos[0]), 0.0), 1.0 - 1e-6) * width
     y = min(max(float(screen_pos[1]), 0.0), 1.0 - 1e-6) * height
-    stride = feature_stride(features, (height, width))
-    embedding = example_embedding(features.detach().float().cpu(), pixel=(x, y), stride=stride)
+    embedding = example_embedding(features.detach().float().cpu(), pixel=(x, y), image_size=(height, width))
     return Query(embedding=embedding, label=f"pixel ({x:.0f}, {y:.0f})")
 
 
