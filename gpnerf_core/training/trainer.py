@@ -511,13 +511,13 @@ class Trainer:
             inputs = loss_inputs(view, out, self.ignore_index)
             if isinstance(inputs, ImageLossInputs):
                 named = {f"image.{f}": getattr(inputs.output, f) for f in (
-                    "rgb", "depth", "alpha", "scores", "semantic", "teacher_map", "logits")}
+                    "rgb", "depth", "alpha", "scores", "semantic", "teacher_map", "logits", "features")}
             else:
                 named = {"logits": inputs.logits, "teacher_at_rays": inputs.teacher_at_rays}
                 for rays_name, rays in (("coarse", inputs.coarse), ("fine", inputs.fine)):
                     if isinstance(rays, RenderedRays):
                         named |= {f"{rays_name}.{f}": getattr(rays, f, None)
-                                  for f in ("rgb", "depth", "semantic", "sample_semantic", "logits")}
+                                  for f in ("rgb", "depth", "semantic", "sample_semantic", "logits", "features")}
             fields += [name for name, value in named.items() if isinstance(value, Tensor) and value.is_floating_point()
                        and not all_finite(value.detach()) and name not in fields]
         if not fields:

@@ -164,7 +164,7 @@ class MVSplat(LabelsOrHead):
         gaussians = pixel_gaussians(depth.raw, depth.depth, depth.opacity, depth.confidence, sources,
                                     sh_degree=self.sh_degree, scale_min=self.scale_min, scale_max=self.scale_max,
                                     semantic=semantic, semantic_stride=semantic_stride, extras=self.num_classes)
-        if self.feature_source is None:
+        if self.feature_source is None or self.training:  # nothing trains the lifted field: left out of training
             return gaussians
         return dataclasses.replace(gaussians, field=self.lifted_field(sources))
 
