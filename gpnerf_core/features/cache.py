@@ -8,9 +8,9 @@ One folder per (provider fingerprint, scene identity, frame size), ``$GPNERF_CAC
     shard_00001.npy      frames [S, 2S) ... the last shard holds the rest
     .lock                serialises manifest updates between processes
 
-A shard is computed whole, ``batch`` frames at a time, written atomically (temporary file, ``os.replace``) and then
-recorded in the manifest; the manifest is rewritten atomically under the lock, so two runs filling the same folder
-never lose each other's shards. Reading opens a shard with numpy's memory mapping and copies out only the frames asked
+A shard is computed whole, ``batch`` frames at a time, then written atomically (temporary file, ``os.replace``) and
+recorded in the manifest (rewritten atomically) together under the folder's lock, so two runs filling the same folder
+never lose each other's shards nor pair one's file with the other's checksums. Reading opens a shard with numpy's memory mapping and copies out only the frames asked
 for, each checked against its CRC-32 first: a run holds one shard being filled, or the frames it asked for, never every
 frame's features. At most ``OPEN_SHARDS`` shards stay mapped.
 
@@ -274,13 +274,13 @@ class FeatureCache:
             if progress is not None:
                 progress(len(chunk))
         path = self.shard_path(shard)
-        with atomic_open(path, "wb") as handle:
-            np.save(handle, array, allow_pickle=False)
-        entry = {"file": path.name, "bytes": path.stat().st_size, "frames": [frames[0], frames[-1] + 1],
-                 "checksums": [frame_checksum(frame) for frame in array]}
-        with self._locked():
+        checksums = [frame_checksum(frame) for frame in array]
+        with self._locked():  # the file and its manifest entry change together: another process sees both or neither
             manifest = self._load_manifest()
-            manifest["shards"][str(shard)] = entry
+            with atomic_open(path, "wb") as handle:
+                np.save(handle, array, allow_pickle=False)
+            manifest["shards"][str(shard)] = {"file": path.name, "bytes": path.stat().st_size,
+                                              "frames": [frames[0], frames[-1] + 1], "checksums": checksums}
             atomic_write_json(self.folder / MANIFEST, manifest)
             self._manifest = manifest
         self._open.pop(shard, None)

@@ -161,3 +161,17 @@ def test_bad_frames_and_bad_provider_output_are_refused(tmp_path):
 
     with pytest.raises(Exception, match="beyond float16"):
         FeatureCache(Huge(), dataset, "s0", root=tmp_path).features([0])
+
+
+def test_two_caches_filling_one_folder_keep_each_others_shards(tmp_path, small_shards):
+    """Each manifest update re-reads the manifest under the folder's lock: a reader that opened it before another
+    filled a shard neither loses that shard nor computes it again."""
+    dataset = TinyScenes(frames=8)
+    one, two = CountingProvider(), CountingProvider()
+    first, second = (FeatureCache(p, dataset, "s0", root=tmp_path) for p in (one, two))
+    assert first.missing_shards() == second.missing_shards() == [0, 1]
+    first.features([0])
+    second.features([5])
+    assert one.frames == [0, 1, 2, 3] and two.frames == [4, 5, 6, 7]
+    assert second.features([1]).shape == (1, 6, 12, 16) and two.frames == [4, 5, 6, 7]
+    assert sorted(json.loads((first.folder / "manifest.json").read_text())["shards"]) == ["0", "1"]
