@@ -4,6 +4,7 @@ text encoder, and an answer takes well under 0.1 s."""
 
 from __future__ import annotations
 
+import dataclasses
 from types import SimpleNamespace
 from unittest.mock import MagicMock
 
@@ -107,3 +108,22 @@ def test_a_text_box_with_a_text_encoder_and_its_refusals(tiny, view):
     wrong.query_text(client, state, "a chair")
     assert state.gui["query_status"].content.startswith(f"**query refused**: the query embedding has {channels + 1} "
                                                         f"dimensions and the feature field has {channels} channels")
+
+
+def test_splats_coloured_by_relevancy_where_it_reaches_the_threshold():
+    from gpnerf_core.geometry.gaussians.scene import GaussianScene
+    from gpnerf_core.tools.viewer.splats import splat_arrays
+
+    count = 4
+    features = torch.tensor([[1.0, 0.0], [0.9, 0.1], [0.0, 1.0], [-1.0, 0.0]])
+    scene = GaussianScene(means=torch.zeros(count, 3), scales=torch.full((count, 3), 0.01),
+                          rotations=torch.tensor([[1.0, 0, 0, 0]]).repeat(count, 1), opacities=torch.full((count,), 0.5),
+                          harmonics=torch.zeros(count, 3, 1), labels=torch.full((count,), -1), features=features)
+    own = splat_arrays(scene, "rgb", 0)["rgbs"]
+    coloured = splat_arrays(scene, "relevancy", 0, torch.tensor([1.0, 0.0]), 0.5)["rgbs"]
+    assert np.allclose(coloured[2:], own[2:] / 4)  # below the threshold: their own colour, dimmed
+    assert not np.allclose(coloured[:2], own[:2] / 4) and not np.allclose(coloured[0], coloured[1])
+    field = dataclasses.replace(scene, feature_field=torch.tensor([[0.0, 1.0]] * count))  # the field comes first
+    assert np.allclose(splat_arrays(field, "relevancy", 0, torch.tensor([1.0, 0.0]), 0.5)["rgbs"], own / 4)
+    with pytest.raises(ConfigError, match="has 3 dimensions and the feature field has 2 channels"):
+        splat_arrays(scene, "relevancy", 0, torch.ones(3), 0.5)

@@ -26,9 +26,10 @@ BLEND = 0.6
 """Weight of the colour map over the picture where the relevancy reaches the threshold."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Query:
-    """What a client asked: the embedding ``[C]`` and how it was made (``pixel (x, y) in view ...`` or the text)."""
+    """What a client asked: the embedding ``[C]`` and how it was made (``pixel (x, y)`` or the text); two queries are
+    equal only when they are the same query (the splats shown are keyed by it)."""
 
     embedding: torch.Tensor
     label: str

@@ -136,7 +136,8 @@ class _ClientState:
     highlighted: list[Any] = field(default_factory=list)
     splats: Any = None
     splats_shown: tuple[Any, ...] | None = None
-    """The splat node and what it shows: (scene, sources, colours), so the same Gaussians are not sent twice."""
+    """The splat node and what it shows: (scene, sources, colours, query, threshold), so the same Gaussians are not
+    sent twice."""
     frustums: list[Any] = field(default_factory=list)
     hidden_frustums: set[int] = field(default_factory=set)
     query: Query | None = None
@@ -252,7 +253,7 @@ class ViewerServer:
         if self.renderer.draws_gaussians:
             state.gui["gaussians"] = gui.add_checkbox("Gaussians", True,
                                                       hint="draw the model's 3D Gaussians (those of the view's sources)")
-            colours = ["rgb", "class"] if self.options.class_names else ["rgb"]
+            colours = ["rgb", "class", "relevancy"] if self.options.class_names else ["rgb", "relevancy"]
             state.gui["splat_colours"] = gui.add_dropdown("Gaussian colours", colours, initial_value="rgb")
         state.gui["snap"] = gui.add_button("Snap to nearest frame")
         state.gui["status"] = gui.add_markdown("waiting for the first frame")
@@ -332,6 +333,7 @@ class ViewerServer:
 
         state.gui["query_click"].on_update(click_mode)
         state.gui["threshold"].on_update(lambda _: state.query is not None and self._show_last(client, state))
+        # the splats follow the query too (``Gaussian colours``: relevancy): _show_last sends them again when it changed
         state.gui["query_clear"].on_click(cleared)
         if "query_text" in state.gui:
             state.gui["query_text"].on_update(text_changed)
@@ -517,14 +519,22 @@ class ViewerServer:
             if state.splats is not None:
                 state.splats.visible = False
             return
-        shown = (scene_name, tuple(sources), str(state.gui["splat_colours"].value))
+        colours = str(state.gui["splat_colours"].value)
+        query = state.query if colours == "relevancy" else None
+        shown = (scene_name, tuple(sources), colours, query,
+                 float(state.gui["threshold"].value) if query is not None else None)
         if shown != state.splats_shown:
             splats = self.renderer.gaussians(scene_name, tuple(sources))
             if splats is None:
                 return
             if state.splats is not None:
                 state.splats.remove()
-            arrays = splat_arrays(splats, shown[2], self.renderer.label_count)
+            try:
+                arrays = splat_arrays(splats, colours, self.renderer.label_count,
+                                      query.embedding if query is not None else None, shown[4] or 0.5)
+            except ConfigError as exc:
+                state.gui["query_status"].content = f"**Gaussians not coloured by relevancy**: {exc}"
+                arrays = splat_arrays(splats, "rgb", self.renderer.label_count)
             state.splats = client.scene.add_gaussian_splats("/gaussians", **arrays)
             state.splats_shown = shown
         state.splats.visible = True
