@@ -127,3 +127,19 @@ def test_splats_coloured_by_relevancy_where_it_reaches_the_threshold():
     assert np.allclose(splat_arrays(field, "relevancy", 0, torch.tensor([1.0, 0.0]), 0.5)["rgbs"], own / 4)
     with pytest.raises(ConfigError, match="has 3 dimensions and the feature field has 2 channels"):
         splat_arrays(scene, "relevancy", 0, torch.ones(3), 0.5)
+
+
+def test_the_view_command_gives_the_text_box_a_providers_text_encoder_only():
+    from gpnerf_core.commands.view import _text_encoder
+
+    class Provider:
+        text_encoder = True
+
+        def encode_text(self, texts):
+            return torch.ones(len(texts), 8)
+
+    encoder = _text_encoder(SimpleNamespace(feature_field=SimpleNamespace(provider=Provider())))
+    assert torch.equal(encoder("a chair"), torch.ones(8))
+    Provider.text_encoder = False
+    assert _text_encoder(SimpleNamespace(feature_field=SimpleNamespace(provider=Provider()))) is None
+    assert _text_encoder(SimpleNamespace(feature_field=None)) is None
