@@ -191,8 +191,8 @@ def nearest_prototype(features: Tensor, prototypes: Tensor) -> Tensor:
 
 
 def text_embedding(provider: object, text: str) -> Tensor:
-    """The query of a text: ``[C]``, the provider's text encoder's embedding of ``text`` (``FeatureProvider.encode_text``,
-    which refuses in one line a provider without one)."""
+    """The query of a text: ``[C]``, the provider's text encoder's embedding of ``text``
+    (``FeatureProvider.encode_text``, which refuses in one line a provider without one)."""
     if not text.strip():
         raise ConfigError("query text is empty; expected a word or a phrase")
     return provider.encode_text([text])[0].float()
