@@ -14,7 +14,7 @@ import torch
 
 from gpnerf_core.errors import ConfigError
 from gpnerf_core.features.queries import similarity_map
-from gpnerf_core.tools.viewer.query import Query, answer, click_query, relevancy_picture
+from gpnerf_core.tools.viewer.query import Query, answer, box_query, click_query, relevancy_picture
 from gpnerf_core.tools.viewer.server import ViewerOptions, ViewerServer, _ClientState
 
 OPTIONS = dict(host="127.0.0.1", port=0, scene="layout_00", scenes=("layout_00",), stride=2, preview_stride=8,
@@ -40,6 +40,15 @@ def test_a_click_is_the_feature_of_the_clicked_cell_and_its_map_peaks_there(view
     assert float(similarity[4, 18]) == pytest.approx(float(similarity.max()), abs=1e-6)
     with pytest.raises(ConfigError, match="no view is rendered yet"):
         click_query(None, (0.5, 0.5))
+
+
+def test_a_dragged_box_is_the_mean_feature_of_its_cells(view):
+    _, rendered = view
+    features = rendered.prediction.semantic
+    query = box_query(rendered.prediction, (0.5, 0.5), (0.25, 0.0))  # any two corners: x 12-24, y 0-16 of 32 x 48
+    unit = features / features.norm(dim=0, keepdim=True)
+    assert torch.allclose(query.embedding, unit[:, 0:9, 6:13].reshape(features.shape[0], -1).mean(dim=1), atol=1e-6)
+    assert query.label == "box (12, 0)-(24, 16)"
 
 
 def test_the_relevancy_is_blended_where_it_reaches_the_threshold():
@@ -86,6 +95,9 @@ def test_a_click_in_the_viewer_answers_on_the_view_on_screen_without_rendering(t
     assert not np.array_equal(shown, rendered.layers["rgb"]) and renders == []
     assert state.gui["query_status"].content.startswith("**query** pixel (24, 16): ")
     assert state.query_seconds < 0.1
+    server.query_box(client, state, (0.0, 0.0), (0.2, 0.3))
+    assert state.gui["query_status"].content.startswith("**query** box (0, 0)-(10, 10): ")
+    server.query_at(client, state, (0.5, 0.5))
     state.gui["threshold"].value = 1.0  # nothing but the clicked cell's own direction reaches 1
     server._show_last(client, state)
     fewer = client.scene.set_background_image.call_args[0][0]

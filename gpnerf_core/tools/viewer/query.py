@@ -1,5 +1,5 @@
-"""Queries in the viewer: a click on the view (or a text, where the feature provider has a text encoder) becomes a
-query embedding, and every view shown afterwards carries its relevancy as a turbo colour map blended over the picture
+"""Queries in the viewer: a click on the view, a box dragged with shift held, or a text (where the feature provider
+has a text encoder) becomes a query embedding, and every view shown afterwards carries its relevancy as a turbo colour map blended over the picture
 where it reaches the threshold.
 
 A query never renders: it reads the feature map of the view on screen (``RenderedView.prediction``: the rendered
@@ -75,6 +75,22 @@ def click_query(prediction: Prediction | None, screen_pos: tuple[float, float]) 
     y = min(max(float(screen_pos[1]), 0.0), 1.0 - 1e-6) * height
     embedding = example_embedding(features.detach().float().cpu(), pixel=(x, y), image_size=(height, width))
     return Query(embedding=embedding, label=f"pixel ({x:.0f}, {y:.0f})")
+
+
+def box_query(prediction: Prediction | None, screen_min: tuple[float, float],
+              screen_max: tuple[float, float]) -> Query:
+    """The query of a box dragged from ``screen_min`` to ``screen_max`` (viser's rectangle, 0 to 1 from the top-left):
+    the mean of the normalised features of the cells it covers."""
+    features = view_features(prediction)
+    height, width = image_size(prediction)
+
+    def pixel(value: float, size: int) -> float:
+        return min(max(float(value), 0.0), 1.0 - 1e-6) * size
+
+    x0, x1 = sorted((pixel(screen_min[0], width), pixel(screen_max[0], width)))
+    y0, y1 = sorted((pixel(screen_min[1], height), pixel(screen_max[1], height)))
+    embedding = example_embedding(features.detach().float().cpu(), box=(x0, y0, x1, y1), image_size=(height, width))
+    return Query(embedding=embedding, label=f"box ({x0:.0f}, {y0:.0f})-({x1:.0f}, {y1:.0f})")
 
 
 def relevancy_picture(picture: np.ndarray, similarity: torch.Tensor, threshold: float) -> np.ndarray:

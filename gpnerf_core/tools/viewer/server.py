@@ -22,7 +22,7 @@ from gpnerf_core.errors import ConfigError
 from gpnerf_core.evaluation import visualize as vis
 from gpnerf_core.types import Scene
 from gpnerf_core.tools.viewer.camera import vertical_fov, viser_pose
-from gpnerf_core.tools.viewer.query import Query, answer, click_query
+from gpnerf_core.tools.viewer.query import Query, answer, box_query, click_query
 from gpnerf_core.tools.viewer.splats import splat_arrays
 from gpnerf_core.tools.viewer.renderer import (
     LAYERS,
@@ -303,8 +303,9 @@ class ViewerServer:
         threshold, clearing the query, and its status line."""
         gui = client.gui
         state.gui["query_click"] = gui.add_checkbox(
-            "Query by click", False, hint="a click on the view makes its feature the query; every view then shows its "
-                                          "relevancy (turbo) where it reaches the threshold")
+            "Query by click", False, hint="a click on the view (or a box dragged with shift held) makes its feature the "
+                                          "query; every view then shows its relevancy (turbo) where it reaches the "
+                                          "threshold")
         if self.options.text_encoder is not None:
             state.gui["query_text"] = gui.add_text("Query text", "", hint="a text embedded by the feature provider's "
                                                                           "text encoder")
@@ -315,11 +316,16 @@ class ViewerServer:
         def clicked(event: Any) -> None:
             self.query_at(client, state, event.screen_pos)
 
+        def boxed(event: Any) -> None:
+            self.query_box(client, state, event.screen_min, event.screen_max)
+
         def click_mode(_: Any) -> None:
             if bool(state.gui["query_click"].value):
                 client.scene.on_click()(clicked)
+                client.scene.on_rect_select(modifier="shift")(boxed)
             else:
                 client.scene.remove_click_callback(clicked)
+                client.scene.remove_rect_select_callback(boxed)
 
         def text_changed(_: Any) -> None:
             text = str(state.gui["query_text"].value)
@@ -344,6 +350,18 @@ class ViewerServer:
         view = state.last
         try:
             state.query = click_query(view.prediction if view is not None else None, screen_pos)
+        except ConfigError as exc:
+            state.gui["query_status"].content = f"**query refused**: {exc}"
+            return
+        self._show_last(client, state)
+
+    def query_box(self, client: Any, state: _ClientState, screen_min: tuple[float, float],
+                  screen_max: tuple[float, float]) -> None:
+        """A box dragged on the view on screen (corners 0 to 1 from the top-left) becomes the query (the mean feature
+        of its cells); the view is shown again with its relevancy (no render)."""
+        view = state.last
+        try:
+            state.query = box_query(view.prediction if view is not None else None, screen_min, screen_max)
         except ConfigError as exc:
             state.gui["query_status"].content = f"**query refused**: {exc}"
             return
