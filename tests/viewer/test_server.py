@@ -154,6 +154,11 @@ def test_a_gaussian_family_shows_its_gaussians_as_splats_in_either_colouring(tin
                                 state.last.sources)
             assert state.gui["query_status"].content.startswith("**Gaussians not coloured by relevancy**: the query "
                                                                 "embedding has")
+            state.gui["query_click"].value = True  # clicks and shift-dragged boxes reach the query, then no more
+            client = next(iter(server.server.get_clients().values()))
+            assert {entry.event_type for entry in client.scene._scene_pointer_cb} == {"click", "rect-select"}
+            state.gui["query_click"].value = False
+            assert not client.scene._scene_pointer_cb
             state.gui["gaussians"].value = False
             server._show_splats(next(iter(server.server.get_clients().values())), state, "layout_00",
                                 state.last.sources)
