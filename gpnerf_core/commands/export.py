@@ -177,6 +177,12 @@ def export_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handove
         else:
             print(f"exported {len(merged)} points of {name} from {len(indices)} frames ({rendered} rendered, "
                   f"{len(fused)} agreed by {min_views}+ views) to {folder.path / 'points.ply'}")
+        if selection is not None:
+            query = result["query"]
+            found = [f"{query['gaussians_selected']} Gaussians"] if "gaussians_selected" in query else []
+            print(f"query ({query['features']}, relevancy >= {query['threshold']:g}): "
+                  f"{', '.join([*found, str(query['points_selected']) + ' points'])} selected"
+                  + (f" -> {', '.join(str(folder.path / f) for f, _ in files)}" if files else f"; {query.get('note')}"))
     return result
 
 

@@ -50,6 +50,9 @@ def test_export_writes_the_selection_of_a_pixel_example(fitted, tmp_path, capsys
                      "export.query.threshold=0.0", f"out_dir={out}"]) == 0
     record = json.loads((out / "export.json").read_text())
     query = record["query"]
+    said = capsys.readouterr().out
+    assert f"query (feature_field, relevancy >= 0): {query['gaussians_selected']} Gaussians, " \
+           f"{query['points_selected']} points selected -> " in said
     assert query["pixel"] == [20.0, 10.0] and query["frame"] == record["frames"][0]
     assert query["features"] == "feature_field" and query["channels"] == 64  # XFeat's descriptors
     assert "selection_points.ply" in record["outputs"] and "selection_gaussians.ply" in record["outputs"]
