@@ -81,10 +81,11 @@ def scene_identity(dataset: SceneDataset, scene: Scene) -> str:
     return digest.hexdigest()
 
 
-def cache_key(fingerprint: str, identity: str, height: int, width: int) -> str:
-    """The folder name of one (provider fingerprint, scene identity, frame size): 24 hex digits of a SHA-256."""
-    text = json.dumps({"format": FORMAT, "provider": fingerprint, "scene": identity, "size": [height, width]},
-                      sort_keys=True)
+def cache_key(fingerprint: str, identity: str, height: int, width: int, shard_frames: int) -> str:
+    """The folder name of one (provider fingerprint, scene identity, frame size) in one layout (``FORMAT``, frames per
+    shard): 24 hex digits of a SHA-256."""
+    text = json.dumps({"format": FORMAT, "provider": fingerprint, "scene": identity, "size": [height, width],
+                       "shard_frames": shard_frames}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:24]
 
 
@@ -122,16 +123,17 @@ class FeatureCache:
         self.scene = dataset.load_scene(scene) if isinstance(scene, str) else scene
         self.batch = int(batch)
         self.device = torch.device(device) if device is not None else torch.device("cpu")
-        self.channels = int(provider.channels)
-        if self.channels < 1 or int(provider.stride) < 1:
-            raise PluginError(f"feature provider {self.name}: channels={provider.channels}, stride={provider.stride}; "
-                              "expected positive integers")
+        channels, stride = getattr(provider, "channels", None), getattr(provider, "stride", None)
+        if not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in (channels, stride)):
+            raise PluginError(f"feature provider {self.name}: channels={channels!r}, stride={stride!r}; expected "
+                              "positive integers (FeatureProvider's attributes)")
+        self.channels = int(channels)
         self.size = provider.feature_size(self.scene.height, self.scene.width)
         frame_bytes = self.channels * self.size[0] * self.size[1] * np.dtype(STORED_DTYPE).itemsize
         self.shard_frames = int(min(MAX_SHARD_FRAMES, max(1, SHARD_BYTES // frame_bytes)))
         self.fingerprint = str(provider.fingerprint())
         self.identity = scene_identity(dataset, self.scene)
-        self.key = cache_key(self.fingerprint, self.identity, self.scene.height, self.scene.width)
+        self.key = cache_key(self.fingerprint, self.identity, self.scene.height, self.scene.width, self.shard_frames)
         self.folder = Path(root).expanduser() if root is not None else cache_root()
         self.folder = self.folder / self.key
         self.computed = 0
@@ -185,10 +187,10 @@ class FeatureCache:
                     self._read_into(out, shard, positions, frames)
                     break
                 except CorruptShard as exc:
-                    self._discard(shard, str(exc))
                     if attempt:
                         raise DataError(f"{self.shard_path(shard)}: corrupt again right after it was written ({exc}); "
                                         f"the cache folder {self.folder} is not usable") from None
+                    self._discard(shard, str(exc))
         return out
 
     def _read_into(self, out: Tensor, shard: int, positions: list[int], frames: list[int]) -> None:
@@ -235,15 +237,19 @@ class FeatureCache:
         return array
 
     def _discard(self, shard: int, why: str) -> None:
-        """Say that shard ``shard`` is corrupt (one line naming its file), forget it and delete the file."""
+        """Shard ``shard`` was found corrupt: say so in one line naming its file, forget it and delete the file; unless
+        another process rewrote it (and its manifest entry) since this one read them, then only read it again."""
         path = self.shard_path(shard)
-        log.warning("corrupt feature cache shard %s (%s): deleted, computing it again", path, why)
+        judged = (self._manifest or {}).get("shards", {}).get(str(shard))
         self._open.pop(shard, None)
         with self._locked():
             manifest = self._load_manifest()
+            self._manifest = manifest
+            if manifest["shards"].get(str(shard)) != judged:
+                return  # rewritten meanwhile: the next read checks the new file against its new checksums
+            log.warning("corrupt feature cache shard %s (%s): deleted, computing it again", path, why)
             manifest["shards"].pop(str(shard), None)
             atomic_write_json(self.folder / MANIFEST, manifest)
-            self._manifest = manifest
             with contextlib.suppress(FileNotFoundError):
                 path.unlink()
 

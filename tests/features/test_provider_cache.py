@@ -175,3 +175,19 @@ def test_two_caches_filling_one_folder_keep_each_others_shards(tmp_path, small_s
     assert one.frames == [0, 1, 2, 3] and two.frames == [4, 5, 6, 7]
     assert second.features([1]).shape == (1, 6, 12, 16) and two.frames == [4, 5, 6, 7]
     assert sorted(json.loads((first.folder / "manifest.json").read_text())["shards"]) == ["0", "1"]
+
+
+def test_a_shard_rewritten_by_another_process_is_read_again_not_deleted(tmp_path, small_shards, caplog):
+    """A reader whose manifest predates another process's rewrite of a shard (other bytes, other checksums) reads the
+    new file against the new checksums: nothing is said, deleted or computed."""
+    dataset = TinyScenes(frames=4)
+    reader = FeatureCache(CountingProvider(), dataset, "s0", root=tmp_path)
+    reader.features([0])
+    writer_provider = CountingProvider()
+    writer = FeatureCache(writer_provider, dataset, "s0", root=tmp_path)
+    writer._computed = lambda frames: np.full((len(frames), 6, 12, 16), 0.5, np.float16)  # other bytes
+    writer.fill_shard(0)
+    reader._open.clear()  # as after its two mapped shards were closed
+    with caplog.at_level(logging.WARNING, logger="gpnerf_core.features.cache"):
+        assert float(reader.features([1]).mean()) == 0.5
+    assert caplog.records == [] and reader.computed == 1 * 4

