@@ -284,11 +284,11 @@ class FeaturesConfig:
     """At most this many channels per Gaussian (0 to 16; 0 = the provider's own, uncompressed): a provider with more
     is compressed per scene by an autoencoder fitted on its training frames' features before the field trains
     (LangSplat), and the field decoded back to the provider's channels."""
-    autoencoder_steps: int = 300
+    autoencoder_steps: int = 1000
     """Adam steps of that autoencoder's fit."""
-    autoencoder_hidden: int = 64
+    autoencoder_hidden: int = 128
     """Hidden width of its encoder and decoder (one hidden layer each)."""
-    autoencoder_lr: float = 1e-3
+    autoencoder_lr: float = 2e-3
     """Adam's learning rate of its fit."""
     autoencoder_samples: int = 65536
     """At most this many feature vectors (provider cells of the training frames, drawn at random) fit it."""

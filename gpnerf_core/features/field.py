@@ -44,9 +44,9 @@ class FeatureFieldOptions:
     loss: str = "cosine"
     weight: float = 1.0
     channels: int = 16
-    autoencoder_steps: int = 300
-    autoencoder_hidden: int = 64
-    autoencoder_lr: float = 1e-3
+    autoencoder_steps: int = 1000
+    autoencoder_hidden: int = 128
+    autoencoder_lr: float = 2e-3
     autoencoder_samples: int = 65536
 
     @classmethod
@@ -239,6 +239,7 @@ def distillation_term(field: FeatureField, batch: Any, output: Any) -> Tensor | 
 
 def image_cosine(rendered: Tensor, target: Tensor) -> float:
     """Mean cosine similarity of a rendered field ``[C, h', w']`` brought to the provider's grid (``to_grid``) and
-    the provider's map ``[C, h, w]`` of the real frame, cell by cell (the feature-fidelity protocol's per-image value)."""
+    the provider's map ``[C, h, w]`` of the real frame, cell by cell (the feature-fidelity protocol's per-image
+    value)."""
     pooled = to_grid(rendered[None].float(), (int(target.shape[-2]), int(target.shape[-1])))[0]
     return float(F.cosine_similarity(pooled.flatten(1).T, target.float().flatten(1).T, dim=-1, eps=1e-8).mean())

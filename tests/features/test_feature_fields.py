@@ -12,8 +12,8 @@ import torch
 import torch.nn.functional as F
 
 from gpnerf_core import (
-    ConfigError, DataError, DefaultStrategy, FeatureAutoencoder, FeatureField, FeatureFieldOptions, at_pixels, lift_to_pixels,
-    to_grid,
+    ConfigError, DataError, DefaultStrategy, FeatureAutoencoder, FeatureField, FeatureFieldOptions, TargetView,
+    at_pixels, lift_to_pixels, to_grid,
 )
 from gpnerf_core.config.compose import compose
 from gpnerf_core.engine.validation import validate_config
@@ -82,7 +82,8 @@ def test_the_autoencoder_gives_low_rank_features_back_and_keeps_its_error():
 def test_the_options_are_checked_in_one_line():
     assert FeatureFieldOptions.from_config(None) == FeatureFieldOptions()
     for key, value, expected in (("loss", "l2", "one of cosine, l1"), ("weight", -1.0, "a finite number >= 0"),
-                                 ("channels", 32, r"an integer in \[0, 16\]"), ("autoencoder_steps", 0, "an integer >= 1")):
+                                 ("channels", 32, r"an integer in \[0, 16\]"),
+                                 ("autoencoder_steps", 0, "an integer >= 1")):
         with pytest.raises(ConfigError, match=f"^features.{key}={value!r}: expected {expected}"):
             FeatureFieldOptions.from_config({key: value})
     with pytest.raises(ConfigError, match=r"^features.loss='l2': expected one of cosine, l1"):
@@ -191,8 +192,6 @@ def test_gnt_renders_its_semantic_embedding_projected_per_ray_and_the_term_train
     assert prediction.features.shape == (6, 8, 12) and prediction.logits.shape[-2:] == (32, 48)
     model.train()
     pixels = torch.tensor([[3.0, 5.0], [20.0, 11.0], [40.0, 30.0]])
-    from gpnerf_core import TargetView
-
     view = TargetView(scene="s", frame=0, camera=camera, image=torch.rand(3, 32, 48), depth=torch.ones(32, 48),
                       labels=torch.zeros(32, 48, dtype=torch.long), sources=views, pixels=pixels, render_seed=1)
     output = model.forward_view(view, semantics=False, sample_semantics=False)

@@ -26,8 +26,9 @@ harmonics seen from the target, depth, and the semantics, both ways:
   target image's own map at every pixel.
 
 With ``+feature_provider`` (a feature field, docs/features.md): each Gaussian also carries the provider's feature of
-its source view at its source pixel (the provider's map lifted bilinearly to every pixel, ``gpnerf_core.lift_to_pixels``;
-nothing is trained), rasterized into ``Prediction.features`` and given as ``GaussianScene.feature_field``.
+its source view at its source pixel (the provider's map lifted bilinearly to every pixel,
+``gpnerf_core.lift_to_pixels``; nothing is trained), rasterized into ``Prediction.features`` and given as
+``GaussianScene.feature_field``.
 
 Training renders whole target images (``TrainingBatch.IMAGES``: one ``ImageOutput`` per target view): MVSplat's loss is
 on images (MSE + 0.05 LPIPS; LPIPS needs weights that cannot be downloaded here, so the ``image`` loss set takes SSIM
