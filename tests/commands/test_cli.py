@@ -21,9 +21,11 @@ def test_unknown_command(capsys):
 def test_data_lists_tools_and_rejects_unknown(capsys):
     assert main(["data"]) == 0
     out = capsys.readouterr().out
-    assert all(tool in out for tool in ("check", "import-colmap", "make", "prepare-capture", "prepare-scannet"))
+    assert all(tool in out for tool in ("check", "features", "import-colmap", "make", "prepare-capture",
+                                        "prepare-scannet"))
     assert main(["data", "chek"]) == 2
-    assert "unknown data tool 'chek'; known tools: check, import-colmap, make, prepare-capture, prepare-scannet" in capsys.readouterr().err
+    assert ("unknown data tool 'chek'; known tools: check, features, import-colmap, make, prepare-capture, "
+            "prepare-scannet") in capsys.readouterr().err
 
 
 def test_data_check_rejects_missing_folder_and_bad_layout(tmp_path, capsys):
