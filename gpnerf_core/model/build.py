@@ -212,9 +212,12 @@ def model_sections(built_kinds: set[str] | frozenset[str]) -> tuple[str, ...]:
     """The config sections that define a model whose family built the components ``built_kinds``: ``model`` (with the
     parts mounted under it), ``loss``, and each add-on the family built that defines a model
     (``ComponentKind.defines_model``: ``head``, ``depth_source``), in ``KINDS`` order. An add-on the family never
-    built is not the model's: changing its options is no model change."""
-    return tuple(kind.name for kind in KINDS.values() if kind.defines_model
-                 and (kind.name in ("model", "loss") or kind.name in built_kinds))
+    built is not the model's: changing its options is no model change. A family that took a feature provider
+    (``parts.feature_field``) adds ``feature_provider`` and ``features``: the field it learnt is that provider's, at those
+    channels."""
+    sections = tuple(kind.name for kind in KINDS.values() if kind.defines_model
+                     and (kind.name in ("model", "loss") or kind.name in built_kinds))
+    return (*sections, "feature_provider", "features") if "feature_provider" in built_kinds else sections
 
 
 def model_classes(

@@ -20,7 +20,8 @@ import torch
 from torch import Tensor, nn
 
 from gpnerf_core.errors import ConfigError, DataError, NonFiniteError
-from gpnerf_core.features.field import quiet_rng
+from gpnerf_core.features.field import at_pixels
+from gpnerf_core.geometry.projection import project_points
 from gpnerf_core.geometry.gaussians.density import ViewInfo, scaled_step
 from gpnerf_core.geometry.gaussians.harmonics import colour_to_dc, sh_colours
 from gpnerf_core.geometry.gaussians.initialisation import neighbour_scales, scene_extent, starting_points
@@ -84,13 +85,13 @@ class GaussianHooks(FamilyHooks):
         rows = rows_from_points(points.xyz, points.rgb, neighbour_scales(points.xyz), sh_degree=gaussians.sh_degree,
                                 opacity=setup.init_opacity)
         for name, width in gaussians.channels.items():
-            if name == FIELD_CHANNEL:  # drawn aside: the global RNG (density control's splits) as without a field
-                with quiet_rng():
-                    rows[name] = colour_to_dc(torch.rand(points.count, width))
+            if name == FIELD_CHANNEL:  # lifted from the frames below (no draw: the global RNG as without a field)
+                rows[name] = torch.zeros(points.count, width)
                 continue
             rows[name] = colour_to_dc(torch.rand(points.count, width))
         gaussians.set_rows({name: value.to(gaussians.means.device) for name, value in rows.items()})
         gaussians.extent.fill_(scene_extent(scene))
+        family.start_feature_field(scene)
 
     def initialise_from_start(self, scene: Scene) -> None:
         """The Gaussians and decoder from ``family.start`` (``generalized_start.begin_from_start``), its notes said
@@ -109,6 +110,7 @@ class GaussianHooks(FamilyHooks):
                 start = dataclasses.replace(start, gaussians=kept, notes=(*start.notes, note))
         for note in begin_from_start(family, start, family.start_classes):
             print(f"note: {note}", file=sys.stderr)
+        family.start_feature_field(scene)
 
     def resize_to(self, weights: Mapping[str, Tensor], source: str) -> None:
         self.family.gaussians.take_sizes(weights, "gaussians.", source)
@@ -288,6 +290,42 @@ class GaussianFamily(ModelFamily):
         if self.feature_source is None:
             return None
         return self.decode_field(getattr(self.gaussians, FIELD_CHANNEL))
+
+    @torch.no_grad()
+    def start_feature_field(self, scene: Scene) -> None:
+        """Start each Gaussian's feature-field channel from the provider's features (nothing without a field): the
+        feature of the first training frame that sees its centre (in front of the camera, inside the image, and within
+        5 % + 1 cm of the frame's depth where it has one), sampled bilinearly at its projection
+        (``gpnerf_core.at_pixels``), encoded to codes where compressed; a Gaussian no frame sees takes the mean of the
+        others. A start this close leaves the distillation the details to fit, not the whole field from noise."""
+        field = self.feature_source
+        if field is None or not self.gaussians.size:
+            return
+        means = self.gaussians.means.detach()
+        lifted = means.new_zeros(means.shape[0], field.channels)
+        found = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
+        for index in scene.train_frames:
+            frame = scene.load_frame(index)
+            height, width = frame.height, frame.width
+            pixels, depth = project_points(means, frame.intrinsics[None].to(means), frame.c2w[None].to(means))
+            pixels, depth = pixels[0], depth[0]
+            seen = (~found & (depth > 1e-3) & (pixels[:, 0] > -0.5) & (pixels[:, 0] < width - 0.5)
+                    & (pixels[:, 1] > -0.5) & (pixels[:, 1] < height - 0.5))
+            rows = pixels[:, 1].round().clamp(0, height - 1).long()
+            cols = pixels[:, 0].round().clamp(0, width - 1).long()
+            surface = frame.depth.to(means)[rows, cols]
+            seen &= (surface <= 0) | ((depth - surface).abs() <= 0.05 * surface + 0.01)
+            if not bool(seen.any()):
+                continue
+            maps = field.maps(scene.name, [index], frame.rgb.permute(2, 0, 1)[None].to(means))
+            lifted[seen] = at_pixels(maps, pixels[seen], (height, width))
+            found |= seen
+            if bool(found.all()):
+                break
+        if bool(found.any()) and not bool(found.all()):
+            lifted[~found] = lifted[found].mean(dim=0)
+        codes = self.feature_codec.encode(lifted) if self.feature_codec is not None else lifted
+        getattr(self.gaussians, FIELD_CHANNEL).copy_(codes)
 
     def render_view(self, camera: TargetCamera, *, channels: bool) -> tuple[ImageOutput, Tensor | None]:
         """A training view rendered whole: ``ImageOutput`` with ``rgb``, ``depth``, ``alpha`` and, in training mode,

@@ -10,10 +10,12 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from omegaconf import OmegaConf
 
 from gpnerf_core import (
-    ConfigError, DataError, DefaultStrategy, FeatureAutoencoder, FeatureField, FeatureFieldOptions, TargetView,
-    at_pixels, lift_to_pixels, to_grid,
+    ConfigError, DataError, DefaultStrategy, FeatureAutoencoder, FeatureField, FeatureFieldOptions, StepBatch,
+    TargetView,
+    at_pixels, lift_to_pixels, project_points, to_grid,
 )
 from gpnerf_core.config.compose import compose
 from gpnerf_core.engine.validation import validate_config
@@ -21,10 +23,12 @@ from gpnerf_core.evaluation import metrics as M
 from gpnerf_core.evaluation.evaluator import evaluate
 from gpnerf_core.features.field import distillation_term, view_term
 from gpnerf_core.model.build import build_components
+from gpnerf_core.model.checkpoint import RunRecord
 from gpnerf_core.registry.components import get_registry
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.testing.inputs import kit_parts, model_scene, model_view
 from gpnerf_core.training.optimizer import make_optimizer
+from gpnerf_core.training.trainer import Trainer
 from pipeline_check import KIT_PARTS, TINY_MODEL, TINY_SCENES, make_trainer
 
 
@@ -62,11 +66,11 @@ def plane_field(provided: int = 6, stride: int = 4, colour: bool = True, **optio
 
 def test_the_autoencoder_gives_low_rank_features_back_and_keeps_its_error():
     generator = torch.Generator().manual_seed(0)
-    features = torch.randn(1024, 4, generator=generator) @ torch.randn(4, 32, generator=generator)  # rank 4 in 32
+    features = torch.randn(512, 4, generator=generator) @ torch.randn(4, 32, generator=generator)  # rank 4 in 32
     codec = FeatureAutoencoder(32, 8, hidden=64)
     assert not any(p.requires_grad for p in codec.parameters())  # never trained with the model
     assert codec.reconstruction() is None
-    error = codec.fit(features, steps=150, lr=3e-3)
+    error = codec.fit(features, steps=100, lr=3e-3)
     assert error.cosine > 0.99 and error.relative_l2 < 0.1, error
     assert not any(p.requires_grad for p in codec.parameters()) and bool(codec.fitted)
     again = FeatureAutoencoder(32, 8, hidden=64)
@@ -108,17 +112,17 @@ def test_pixels_sample_the_map_where_they_lie_and_renders_pool_to_its_cells():
 
 # ---- the families ------------------------------------------------------------------------------------------------
 
-def small_3dgs(field: FeatureField):
+def small_3dgs(field: FeatureField, **extra):
     parts = kit_parts(get_registry(), "semantic_3dgs", head=False, parts=KIT_PARTS)
     parts.feature_field = lambda: field
     options = {"name": "semantic_3dgs", "init_points": 300, "feature_dim": 4, "sh_degree": 1,
-               "schedule_steps": 2000}
+               "schedule_steps": 2000, **extra}
     return get_registry().build("model", options, parts=parts)
 
 
 def test_semantic_3dgs_renders_the_field_beside_its_semantics_and_densification_carries_the_column():
     field = plane_field(provided=20, channels=8, autoencoder_steps=50)
-    model = small_3dgs(field)
+    model = small_3dgs(field, feature_stride=2)  # the semantic map on its own grid: a second rasterization
     model.hooks.initialise(model_scene())  # the autoencoder first (20 -> 8), then the Gaussians
     assert bool(model.feature_codec.fitted) and field.autoencoder is model.feature_codec
     gaussians = model.gaussians
@@ -148,12 +152,35 @@ def test_semantic_3dgs_renders_the_field_beside_its_semantics_and_densification_
     assert any(p is column for group in optimizer.param_groups for p in group["params"])
     assert optimizer.state[column]["exp_avg"].shape == (gaussians.size, 8)
     camera, _ = model_view()
+    view = TargetView(scene="s", frame=0, camera=camera, image=torch.rand(3, 32, 48), depth=torch.ones(32, 48),
+                      labels=torch.zeros(32, 48, dtype=torch.long), sources=None, pixels=None, render_seed=1,
+                      whole_image=True)
+    output = model(StepBatch((view,)), semantics=True).views[0]
+    assert output.features.shape == (1, 20, 32, 48) and output.scores.shape == (1, 3, 32, 48)
     model.eval()
     prediction = model.predict(camera, None, stride=2, chunk_rays=0)
     assert prediction.features.shape == (20, 16, 24) and prediction.logits is not None  # both: field and classes
     scene = model.scene_gaussians(None, near=0.1, far=5.0)
     assert torch.allclose(scene.feature_field, model.feature_codec.decode(column), atol=1e-6)
     assert scene.subset(torch.arange(3)).feature_field.shape == (3, 20)
+
+
+def test_semantic_3dgs_starts_each_gaussians_field_from_the_first_frame_that_sees_it():
+    field = plane_field(provided=6, stride=4, colour=False)  # 6 channels: carried as they are
+    model = small_3dgs(field)
+    scene = model_scene()
+    model.hooks.initialise(scene)
+    assert model.feature_codec is None and model.gaussians.feature_field.shape[1] == 6
+    frame = scene.load_frame(scene.train_frames[0])
+    means = model.gaussians.means.detach()
+    pixels, depth = project_points(means, frame.intrinsics[None], frame.c2w[None])
+    u, v = pixels[0, :, 0], pixels[0, :, 1]
+    inside = (depth[0] > 0) & (u >= 1.5) & (u <= frame.width - 2.5) & (v >= 1.5) & (v <= frame.height - 2.5)
+    surface = frame.depth[v.round().long().clamp(0, frame.height - 1), u.round().long().clamp(0, frame.width - 1)]
+    seen = inside & ((depth[0] - surface).abs() <= 0.05 * surface + 0.01)
+    assert int(seen.sum()) > 20
+    expected = torch.einsum("cd,nd->nc", field.provider.coefficients, torch.stack([u, v, torch.ones_like(u)], -1))
+    assert torch.allclose(model.gaussians.feature_field[seen], expected[seen], atol=1e-3)
 
 
 def test_mvsplat_lifts_each_gaussians_feature_from_its_source_pixel():
@@ -270,3 +297,29 @@ def test_maps_of_another_channel_count_are_refused_naming_the_provider():
     with pytest.raises(DataError, match=r"feature provider 'plane' gave maps \[1, 6, 8, 12\] for 1 image\(s\); "
                                         r"expected \[1, 5, h, w\]"):
         field.maps(None, None, torch.zeros(1, 3, 32, 48))
+
+
+def field_trainer(cfg, run_dir) -> Trainer:
+    """A Trainer whose run record names the model's sections, as ``run`` writes it (the field's among them)."""
+    components = build_components(cfg)
+    record = RunRecord(config_yaml=OmegaConf.to_yaml(cfg, resolve=True), overrides=(), components={},
+                       model_sections=components.model_sections)
+    return Trainer(cfg, components, dist=Distributed.single(), run_dir=run_dir, record=record)
+
+
+def test_a_run_with_a_field_resumes_bit_for_bit_and_refuses_other_field_settings(cache):
+    overrides = [*SPLAT, "+feature_provider=xfeat", "features.autoencoder_steps=20", "train.steps=4",
+                 "train.checkpoint_every=2"]
+    cfg = compose(overrides)
+    torch.manual_seed(0)
+    straight = field_trainer(cfg, cache / "straight")
+    assert straight.record.model_sections[-2:] == ("feature_provider", "features")
+    straight.fit(progress=False)
+    middle = cache / "straight" / "checkpoints" / "step_0000002.pt"
+    resumed = field_trainer(compose([*overrides, f"train.resume={middle}"]), cache / "resumed")
+    assert bool(resumed.model.feature_codec.fitted)  # the checkpoint's autoencoder, not fitted again
+    resumed.fit(progress=False)
+    assert resumed.history[-1]["feature_field"] == straight.history[-1]["feature_field"]
+    assert resumed.history[-1]["loss"] == straight.history[-1]["loss"]
+    with pytest.raises(ConfigError, match=r"another model or loss config \(features.channels: 16 -> 8\)"):
+        field_trainer(compose([*overrides, f"train.resume={middle}", "features.channels=8"]), cache / "other")

@@ -159,6 +159,8 @@ class Semantic3DGS(GaussianFamily):
             return output
         if self.feature_stride > 1:  # the feature map on its own grid: a second rasterization
             semantic_map = self.render(target.camera, self.feature_stride, channels=True)[3]
+            if field:
+                semantic_map = self.split_channels(semantic_map)["features"]
         logits = self._decode(semantic_map, target.camera.image_size)
         if self.head is None:  # label rendering: the per-pixel scores
             return dataclasses.replace(output, scores=logits)
