@@ -45,21 +45,31 @@ def test_the_protocol_scores_a_per_scene_3dgs_fit_beside_its_head(fitted):
 
 def test_export_writes_the_selection_of_a_pixel_example(fitted, tmp_path, capsys):
     checkpoint = fitted / "checkpoints" / "step_0000002.pt"
+
+    def export(out, threshold):
+        assert cli_main(["export", f"checkpoint={checkpoint}", "export.min_views=0", "export.query.pixel=[20,10]",
+                         f"export.query.threshold={threshold}", f"out_dir={out}"]) == 0
+        return json.loads((out / "export.json").read_text())
+
+    everyone = export(tmp_path / "all", -1.0)  # every Gaussian and point, each with its relevancy
+    relevancy = read_ply((tmp_path / "all" / "selection_gaussians.ply").read_bytes())["relevancy"]
+    assert everyone["query"]["gaussians_selected"] == len(relevancy) == everyone["gaussians"]["count"]
+    assert everyone["query"]["points_selected"] == everyone["points_written"]
+    threshold = float(np.quantile(relevancy, 0.75))
+    capsys.readouterr()
     out = tmp_path / "export"
-    assert cli_main(["export", f"checkpoint={checkpoint}", "export.min_views=0", "export.query.pixel=[20,10]",
-                     "export.query.threshold=0.0", f"out_dir={out}"]) == 0
-    record = json.loads((out / "export.json").read_text())
+    record = export(out, threshold)
     query = record["query"]
     said = capsys.readouterr().out
-    assert f"query (feature_field, relevancy >= 0): {query['gaussians_selected']} Gaussians, " \
+    assert f"query (feature_field, relevancy >= {threshold:g}): {query['gaussians_selected']} Gaussians, " \
            f"{query['points_selected']} points selected -> " in said
     assert query["pixel"] == [20.0, 10.0] and query["frame"] == record["frames"][0]
     assert query["features"] == "feature_field" and query["channels"] == 64  # XFeat's descriptors
     assert "selection_points.ply" in record["outputs"] and "selection_gaussians.ply" in record["outputs"]
     everything = read_ply((out / "gaussians.ply").read_bytes())
     chosen = read_ply((out / "selection_gaussians.ply").read_bytes())
-    assert 0 < len(chosen["x"]) == query["gaussians_selected"] < len(everything["x"])
-    assert (chosen["relevancy"] >= -1e-6).all()
+    assert len(chosen["x"]) == query["gaussians_selected"] == int((relevancy >= threshold - 1e-6).sum())
+    assert (chosen["relevancy"] >= threshold - 1e-6).all() and len(chosen["x"]) < len(everything["x"])
     assert {tuple(p) for p in np.stack([chosen["x"], chosen["y"], chosen["z"]], 1)} <= \
         {tuple(p) for p in np.stack([everything["x"], everything["y"], everything["z"]], 1)}
     points = read_ply((out / "selection_points.ply").read_bytes())
