@@ -101,6 +101,17 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     "gpnerf_core.runtime.profiling": ("stage",),
     "gpnerf_core.runtime.device": ("checked_compile_backend",),
     "gpnerf_core.evaluation.instances": ("hungarian", "instance_masks"),
+    # queries against features (by example, by embedding, by prototype) and their selections as PLY
+    "gpnerf_core.features.queries": (
+        "class_prototypes", "example_embedding", "gaussian_feature_matrix", "nearest_prototype",
+        "prediction_feature_map", "relevancy", "select_gaussians", "similarity_map", "text_embedding",
+        "write_gaussian_selection", "write_point_selection",
+    ),
+    # a trained model opened from a script as the commands open it (a checkpoint read, its config restored), and the
+    # frames and cameras of its dataset
+    "gpnerf_core.model.trained": ("load_trained",),
+    "gpnerf_core.engine.opening": ("open_trained",),
+    "gpnerf_core.data.frames": ("FrameCache",),
     # a feature provider's per-frame features, through the on-disk cache
     "gpnerf_core.features": ("FeatureCache", "build_feature_provider", "frame_features"),
     "gpnerf_core.model.trained_extractor": ("trained_feature_extractor",),
@@ -151,6 +162,22 @@ if TYPE_CHECKING:  # the same names, for type checkers and readers
     )
     from gpnerf_core.errors import ConfigError, DataError, GpnerfError, NonFiniteError, PluginError
     from gpnerf_core.evaluation.instances import hungarian, instance_masks
+    from gpnerf_core.data.frames import FrameCache
+    from gpnerf_core.engine.opening import open_trained
+    from gpnerf_core.features.queries import (
+        class_prototypes,
+        example_embedding,
+        gaussian_feature_matrix,
+        nearest_prototype,
+        prediction_feature_map,
+        relevancy,
+        select_gaussians,
+        similarity_map,
+        text_embedding,
+        write_gaussian_selection,
+        write_point_selection,
+    )
+    from gpnerf_core.model.trained import load_trained
     from gpnerf_core.geometry import (
         EXPECTED_RIGID,
         Projector,

@@ -16,7 +16,11 @@ optional voxel grid merges the rest (``export.voxel``). Writes into the run fold
   ``f_rest_*``, ``opacity``, ``scale_*``, ``rot_*``) with each Gaussian's ``label``, which splat viewers open. It is
   written whatever the fusion keeps: where no point is kept, it and ``export.json`` (with a ``note`` saying why) are
   all that is written, and the reason is said on stderr;
-- ``legend.png`` (classes) and ``export.json``: the frames, the settings, the point counts, the class names.
+- ``legend.png`` (classes) and ``export.json``: the frames, the settings, the point counts, the class names;
+- with a query by example (``export.query.pixel=[x,y]`` or ``export.query.box=[x0,y0,x1,y1]`` in frame
+  ``export.query.frame``): ``selection_gaussians.ply`` (the Gaussians whose features are at least
+  ``export.query.threshold`` similar to the example, a Gaussian family) and ``selection_points.ply`` (the kept points
+  whose rendered features are), each with its ``relevancy`` (docs/features.md, "Queries").
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from gpnerf_core.engine.launching import Handover, launch_from_checkpoint
 from gpnerf_core.engine.opening import open_trained
 from gpnerf_core.engine.runs import claim_run_folder
 from gpnerf_core.errors import ConfigError, DataError
+from gpnerf_core.features.queries import prediction_feature_map, prediction_feature_source
 from gpnerf_core.geometry.point_fusion import cell_scores, inside_bounds
 from gpnerf_core.runtime.distributed import Distributed
 from gpnerf_core.runtime.staging import Write, write_staged
@@ -96,22 +101,31 @@ def export_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handove
         raise ConfigError(f"{key}={stride}: scene {name!r} is {scene.height}x{scene.width}; expected a stride that "
                           "divides both sides")
     owners = model.hooks.output_owners(component_names(cfg))
+    asked = query_asked(settings.query, scene)
     folder, _ = claim_run_folder(cfg, dist, resuming=False)
     with folder:
         for note in loaded.notes:
             print(f"note: {note}", file=sys.stderr)
         started = time.perf_counter()
-        views, clouds, sensor_depths, first = [], [], [], None
-        for index in tqdm(indices, desc="export", unit="frame", file=sys.stderr, dynamic_ncols=True):
-            frame = frames.frame(scene, index)
-            camera = frames.camera(scene, frame)
+        views, clouds, sensor_depths, first, feature_maps, feature_source = [], [], [], None, {}, None
+
+        def render_frame(index: int) -> Any:
+            camera = frames.camera(scene, frames.frame(scene, index))
             given = view_inputs(model, frames, components.view_selector, scene, camera.c2w,
                                 int(cfg.model.num_source_views), exclude=index)
-            first = first or given
             with torch.no_grad():
                 prediction = model.predict(camera, given.sources, stride=stride, chunk_rays=int(cfg.eval.chunk_rays),
                                            features=given.features)
             prediction.check_finite(owners, f"export: scene {name!r} frame {index}")
+            return given, camera, prediction
+
+        for index in tqdm(indices, desc="export", unit="frame", file=sys.stderr, dynamic_ncols=True):
+            frame = frames.frame(scene, index)
+            given, camera, prediction = render_frame(index)
+            first = first or given
+            if asked:
+                feature_maps[index] = prediction_feature_map(prediction)
+                feature_source = feature_source or prediction_feature_source(prediction)
             view, cloud = rendered_points(prediction, camera, model.semantic_output)
             views.append(view)
             clouds.append(cloud)
@@ -125,6 +139,14 @@ def export_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handove
         fused = concatenate(kept)
         merged = voxel_merge(fused, float(settings.voxel))
         splats = scene_gaussians(model, first, scene, owners, name)
+        selection = None
+        if asked:
+            example = asked.get("frame", indices[0])
+            if example not in feature_maps:
+                feature_maps[example] = prediction_feature_map(render_frame(example)[2])
+            selection = query_selection(settings.query, scene, feature_maps, example, indices, clouds, keeps,
+                                        [tuple(view.depth.shape) for view in views], splats, float(settings.voxel),
+                                        feature_source)
         empty = None
         if len(merged) == 0:  # a Gaussian family's Gaussians are written whatever the fusion keeps
             empty = (f"no point of scene {name!r} is inside its depth bounds and seen by {min_views} other view(s) "
@@ -142,14 +164,120 @@ def export_task(cfg: DictConfig, dist: Distributed, handover: Handover = Handove
         if empty is not None:
             result["note"] = f"the point cloud is not written: {empty}"
             result["outputs"] = ["gaussians.ply", "export.json"]
-        write_staged(folder.path, _writes(merged, result, components, splats), STAGING_PREFIX)
+        writes = _writes(merged, result, components, splats)
+        if selection is not None:
+            result["query"] = selection.pop("record")
+            files = selection_writes(selection, result)
+            result["outputs"][-1:-1] = [file for file, _ in files]
+            writes[-1:-1] = files
+        write_staged(folder.path, writes, STAGING_PREFIX)
         if empty is not None:
             print(f"export: {empty}: wrote the model's {splats.count} Gaussians only, to "
                   f"{folder.path / 'gaussians.ply'}", file=sys.stderr)
         else:
             print(f"exported {len(merged)} points of {name} from {len(indices)} frames ({rendered} rendered, "
                   f"{len(fused)} agreed by {min_views}+ views) to {folder.path / 'points.ply'}")
+        if selection is not None:
+            query = result["query"]
+            found = [f"{query['gaussians_selected']} Gaussians"] if "gaussians_selected" in query else []
+            print(f"query ({query['features']}, relevancy >= {query['threshold']:g}): "
+                  f"{', '.join([*found, str(query['points_selected']) + ' points'])} selected"
+                  + (f" -> {', '.join(str(folder.path / f) for f, _ in files)}" if files else f"; {query.get('note')}"))
     return result
+
+
+def query_asked(query: Any, scene: Any) -> dict[str, Any]:
+    """The example ``export.query`` gives (``{"pixel"|"box": [...], "frame": index}``, no frame: the first exported),
+    or an empty dict (no query).
+
+    Raises:
+        ConfigError: both or a malformed ``pixel`` / ``box``, a frame the scene does not have.
+    """
+    pixel, box = list(query.pixel or []), list(query.box or [])
+    if not pixel and not box:
+        return {}
+    if pixel and box:
+        raise ConfigError(f"export.query.pixel={pixel} and export.query.box={box}: expected one of them")
+    if pixel and len(pixel) != 2:
+        raise ConfigError(f"export.query.pixel={pixel}: expected [x, y] (full-image pixel coordinates)")
+    if box and len(box) != 4:
+        raise ConfigError(f"export.query.box={box}: expected [x0, y0, x1, y1] (full-image pixel coordinates)")
+    asked: dict[str, Any] = {"pixel": [float(v) for v in pixel]} if pixel else {"box": [float(v) for v in box]}
+    frame = int(query.frame)
+    if frame != -1:
+        if not 0 <= frame < scene.num_frames:
+            raise ConfigError(f"export.query.frame={frame}: scene {scene.name!r} has frames 0-{scene.num_frames - 1} "
+                              "(-1 = the first exported frame)")
+        asked["frame"] = frame
+    return asked
+
+
+def query_selection(query: Any, scene: Any, feature_maps: dict[int, Any], example: int, indices: list[int],
+                    clouds: list[Any], keeps: list[torch.Tensor], grids: list[tuple[int, int]], splats: Any,
+                    voxel: float, source: str | None = None) -> dict[str, Any]:
+    """The Gaussians and kept points at least ``export.query.threshold`` similar to the example (its feature map's
+    cells, ``features.queries``): ``{"gaussians": (scene, selected, scores) | None, "points": cloud | None,
+    "record": export.json's ``query``}``.
+
+    Raises:
+        ConfigError: a model without a feature map; a Gaussian feature matrix of another dimension (both named).
+    """
+    from gpnerf_core.features.queries import (
+        example_embedding, gaussian_feature_matrix, relevancy, select_gaussians, similarity_map,
+    )
+    from gpnerf_core.geometry.point_fusion import concatenate, voxel_merge
+
+    features = feature_maps[example]
+    if features is None:
+        raise ConfigError("export.query: the model renders no feature map (neither a feature field nor a semantic "
+                          "embedding) to query")
+    asked = query_asked(query, scene)
+    threshold = float(query.threshold)
+    where = {key: asked[key] for key in ("pixel", "box") if key in asked}
+    embedding = example_embedding(features.float().cpu(), image_size=(scene.height, scene.width),
+                                  **{key: tuple(value) for key, value in where.items()})
+    record: dict[str, Any] = {**where, "frame": example, "threshold": threshold, "features": source,
+                              "channels": int(features.shape[0])}
+    gaussians = None
+    matrix = gaussian_feature_matrix(splats) if splats is not None else None
+    if matrix is not None:
+        selected = select_gaussians(matrix.float().cpu(), embedding, threshold)
+        gaussians = (splats, selected, relevancy(matrix.float().cpu(), embedding))
+        record["gaussians_selected"] = int(selected.sum())
+    elif splats is not None:
+        record["gaussians_note"] = "the model's Gaussians carry no features (no feature field): no Gaussian selection"
+    chosen = []
+    for index, cloud, keep, (rows, cols) in zip(indices, clouds, keeps, grids):
+        grid = similarity_map(feature_maps[index].float().cpu(), embedding)[None, None]
+        similarity = torch.nn.functional.interpolate(grid, size=(rows, cols), mode="nearest").reshape(-1) \
+            if grid.shape[-2] <= rows else torch.nn.functional.adaptive_avg_pool2d(grid, (rows, cols)).reshape(-1)
+        chosen.append(cloud_subset(cloud, keep & (similarity >= threshold)))
+    points = voxel_merge(concatenate(chosen), voxel)
+    record["points_selected"] = len(points)
+    return {"gaussians": gaussians if gaussians is not None and bool(gaussians[1].any()) else None,
+            "points": points if len(points) else None, "record": record}
+
+
+def selection_writes(selection: dict[str, Any], result: dict[str, Any]) -> list[tuple[str, Write]]:
+    """The staged writes of a query's selections (``selection_gaussians.ply``, ``selection_points.ply``), noting in
+    ``result["query"]`` what was not written."""
+    from gpnerf_core.features.queries import write_gaussian_selection, write_point_selection
+
+    comment = (f"gpnerf-core query selection in scene {result['scene']} from {result['checkpoint']}: "
+               f"{ {k: v for k, v in result['query'].items() if k in ('pixel', 'box', 'frame', 'threshold')} }",)
+    writes: list[tuple[str, Write]] = []
+    if selection["gaussians"] is not None:
+        splats, selected, scores = selection["gaussians"]
+        writes.append(("selection_gaussians.ply", partial(write_gaussian_selection, scene=splats, selected=selected,
+                                                          scores=scores, comments=comment)))
+    points = selection["points"]
+    if points is not None:
+        writes.append(("selection_points.ply", partial(write_point_selection, xyz=points.xyz, rgb=points.rgb,
+                                                       selected=torch.ones(len(points), dtype=torch.bool),
+                                                       comments=comment)))
+    if not writes:
+        result["query"]["note"] = "nothing is as similar as the threshold to the example: no selection written"
+    return writes
 
 
 def scene_gaussians(model: Any, given: Any, scene: Any, owners: Any, name: str) -> Any:

@@ -93,12 +93,27 @@ def _serve(cfg: DictConfig, dist: Distributed, handover: Handover) -> dict[str, 
             host=host, port=port, scene=first, scenes=tuple(scenes), stride=int(cfg.view.stride),
             preview_stride=int(cfg.view.preview_stride), source_views=int(cfg.view.source_views),
             class_names=tuple(components.classes.names) if semantic else (),
+            text_encoder=_text_encoder(components),
         )
         server = ViewerServer(renderer, options).start()
         serve_until_stopped(server, threading.Event())
         return {"url": server.url if server.server else f"http://{host}:{port}", "frames": server.frames_delivered}
     finally:
         _remove_empty_job_folder(cfg)
+
+
+def _text_encoder(components: Any) -> Any:
+    """``text -> [C]`` query embedding from the feature provider of the model's feature field, where it has a text
+    encoder (``FeatureProvider.text_encoder``); None otherwise (the viewer shows no text box)."""
+    from functools import partial
+
+    from gpnerf_core.features.queries import text_embedding
+
+    field = getattr(components, "feature_field", None)
+    provider = getattr(field, "provider", None)
+    if provider is None or not bool(getattr(provider, "text_encoder", False)):
+        return None
+    return partial(text_embedding, provider)
 
 
 def _remove_empty_job_folder(cfg: DictConfig) -> None:

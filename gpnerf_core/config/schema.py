@@ -118,6 +118,12 @@ class EvalConfig:
     every_steps: int = 0
     """``run``: also evaluate every this many training steps (0 = only at the end); ``metrics.json`` gets
     ``eval_curve``, accuracy against steps and training seconds, which ``report --chart`` draws."""
+    query_protocol: bool = False
+    """Also score the query protocol (``query/nearest_prototype``, docs/features.md): nearest-prototype segmentation
+    of the held-out frames from ``prototype_frames`` labelled training frames per class, per feature source, beside
+    the class head's mIoU. It renders those training frames too."""
+    prototype_frames: int = 1
+    """The query protocol's labelled training frames per class (drawn by ``seed``), an integer >= 1."""
 
 
 @dataclass
@@ -195,6 +201,20 @@ class RenderConfig:
 
 
 @dataclass
+class ExportQueryConfig:
+    """``export.query``: a query by example written as its own PLY files (off unless ``pixel`` or ``box`` is given)."""
+
+    pixel: list[float] = field(default_factory=list)
+    """``[x, y]``: the example pixel (full-image pixel coordinates, x right, y down) in frame ``frame``."""
+    box: list[float] = field(default_factory=list)
+    """``[x0, y0, x1, y1]``: the example box (corners included) in frame ``frame``, instead of ``pixel``."""
+    frame: int = -1
+    """The scene frame the example is in, rendered at its own camera (-1 = the first exported frame)."""
+    threshold: float = 0.8
+    """Cosine relevancy in [-1, 1] from which a Gaussian or a point is selected."""
+
+
+@dataclass
 class ExportConfig:
     scene: str = ""
     """``export``: the scene to export ("" = the first unseen scene, else the first training scene; a per-scene model's
@@ -214,6 +234,9 @@ class ExportConfig:
     read at its nearest rendered cell, so a slanted surface differs by a cell's footprint there)."""
     voxel: float = 0.0
     """Merge the points of each cube of this side, metres (mean position and colour, most frequent label); 0 = none."""
+    query: ExportQueryConfig = field(default_factory=ExportQueryConfig)
+    """A query by example: the Gaussians and points similar to it as ``selection_gaussians.ply`` and
+    ``selection_points.ply`` (docs/features.md, "Queries")."""
 
 
 @dataclass

@@ -31,6 +31,7 @@ from gpnerf_core.errors import ConfigError, DataError, NonFiniteError
 from gpnerf_core.evaluation import instances as I
 from gpnerf_core.evaluation import metrics as M
 from gpnerf_core.evaluation import pictures as P
+from gpnerf_core.evaluation import query_protocol as Q
 from gpnerf_core.evaluation import visualize as vis
 from gpnerf_core.data.frames import FrameCache, choose_sources
 from gpnerf_core.features.field import image_cosine
@@ -84,6 +85,9 @@ class ViewRecord:
     depth: dict[str, float] | None = None
     references: bool = False
     """The class references (majority class, the 2D reference where the model has one) were scored on this view."""
+    queries: dict[str, torch.Tensor] | None = None
+    """``eval.query_protocol``: ``{feature source: [K, K] confusion}`` of the nearest-prototype labels
+    (``query_protocol``); None when the protocol is off or the scene has no labels."""
     feature_cosine: float | None = None
     """:data:`metrics.FEATURE_COSINE` of this view (the rendered feature field against the provider's features of the
     real frame), or None without a feature field."""
@@ -152,6 +156,7 @@ def evaluate(
     instance_head = predicts(components) is Predicts.INSTANCES
     semantics = predicts(components) is Predicts.CLASSES
     baseline_class = majority_class(components, frames) if semantics and references else None
+    queries = Q.query_protocol(cfg, components, frames) if references else None
     results: dict[str, Any] = {}
     for split in cfg.eval.splits:
         label = SPLIT_LABELS[split]
@@ -161,7 +166,7 @@ def evaluate(
             continue
         mine = [
             _evaluate_view(cfg, components, frames, position, scene, index, baseline_class, sources_for, references,
-                           int(cfg.eval.save_images) if pictures else 0)
+                           int(cfg.eval.save_images) if pictures else 0, queries)
             for position, (scene, index) in enumerate(targets)
             if position % dist.world_size == dist.rank
         ]
@@ -171,6 +176,8 @@ def evaluate(
             _write_pictures(run_dir / "images" / label, records)
         results[label] = summarize(records, components.classes.num_classes, dataset.ignore_index, semantics,
                                    float(memory), instance_head=instance_head)
+        if M.QUERY_PROTOTYPE in results[label]:
+            results[label][M.QUERY_PROTOTYPE].update(prototype_frames=queries.k, seed=queries.seed)
     field = components.feature_field
     compression = field.autoencoder.reconstruction() if field is not None and field.autoencoder is not None else None
     return {
@@ -250,6 +257,7 @@ def _evaluate_view(
     sources_for: SourcesFor | None,
     references: bool,
     save_images: int,
+    queries: Q.QueryProtocol | None = None,
 ) -> ViewRecord:
     model, dataset = components.model, components.dataset
     num_classes, ignore = components.classes.num_classes, dataset.ignore_index
@@ -322,6 +330,8 @@ def _evaluate_view(
         teacher = model.teacher_logits(target.rgb.permute(2, 0, 1).to(frames.device)) if references else None
         if teacher is not None:
             teacher_instances, _ = I.instance_record(*I.slot_predictions(teacher[0].cpu()), target.instance)
+    query_confusions = queries.confusions(scene, index, target, prediction) if queries is not None and labelled \
+        else None
     pictures = {}
     if position < save_images:
         pictures = _pictures(target, prediction, classes, gt_rgb, num_classes, ignore, scene.near, scene.far,
@@ -349,6 +359,7 @@ def _evaluate_view(
         labelled=labelled,
         depth=depth,
         references=scored_references,
+        queries=query_confusions,
         feature_cosine=feature_cosine,
     )
 
@@ -422,6 +433,8 @@ def summarize(
             result["teacher_2d"] = teacher_instances.compute()
     if any(r.instance_baseline is not None for r in records):
         result["baseline_connected_components"] = instance_baseline.compute()
+    if any(r.queries for r in records):
+        result[M.QUERY_PROTOTYPE] = Q.summarize_queries(records, num_classes, ignore_index)
     if unlabelled and (semantics or instance_head):
         result[M.LABELS_UNLABELLED_SCENES] = unlabelled
         result[M.COUNT_IMAGES_WITHOUT_LABELS] = sum(1 for r in records if not r.labelled)
@@ -553,6 +566,10 @@ def _label_parts(values: dict[str, Any]) -> list[str]:
     cc = values.get("baseline_connected_components")
     if cc:
         parts.append(f"| instances from connected components: AP@0.75 {_fmt(cc.get(I.AP_MATCHED_75))}")
+    query = values.get(M.QUERY_PROTOTYPE)
+    if query and query.get("sources"):
+        scored = ", ".join(f"{name} {_fmt(v.get(M.MIOU_IMAGE_MEAN_PRESENT))}" for name, v in query["sources"].items())
+        parts.append(f"| query by prototype ({query.get('prototype_frames', '?')} frame/class) mIoU: {scored}")
     unlabelled = values.get(M.LABELS_UNLABELLED_SCENES)
     if unlabelled:
         parts.append(f"(labels scored on the labelled scenes only; without labels: {', '.join(unlabelled)})")

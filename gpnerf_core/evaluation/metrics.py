@@ -106,6 +106,15 @@ BASELINE_MAJORITY_UNAVAILABLE_REASON = "baseline_majority_unavailable_reason"
 """Why a split's ``baseline_majority`` is None although its labels are scored: no training scene has labels to take
 the majority class from."""
 
+QUERY_PROTOTYPE = "query/nearest_prototype"
+"""The query protocol (``eval.query_protocol=true``; ``gpnerf_core/evaluation/query_protocol.py``): per labelled scene,
+each class's prototype is the mean normalised feature of its pixels in ``prototype_frames`` of the scene's training
+frames that show it (drawn by ``seed``), rendered at their own cameras; every scored held-out frame is labelled by
+nearest prototype (cosine) and scored with the segmentation protocols (:data:`SEGMENTATION_KEYS`, per-image mIoU
+first) per feature source (``feature_field``, ``semantic_embedding``, ``provider_2d``). Its numbers answer how well a
+feature space segments from one example per class; they are never compared with a class head's mIoU as the same
+protocol, only shown beside it."""
+
 COUNT_IMAGES = "count/images"
 """Number of images that entered the per-image protocols."""
 

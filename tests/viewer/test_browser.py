@@ -1,5 +1,6 @@
 """A real browser: headless Chromium opens the viewer, the first rendered frame arrives, and the screenshot shows the
-scene (the rendered view as the background, frustums and controls), not a blank or an error page. The screenshot is
+scene (the rendered view as the background, frustums and controls), not a blank or an error page; a click on the view
+then queries by example. The screenshot is
 docs/images/viewer.png when GPNERF_VIEWER_SCREENSHOT names that path; GPNERF_VIEWER_CHECKPOINT=<.pt> shows that trained
 model instead of the tests' tiny untrained one (what the docs' screenshot shows)."""
 
@@ -115,6 +116,13 @@ def test_chromium_shows_the_rendered_scene(tiny, tmp_path):
         assert state.hidden_frustums == {first} and not state.frustums[first].visible
         assert all(handle.visible for index, handle in enumerate(state.frustums) if index != first)
         shot = devtools.call("Page.captureScreenshot", format="png")["data"]
+        # a click on the view queries by example (after the screenshot, which shows the view without a query)
+        state.gui["query_click"].value = True
+        time.sleep(0.5)  # the click callback reaches the page
+        for kind in ("mousePressed", "mouseReleased"):
+            devtools.call("Input.dispatchMouseEvent", type=kind, x=640, y=400, button="left", clickCount=1)
+        _wait(lambda: state.query is not None, 30, "the click's query")
+        assert state.gui["query_status"].content.startswith("**query** pixel ("), state.gui["query_status"].content
     finally:
         if devtools is not None:
             devtools.socket.close()

@@ -14,6 +14,7 @@ from viser import _messages
 from websockets.sync.client import connect
 
 from gpnerf_core.errors import ConfigError
+from gpnerf_core.tools.viewer.query import Query
 from gpnerf_core.tools.viewer.server import ViewerOptions, ViewerServer, check_port_free, depth_points
 
 OPTIONS = dict(host="127.0.0.1", port=0, scene="layout_00", scenes=("unseen_00", "layout_00"), stride=2,
@@ -131,7 +132,7 @@ def test_a_gaussian_family_shows_its_gaussians_as_splats_in_either_colouring(tin
             websocket.send(_camera_message(request))
             _wait(lambda: server.frames_delivered >= 2)
             (state,) = server._clients.values()
-            assert state.splats is not None and state.splats_shown == ("layout_00", state.last.sources, "rgb")
+            assert state.splats is not None and state.splats_shown[:3] == ("layout_00", state.last.sources, "rgb")
             first = state.splats
             misses = renderer.feature_cache.stats.misses  # the splats reuse the rendered view's Gaussians
             state.gui["splat_colours"].value = "class"
@@ -139,6 +140,25 @@ def test_a_gaussian_family_shows_its_gaussians_as_splats_in_either_colouring(tin
                                 state.last.sources)
             assert state.splats is not first and state.splats_shown[2] == "class"
             assert renderer.feature_cache.stats.misses == misses
+            # coloured by a query's relevancy (here the first Gaussian's own feature): sent again, in other colours
+            gaussians = renderer.gaussians("layout_00", state.last.sources)
+            state.query = Query(gaussians.features[0], "Gaussian 0")
+            coloured = state.splats
+            state.gui["splat_colours"].value = "relevancy"
+            server._show_splats(next(iter(server.server.get_clients().values())), state, "layout_00",
+                                state.last.sources)
+            assert state.splats is not coloured and state.splats_shown[3] is state.query
+            assert "not coloured" not in state.gui["query_status"].content
+            state.query = Query(torch.ones(gaussians.features.shape[1] + 1), "text 'x'")  # another dimension
+            server._show_splats(next(iter(server.server.get_clients().values())), state, "layout_00",
+                                state.last.sources)
+            assert state.gui["query_status"].content.startswith("**Gaussians not coloured by relevancy**: the query "
+                                                                "embedding has")
+            state.gui["query_click"].value = True  # clicks and shift-dragged boxes reach the query, then no more
+            client = next(iter(server.server.get_clients().values()))
+            assert {entry.event_type for entry in client.scene._scene_pointer_cb} == {"click", "rect-select"}
+            state.gui["query_click"].value = False
+            assert not client.scene._scene_pointer_cb
             state.gui["gaussians"].value = False
             server._show_splats(next(iter(server.server.get_clients().values())), state, "layout_00",
                                 state.last.sources)

@@ -11,3 +11,6 @@ def test_timing_reports_preview_and_full_frame_seconds_and_cpu_time(tiny):
         assert 0 <= result[key] < 60, key
     assert result["cpu_user_s"] > 0 and result["cpu_system_s"] >= 0 and result["minor_page_faults"] >= 0
     assert result["peak_resident_mb"] > 0
+    # a query on the kept full frame: GP-NeRF's semantic embedding at stride 4's grid, no render
+    assert 0 < result["query_s"] < 0.1 and result["query_features"] == "semantic_embedding"
+    assert result["query_grid"][1:] == [8, 12]

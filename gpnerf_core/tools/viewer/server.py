@@ -13,7 +13,7 @@ import errno
 import socket
 import threading
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -22,6 +22,7 @@ from gpnerf_core.errors import ConfigError
 from gpnerf_core.evaluation import visualize as vis
 from gpnerf_core.types import Scene
 from gpnerf_core.tools.viewer.camera import vertical_fov, viser_pose
+from gpnerf_core.tools.viewer.query import Query, answer, box_query, click_query
 from gpnerf_core.tools.viewer.splats import splat_arrays
 from gpnerf_core.tools.viewer.renderer import (
     LAYERS,
@@ -54,6 +55,8 @@ class ViewerOptions:
         source_views: source views per render (0 = the model's ``num_source_views``).
         class_names: the head's classes, for the legend (empty: no legend).
         max_points: depth points shown per scene; thumbnail_height: pixels of a frustum's thumbnail.
+        text_encoder: ``text -> [C]`` query embedding (the feature provider's text encoder,
+            ``features.queries.text_embedding``), or None: no text box.
     """
 
     host: str
@@ -66,6 +69,7 @@ class ViewerOptions:
     class_names: tuple[str, ...] = ()
     max_points: int = 20000
     thumbnail_height: int = 48
+    text_encoder: Callable[[str], torch.Tensor] | None = None
 
 
 def check_port_free(host: str, port: int) -> None:
@@ -132,9 +136,14 @@ class _ClientState:
     highlighted: list[Any] = field(default_factory=list)
     splats: Any = None
     splats_shown: tuple[Any, ...] | None = None
-    """The splat node and what it shows: (scene, sources, colours), so the same Gaussians are not sent twice."""
+    """The splat node and what it shows: (scene, sources, colours, query, threshold), so the same Gaussians are not
+    sent twice."""
     frustums: list[Any] = field(default_factory=list)
     hidden_frustums: set[int] = field(default_factory=set)
+    query: Query | None = None
+    """The query every view shown carries (a click's or a text's), or None."""
+    query_seconds: float | None = None
+    """Seconds the last query answer took (similarity and picture, no render)."""
     gui: dict[str, Any] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -244,10 +253,11 @@ class ViewerServer:
         if self.renderer.draws_gaussians:
             state.gui["gaussians"] = gui.add_checkbox("Gaussians", True,
                                                       hint="draw the model's 3D Gaussians (those of the view's sources)")
-            colours = ["rgb", "class"] if self.options.class_names else ["rgb"]
+            colours = ["rgb", "class", "relevancy"] if self.options.class_names else ["rgb", "relevancy"]
             state.gui["splat_colours"] = gui.add_dropdown("Gaussian colours", colours, initial_value="rgb")
         state.gui["snap"] = gui.add_button("Snap to nearest frame")
         state.gui["status"] = gui.add_markdown("waiting for the first frame")
+        self._build_query_gui(client, state)
         if self.options.class_names:
             state.gui["legend"] = gui.add_image(vis.class_legend(list(self.options.class_names)), label="Classes",
                                                 format="png", visible=False)
@@ -287,6 +297,105 @@ class ViewerServer:
                 handle.visible = bool(state.gui["cameras"].value) and index not in state.hidden_frustums
 
         state.gui["cameras"].on_update(cameras_shown)
+
+    def _build_query_gui(self, client: Any, state: _ClientState) -> None:
+        """Query controls: click to query by example, a text box (a provider with a text encoder), the relevancy
+        threshold, clearing the query, and its status line."""
+        gui = client.gui
+        state.gui["query_click"] = gui.add_checkbox(
+            "Query by click", False, hint="a click on the view (or a box dragged with shift held) makes its feature the "
+                                          "query; every view then shows its relevancy (turbo) where it reaches the "
+                                          "threshold")
+        if self.options.text_encoder is not None:
+            state.gui["query_text"] = gui.add_text("Query text", "", hint="a text embedded by the feature provider's "
+                                                                          "text encoder")
+        state.gui["threshold"] = gui.add_slider("Relevancy threshold", min=0.0, max=1.0, step=0.01, initial_value=0.5)
+        state.gui["query_clear"] = gui.add_button("Clear query")
+        state.gui["query_status"] = gui.add_markdown("no query")
+
+        def clicked(event: Any) -> None:
+            self.query_at(client, state, event.screen_pos)
+
+        def boxed(event: Any) -> None:
+            self.query_box(client, state, event.screen_min, event.screen_max)
+
+        def click_mode(_: Any) -> None:
+            if bool(state.gui["query_click"].value):
+                client.scene.on_click()(clicked)
+                client.scene.on_rect_select(modifier="shift")(boxed)
+            else:
+                client.scene.remove_click_callback(clicked)
+                client.scene.remove_rect_select_callback(boxed)
+
+        def text_changed(_: Any) -> None:
+            text = str(state.gui["query_text"].value)
+            if text.strip():
+                self.query_text(client, state, text)
+
+        def cleared(_: Any) -> None:
+            state.query = None
+            state.gui["query_status"].content = "no query"
+            self._show_last(client, state)
+
+        state.gui["query_click"].on_update(click_mode)
+        state.gui["threshold"].on_update(lambda _: state.query is not None and self._show_last(client, state))
+        # the splats follow the query too (``Gaussian colours``: relevancy): _show_last sends them again when it changed
+        state.gui["query_clear"].on_click(cleared)
+        if "query_text" in state.gui:
+            state.gui["query_text"].on_update(text_changed)
+
+    def query_at(self, client: Any, state: _ClientState, screen_pos: tuple[float, float]) -> None:
+        """A click at ``screen_pos`` (0 to 1 from the top-left) on the view on screen becomes the query; the view is
+        shown again with its relevancy (no render)."""
+        view = state.last
+        try:
+            state.query = click_query(view.prediction if view is not None else None, screen_pos)
+        except ConfigError as exc:
+            state.gui["query_status"].content = f"**query refused**: {exc}"
+            return
+        self._show_last(client, state)
+
+    def query_box(self, client: Any, state: _ClientState, screen_min: tuple[float, float],
+                  screen_max: tuple[float, float]) -> None:
+        """A box dragged on the view on screen (corners 0 to 1 from the top-left) becomes the query (the mean feature
+        of its cells); the view is shown again with its relevancy (no render)."""
+        view = state.last
+        try:
+            state.query = box_query(view.prediction if view is not None else None, screen_min, screen_max)
+        except ConfigError as exc:
+            state.gui["query_status"].content = f"**query refused**: {exc}"
+            return
+        self._show_last(client, state)
+
+    def query_text(self, client: Any, state: _ClientState, text: str) -> None:
+        """``text`` embedded by the provider's text encoder becomes the query; the view is shown again with it."""
+        try:
+            state.query = Query(embedding=self.options.text_encoder(text).detach().float().cpu(), label=repr(text))
+        except (ConfigError, ValueError) as exc:
+            state.gui["query_status"].content = f"**query refused**: {exc}"
+            return
+        self._show_last(client, state)
+
+    def _show_last(self, client: Any, state: _ClientState) -> None:
+        if state.last is not None and state.last_request is not None:
+            self._show(client, state, state.last_request, state.last)
+
+    def _with_query(self, state: _ClientState, view: RenderedView, picture: np.ndarray) -> np.ndarray:
+        """``picture`` with the client's query's relevancy blended in (as it is without a query or when the query
+        cannot be answered on this view, which the query status line then says)."""
+        if state.query is None:
+            return picture
+        threshold = float(state.gui["threshold"].value)
+        try:
+            answered = answer(view.prediction, picture, state.query, threshold)
+        except ConfigError as exc:
+            state.gui["query_status"].content = f"**query refused**: {exc}"
+            return picture
+        state.query_seconds = answered.seconds
+        state.gui["query_status"].content = (
+            f"**query** {state.query.label}: {answered.selected:.0%} of the view at relevancy >= {threshold:.2f} "
+            f"(peak {answered.peak:.2f}), {answered.seconds * 1000:.1f} ms")
+        return answered.picture
 
     def _show_scene(self, client: Any, state: _ClientState) -> None:
         """Frustums with thumbnails and the depth points of the client's scene."""
@@ -410,6 +519,7 @@ class ViewerServer:
             if layer == "semantic" and chosen != "none" and view.prediction is not None:
                 labels = view.prediction.logits[0].argmax(0).cpu().numpy()
                 picture = highlight_class(picture, labels, list(self.options.class_names).index(chosen))
+        picture = self._with_query(state, view, picture)
         client.scene.set_background_image(picture, format="jpeg")
         self._highlight(client, state, request.scene, view.sources)
         self._show_splats(client, state, request.scene, view.sources)
@@ -427,14 +537,22 @@ class ViewerServer:
             if state.splats is not None:
                 state.splats.visible = False
             return
-        shown = (scene_name, tuple(sources), str(state.gui["splat_colours"].value))
+        colours = str(state.gui["splat_colours"].value)
+        query = state.query if colours == "relevancy" else None
+        shown = (scene_name, tuple(sources), colours, query,
+                 float(state.gui["threshold"].value) if query is not None else None)
         if shown != state.splats_shown:
             splats = self.renderer.gaussians(scene_name, tuple(sources))
             if splats is None:
                 return
             if state.splats is not None:
                 state.splats.remove()
-            arrays = splat_arrays(splats, shown[2], self.renderer.label_count)
+            try:
+                arrays = splat_arrays(splats, colours, self.renderer.label_count,
+                                      query.embedding if query is not None else None, shown[4] or 0.5)
+            except ConfigError as exc:
+                state.gui["query_status"].content = f"**Gaussians not coloured by relevancy**: {exc}"
+                arrays = splat_arrays(splats, "rgb", self.renderer.label_count)
             state.splats = client.scene.add_gaussian_splats("/gaussians", **arrays)
             state.splats_shown = shown
         state.splats.visible = True

@@ -7,7 +7,8 @@ Gaussians, is its checkpoint's), then, for a camera at a training frame of the f
 times what the viewer does when a camera stops: the preview at ``view.preview_stride`` (``view.preview_samples`` per
 ray around ``view.preview_depth_source``'s depth; 0 = as the full frame) and the full frame at ``view.stride``, each for
 a camera whose sources are not encoded yet (cold) and again with the feature cache holding them (warm, as while the
-camera moves among the same sources).
+camera moves among the same sources), and a query on the full frame the viewer keeps (``query_s``: a click at the
+view's centre made the query, its relevancy map blended over the picture, no render; ``tools/viewer/query.py``).
 Prints one JSON object (seconds, the image size, threads and device, and the process's CPU user and system seconds
 and minor page faults over the timed renders: ``keep_freed_memory=false`` shows what glibc's defaults cost)."""
 
@@ -78,14 +79,36 @@ def measure(overrides: list[str], repeats: int = 3) -> dict[str, object]:
             cold.append(time.perf_counter() - began)
         began = time.perf_counter()
         for _ in range(repeats):
-            renderer.render(scene.name, camera, request.source_views, stride, stage)
+            view = renderer.render(scene.name, camera, request.source_views, stride, stage)
         result[f"{stage}_s_cold"] = round(min(cold), 4)
         result[f"{stage}_s_warm"] = round((time.perf_counter() - began) / repeats, 4)
     after = resource.getrusage(resource.RUSAGE_SELF)
+    result.update(query_timing(view, repeats))
     result.update(cpu_user_s=round(after.ru_utime - usage.ru_utime, 2),
                   cpu_system_s=round(after.ru_stime - usage.ru_stime, 2),
                   minor_page_faults=after.ru_minflt - usage.ru_minflt, peak_resident_mb=after.ru_maxrss // 1024)
     return result
+
+
+def query_timing(view: object, repeats: int) -> dict[str, object]:
+    """Seconds a query takes on the kept full frame ``view`` (the click's embedding, the similarity and the blended
+    picture; the mean of ``repeats``), which feature map it reads and its channels; ``query_s`` None with the reason
+    for a model without a feature map."""
+    from gpnerf_core.errors import ConfigError
+    from gpnerf_core.features.queries import prediction_feature_source
+    from gpnerf_core.tools.viewer.query import answer, click_query
+
+    prediction = view.prediction
+    try:
+        began = time.perf_counter()
+        for _ in range(repeats):
+            answer(prediction, view.layers["rgb"], click_query(prediction, (0.5, 0.5)), 0.5)
+    except ConfigError as exc:
+        return {"query_s": None, "query_note": str(exc)}
+    source = prediction_feature_source(prediction)
+    features = prediction.features if source == "feature_field" else prediction.semantic
+    return {"query_s": round((time.perf_counter() - began) / repeats, 5), "query_features": source,
+            "query_grid": [int(features.shape[0]), int(features.shape[1]), int(features.shape[2])]}
 
 
 if __name__ == "__main__":
