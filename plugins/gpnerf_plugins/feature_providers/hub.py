@@ -8,6 +8,8 @@ provider refuses in one line naming the package and the weights file it would re
 
 from __future__ import annotations
 
+from abc import abstractmethod
+
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -82,8 +84,9 @@ class _HubProvider(nn.Module, FeatureProvider):
     def train(self, mode: bool = True) -> "_HubProvider":
         return super().train(False)  # frozen: always in eval mode
 
+    @abstractmethod
     def _map(self, x: Tensor) -> Tensor:
-        raise NotImplementedError
+        """``[B, 3, h, w]`` normalised frames at ``input_size`` -> ``[B, C, gh, gw]`` the model's feature map."""
 
     @torch.no_grad()
     def compute(self, scene: str, frames: Sequence[int], images: Tensor) -> Tensor:
